@@ -1,0 +1,47 @@
+"""Exception hierarchy of mems-stereo.
+
+Input errors subclass :class:`ValueError` so callers that already catch
+``ValueError`` keep working; the CLI turns every :class:`MemsStereoError` into
+a one-line message on stderr and a non-zero exit code, without a traceback.
+"""
+
+from __future__ import annotations
+
+
+class MemsStereoError(Exception):
+    """Base class of every error the package raises on purpose."""
+
+
+class FormatError(MemsStereoError, ValueError):
+    """A file or an in-memory description does not follow FORMAT v1.
+
+    Parameters
+    ----------
+    message : str
+        What was expected and what was found.
+    source : str, optional
+        The file (or ``"<dict>"``) the bad value came from.
+    field : str, optional
+        Dotted path of the bad field (``"receiver.camera_matrix"``) or the HDF5
+        dataset (``"/shots/bins"``).
+    """
+
+    def __init__(self, message: str, source: str | None = None, field: str | None = None):
+        self.source = source
+        self.field = field
+        self.reason = message
+        parts = []
+        if source:
+            parts.append(str(source))
+        if field:
+            parts.append(field)
+        prefix = ": ".join(parts)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class GeometryError(MemsStereoError, ValueError):
+    """Geometric input that cannot be used (degenerate basis, wrong shape...)."""
+
+
+class NotObservableError(MemsStereoError):
+    """A calibration parameter the data cannot determine."""

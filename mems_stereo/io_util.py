@@ -1,0 +1,49 @@
+"""Atomic file output: nothing half-written is ever left behind.
+
+Every writer of the package goes through :func:`atomic_output`: the data are
+written to a temporary file in the target's directory and renamed over the
+target only when the writer finished without error (``os.replace`` is atomic
+on POSIX).  On an exception, including ``KeyboardInterrupt``, the temporary
+file is removed and the target is left as it was.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterator[Path]:
+    """Yield a temporary path to write; rename it to ``path`` on success.
+
+    Parameters
+    ----------
+    path : target file.
+    suffix : suffix of the temporary file (default: the target's), so that
+        writers that pick the format from the extension (Open3D) still work.
+    """
+    target = Path(path)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    sfx = target.suffix if suffix is None else suffix
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".part{sfx}",
+                               dir=target.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, target)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp_path.unlink()
+        raise
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write text to ``path`` atomically; returns the path."""
+    with atomic_output(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)

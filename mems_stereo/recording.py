@@ -1,0 +1,277 @@
+"""HDF5 recordings of FORMAT v1: read, validate, write, and read in chunks of shots.
+
+A recording holds one frame or run: the system description as known when
+recording (``/system``), the shot trigger times and TDC codes
+(``/shots/time``, ``/shots/bins``), the zero crossings of θ_mech
+(``/scanner/zero_crossings``, ``/scanner/rising``), and for simulated data a
+``/truth`` group that processing never reads.
+
+Errors are :class:`~mems_stereo.errors.FormatError` naming the file, the
+dataset and what was wrong.  Writers are atomic (``io_util.atomic_output``).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .errors import FormatError
+from .io_util import atomic_output
+from .scanner import validate_zero_crossings
+from .system import System, system_from_json, system_to_json
+
+FORMAT_NAME = "mems-stereo/recording"
+FORMAT_VERSION = 1
+TRUTH_DATASETS = ("label", "theta", "point")
+
+
+@dataclass
+class Recording:
+    """A recording in memory (or with ``bins`` as a lazy h5py dataset).
+
+    Attributes
+    ----------
+    system : System as recorded (nominal).
+    shot_time : (K,) float64, s.
+    bins : (K, H, W) uint16 TDC codes, 0 = no detection.
+    zero_crossings : (Z,) float64, s, increasing.
+    rising : (Z,) uint8.
+    truth : dict of optional arrays (``label`` (K,H,W) uint8, ``theta`` (K,)
+        rad, ``point`` (K,3) m) and anything else under /truth.
+    source : file name for messages.
+    """
+
+    system: System
+    shot_time: np.ndarray
+    bins: np.ndarray
+    zero_crossings: np.ndarray
+    rising: np.ndarray
+    truth: dict = field(default_factory=dict)
+    source: str = "<memory>"
+
+    @property
+    def n_shots(self) -> int:
+        return int(self.shot_time.shape[0])
+
+    @property
+    def has_truth(self) -> bool:
+        return "label" in self.truth
+
+
+def _need(f: h5py.File, path: str, source: str) -> h5py.Dataset:
+    if path not in f:
+        raise FormatError("required dataset is missing", source, path)
+    obj = f[path]
+    if not isinstance(obj, h5py.Dataset):
+        raise FormatError("expected a dataset, found a group", source, path)
+    return obj
+
+
+def _check_dtype(ds, kinds: str, expected: str, source: str, path: str):
+    if ds.dtype.kind not in kinds:
+        raise FormatError(f"expected {expected}, found dtype {ds.dtype}", source, path)
+
+
+def validate_header(f: h5py.File, source: str) -> System:
+    """Check the file attributes and ``/system``; return the recorded System."""
+    fmt = f.attrs.get("format")
+    if isinstance(fmt, bytes):
+        fmt = fmt.decode()
+    if fmt != FORMAT_NAME:
+        raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
+                          source, "attrs/format")
+    ver = f.attrs.get("version")
+    if ver is None or int(np.asarray(ver)) != FORMAT_VERSION:
+        raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found {ver!r}",
+                          source, "attrs/version")
+    ds = _need(f, "/system", source)
+    raw = ds[()]
+    if isinstance(raw, bytes):
+        raw = raw.decode("utf-8")
+    if not isinstance(raw, str):
+        raise FormatError(f"expected a JSON string, found {type(raw).__name__}", source,
+                          "/system")
+    return system_from_json(raw, source=f"{source}:/system")
+
+
+def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
+                            chunk_shots: int = 4096):
+    """Validate the datasets of an open recording against FORMAT v1.
+
+    Returns ``(system, shot_time, zero_crossings, rising)``; ``/shots/bins`` is
+    checked for shape and dtype and, if ``check_codes``, streamed to check
+    that every code is <= n_bins (memory bounded by ``chunk_shots``).
+    """
+    system = validate_header(f, source)
+    t_ds = _need(f, "/shots/time", source)
+    _check_dtype(t_ds, "f", "float64 seconds", source, "/shots/time")
+    if t_ds.ndim != 1:
+        raise FormatError(f"expected shape (K,), found {t_ds.shape}", source, "/shots/time")
+    t = t_ds[()].astype(np.float64)
+    if not np.all(np.isfinite(t)):
+        raise FormatError("expected finite times, found NaN or inf", source, "/shots/time")
+    if t.size > 1 and np.any(np.diff(t) <= 0):
+        i = int(np.argmax(np.diff(t) <= 0))
+        raise FormatError(f"expected strictly increasing shot times, found t[{i + 1}] = "
+                          f"{t[i + 1]!r} <= t[{i}] = {t[i]!r}", source, "/shots/time")
+    b_ds = _need(f, "/shots/bins", source)
+    w, h = system.receiver.image_size
+    if b_ds.ndim != 3 or b_ds.shape[0] != t.size or b_ds.shape[1:] != (h, w):
+        raise FormatError(f"expected shape (K, H, W) = ({t.size}, {h}, {w}), found {b_ds.shape}",
+                          source, "/shots/bins")
+    if b_ds.dtype != np.uint16:
+        raise FormatError(f"expected dtype uint16, found {b_ds.dtype}", source, "/shots/bins")
+    if check_codes:
+        n_bins = system.tdc.n_bins
+        for s0 in range(0, t.size, chunk_shots):
+            blk = b_ds[s0:s0 + chunk_shots]
+            if blk.size and int(blk.max()) > n_bins:
+                k = s0 + int(np.argmax(blk.reshape(blk.shape[0], -1).max(axis=1) > n_bins))
+                raise FormatError(f"expected codes 0..{n_bins} (n_bins), found "
+                                  f"{int(blk.max())} in shot {k}", source, "/shots/bins")
+    zc_ds = _need(f, "/scanner/zero_crossings", source)
+    _check_dtype(zc_ds, "f", "float64 seconds", source, "/scanner/zero_crossings")
+    r_ds = _need(f, "/scanner/rising", source)
+    _check_dtype(r_ds, "iub", "uint8 0/1", source, "/scanner/rising")
+    zc, rising = validate_zero_crossings(zc_ds[()], r_ds[()], source=source)
+    return system, t, zc, rising.astype(np.uint8)
+
+
+def _read_truth(f: h5py.File) -> dict:
+    truth = {}
+    if "truth" in f and isinstance(f["truth"], h5py.Group):
+        for k, v in f["truth"].items():
+            if isinstance(v, h5py.Dataset):
+                truth[k] = v[()]
+    return truth
+
+
+def read_recording(path: str | os.PathLike, *, truth: bool = True) -> Recording:
+    """Read and validate a whole recording into memory.
+
+    For recordings larger than memory use :func:`iter_shot_chunks`.
+    """
+    source = str(path)
+    try:
+        f = h5py.File(path, "r")
+    except (OSError, FileNotFoundError) as e:
+        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
+    with f:
+        system, t, zc, rising = validate_recording_file(f, source, check_codes=False)
+        bins = f["/shots/bins"][()]
+        if bins.size and int(bins.max()) > system.tdc.n_bins:
+            k = int(np.argmax(bins.reshape(bins.shape[0], -1).max(axis=1) > system.tdc.n_bins))
+            raise FormatError(f"expected codes 0..{system.tdc.n_bins} (n_bins), found "
+                              f"{int(bins.max())} in shot {k}", source, "/shots/bins")
+        tr = _read_truth(f) if truth else {}
+    return Recording(system, t, bins, zc, rising, tr, source)
+
+
+@dataclass
+class RecordingHeader:
+    """Everything of a recording except the bins: for streaming."""
+
+    system: System
+    shot_time: np.ndarray
+    zero_crossings: np.ndarray
+    rising: np.ndarray
+    shape: tuple
+    source: str
+
+
+def read_header(path: str | os.PathLike, check_codes: bool = False) -> RecordingHeader:
+    """Validate a recording and read all but ``/shots/bins`` (memory: O(K))."""
+    source = str(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
+    with f:
+        system, t, zc, rising = validate_recording_file(f, source, check_codes=check_codes)
+        shape = tuple(f["/shots/bins"].shape)
+    return RecordingHeader(system, t, zc, rising, shape, source)
+
+
+def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
+                     start: int = 0, stop: int | None = None,
+                     truth_labels: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """Yield ``(first_shot, time (k,), bins (k, H, W))`` chunks of a recording.
+
+    Memory is bounded by the chunk, whatever the recording's length.  Codes
+    above n_bins raise :class:`FormatError` for the chunk that holds them.
+    With ``truth_labels`` a fourth item, the chunk of ``/truth/label`` (or
+    None), is yielded.
+    """
+    source = str(path)
+    with h5py.File(path, "r") as f:
+        system = validate_header(f, source)
+        t_all = f["/shots/time"]
+        b_ds = f["/shots/bins"]
+        lab = f["/truth/label"] if truth_labels and "/truth/label" in f else None
+        n = b_ds.shape[0] if stop is None else min(stop, b_ds.shape[0])
+        for s0 in range(start, n, chunk_shots):
+            s1 = min(n, s0 + chunk_shots)
+            blk = b_ds[s0:s1]
+            if blk.size and int(blk.max()) > system.tdc.n_bins:
+                raise FormatError(f"expected codes 0..{system.tdc.n_bins} (n_bins), found "
+                                  f"{int(blk.max())} in shots {s0}..{s1 - 1}", source,
+                                  "/shots/bins")
+            item = (s0, t_all[s0:s1].astype(np.float64), blk)
+            if truth_labels:
+                item = item + ((lab[s0:s1] if lab is not None else None),)
+            yield item
+
+
+def write_recording(path: str | os.PathLike, system: System, shot_time, bins,
+                    zero_crossings, rising, truth: dict | None = None,
+                    compression: str | None = "gzip") -> Path:
+    """Write a FORMAT v1 recording atomically.
+
+    Parameters
+    ----------
+    shot_time : (K,) float64 s; bins : (K, H, W) uint16; zero_crossings : (Z,)
+    float64 s; rising : (Z,) uint8; truth : optional dict of arrays written
+    under ``/truth``.  The inputs are validated as on read.
+    """
+    t = np.asarray(shot_time, dtype=np.float64)
+    b = np.asarray(bins)
+    if b.dtype != np.uint16:
+        raise FormatError(f"expected dtype uint16, found {b.dtype}", str(path), "/shots/bins")
+    w, h = system.receiver.image_size
+    if b.shape != (t.size, h, w):
+        raise FormatError(f"expected shape ({t.size}, {h}, {w}), found {b.shape}", str(path),
+                          "/shots/bins")
+    zc, r = validate_zero_crossings(zero_crossings, rising, source=str(path))
+    opts = {"compression": compression} if compression else {}
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["version"] = FORMAT_VERSION
+        f.create_dataset("system", data=system_to_json(system))
+        f.create_dataset("shots/time", data=t)
+        chunks = (max(1, min(t.size, 1024)), h, w) if t.size else None
+        f.create_dataset("shots/bins", data=b, chunks=chunks, **(opts if t.size else {}))
+        f.create_dataset("scanner/zero_crossings", data=zc)
+        f.create_dataset("scanner/rising", data=r.astype(np.uint8))
+        for k, v in (truth or {}).items():
+            v = np.asarray(v)
+            f.create_dataset(f"truth/{k}", data=v, **(opts if v.ndim >= 2 and v.size else {}))
+    return Path(path)
+
+
+def write_labels(path: str | os.PathLike, label, theta) -> Path:
+    """Write event labels (FORMAT v1 outputs): ``/label`` uint8 [K,H,W], ``/theta`` [K]."""
+    lab = np.asarray(label, dtype=np.uint8)
+    th = np.asarray(theta, dtype=np.float64)
+    if lab.ndim != 3 or th.shape != (lab.shape[0],):
+        raise ValueError(f"labels: expected (K, H, W) and (K,), found {lab.shape}, {th.shape}")
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = "mems-stereo/labels"
+        f.attrs["version"] = 1
+        f.create_dataset("label", data=lab, compression="gzip")
+        f.create_dataset("theta", data=th)
+    return Path(path)

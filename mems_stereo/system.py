@@ -1,0 +1,444 @@
+"""The system description of FORMAT v1: load, validate, save, presets.
+
+A :class:`System` holds every parameter of the scanner–receiver pair; it is
+the one source of parameters for every stage of the package.  All values are
+SI (metres, seconds, hertz, radians); the world frame is the receiver camera
+frame in the OpenCV convention (see ``docs/conventions.md``).
+
+The JSON form is ``{"format": "mems-stereo/system", "version": 1, ...}`` as
+specified in ``docs/formats.md``.  Validation errors are
+:class:`~mems_stereo.errors.FormatError` naming the file, the dotted field,
+what was expected and what was found.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FormatError
+
+FORMAT_NAME = "mems-stereo/system"
+FORMAT_VERSION = 1
+ALLOWED_DIST_LENGTHS = (4, 5, 8, 12, 14)
+
+
+@dataclass(frozen=True)
+class Receiver:
+    """OpenCV intrinsics of the SPAD receiver.
+
+    Attributes
+    ----------
+    camera_matrix : (3, 3) float64, pixels
+    dist_coeffs : (D,) float64, D in {4, 5, 8, 12, 14}
+    image_size : (width, height) in pixels
+    pixel_pitch : (2,) float64, metres (x, y)
+    spad_diameter : float, metres (photosensitive diameter of one SPAD)
+    """
+
+    camera_matrix: np.ndarray
+    dist_coeffs: np.ndarray
+    image_size: tuple[int, int]
+    pixel_pitch: np.ndarray
+    spad_diameter: float
+
+    @property
+    def width(self) -> int:
+        return int(self.image_size[0])
+
+    @property
+    def height(self) -> int:
+        return int(self.image_size[1])
+
+
+@dataclass(frozen=True)
+class Scanner:
+    """The resonant MEMS transmitter.
+
+    Attributes
+    ----------
+    position : (3,) float64, metres, world frame: the mirror pivot (baseline)
+    normal_basis : (2, 3) float64, orthonormal [e1, e2]; n(θ) = cos θ e1 + sin θ e2
+    laser_direction : (3,) float64, unit vector of the beam arriving at the mirror
+    theta0 : float, rad, rest angle of the mirror (θ = θ0 + θ_mech)
+    f_mech : float, Hz, nominal mechanical frequency
+    theta_mech_max : float, rad, mechanical amplitude
+    phase_offset : float, rad, delay of the true phase behind the phase of the
+        zero-crossing monitor (added field, default 0; estimated by calibration)
+    """
+
+    position: np.ndarray
+    normal_basis: np.ndarray
+    laser_direction: np.ndarray
+    theta0: float
+    f_mech: float
+    theta_mech_max: float
+    phase_offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class Laser:
+    """Pulsed laser: repetition rate (Hz), pulse FWHM (s), wavelength (m)."""
+
+    f_rep: float
+    pulse_fwhm: float
+    wavelength: float
+
+
+@dataclass(frozen=True)
+class TDC:
+    """Time-to-digital converter: code N in 1..n_bins has
+    ``t_TOF = (N - 1/2) * bin_width - offset`` (seconds)."""
+
+    bin_width: float
+    n_bins: int
+    offset: float = 0.0
+
+
+@dataclass(frozen=True)
+class System:
+    """The whole scanner–receiver pair (FORMAT v1 system description)."""
+
+    receiver: Receiver
+    scanner: Scanner
+    laser: Laser
+    tdc: TDC
+    speed_of_light: float = 299704644.5
+    calibration: dict | None = field(default=None, compare=False)
+
+    @property
+    def baseline(self) -> np.ndarray:
+        """(3,) float64, metres: scanner position minus projection centre (origin)."""
+        return np.asarray(self.scanner.position, dtype=np.float64)
+
+    def replace(self, **changes: Any) -> System:
+        """Copy with top-level fields replaced (``dataclasses.replace``)."""
+        return replace(self, **changes)
+
+    def with_params(self, **params: float) -> System:
+        """Copy with named scalar parameters changed.
+
+        Known names: ``theta0``, ``theta_mech_max``, ``phase_offset``,
+        ``f_mech``, ``tdc_offset``, ``baseline_x``, ``baseline_y``,
+        ``baseline_z``, ``fx``, ``cx``.
+        """
+        sc, tdc, rc = self.scanner, self.tdc, self.receiver
+        pos = np.array(sc.position, dtype=np.float64)
+        K = np.array(rc.camera_matrix, dtype=np.float64)
+        sc_kw: dict[str, Any] = {}
+        for name, value in params.items():
+            value = float(value)
+            if name in ("theta0", "theta_mech_max", "phase_offset", "f_mech"):
+                sc_kw[name] = value
+            elif name == "tdc_offset":
+                tdc = replace(tdc, offset=value)
+            elif name in ("baseline_x", "baseline_y", "baseline_z"):
+                pos["xyz".index(name[-1])] = value
+            elif name == "fx":
+                K[0, 0] = value
+            elif name == "cx":
+                K[0, 2] = value
+            else:
+                raise KeyError(f"unknown system parameter {name!r}")
+        sc = replace(sc, position=pos, **sc_kw)
+        rc = replace(rc, camera_matrix=K)
+        return replace(self, scanner=sc, tdc=tdc, receiver=rc)
+
+    def get_param(self, name: str) -> float:
+        """Value of a named scalar parameter (names as in :meth:`with_params`)."""
+        if name in ("theta0", "theta_mech_max", "phase_offset", "f_mech"):
+            return float(getattr(self.scanner, name))
+        if name == "tdc_offset":
+            return float(self.tdc.offset)
+        if name in ("baseline_x", "baseline_y", "baseline_z"):
+            return float(self.scanner.position["xyz".index(name[-1])])
+        if name == "fx":
+            return float(self.receiver.camera_matrix[0, 0])
+        if name == "cx":
+            return float(self.receiver.camera_matrix[0, 2])
+        raise KeyError(f"unknown system parameter {name!r}")
+
+
+# --------------------------------------------------------------------------
+# validation helpers
+
+
+class _Ctx:
+    """Carries the source name for error messages."""
+
+    def __init__(self, source: str):
+        self.source = source
+
+    def fail(self, fld: str, msg: str) -> FormatError:
+        return FormatError(msg, source=self.source, field=fld)
+
+    def get(self, d: dict, key: str, prefix: str) -> Any:
+        if not isinstance(d, dict):
+            raise self.fail(prefix, f"expected an object, found {type(d).__name__}")
+        if key not in d:
+            raise self.fail(f"{prefix}.{key}".lstrip("."), "required field is missing")
+        return d[key]
+
+    def number(self, value: Any, fld: str, *, positive: bool = False,
+               nonneg: bool = False) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.fail(fld, f"expected a number, found {value!r}")
+        v = float(value)
+        if not math.isfinite(v):
+            raise self.fail(fld, f"expected a finite number, found {value!r}")
+        if positive and v <= 0:
+            raise self.fail(fld, f"expected a positive number, found {value!r}")
+        if nonneg and v < 0:
+            raise self.fail(fld, f"expected a non-negative number, found {value!r}")
+        return v
+
+    def array(self, value: Any, fld: str, shape: tuple) -> np.ndarray:
+        try:
+            a = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise self.fail(fld, f"expected numbers of shape {_fmt_shape(shape)}, "
+                                 f"found {value!r}") from None
+        if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
+            raise self.fail(fld, f"expected shape {_fmt_shape(shape)}, found {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise self.fail(fld, "expected finite numbers, found NaN or inf")
+        return a
+
+
+def _fmt_shape(shape: tuple) -> str:
+    return "(" + ", ".join("D" if s is None else str(s) for s in shape) + ")"
+
+
+def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "") -> np.ndarray:
+    """Check an OpenCV camera matrix: (3, 3), finite, fx, fy > 0, last row [0, 0, 1]."""
+    ctx = _Ctx(source)
+    K = ctx.array(K, fld, (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ctx.fail(fld, f"expected positive focal lengths fx, fy, found {K[0, 0]}, {K[1, 1]}")
+    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
+        raise ctx.fail(fld, f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}")
+    return K
+
+
+def validate_normal_basis(basis: Any, fld: str = "scanner.normal_basis", source: str = "",
+                          tol: float = 1e-6) -> np.ndarray:
+    """Check the mirror's normal basis [e1, e2]: (2, 3), unit, orthogonal."""
+    ctx = _Ctx(source)
+    B = ctx.array(basis, fld, (2, 3))
+    norms = np.linalg.norm(B, axis=1)
+    for i in range(2):
+        if abs(norms[i] - 1.0) > tol:
+            raise ctx.fail(f"{fld}[{i}]", f"expected a unit vector, found norm {norms[i]:.9g}")
+    dot = float(B[0] @ B[1])
+    if abs(dot) > tol:
+        raise ctx.fail(fld, f"expected orthogonal vectors e1, e2, found e1·e2 = {dot:.6g} "
+                            "(degenerate basis)")
+    return B
+
+
+def system_from_dict(d: dict, source: str = "<dict>") -> System:
+    """Build and validate a :class:`System` from its FORMAT v1 JSON object."""
+    ctx = _Ctx(source)
+    if not isinstance(d, dict):
+        raise ctx.fail("(top level)", f"expected a JSON object, found {type(d).__name__}")
+    fmt = ctx.get(d, "format", "")
+    if fmt != FORMAT_NAME:
+        raise ctx.fail("format", f"expected {FORMAT_NAME!r}, found {fmt!r}")
+    ver = ctx.get(d, "version", "")
+    if ver != FORMAT_VERSION:
+        raise ctx.fail("version", f"expected {FORMAT_VERSION}, found {ver!r}")
+
+    r = ctx.get(d, "receiver", "")
+    K = validate_camera_matrix(ctx.get(r, "camera_matrix", "receiver"),
+                               "receiver.camera_matrix", source)
+    dist = ctx.array(ctx.get(r, "dist_coeffs", "receiver"), "receiver.dist_coeffs", (None,))
+    if dist.size not in ALLOWED_DIST_LENGTHS:
+        raise ctx.fail("receiver.dist_coeffs",
+                       f"expected 4, 5, 8, 12 or 14 coefficients, found {dist.size}")
+    size = ctx.get(r, "image_size", "receiver")
+    if (not isinstance(size, (list, tuple)) or len(size) != 2
+            or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
+        raise ctx.fail("receiver.image_size",
+                       f"expected [width, height] as two positive integers, found {size!r}")
+    pitch = ctx.array(ctx.get(r, "pixel_pitch", "receiver"), "receiver.pixel_pitch", (2,))
+    if np.any(pitch <= 0):
+        raise ctx.fail("receiver.pixel_pitch", f"expected positive values, found {pitch.tolist()}")
+    spad = ctx.number(ctx.get(r, "spad_diameter", "receiver"), "receiver.spad_diameter",
+                      positive=True)
+    receiver = Receiver(K, dist, (int(size[0]), int(size[1])), pitch, spad)
+
+    s = ctx.get(d, "scanner", "")
+    pos = ctx.array(ctx.get(s, "position", "scanner"), "scanner.position", (3,))
+    basis = validate_normal_basis(ctx.get(s, "normal_basis", "scanner"),
+                                  "scanner.normal_basis", source)
+    dl = ctx.array(ctx.get(s, "laser_direction", "scanner"), "scanner.laser_direction", (3,))
+    if abs(np.linalg.norm(dl) - 1.0) > 1e-6:
+        raise ctx.fail("scanner.laser_direction",
+                       f"expected a unit vector, found norm {np.linalg.norm(dl):.9g}")
+    scanner = Scanner(
+        position=pos,
+        normal_basis=basis,
+        laser_direction=dl,
+        theta0=ctx.number(ctx.get(s, "theta0", "scanner"), "scanner.theta0"),
+        f_mech=ctx.number(ctx.get(s, "f_mech", "scanner"), "scanner.f_mech", positive=True),
+        theta_mech_max=ctx.number(ctx.get(s, "theta_mech_max", "scanner"),
+                                  "scanner.theta_mech_max", positive=True),
+        phase_offset=ctx.number(s.get("phase_offset", 0.0), "scanner.phase_offset"),
+    )
+
+    la = ctx.get(d, "laser", "")
+    laser = Laser(
+        f_rep=ctx.number(ctx.get(la, "f_rep", "laser"), "laser.f_rep", positive=True),
+        pulse_fwhm=ctx.number(ctx.get(la, "pulse_fwhm", "laser"), "laser.pulse_fwhm",
+                              nonneg=True),
+        wavelength=ctx.number(ctx.get(la, "wavelength", "laser"), "laser.wavelength",
+                              positive=True),
+    )
+
+    t = ctx.get(d, "tdc", "")
+    n_bins = ctx.get(t, "n_bins", "tdc")
+    if isinstance(n_bins, bool) or not isinstance(n_bins, int) or not 1 <= n_bins <= 65535:
+        raise ctx.fail("tdc.n_bins", f"expected an integer in 1..65535, found {n_bins!r}")
+    tdc = TDC(
+        bin_width=ctx.number(ctx.get(t, "bin_width", "tdc"), "tdc.bin_width", positive=True),
+        n_bins=n_bins,
+        offset=ctx.number(t.get("offset", 0.0), "tdc.offset"),
+    )
+    c = ctx.number(ctx.get(d, "speed_of_light", ""), "speed_of_light", positive=True)
+    calib = d.get("calibration")
+    if calib is not None and not isinstance(calib, dict):
+        raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
+    return System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
+
+
+def system_to_dict(system: System) -> dict:
+    """The FORMAT v1 JSON object of a :class:`System`."""
+    r, s, la, t = system.receiver, system.scanner, system.laser, system.tdc
+    d: dict[str, Any] = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "receiver": {
+            "camera_matrix": np.asarray(r.camera_matrix, float).tolist(),
+            "dist_coeffs": np.asarray(r.dist_coeffs, float).tolist(),
+            "image_size": [int(r.image_size[0]), int(r.image_size[1])],
+            "pixel_pitch": np.asarray(r.pixel_pitch, float).tolist(),
+            "spad_diameter": float(r.spad_diameter),
+        },
+        "scanner": {
+            "position": np.asarray(s.position, float).tolist(),
+            "normal_basis": np.asarray(s.normal_basis, float).tolist(),
+            "laser_direction": np.asarray(s.laser_direction, float).tolist(),
+            "theta0": float(s.theta0),
+            "f_mech": float(s.f_mech),
+            "theta_mech_max": float(s.theta_mech_max),
+        },
+        "laser": {"f_rep": float(la.f_rep), "pulse_fwhm": float(la.pulse_fwhm),
+                  "wavelength": float(la.wavelength)},
+        "tdc": {"bin_width": float(t.bin_width), "n_bins": int(t.n_bins),
+                "offset": float(t.offset)},
+        "speed_of_light": float(system.speed_of_light),
+    }
+    if s.phase_offset != 0.0:
+        d["scanner"]["phase_offset"] = float(s.phase_offset)
+    if system.calibration is not None:
+        d["calibration"] = copy.deepcopy(system.calibration)
+    return d
+
+
+def system_from_json(text: str, source: str = "<string>") -> System:
+    """Parse and validate a system description from JSON text."""
+    try:
+        d = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise FormatError(f"not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})",
+                          source=source) from None
+    return system_from_dict(d, source)
+
+
+def system_to_json(system: System) -> str:
+    """JSON text of a :class:`System` (indented, stable key order)."""
+    return json.dumps(system_to_dict(system), indent=2)
+
+
+def load_system(path: str | os.PathLike) -> System:
+    """Read and validate a system description JSON file."""
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise FormatError(f"cannot read file ({e.strerror})", source=str(p)) from None
+    return system_from_json(text, source=str(p))
+
+
+def save_system(system: System, path: str | os.PathLike) -> Path:
+    """Write a system description JSON atomically (temporary file, then rename)."""
+    from .io_util import atomic_write_text
+
+    return atomic_write_text(path, system_to_json(system) + "\n")
+
+
+# --------------------------------------------------------------------------
+# presets
+
+
+def theta0_for_working_distance(baseline_x: float, working_distance: float) -> float:
+    """Exact θ0 (rad) making the transmitter axis cross the optical axis at W.
+
+    θ0 = π/4 − ½·atan(x_M0 / W); compare :func:`mems_stereo.scanner.theta0_small_angle`.
+    """
+    return math.pi / 4 - 0.5 * math.atan(baseline_x / working_distance)
+
+
+def burkard2022(working_distance: float = 2.5) -> System:
+    """The proof-of-concept system of Burkard et al. 2022, Table 1.
+
+    SPADEye2 line (192 x 1 pixels, w = 40.56 µm, h = 209.6 µm, 12 µm SPADs),
+    f = 8 mm receiver optics, 12.5 cm baseline with the mirror at x = −0.125 m,
+    f_mech = 1570 Hz, θ_mech,max = 11.9°, f_rep = 20 kHz, 14.9 ns pulses,
+    312.5 ps TDC bins (4096 bins), θ0 from the working distance (exact form).
+    """
+    f = 8e-3
+    w, h = 40.56e-6, 209.6e-6
+    K = np.array([[f / w, 0.0, 95.5], [0.0, f / h, 0.0], [0.0, 0.0, 1.0]])
+    b = 0.125
+    return System(
+        receiver=Receiver(K, np.zeros(5), (192, 1), np.array([w, h]), 12e-6),
+        scanner=Scanner(
+            position=np.array([-b, 0.0, 0.0]),
+            normal_basis=np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+            laser_direction=np.array([-1.0, 0.0, 0.0]),
+            theta0=theta0_for_working_distance(b, working_distance),
+            f_mech=1570.0,
+            theta_mech_max=math.radians(11.9),
+        ),
+        laser=Laser(f_rep=20000.0, pulse_fwhm=14.9e-9, wavelength=659e-9),
+        tdc=TDC(bin_width=312.5e-12, n_bins=4096, offset=0.0),
+        speed_of_light=299704644.5,
+    )
+
+
+PRESETS = {"burkard2022": burkard2022}
+
+
+def preset(name: str) -> System:
+    """A named preset system (``"burkard2022"``)."""
+    try:
+        return PRESETS[name]()
+    except KeyError:
+        raise KeyError(f"unknown preset {name!r}; known: {sorted(PRESETS)}") from None
+
+
+def resolve_system(spec: str | os.PathLike | System) -> System:
+    """A System from an instance, a preset name or a JSON path."""
+    if isinstance(spec, System):
+        return spec
+    if isinstance(spec, str) and spec in PRESETS:
+        return preset(spec)
+    return load_system(spec)
