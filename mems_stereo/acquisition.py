@@ -70,7 +70,9 @@ def acquisition_statistics(system: System, n_shots: int, distance: float,
 
     ``frequency_ratio`` defaults to f_mech / f_rep of the system.
     """
-    ratio = system.scanner.f_mech / system.laser.f_rep if frequency_ratio is None else frequency_ratio
+    ratio = frequency_ratio
+    if ratio is None:
+        ratio = system.scanner.f_mech / system.laser.f_rep
     amp = system.scanner.theta_mech_max
     th = theta_mech_samples(n_shots, ratio, amp, phi0)
     edges = np.linspace(-amp, amp, n_angle_bins + 1)

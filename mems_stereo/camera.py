@@ -52,7 +52,7 @@ def normalized_coordinates(pixels, camera_matrix, dist_coeffs=None) -> np.ndarra
     if p.shape[0] == 0:
         return np.zeros((0, 2))
     if not np.any(dist):
-        x = (p[:, 0] - K[0, 2] - K[0, 1] * (p[:, 1] - K[1, 2]) / K[1, 1]) / K[0, 0]
+        x = (p[:, 0] - K[0, 2]) / K[0, 0]
         y = (p[:, 1] - K[1, 2]) / K[1, 1]
         return np.stack([x, y], axis=1)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
@@ -101,7 +101,7 @@ def receiver_rays(receiver: Receiver) -> np.ndarray:
     return rays.reshape(receiver.height, receiver.width, 3)
 
 
-def receiver_ray_derivatives(receiver: Receiver, step: float = 0.25):
+def receiver_ray_derivatives(receiver: Receiver, step: float = 1e-3):
     """∂ray/∂column and ∂ray/∂row of every pixel, each (H, W, 3), per pixel.
 
     Central differences of :func:`pixels_to_rays` (exact for no distortion up

@@ -127,7 +127,8 @@ def phase_from_zero_crossings(times, zero_crossings, rising):
 
 def scan_angle_from_phase(phase, scanner: Scanner) -> np.ndarray:
     """θ = θ0 + θ_max · cos(φ + phase_offset), rad (NaN where φ is NaN)."""
-    return scanner.theta0 + scanner.theta_mech_max * np.cos(np.asarray(phase) + scanner.phase_offset)
+    phi = np.asarray(phase) + scanner.phase_offset
+    return scanner.theta0 + scanner.theta_mech_max * np.cos(phi)
 
 
 def scan_angles(times, zero_crossings, rising, scanner: Scanner):

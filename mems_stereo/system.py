@@ -223,7 +223,10 @@ def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "")
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ctx.fail(fld, f"expected positive focal lengths fx, fy, found {K[0, 0]}, {K[1, 1]}")
     if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-        raise ctx.fail(fld, f"expected [[fx, s, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}")
+        raise ctx.fail(fld, f"expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}")
+    if K[0, 1] != 0.0:
+        raise ctx.fail(fld, f"expected zero skew K[0][1] (OpenCV's camera model has none), "
+                            f"found {K[0, 1]!r}")
     return K
 
 

@@ -1,0 +1,114 @@
+"""Histogram files (HDF5): raw, signal and noise TDC histograms per pixel.
+
+Format ``"mems-stereo/histograms"`` version 1 (docs/visualisation.md):
+
+============================ ====================== ===============================
+path                         type, shape            meaning
+============================ ====================== ===============================
+attrs ``format``, ``version`` str, int              ``"mems-stereo/histograms"``, 1
+``/raw``                     int32 (H, W, n_bins)   counts of every detection per TDC
+                                                    code (bin b holds code b + 1)
+``/signal``                  int32 (H, W, n_bins)   counts of detections classified signal
+``/noise``                   int32 (H, W, n_bins)   counts of detections classified noise
+other root attrs             scalars / str          free metadata (``bin_width`` in s,
+                                                    ``source`` recording, ...)
+============================ ====================== ===============================
+
+All three datasets have the same shape; (W, n_bins) input is stored as
+(1, W, n_bins).  Writes are atomic.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FormatError
+from .io_util import atomic_output
+
+FORMAT_NAME = "mems-stereo/histograms"
+FORMAT_VERSION = 1
+DATASETS = ("raw", "signal", "noise")
+
+
+def _as_hwb(name: str, a, source: str) -> np.ndarray:
+    a = np.asarray(a)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3:
+        raise FormatError(f"expected shape (H, W, n_bins) or (W, n_bins), found {a.shape}",
+                          source=source, field=f"/{name}")
+    if not (np.issubdtype(a.dtype, np.integer) or a.dtype == np.bool_):
+        raise FormatError(f"expected integer counts, found dtype {a.dtype}",
+                          source=source, field=f"/{name}")
+    if a.size and (a.min() < 0 or a.max() > np.iinfo(np.int32).max):
+        raise FormatError("counts must lie in 0..2**31-1", source=source, field=f"/{name}")
+    return a.astype(np.int32)
+
+
+def write_histograms(path: str | os.PathLike, raw, signal, noise,
+                     attrs: dict | None = None) -> Path:
+    """Write raw/signal/noise count histograms, each (H, W, n_bins) or (W, n_bins) int.
+
+    ``attrs``: extra root attributes (numbers or strings), e.g. ``bin_width`` (s).
+    Returns the path.
+    """
+    import h5py
+
+    path = Path(path)
+    arrays = {n: _as_hwb(n, a, str(path)) for n, a in zip(DATASETS, (raw, signal, noise))}
+    shapes = {a.shape for a in arrays.values()}
+    if len(shapes) != 1:
+        raise FormatError(f"raw, signal and noise must have one shape, found "
+                          f"{[a.shape for a in arrays.values()]}", source=str(path))
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT_NAME
+        f.attrs["version"] = FORMAT_VERSION
+        for k, v in (attrs or {}).items():
+            if k in ("format", "version"):
+                continue
+            f.attrs[k] = v
+        for n, a in arrays.items():
+            f.create_dataset(n, data=a, compression="gzip", compression_opts=4, shuffle=True)
+    return path
+
+
+def read_histograms(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Read a histogram file: returns (raw, signal, noise, attrs), arrays (H, W, n_bins) int32.
+
+    Raises FileNotFoundError when missing and FormatError naming the dataset
+    when the file does not follow the format.
+    """
+    import h5py
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(2, "file not found", str(path))
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise FormatError(f"not an HDF5 file ({e})", source=str(path)) from None
+    with f:
+        fmt = f.attrs.get("format")
+        if isinstance(fmt, bytes):
+            fmt = fmt.decode()
+        if fmt != FORMAT_NAME:
+            raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
+                              source=str(path), field="format")
+        version = int(f.attrs.get("version", -1))
+        if version != FORMAT_VERSION:
+            raise FormatError(f"expected version {FORMAT_VERSION}, found {version}",
+                              source=str(path), field="version")
+        out = []
+        for n in DATASETS:
+            if n not in f:
+                raise FormatError("dataset missing", source=str(path), field=f"/{n}")
+            out.append(_as_hwb(n, f[n][()], str(path)))
+        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()
+                 if k not in ("format", "version")}
+    if len({a.shape for a in out}) != 1:
+        raise FormatError(f"raw, signal and noise must have one shape, found "
+                          f"{[a.shape for a in out]}", source=str(path))
+    return out[0], out[1], out[2], attrs

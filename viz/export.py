@@ -1,0 +1,279 @@
+"""Point cloud files: PLY and PCD through Open3D tensor clouds, LAS through laspy.
+
+:func:`write_cloud` / :func:`read_cloud` pick the format from the extension.
+
+* ``.ply`` (binary little endian) and ``.pcd`` (binary): ``x, y, z`` float64
+  metres in the world (receiver camera) frame and one scalar property per
+  attribute of the :class:`~mems_stereo.cloud.PointCloud`, written as an
+  (N, 1) tensor attribute of an ``open3d.t.geometry.PointCloud``.  Round trips
+  are exact (values and dtypes) for float32/64, int32, uint8 and uint16; PCD
+  also keeps int64.  Other dtypes are converted losslessly before writing
+  (bool → uint8, int8/int16 → int32, float16 → float32, int64/uint32 → int32
+  in PLY when every value fits) or refused with :class:`FormatError`.
+* ``.las`` (LAS 1.4, point format 6, through laspy): x, y, z stored as int32
+  with scale :data:`LAS_SCALE` = 0.1 mm and an offset at the cloud's minimum,
+  so coordinates come back within ``LAS_SCALE / 2`` = 0.05 mm; every attribute
+  is an "extra bytes" dimension of its own dtype and comes back exactly.
+  ``intensity`` carries ``counts`` clipped to 0..65535 for other lidar tools.
+  ``.laz`` needs a LAZ backend for laspy (``pip install lazrs``).
+
+Writes are atomic (:func:`mems_stereo.io_util.atomic_output`).  Files
+written here are read back by any PLY/PCD/LAS tool (CloudCompare, PDAL).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from mems_stereo.cloud import REQUIRED_ATTRIBUTES, PointCloud
+from mems_stereo.errors import FormatError
+from mems_stereo.io_util import atomic_output
+
+#: LAS coordinate resolution, m (quantisation error at most half of it)
+LAS_SCALE = 1e-4
+FORMATS = (".ply", ".pcd", ".las", ".laz")
+
+# dtypes Open3D keeps exactly as (N, 1) attributes (ENVIRONMENT.md)
+_PLY_DTYPES = {np.dtype(t) for t in ("float32", "float64", "int32", "uint8", "uint16")}
+_PCD_DTYPES = _PLY_DTYPES | {np.dtype("int64")}
+# names an Open3D tensor cloud uses for its own data
+_O3D_RESERVED = {"positions", "colors", "normals"}
+
+
+def _suffix(path: Path) -> str:
+    sfx = path.suffix.lower()
+    if sfx not in FORMATS:
+        raise FormatError(f"unknown point cloud extension {path.suffix!r}; expected one of "
+                          f"{', '.join(FORMATS)}", source=str(path))
+    return sfx
+
+
+def _storable(name: str, values: np.ndarray, allowed: set, path: Path) -> np.ndarray:
+    """Convert an attribute losslessly to a dtype the format keeps, or raise."""
+    v = np.asarray(values)
+    if v.dtype in allowed:
+        return v
+    if v.dtype == np.bool_:
+        return v.astype(np.uint8)
+    if v.dtype == np.float16:
+        return v.astype(np.float32)
+    if np.issubdtype(v.dtype, np.integer):
+        info = np.iinfo(np.int32)
+        if v.size == 0 or (int(v.min()) >= info.min and int(v.max()) <= info.max):
+            return v.astype(np.int32)
+        raise FormatError(f"attribute {name!r} ({v.dtype}) has values outside int32, which "
+                          f"{path.suffix} cannot store; use .pcd", source=str(path), field=name)
+    raise FormatError(f"attribute {name!r} has dtype {v.dtype}; expected a numeric dtype",
+                      source=str(path), field=name)
+
+
+def _check_cloud(cloud, path: Path) -> None:
+    if not isinstance(cloud, PointCloud):
+        raise FormatError(f"expected a mems_stereo.cloud.PointCloud, found {type(cloud).__name__}",
+                          source=str(path))
+
+
+def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
+    """Write ``cloud`` to ``path`` (.ply, .pcd, .las, .laz) atomically; returns the path.
+
+    ``cloud.points`` : (N, 3) float64, metres, world frame; every attribute
+    (N,) is written (see the module docstring for dtypes and precision).
+    """
+    path = Path(path)
+    sfx = _suffix(path)
+    _check_cloud(cloud, path)
+    if path.exists() and path.is_dir():
+        raise FormatError("is a directory, expected a file", source=str(path))
+    if sfx in (".ply", ".pcd"):
+        allowed = _PLY_DTYPES if sfx == ".ply" else _PCD_DTYPES
+        attrs = {}
+        for k, v in cloud.attributes.items():
+            if k in _O3D_RESERVED or k in ("x", "y", "z"):
+                raise FormatError(f"attribute name {k!r} is reserved in {sfx}",
+                                  source=str(path), field=k)
+            attrs[k] = _storable(k, v, allowed, path)
+        with atomic_output(path) as tmp:
+            if len(cloud) == 0:
+                _write_empty_header(tmp, sfx, attrs)
+            else:
+                _write_o3d(tmp, cloud.points, attrs)
+    else:
+        _write_las(path, cloud)
+    return path
+
+
+def _write_o3d(tmp: Path, points: np.ndarray, attrs: dict) -> None:
+    import open3d as o3d
+
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(points, np.float64)))
+    for k, v in attrs.items():
+        pc.point[k] = o3d.core.Tensor(np.ascontiguousarray(v.reshape(-1, 1)))
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        ok = o3d.t.io.write_point_cloud(str(tmp), pc, write_ascii=False, compressed=False)
+    if not ok:
+        raise FormatError("Open3D could not write the point cloud", source=str(tmp))
+
+
+_PLY_TYPE = {"float64": "double", "float32": "float", "int32": "int", "uint8": "uchar",
+             "uint16": "ushort"}
+_PCD_TYPE = {"float64": ("8", "F"), "float32": ("4", "F"), "int32": ("4", "I"),
+             "uint8": ("1", "U"), "uint16": ("2", "U"), "int64": ("8", "I")}
+
+
+def _write_empty_header(tmp: Path, sfx: str, attrs: dict) -> None:
+    """Open3D refuses to write 0 points; a header-only file is still a valid cloud."""
+    names = ["x", "y", "z", *attrs]
+    dtypes = ["float64"] * 3 + [str(v.dtype) for v in attrs.values()]
+    if sfx == ".ply":
+        lines = ["ply", "format binary_little_endian 1.0", "comment Created by mems-stereo",
+                 "element vertex 0"]
+        lines += [f"property {_PLY_TYPE[d]} {n}" for n, d in zip(names, dtypes)]
+        lines.append("end_header")
+    else:
+        lines = ["# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
+                 "FIELDS " + " ".join(names),
+                 "SIZE " + " ".join(_PCD_TYPE[d][0] for d in dtypes),
+                 "TYPE " + " ".join(_PCD_TYPE[d][1] for d in dtypes),
+                 "COUNT " + " ".join("1" for _ in names), "WIDTH 0", "HEIGHT 1",
+                 "VIEWPOINT 0 0 0 1 0 0 0", "POINTS 0", "DATA binary"]
+    tmp.write_bytes(("\n".join(lines) + "\n").encode("ascii"))
+
+
+def _empty_pcd(path: Path) -> PointCloud | None:
+    """Parse a header-only PCD (Open3D cannot read one); None if not such a file."""
+    rev = {v: k for k, v in _PCD_TYPE.items()}
+    head = {}
+    with open(path, "rb") as f:
+        for _ in range(20):
+            line = f.readline().decode("ascii", "replace").strip()
+            if not line or line.startswith("#"):
+                continue
+            key, _, rest = line.partition(" ")
+            head[key] = rest.split()
+            if key == "DATA":
+                break
+    if head.get("POINTS") != ["0"] or "FIELDS" not in head:
+        return None
+    attrs = {}
+    for n, s, t in zip(head["FIELDS"], head.get("SIZE", []), head.get("TYPE", [])):
+        if n not in ("x", "y", "z") and (s, t) in rev:
+            attrs[n] = np.zeros(0, dtype=rev[(s, t)])
+    return PointCloud(np.zeros((0, 3)), attrs)
+
+
+def _ordered(attrs: dict) -> dict:
+    keys = [k for k in REQUIRED_ATTRIBUTES if k in attrs]
+    keys += sorted(k for k in attrs if k not in keys)
+    return {k: attrs[k] for k in keys}
+
+
+def read_cloud(path: str | os.PathLike) -> PointCloud:
+    """Read a .ply, .pcd, .las or .laz point cloud into a :class:`PointCloud`.
+
+    Points come back (N, 3) float64 metres; each scalar per-point property
+    becomes an (N,) attribute with its stored dtype.  Multi-channel properties
+    of foreign files (colours, normals) are left out.  Raises FormatError for
+    an unknown extension or an unreadable file, FileNotFoundError when missing.
+    """
+    path = Path(path)
+    sfx = _suffix(path)
+    if not path.is_file():
+        raise FileNotFoundError(2, "file not found", str(path))
+    if sfx in (".las", ".laz"):
+        return _read_las(path)
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        pc = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in pc.point:
+        if sfx == ".pcd":
+            empty = _empty_pcd(path)
+            if empty is not None:
+                return empty
+        raise FormatError(f"not a readable {sfx[1:].upper()} point cloud (Open3D found no "
+                          "points in it)", source=str(path))
+    points = pc.point.positions.numpy().astype(np.float64)
+    attrs = {}
+    for k in pc.point:
+        if k in _O3D_RESERVED:
+            continue
+        a = pc.point[k].numpy()
+        if a.ndim == 2 and a.shape[1] == 1:
+            attrs[k] = a[:, 0].copy()
+    return PointCloud(points, _ordered(attrs))
+
+
+# ---------------------------------------------------------------- LAS / LAZ
+
+def _laspy():
+    import laspy
+
+    return laspy
+
+
+def _write_las(path: Path, cloud: PointCloud) -> None:
+    laspy = _laspy()
+    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
+        raise FormatError("writing .laz needs a LAZ backend for laspy (pip install lazrs); "
+                          "use .las", source=str(path))
+    pts = cloud.points
+    if not np.all(np.isfinite(pts)):
+        bad = int((~np.isfinite(pts).all(axis=1)).sum())
+        raise FormatError(f"{bad} points have non-finite coordinates, which LAS cannot store",
+                          source=str(path), field="points")
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    standard = {d.lower() for d in header.point_format.dimension_names}
+    extra = []
+    attrs = {}
+    for k, v in cloud.attributes.items():
+        if k.lower() in standard or len(k) > 32:
+            raise FormatError(f"attribute name {k!r} clashes with a LAS dimension or is longer "
+                              "than 32 characters", source=str(path), field=k)
+        v = np.asarray(v)
+        if v.dtype == np.bool_:
+            v = v.astype(np.uint8)
+        if v.dtype.kind not in "uif" or v.dtype.itemsize > 8 or v.dtype == np.float16:
+            raise FormatError(f"attribute {k!r} has dtype {v.dtype}, which LAS extra bytes "
+                              "cannot store", source=str(path), field=k)
+        attrs[k] = v
+        extra.append(laspy.ExtraBytesParams(name=k, type=v.dtype))
+    if extra:
+        header.add_extra_dims(extra)
+    lo = np.floor(pts.min(axis=0)) if len(pts) else np.zeros(3)
+    header.offsets = lo
+    header.scales = np.full(3, LAS_SCALE)
+    if len(pts) and (pts.max(axis=0) - lo).max() / LAS_SCALE >= 2**31 - 1:
+        raise FormatError(f"the cloud spans more than {(2**31 - 1) * LAS_SCALE:.0f} m, beyond "
+                          f"LAS int32 coordinates at {LAS_SCALE} m resolution", source=str(path))
+    las = laspy.LasData(header)
+    if len(pts):
+        las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    else:
+        las.points = laspy.ScaleAwarePointRecord.zeros(0, header=header)
+    n = len(pts)
+    las.return_number = np.ones(n, np.uint8)
+    las.number_of_returns = np.ones(n, np.uint8)
+    if "counts" in attrs:
+        las.intensity = np.clip(attrs["counts"], 0, 65535).astype(np.uint16)
+    for k, v in attrs.items():
+        las[k] = v
+    with atomic_output(path) as tmp:
+        las.write(str(tmp))
+
+
+def _read_las(path: Path) -> PointCloud:
+    laspy = _laspy()
+    try:
+        las = laspy.read(str(path))
+    except laspy.errors.LaspyException as e:
+        raise FormatError(f"not a readable LAS/LAZ file: {e}", source=str(path)) from None
+    points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+    attrs = {}
+    for name in las.point_format.extra_dimension_names:
+        a = np.asarray(las[name])
+        if a.ndim == 1:
+            attrs[name] = a.copy()
+    return PointCloud(points.astype(np.float64), _ordered(attrs))
