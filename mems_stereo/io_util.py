@@ -35,6 +35,9 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterato
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
+        os.umask(um)
+        os.chmod(tmp_path, 0o666 & ~um)
         os.replace(tmp_path, target)
     except BaseException:
         with contextlib.suppress(OSError):

@@ -1,0 +1,34 @@
+"""Point cloud files, Open3D rendering and viewing, matplotlib figures.
+
+* :mod:`viz.export`   – ``write_cloud`` / ``read_cloud``: .ply, .pcd (Open3D tensor clouds), .las
+* :mod:`viz.render`   – ``render_cloud``: headless PNG through Open3D + Mesa EGL
+* :mod:`viz.view`     – ``view_cloud``: interactive Open3D window (needs a display)
+* :mod:`viz.plots`    – the paper's figures with matplotlib (Agg)
+* :mod:`viz.colormap` – NumPy colormaps (no matplotlib)
+
+Importing :mod:`viz` loads neither Open3D nor matplotlib; the names below
+load their module on first use.  Formats and the rendering set-up:
+``docs/visualisation.md``.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_LAZY = {
+    "write_cloud": "export", "read_cloud": "export",
+    "render_cloud": "render", "render_image": "render",
+    "view_cloud": "view",
+    "plot_acquisition": "plots", "plot_histograms": "plots", "plot_peaks": "plots",
+    "plot_uncertainty_bounds": "plots", "plot_calibration_residuals": "plots",
+    "plot_cloud_topview": "plots",
+    "apply_colormap": "colormap", "cloud_colors": "colormap",
+}
+
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"{__name__}.{_LAZY[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -118,7 +118,7 @@ def _write_o3d(tmp: Path, points: np.ndarray, attrs: dict) -> None:
 
 
 _PLY_TYPE = {"float64": "double", "float32": "float", "int32": "int", "uint8": "uchar",
-             "uint16": "ushort"}
+             "uint16": "uint16"}
 _PCD_TYPE = {"float64": ("8", "F"), "float32": ("4", "F"), "int32": ("4", "I"),
              "uint8": ("1", "U"), "uint16": ("2", "U"), "int64": ("8", "I")}
 

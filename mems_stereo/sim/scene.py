@@ -253,7 +253,8 @@ def cylinder_mesh(center, radius, height, axis=(0.0, 1.0, 0.0), n_seg=CYLINDER_S
     v = np.concatenate([bottom, top, [[0, 0, -0.5 * height], [0, 0, 0.5 * height]]])
     j = np.arange(n_seg)
     jn = (j + 1) % n_seg
-    side = np.concatenate([np.stack([j, jn, n_seg + jn], 1), np.stack([j, n_seg + jn, n_seg + j], 1)])
+    side = np.concatenate([np.stack([j, jn, n_seg + jn], 1),
+                           np.stack([j, n_seg + jn, n_seg + j], 1)])
     cb, ct = 2 * n_seg, 2 * n_seg + 1
     caps = np.concatenate([np.stack([np.full(n_seg, cb), jn, j], 1),
                            np.stack([np.full(n_seg, ct), n_seg + j, n_seg + jn], 1)])

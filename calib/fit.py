@@ -1,0 +1,607 @@
+"""The robust joint fit of system parameters and target poses, with its uncertainty.
+
+:func:`fit_detections` estimates the free system parameters (θ0, amplitude,
+phase offset, TDC offset, baseline x/y/z, optionally fx/cx) jointly with each
+target's plane (tilt α, distance D; tilt β too for 2-D arrays) from signal
+detections, by ``scipy.optimize.least_squares`` with a robust loss on the
+residuals of :mod:`calib.model`.  Uncertainties come from the Jacobian at the
+solution: ``cov = (Σ_b J_bᵀ J_b / s_b²)⁻¹`` with ``s_b²`` the variance of the
+(normalised, inlier) residuals of block b (pixel, time).
+
+Observability is read from that same Jacobian: a parameter whose column
+alone cannot pin it to better than ``max_std`` (baseline_y with a line
+sensor: its column is zero) is fixed at its nominal value and reported as
+unobservable (a warning); a parameter whose covariance-based σ exceeds
+``max_std`` because it trades off with others (baseline_z and tdc_offset
+with one target distance) raises :class:`~mems_stereo.errors.NotObservableError`
+naming it (or warns, ``on_unobservable="warn"``); pairs with |correlation|
+above 0.9 are reported.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from mems_stereo.errors import NotObservableError
+from mems_stereo.system import System
+
+from .detections import TargetDetections
+from .model import (
+    DEFAULT_FREE,
+    PARAM_SCALE,
+    PARAM_UNIT,
+    SYSTEM_PARAMS,
+    beam_hits,
+    code_time,
+    plane_normal,
+)
+from .timing import FirstPhotonTable, background_rate, pulse_sigma
+
+#: a parameter known worse than this is "not observable" (SI units)
+DEFAULT_MAX_STD = {"theta0": 0.01, "theta_mech_max": 0.01, "phase_offset": 0.02,
+                   "tdc_offset": 1e-9, "baseline_x": 0.02, "baseline_y": 0.02,
+                   "baseline_z": 0.02, "fx": 5.0, "cx": 2.0}
+SIGMA_PIXEL = 1.0 / math.sqrt(12.0)  # px: uniform over the pixel's extent
+MIN_DETECTIONS_PER_TARGET = 30
+CORRELATION_REPORT = 0.9
+
+
+class ObservabilityWarning(UserWarning):
+    """A parameter was fixed or is poorly determined because the data cannot observe it."""
+
+
+@dataclass
+class CalibrationResult:
+    """Outcome of a calibration fit (OpenCV-style: values, σ, RMS, flag).
+
+    Attributes
+    ----------
+    system : the calibrated System (with its ``calibration`` block).
+    names : free system parameters, order of ``covariance``.
+    values, std, initial : dict name → SI value, its σ, and the start value.
+    covariance : (n, n) SI units, over ``names``.
+    correlation : (n, n).
+    rms : {"pixel": px, "time": s} RMS of the inlier residuals.
+    n_detections : signal detections used (inliers of the final fit).
+    fixed : parameters held at their given value; unobservable : parameters
+        the data cannot determine (fixed or flagged).
+    tradeoffs : [(a, b, correlation)] for |correlation| > 0.9.
+    planes : (T, 3) α (rad), β (rad), D (m) of each target; planes_std : (T, 3).
+    converged : the solver converged and the residuals look like the model.
+    message : why not, when not.
+    report : human-readable text.
+    """
+
+    system: System
+    names: list
+    values: dict
+    std: dict
+    initial: dict
+    covariance: np.ndarray
+    correlation: np.ndarray
+    rms: dict
+    n_detections: int
+    fixed: list
+    unobservable: list
+    tradeoffs: list
+    planes: np.ndarray
+    planes_std: np.ndarray
+    converged: bool
+    message: str = ""
+    report: str = ""
+    iterations: int = 0
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def rms_pixel(self) -> float:
+        return float(self.rms["pixel"])
+
+    @property
+    def rms_time(self) -> float:
+        return float(self.rms["time"])
+
+    def calibration_dict(self) -> dict:
+        """The ``calibration`` object written into the system JSON."""
+        params = {n: {"value": self.values[n], "std": self.std[n], "initial": self.initial[n]}
+                  for n in self.names}
+        corr = {f"{a}/{b}": round(float(r), 6) for a, b, r in self.tradeoffs}
+        return {"parameters": params, "rms_pixel": self.rms_pixel, "rms_time": self.rms_time,
+                "n_detections": int(self.n_detections), "fixed": list(self.fixed),
+                "unobservable": list(self.unobservable), "correlations": corr,
+                "converged": bool(self.converged),
+                "targets": [{"alpha": float(p[0]), "beta": float(p[1]), "distance": float(p[2]),
+                             "std": [float(s) for s in ps]}
+                            for p, ps in zip(self.planes, self.planes_std)]}
+
+
+# --------------------------------------------------------------------------
+# the problem: parameter vector <-> values, residuals
+
+
+_TABLES: dict = {}
+
+
+def _table(sigma: float, lam: float, bin_width: float) -> FirstPhotonTable:
+    """Cached first-photon table (λ rounded to 2 significant digits)."""
+    key = (round(sigma, 15), float(f"{lam:.2g}"), bin_width)
+    if key not in _TABLES:
+        _TABLES[key] = FirstPhotonTable(sigma, key[1], bin_width)
+    return _TABLES[key]
+
+
+class _Problem:
+    """Per-shot observations, the parameter layout and the residual function.
+
+    Detections are aggregated per shot: the pixel observation is the mean
+    position of the shot's signal detections (the spot may light two
+    pixels), the time observation the earliest of their TDC times, which is
+    the first photon of the whole returned spot whatever its split over
+    pixels.  Each target has a nuisance log μ_j (mean signal photons of a
+    shot at the target's mean geometry; shot k has μ_j·g_k/ḡ with g the
+    Lambertian factor cos θ_e·cos θ_r/R²), constrained by the share of shots
+    with a detection and by the first-photon bias itself.
+    """
+
+    def __init__(self, targets, system, names, two_d, known, known_std, jitter):
+        self.targets = targets
+        self.system = system
+        self.names = list(names)
+        self.two_d = two_d
+        self.T = len(targets)
+        self.known = known
+        self.known_std = known_std
+        self.ref = {n: system.get_param(n) for n in SYSTEM_PARAMS}
+        self.plane_names = (["alpha", "beta", "dist", "logmu"] if two_d
+                            else ["alpha", "dist", "logmu"])
+        self.plane_cols = [0, 1, 2, 3] if two_d else [0, 2, 3]
+        tg, ph, col, row, tt, npx = [], [], [], [], [], []
+        bw = system.tdc.bin_width
+        for j, t in enumerate(targets):
+            shots, inv = np.unique(t.shot, return_inverse=True)
+            cnt = np.bincount(inv, minlength=shots.size)
+            tmin = np.full(shots.size, np.inf)
+            np.minimum.at(tmin, inv, code_time(t.code, bw))
+            tg.append(np.full(shots.size, j))
+            ph.append(t.phase[shots])
+            col.append(np.bincount(inv, t.column, shots.size) / cnt)
+            row.append(np.bincount(inv, t.row, shots.size) / cnt)
+            tt.append(tmin)
+            npx.append(cnt)
+        self.tgt = np.concatenate(tg)
+        self.phase = np.concatenate(ph)
+        self.col = np.concatenate(col)
+        self.row = np.concatenate(row)
+        self.t_meas = np.concatenate(tt)
+        self.n_pix = np.concatenate(npx)
+        self.M = self.tgt.size
+        self.sigma_p = pulse_sigma(system.laser.pulse_fwhm, jitter)
+        self.window = system.tdc.n_bins * system.tdc.bin_width
+        self.tables = [_table(self.sigma_p, background_rate(t.noise_fraction, self.window), bw)
+                       for t in targets]
+        self.weights = np.ones(self.M)
+        self.plane_ref = np.zeros((self.T, 4))
+        self.sigma_t = np.full(self.M, self.sigma_p)
+        self.on_sets = [np.zeros(t.phase.size, dtype=bool) for t in targets]
+
+    @property
+    def labels(self):
+        out = list(self.names)
+        for j in range(self.T):
+            out += [f"{p}[{j}]" for p in self.plane_names]
+        return out
+
+    @property
+    def scales(self):
+        sc = dict(PARAM_SCALE, logmu=0.01)
+        s = [sc[n] for n in self.names]
+        s += [sc[p] for _ in range(self.T) for p in self.plane_names]
+        return np.array(s)
+
+    def unpack(self, x):
+        x = np.asarray(x, dtype=np.float64) * self.scales
+        n = len(self.names)
+        values = {name: self.ref[name] + x[i] for i, name in enumerate(self.names)}
+        planes = self.plane_ref.copy()
+        planes[:, self.plane_cols] += x[n:].reshape(self.T, len(self.plane_cols))
+        return values, planes
+
+    def hits(self, values, planes, tgt, phase):
+        normals = plane_normal(planes[tgt, 0], planes[tgt, 1])
+        return beam_hits(self.system, values, phase, normals, planes[tgt, 2]), normals
+
+    def tau0(self, values, hits):
+        off = values.get("tdc_offset", self.ref["tdc_offset"])
+        return hits.path / self.system.speed_of_light + off
+
+    def lambert(self, values, hits, normals):
+        """Relative signal g = cos θ_e · cos θ_r / R² of each hit (Lambertian target)."""
+        P = hits.point
+        r = np.linalg.norm(P, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            g = np.abs(np.sum(normals * P, axis=1)) / r * (P[:, 2] / r) / (r * r)
+        return np.where(hits.ok, g, np.nan)
+
+    def update(self, values, planes, margin=1.0):
+        """Refresh what is held fixed within one solver run: σ_t, the on-sensor
+        shots of each target, and each target's mean Lambertian factor."""
+        w = self.system.receiver.width
+        h_ = self.system.receiver.height
+        self.g_ref = np.ones(self.T)
+        for j, t in enumerate(self.targets):
+            hh, nn = self.hits(values, planes, np.full(t.phase.size, j), t.phase)
+            col, row = hh.pixel[:, 0], hh.pixel[:, 1]
+            on = hh.ok & (col > margin - 0.5) & (col < w - 0.5 - margin)
+            if self.two_d:
+                on &= (row > margin - 0.5) & (row < h_ - 0.5 - margin)
+            self.on_sets[j] = on
+            g = self.lambert(values, hh, nn)
+            self.g_ref[j] = float(np.nanmean(g[on])) if on.any() else 1.0
+        hh, nn = self.hits(values, planes, self.tgt, self.phase)
+        self.sigma_t = self._table_eval("std", self.tau0(values, hh),
+                                        self._logmu(planes, hh, nn, values))
+        self.sigma_t = np.where(np.isfinite(self.sigma_t), self.sigma_t, self.sigma_p)
+
+    def _logmu(self, planes, hits, normals, values, tgt=None):
+        tgt = self.tgt if tgt is None else tgt
+        g = self.lambert(values, hits, normals) / self.g_ref[tgt]
+        return planes[tgt, 3] + np.log(np.where(np.isfinite(g) & (g > 0), g, 1.0))
+
+    def _table_eval(self, what, tau, logmu, tgt=None):
+        tgt = self.tgt if tgt is None else tgt
+        out = np.empty_like(tau)
+        for j, tab in enumerate(self.tables):
+            sel = tgt == j
+            out[sel] = getattr(tab, what)(tau[sel], logmu[sel])
+        return out
+
+    def residual_blocks(self, x):
+        values, planes = self.unpack(x)
+        h, nn = self.hits(values, planes, self.tgt, self.phase)
+        ok = h.ok & np.all(np.isfinite(h.pixel), axis=1)
+        w = self.weights * ok
+        blocks = {"pixel": np.where(ok, (self.col - h.pixel[:, 0]) / SIGMA_PIXEL, 0.0) * w}
+        if self.two_d:
+            blocks["row"] = np.where(ok, (self.row - h.pixel[:, 1]) / SIGMA_PIXEL, 0.0) * w
+        tau = np.where(ok, self.tau0(values, h), 0.0)
+        logmu = np.where(ok, self._logmu(planes, h, nn, values), 0.0)
+        t_pred = self._table_eval("mean_time", tau, logmu)
+        blocks["time"] = np.where(ok, (self.t_meas - t_pred) / self.sigma_t, 0.0) * w
+        # share of on-sensor shots with a signal detection (binomial)
+        fr = np.zeros(self.T)
+        for j, t in enumerate(self.targets):
+            on = self.on_sets[j]
+            n_on = int(on.sum())
+            if n_on == 0:
+                continue
+            tg = np.full(n_on, j)
+            hh, nj = self.hits(values, planes, tg, t.phase[on])
+            pj = self.tables[j].probability(self.tau0(values, hh),
+                                            self._logmu(planes, hh, nj, values, tg))
+            p = min(max(float(np.nanmean(pj)), 0.0), 1.0)
+            n_hit = int(np.count_nonzero(t.has_signal[on]))
+            fr[j] = (n_hit - n_on * p) / math.sqrt(n_on * p * (1 - p) + 1.0)
+        blocks["fraction"] = fr
+        if self.known is not None:
+            pr = [(planes[j, 2] - d) / self.known_std for j, d in enumerate(self.known)
+                  if d is not None]
+            blocks["prior"] = np.array(pr)
+        return blocks
+
+    def residuals(self, x):
+        return np.concatenate(list(self.residual_blocks(x).values()))
+
+    def jacobian(self, x, step=1e-2):
+        """Central differences in scaled units (step 0.01 of PARAM_SCALE)."""
+        r0 = self.residuals(x)
+        J = np.empty((r0.size, x.size))
+        for i in range(x.size):
+            xp, xm = x.copy(), x.copy()
+            xp[i] += step
+            xm[i] -= step
+            J[:, i] = (self.residuals(xp) - self.residuals(xm)) / (2 * step)
+        return J
+
+
+def _initial_planes(prob: _Problem, values: dict) -> np.ndarray:
+    """Planes from the ToF range along each pixel's ray (robust line fit in x–z).
+
+    Uses the nominal (or given) system; the TDC time is taken at face value
+    (no first-photon correction): good to a few decimetres, which the joint
+    fit then refines.
+    """
+    sysv = prob.system.with_params(**values)
+    K = sysv.receiver.camera_matrix
+    c = sysv.speed_of_light
+    b = sysv.baseline
+    planes = np.zeros((prob.T, 4))
+    for j in range(prob.T):
+        sel = prob.tgt == j
+        xn = (prob.col[sel] - K[0, 2]) / K[0, 0]
+        yn = (prob.row[sel] - K[1, 2]) / K[1, 1] if prob.two_d else np.zeros(xn.size)
+        r = np.stack([xn, yn, np.ones_like(xn)], axis=1)
+        r /= np.linalg.norm(r, axis=1, keepdims=True)
+        L = c * (prob.t_meas[sel] - sysv.tdc.offset)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = (L * L - b @ b) / (2.0 * (L - r @ b))
+        P = rho[:, None] * r
+        good = np.isfinite(rho) & (rho > 0)
+        P = P[good]
+        if P.shape[0] < 3:
+            planes[j] = [0.0, 0.0, 1.0, 0.0]
+            continue
+        # z = a0 + a1 x (+ a2 y) by least squares with 3-MAD clipping
+        keep = np.ones(P.shape[0], dtype=bool)
+        A = np.column_stack([np.ones(P.shape[0]), P[:, 0]] + ([P[:, 1]] if prob.two_d else []))
+        for _ in range(5):
+            coef, *_ = np.linalg.lstsq(A[keep], P[keep, 2], rcond=None)
+            res = P[:, 2] - A @ coef
+            mad = 1.4826 * np.median(np.abs(res[keep] - np.median(res[keep]))) + 1e-9
+            keep = np.abs(res - np.median(res[keep])) < 3 * mad
+        nvec = np.array([-coef[1], -coef[2] if prob.two_d else 0.0, 1.0])
+        nvec /= np.linalg.norm(nvec)
+        alpha = math.atan2(nvec[0], nvec[2])
+        beta = math.asin(np.clip(nvec[1], -1, 1))
+        t = prob.targets[j]
+        frac = min(max(float(np.mean(t.has_signal)), 1e-3), 0.999)
+        planes[j] = [alpha, beta, coef[0] * nvec[2], math.log(-math.log1p(-frac))]
+    return planes
+
+
+# --------------------------------------------------------------------------
+# covariance and observability
+
+
+def _covariance(prob: _Problem, x):
+    """Scaled-unit covariance (n, n), per-block RMS, inlier counts."""
+    J = prob.jacobian(x)
+    blocks = prob.residual_blocks(x)
+    sizes = [b.size for b in blocks.values()]
+    H = np.zeros((x.size, x.size))
+    rms, n_in = {}, {}
+    start = 0
+    for (name, r), n in zip(blocks.items(), sizes):
+        Jb = J[start:start + n]
+        start += n
+        if name in ("prior", "fraction"):
+            H += Jb.T @ Jb
+            continue
+        inl = (np.abs(r) < 4.0) & (prob.weights > 0)
+        s2 = float(np.mean(r[inl] ** 2)) if inl.any() else 1.0
+        rms[name] = math.sqrt(s2)
+        n_in[name] = int(inl.sum())
+        H += Jb[inl].T @ Jb[inl] / s2
+    return H, J, rms, n_in
+
+
+def _inverse(H):
+    """Pseudo-inverse by SVD with the singular values (relative to the largest)."""
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hn = H / d[:, None] / d[None, :]
+    U, s, Vt = np.linalg.svd(Hn)
+    tol = s[0] * 1e-14
+    inv = (Vt.T * np.where(s > tol, 1.0 / np.maximum(s, tol), 0.0)) @ U.T
+    return inv / d[:, None] / d[None, :], s / s[0], Vt
+
+
+def _weak_column_text(name, col_std):
+    if not col_std < 1e6 * PARAM_SCALE[name]:
+        return f"{name} (its column of the Jacobian is zero: the data do not depend on it)"
+    return f"{name} (even alone it would be known only to ±{_fmt(name, col_std)})"
+
+
+def _fmt(name, v):
+    f, unit = PARAM_UNIT[name.split("[")[0]]
+    return f"{v * f:.4g} {unit}"
+
+
+# --------------------------------------------------------------------------
+# public
+
+
+def fit_detections(targets, system: System, *, free=None, fix=(), known_distances=None,
+                   distance_std: float = 1e-3, loss: str = "soft_l1", f_scale: float = 2.0,
+                   jitter: float = 0.0, n_outer: int = 3, on_unobservable: str = "raise",
+                   max_std: dict | None = None, initial_values: dict | None = None,
+                   max_nfev: int = 200) -> CalibrationResult:
+    """Joint robust fit of system parameters and target planes.
+
+    Parameters
+    ----------
+    targets : list of :class:`~calib.detections.TargetDetections`, one per
+        target pose (recording).
+    system : the nominal system: start values and everything not fitted.
+    free : system parameters to estimate (default: :data:`calib.model.DEFAULT_FREE`;
+        add ``"fx"``, ``"cx"`` to refine the receiver).
+    fix : names held at their value in ``system``.
+    known_distances : per target, its plane's distance from the projection
+        centre in m, or None where unknown; enters as a prior of σ
+        ``distance_std`` (m).  Breaks the baseline_z / tdc_offset trade-off.
+    loss, f_scale : robust loss of ``least_squares`` (residuals are in σ units).
+    jitter : SPAD timing jitter σ, s, added to the pulse's.
+    n_outer : re-estimations of the signal rates and inlier weights.
+    on_unobservable : "raise" (:class:`NotObservableError`) or "warn".
+    max_std : dict of σ limits (SI) above which a parameter is unobservable.
+    initial_values : start values overriding ``system``'s.
+
+    Returns
+    -------
+    :class:`CalibrationResult`.
+
+    Raises
+    ------
+    NotObservableError : too few detections, or a free parameter the data
+        cannot determine (named in the message).
+    """
+    if on_unobservable not in ("raise", "warn"):
+        raise ValueError(f"on_unobservable: expected 'raise' or 'warn', found {on_unobservable!r}")
+    limits = dict(DEFAULT_MAX_STD, **(max_std or {}))
+    targets = list(targets)
+    free = list(DEFAULT_FREE if free is None else free)
+    for n in list(free) + list(fix):
+        if n not in SYSTEM_PARAMS:
+            raise KeyError(f"unknown calibration parameter {n!r}; known: {list(SYSTEM_PARAMS)}")
+    names = [n for n in SYSTEM_PARAMS if n in free and n not in fix]
+    fixed = [n for n in SYSTEM_PARAMS if n not in names]
+    if not targets:
+        raise NotObservableError("no recordings/targets given: nothing to calibrate")
+    if known_distances is not None and len(known_distances) != len(targets):
+        raise ValueError(f"known_distances: expected {len(targets)} entries (one per target), "
+                         f"found {len(known_distances)}")
+    for j, t in enumerate(targets):
+        if t.n_detections < MIN_DETECTIONS_PER_TARGET:
+            raise NotObservableError(
+                f"too few signal detections in target {j} ({t.source}): {t.n_detections}, "
+                f"need at least {MIN_DETECTIONS_PER_TARGET} to determine its plane (and with "
+                f"it {', '.join(names)}); record more shots or check the classification")
+    n_total = sum(t.n_detections for t in targets)
+    two_d = system.receiver.height > 1
+    if initial_values:
+        system = system.with_params(**initial_values)
+    prob = _Problem(targets, system, names, two_d, known_distances, distance_std, jitter)
+    initial = {n: system.get_param(n) for n in SYSTEM_PARAMS}
+    prob.plane_ref = _initial_planes(prob, {})
+    if known_distances is not None:
+        for j, d in enumerate(known_distances):
+            if d is not None:
+                prob.plane_ref[j, 2] = d
+    x = np.zeros(len(prob.labels))
+    values, planes = prob.unpack(x)
+    prob.update(values, planes)
+
+    # structural observability at the start: a column too weak on its own
+    unobservable = []
+    H0, _, _, _ = _covariance(prob, x)
+    col_std = 1.0 / np.sqrt(np.maximum(np.diag(H0), 1e-300)) * prob.scales
+    for i, n in enumerate(list(prob.names)):
+        if col_std[i] > limits[n]:
+            unobservable.append(n)
+    if unobservable:
+        warnings.warn(
+            "not observable from these data, held at the nominal value: "
+            + ", ".join(_weak_column_text(n, col_std[prob.names.index(n)]) for n in unobservable),
+            ObservabilityWarning, stacklevel=2)
+        keep = [n for n in prob.names if n not in unobservable]
+        prob.names = keep
+        names = keep
+        fixed = [n for n in SYSTEM_PARAMS if n not in names]
+        x = np.zeros(len(prob.labels))
+        prob.update(*prob.unpack(x))
+
+    res = None
+    nfev = 0
+    for it in range(n_outer):
+        res = least_squares(prob.residuals, x, jac=lambda z: prob.jacobian(z), loss=loss,
+                            f_scale=f_scale, method="trf", x_scale=1.0, max_nfev=max_nfev,
+                            xtol=1e-10, ftol=1e-10, gtol=1e-10)
+        nfev += res.nfev
+        x = res.x
+        values, planes = prob.unpack(x)
+        prob.update(values, planes)
+        # inliers for the next round: 5σ in either residual (gross outliers out)
+        prob.weights[:] = 1.0
+        blocks = prob.residual_blocks(x)
+        bad = np.zeros(prob.M, dtype=bool)
+        for name in ("pixel", "row", "time"):
+            if name in blocks:
+                bad |= np.abs(blocks[name]) > 5.0
+        prob.weights[bad] = 0.0
+        if it == n_outer - 1:
+            break
+    H, J, rms_blocks, n_in = _covariance(prob, x)
+    cov_s, sv, Vt = _inverse(H)
+    cov_full = cov_s * prob.scales[:, None] * prob.scales[None, :]
+    std_full = np.sqrt(np.maximum(np.diag(cov_full), 0.0))
+    n = len(names)
+    cov = cov_full[:n, :n]
+    std = {nm: float(std_full[i]) for i, nm in enumerate(names)}
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr_full = cov_full / std_full[:, None] / std_full[None, :]
+    corr = corr_full[:n, :n]
+    labels = prob.labels
+    tradeoffs = []
+    for i in range(len(labels)):
+        for k in range(i + 1, len(labels)):
+            if i < n and abs(corr_full[i, k]) > CORRELATION_REPORT:
+                tradeoffs.append((labels[i], labels[k], float(corr_full[i, k])))
+
+    # too weak after the fit (trade-offs): raise or warn, naming the parameters
+    weak = [nm for nm in names if not std[nm] <= limits[nm]]
+    # exact null directions of the normalised information matrix
+    null_names = set()
+    for s_rel, v in zip(sv, Vt):
+        if s_rel < 1e-10:
+            null_names.update(labels[i] for i in np.flatnonzero(np.abs(v) > 0.3) if i < n)
+    weak += [nm for nm in sorted(null_names) if nm not in weak]
+    if weak:
+        partners = {nm: [(b if a == nm else a, r) for a, b, r in tradeoffs if nm in (a, b)]
+                    for nm in weak}
+        msg = "; ".join(
+            f"{nm}: σ = {_fmt(nm, std[nm])} > {_fmt(nm, limits[nm])}"
+            + (" (trades off with " + ", ".join(f"{p} ρ={r:+.4f}" for p, r in partners[nm])
+               + ")" if partners[nm] else "")
+            for nm in weak)
+        text = (f"not observable from these data: {msg}. Record the target at more distances, "
+                "give a known target distance (--target-distance) or fix the parameter "
+                "(--fix NAME)")
+        if on_unobservable == "raise":
+            raise NotObservableError(text)
+        warnings.warn(text, ObservabilityWarning, stacklevel=2)
+        unobservable += [nm for nm in weak if nm not in unobservable]
+
+    rms = {"pixel": rms_blocks.get("pixel", float("nan")) * SIGMA_PIXEL,
+           "time": float(np.sqrt(np.mean((prob.residual_blocks(x)["time"]
+                                          * prob.sigma_t)[prob.weights > 0] ** 2)))}
+    inlier_frac = float(np.mean(prob.weights))
+    converged = bool(res.success) and inlier_frac > 0.5 and rms_blocks.get("pixel", 9) < 2.0 \
+        and rms_blocks.get("time", 9) < 2.0
+    message = "" if converged else (
+        f"the fit did not converge to a consistent solution (solver: {res.message}; "
+        f"{inlier_frac:.0%} inliers; normalised RMS pixel {rms_blocks.get('pixel', 0):.2f}, "
+        f"time {rms_blocks.get('time', 0):.2f}; expected about 1)")
+    values, planes = prob.unpack(x)
+    out_values = {nm: float(values[nm]) for nm in names}
+    planes_std = np.zeros_like(planes)
+    planes_std[:, prob.plane_cols] = std_full[n:].reshape(prob.T, len(prob.plane_cols))
+    result = CalibrationResult(
+        system=system.with_params(**out_values), names=names, values=out_values, std=std,
+        initial={nm: initial[nm] for nm in names}, covariance=cov, correlation=corr, rms=rms,
+        n_detections=int(np.count_nonzero(prob.weights)), fixed=fixed,
+        unobservable=unobservable, tradeoffs=tradeoffs, planes=planes, planes_std=planes_std,
+        converged=converged, message=message, iterations=nfev,
+        extra={"n_total": n_total, "mu": np.exp(planes[:, 3]).tolist(), "normalised_rms": rms_blocks,
+               "singular_values": sv.tolist(), "labels": labels,
+               "correlation_full": corr_full})
+    result.system = result.system.replace(calibration=result.calibration_dict())
+    result.report = format_report(result)
+    if not converged:
+        warnings.warn(message, RuntimeWarning, stacklevel=2)
+    return result
+
+
+def format_report(r: CalibrationResult) -> str:
+    """Plain-text table of estimates, σ, RMS, trade-offs and unobservable parameters."""
+    lines = [f"calibration: {'converged' if r.converged else 'NOT CONVERGED'}, "
+             f"{r.n_detections} signal detections, {len(r.planes)} target(s)",
+             f"  RMS residual: pixel {r.rms_pixel:.3f} px, time {r.rms_time * 1e9:.3f} ns",
+             f"  {'parameter':<16}{'initial':>14}{'estimate':>14}{'σ':>12}  unit"]
+    for n in r.names:
+        f, unit = PARAM_UNIT[n]
+        lines.append(f"  {n:<16}{r.initial[n] * f:>14.4f}{r.values[n] * f:>14.4f}"
+                     f"{r.std[n] * f:>12.4f}  {unit}")
+    for j, (p, s) in enumerate(zip(r.planes, r.planes_std)):
+        lines.append(f"  target {j}: distance {p[2]:.4f} ± {s[2] * 1e3:.2f} mm, "
+                     f"tilt {p[0] * 1e3:.2f} ± {s[0] * 1e3:.2f} mrad")
+    if r.fixed:
+        lines.append("  fixed: " + ", ".join(r.fixed))
+    if r.unobservable:
+        lines.append("  not observable from these data: " + ", ".join(r.unobservable))
+    for a, b, c in r.tradeoffs:
+        lines.append(f"  {a} and {b} trade off: correlation {c:+.4f}")
+    if r.message:
+        lines.append("  " + r.message)
+    return "\n".join(lines)

@@ -1,0 +1,99 @@
+"""Regenerate every sample recording of samples/ bit for bit from its seed.
+
+    python samples/make_samples.py              # all samples, into samples/
+    python samples/make_samples.py --only room  # one of: room floodlight calib
+    python samples/make_samples.py --out /tmp/s # elsewhere (tests compare two runs)
+
+Every recording is made by :func:`mems_stereo.sim.simulate` with a
+``numpy.random.default_rng(seed)``; the seeds, shot counts and backgrounds
+are listed in ``SAMPLES`` below and in samples/README.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mems_stereo.sim import load_scene, simulate, write_simulation
+from mems_stereo.system import System, burkard2022, save_system
+
+HERE = Path(__file__).resolve().parent
+
+# the calibration samples' true system: nominal + these offsets (SI units)
+CALIB_OFFSETS = {
+    "baseline_x": +0.004,  # m: mirror 4 mm closer to the receiver than nominal (-0.121 m)
+    "baseline_z": -0.003,  # m
+    "theta0": +0.004,  # rad
+    "tdc_offset": 1.0e-9,  # s
+    "phase_offset": 0.012,  # rad
+}
+
+
+@dataclass(frozen=True)
+class Sample:
+    name: str  # output file stem
+    scene: str  # scene JSON in samples/
+    seed: int
+    n_shots: int
+    background_hz: float
+    true_system: str  # "nominal" or "calib"
+    drift: float = 0.0  # 1/s
+
+
+SAMPLES = [
+    Sample("room", "room_scene.json", 1, 800, 1e5, "nominal", 1e-3),
+    Sample("floodlight", "room_scene.json", 2, 3200, 6e6, "nominal", 1e-3),
+    Sample("calib_1.5m", "calib_1.5m_scene.json", 11, 4000, 1e5, "calib", 2e-3),
+    Sample("calib_2.5m", "calib_2.5m_scene.json", 12, 4000, 1e5, "calib", -1e-3),
+    Sample("calib_4.0m", "calib_4.0m_scene.json", 13, 4000, 1e5, "calib", 1.5e-3),
+]
+
+
+def nominal_system() -> System:
+    """The system written into every sample: the paper's preset (W = 2.5 m)."""
+    return burkard2022()
+
+
+def calib_true_system() -> System:
+    """The true system of the calibration samples (nominal + CALIB_OFFSETS)."""
+    nom = nominal_system()
+    params = {k: nom.get_param(k) + v for k, v in CALIB_OFFSETS.items()}
+    return nom.with_params(**params)
+
+
+def make_sample(s: Sample, out: Path) -> Path:
+    nominal = nominal_system()
+    true = calib_true_system() if s.true_system == "calib" else nominal
+    rec = simulate(nominal, load_scene(HERE / s.scene), s.n_shots,
+                   rng=np.random.default_rng(s.seed), background_hz=s.background_hz,
+                   true_system=true, drift=s.drift)
+    path = write_simulation(out / f"{s.name}.h5", rec)
+    path.chmod(0o644)  # atomic_output's temporary file is created 0600
+    return path
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(HERE), help="output folder (default: samples/)")
+    ap.add_argument("--only", choices=["room", "floodlight", "calib"], default=None)
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, system in (("nominal_system", nominal_system()),
+                         ("calib_true_system", calib_true_system())):
+        save_system(system, out / f"{name}.json").chmod(0o644)
+    for s in SAMPLES:
+        if args.only and not s.name.startswith(args.only):
+            continue
+        p = make_sample(s, out)
+        print(f"{p}  ({p.stat().st_size / 1e6:.2f} MB, seed {s.seed}, {s.n_shots} shots, "
+              f"{s.background_hz:g} Hz)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
