@@ -210,100 +210,137 @@ class _Problem:
         planes[:, self.plane_cols] += x[n:].reshape(self.T, len(self.plane_cols))
         return values, planes
 
-    def hits(self, values, planes, tgt, phase):
-        normals = plane_normal(planes[tgt, 0], planes[tgt, 1])
-        return beam_hits(self.system, values, phase, normals, planes[tgt, 2]), normals
+    def hits(self, values, planes, j, phase):
+        """Beam hits of shots with monitor ``phase`` on target j's plane."""
+        normal = plane_normal(planes[j, 0], planes[j, 1])
+        return beam_hits(self.system, values, phase, normal, planes[j, 2]), normal
 
     def tau0(self, values, hits):
         off = values.get("tdc_offset", self.ref["tdc_offset"])
         return hits.path / self.system.speed_of_light + off
 
-    def lambert(self, values, hits, normals):
+    @staticmethod
+    def lambert(hits, normal):
         """Relative signal g = cos θ_e · cos θ_r / R² of each hit (Lambertian target)."""
         P = hits.point
-        r = np.linalg.norm(P, axis=1)
+        r = np.sqrt(np.einsum("ij,ij->i", P, P))
         with np.errstate(invalid="ignore", divide="ignore"):
-            g = np.abs(np.sum(normals * P, axis=1)) / r * (P[:, 2] / r) / (r * r)
+            g = np.abs(P @ normal) * P[:, 2] / (r * r * r * r)
         return np.where(hits.ok, g, np.nan)
 
-    def update(self, values, planes, margin=1.0):
+    def _logmu(self, j, planes, hits, normal):
+        g = self.lambert(hits, normal) / self.g_ref[j]
+        return planes[j, 3] + np.log(np.where(np.isfinite(g) & (g > 0), g, 1.0))
+
+    def update(self, values, planes, margin=1.0, max_fraction_shots=1000):
         """Refresh what is held fixed within one solver run: σ_t, the on-sensor
-        shots of each target, and each target's mean Lambertian factor."""
+        shots of each target (a subsample for the detection-share residual),
+        and each target's mean Lambertian factor."""
         w = self.system.receiver.width
         h_ = self.system.receiver.height
         self.g_ref = np.ones(self.T)
+        self.rows = [np.flatnonzero(self.tgt == j) for j in range(self.T)]
+        self.frac_data = []
         for j, t in enumerate(self.targets):
-            hh, nn = self.hits(values, planes, np.full(t.phase.size, j), t.phase)
+            hh, nn = self.hits(values, planes, j, t.phase)
             col, row = hh.pixel[:, 0], hh.pixel[:, 1]
             on = hh.ok & (col > margin - 0.5) & (col < w - 0.5 - margin)
             if self.two_d:
                 on &= (row > margin - 0.5) & (row < h_ - 0.5 - margin)
-            self.on_sets[j] = on
-            g = self.lambert(values, hh, nn)
+            g = self.lambert(hh, nn)
             self.g_ref[j] = float(np.nanmean(g[on])) if on.any() else 1.0
-        hh, nn = self.hits(values, planes, self.tgt, self.phase)
-        self.sigma_t = self._table_eval("std", self.tau0(values, hh),
-                                        self._logmu(planes, hh, nn, values))
-        self.sigma_t = np.where(np.isfinite(self.sigma_t), self.sigma_t, self.sigma_p)
+            idx = np.flatnonzero(on)
+            n_on, n_hit = idx.size, int(np.count_nonzero(t.has_signal[idx]))
+            sub = idx[np.linspace(0, idx.size - 1, min(idx.size, max_fraction_shots)).astype(int)] \
+                if idx.size else idx
+            self.frac_data.append((t.phase[sub], n_on, n_hit))
+        sig = np.full(self.M, self.sigma_p)
+        for j in range(self.T):
+            rows = self.rows[j]
+            hh, nn = self.hits(values, planes, j, self.phase[rows])
+            s = self.tables[j].std(self.tau0(values, hh), self._logmu(j, planes, hh, nn))
+            sig[rows] = np.where(np.isfinite(s), s, self.sigma_p)
+        self.sigma_t = sig
 
-    def _logmu(self, planes, hits, normals, values, tgt=None):
-        tgt = self.tgt if tgt is None else tgt
-        g = self.lambert(values, hits, normals) / self.g_ref[tgt]
-        return planes[tgt, 3] + np.log(np.where(np.isfinite(g) & (g > 0), g, 1.0))
-
-    def _table_eval(self, what, tau, logmu, tgt=None):
-        tgt = self.tgt if tgt is None else tgt
-        out = np.empty_like(tau)
-        for j, tab in enumerate(self.tables):
-            sel = tgt == j
-            out[sel] = getattr(tab, what)(tau[sel], logmu[sel])
+    def segment(self, x, j):
+        """Residual blocks of target j: pixel (, row), time (one per shot), fraction (1)."""
+        values, planes = self.unpack(x)
+        rows = self.rows[j]
+        h, nn = self.hits(values, planes, j, self.phase[rows])
+        ok = h.ok & np.all(np.isfinite(h.pixel), axis=1)
+        w = self.weights[rows] * ok
+        out = {"pixel": np.where(ok, (self.col[rows] - h.pixel[:, 0]) / SIGMA_PIXEL, 0.0) * w}
+        if self.two_d:
+            out["row"] = np.where(ok, (self.row[rows] - h.pixel[:, 1]) / SIGMA_PIXEL, 0.0) * w
+        tau = np.where(ok, self.tau0(values, h), 0.0)
+        logmu = np.where(ok, self._logmu(j, planes, h, nn), 0.0)
+        t_pred = self.tables[j].mean_time(tau, logmu)
+        out["time"] = np.where(ok, (self.t_meas[rows] - t_pred) / self.sigma_t[rows], 0.0) * w
+        ph, n_on, n_hit = self.frac_data[j]
+        fr = 0.0
+        if n_on:
+            hh, nj = self.hits(values, planes, j, ph)
+            pj = self.tables[j].probability(self.tau0(values, hh), self._logmu(j, planes, hh, nj))
+            p = min(max(float(np.nanmean(pj)), 0.0), 1.0)
+            fr = (n_hit - n_on * p) / math.sqrt(n_on * p * (1 - p) + 1.0)
+        out["fraction"] = np.array([fr])
         return out
 
+    def prior(self, x):
+        if self.known is None:
+            return np.zeros(0)
+        _, planes = self.unpack(x)
+        return np.array([(planes[j, 2] - d) / self.known_std for j, d in enumerate(self.known)
+                         if d is not None])
+
     def residual_blocks(self, x):
-        values, planes = self.unpack(x)
-        h, nn = self.hits(values, planes, self.tgt, self.phase)
-        ok = h.ok & np.all(np.isfinite(h.pixel), axis=1)
-        w = self.weights * ok
-        blocks = {"pixel": np.where(ok, (self.col - h.pixel[:, 0]) / SIGMA_PIXEL, 0.0) * w}
-        if self.two_d:
-            blocks["row"] = np.where(ok, (self.row - h.pixel[:, 1]) / SIGMA_PIXEL, 0.0) * w
-        tau = np.where(ok, self.tau0(values, h), 0.0)
-        logmu = np.where(ok, self._logmu(planes, h, nn, values), 0.0)
-        t_pred = self._table_eval("mean_time", tau, logmu)
-        blocks["time"] = np.where(ok, (self.t_meas - t_pred) / self.sigma_t, 0.0) * w
-        # share of on-sensor shots with a signal detection (binomial)
-        fr = np.zeros(self.T)
-        for j, t in enumerate(self.targets):
-            on = self.on_sets[j]
-            n_on = int(on.sum())
-            if n_on == 0:
-                continue
-            tg = np.full(n_on, j)
-            hh, nj = self.hits(values, planes, tg, t.phase[on])
-            pj = self.tables[j].probability(self.tau0(values, hh),
-                                            self._logmu(planes, hh, nj, values, tg))
-            p = min(max(float(np.nanmean(pj)), 0.0), 1.0)
-            n_hit = int(np.count_nonzero(t.has_signal[on]))
-            fr[j] = (n_hit - n_on * p) / math.sqrt(n_on * p * (1 - p) + 1.0)
-        blocks["fraction"] = fr
-        if self.known is not None:
-            pr = [(planes[j, 2] - d) / self.known_std for j, d in enumerate(self.known)
-                  if d is not None]
-            blocks["prior"] = np.array(pr)
-        return blocks
+        """Residuals gathered by kind: pixel, (row,) time, fraction, prior."""
+        segs = [self.segment(x, j) for j in range(self.T)]
+        out = {k: np.concatenate([s[k] for s in segs]) for k in segs[0]}
+        out["prior"] = self.prior(x)
+        return out
 
     def residuals(self, x):
-        return np.concatenate(list(self.residual_blocks(x).values()))
+        """All residuals, target by target (then the priors), in σ units."""
+        parts = []
+        for j in range(self.T):
+            parts += list(self.segment(x, j).values())
+        parts.append(self.prior(x))
+        return np.concatenate(parts)
+
+    def block_index(self):
+        """Row indices of each kind of residual inside :meth:`residuals`."""
+        idx = {}
+        pos = 0
+        for j in range(self.T):
+            for k, v in self.segment(np.zeros(len(self.labels)), j).items():
+                idx.setdefault(k, []).append(np.arange(pos, pos + v.size))
+                pos += v.size
+        idx = {k: np.concatenate(v) for k, v in idx.items()}
+        idx["prior"] = np.arange(pos, pos + self.prior(np.zeros(len(self.labels))).size)
+        return idx
 
     def jacobian(self, x, step=1e-2):
-        """Central differences in scaled units (step 0.01 of PARAM_SCALE)."""
-        r0 = self.residuals(x)
-        J = np.empty((r0.size, x.size))
+        """Central differences in scaled units (step 0.01 of PARAM_SCALE); a
+        target's own parameters change only its segment (and the priors)."""
+        seg_sizes = [sum(v.size for v in self.segment(x, j).values()) for j in range(self.T)]
+        starts = np.concatenate([[0], np.cumsum(seg_sizes)])
+        n_prior = self.prior(x).size
+        J = np.zeros((starts[-1] + n_prior, x.size))
+        n = len(self.names)
         for i in range(x.size):
             xp, xm = x.copy(), x.copy()
             xp[i] += step
             xm[i] -= step
-            J[:, i] = (self.residuals(xp) - self.residuals(xm)) / (2 * step)
+            if i < n:
+                J[:, i] = (self.residuals(xp) - self.residuals(xm)) / (2 * step)
+                continue
+            j = (i - n) // len(self.plane_names)
+            rp = np.concatenate(list(self.segment(xp, j).values()))
+            rm = np.concatenate(list(self.segment(xm, j).values()))
+            J[starts[j]:starts[j + 1], i] = (rp - rm) / (2 * step)
+            if n_prior:
+                J[starts[-1]:, i] = (self.prior(xp) - self.prior(xm)) / (2 * step)
         return J
 
 
@@ -357,21 +394,18 @@ def _initial_planes(prob: _Problem, values: dict) -> np.ndarray:
 
 
 def _covariance(prob: _Problem, x):
-    """Scaled-unit covariance (n, n), per-block RMS, inlier counts."""
+    """Scaled-unit information matrix, Jacobian, per-kind RMS (σ units), inlier counts."""
     J = prob.jacobian(x)
-    blocks = prob.residual_blocks(x)
-    sizes = [b.size for b in blocks.values()]
+    r = prob.residuals(x)
     H = np.zeros((x.size, x.size))
     rms, n_in = {}, {}
-    start = 0
-    for (name, r), n in zip(blocks.items(), sizes):
-        Jb = J[start:start + n]
-        start += n
+    for name, idx in prob.block_index().items():
+        Jb, rb = J[idx], r[idx]
         if name in ("prior", "fraction"):
             H += Jb.T @ Jb
             continue
-        inl = (np.abs(r) < 4.0) & (prob.weights > 0)
-        s2 = float(np.mean(r[inl] ** 2)) if inl.any() else 1.0
+        inl = (np.abs(rb) < 4.0) & (rb != 0.0)
+        s2 = float(np.mean(rb[inl] ** 2)) if inl.any() else 1.0
         rms[name] = math.sqrt(s2)
         n_in[name] = int(inl.sum())
         H += Jb[inl].T @ Jb[inl] / s2
@@ -497,7 +531,7 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     for it in range(n_outer):
         res = least_squares(prob.residuals, x, jac=lambda z: prob.jacobian(z), loss=loss,
                             f_scale=f_scale, method="trf", x_scale=1.0, max_nfev=max_nfev,
-                            xtol=1e-10, ftol=1e-10, gtol=1e-10)
+                            xtol=1e-8, ftol=1e-8, gtol=1e-8, tr_solver="lsmr")
         nfev += res.nfev
         x = res.x
         values, planes = prob.unpack(x)

@@ -79,7 +79,8 @@ def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
     values : the scalar parameters (names of :data:`SYSTEM_PARAMS`) in SI
         units; missing names are taken from ``system``.
     phase : (N,) rad, monitor phase of each shot.
-    normals : (N, 3) unit plane normals; dists : (N,) m, plane offsets D.
+    normals : (N, 3) or (3,) unit plane normals; dists : (N,) or scalar, m,
+        plane offsets D.
     """
     def v(name):
         return values[name] if name in values else system.get_param(name)
@@ -92,12 +93,13 @@ def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
     nm = c * e1 + s_ * e2
     d = dl - 2.0 * (nm @ dl)[:, None] * nm
     p = np.array([v("baseline_x"), v("baseline_y"), v("baseline_z")])
-    nd = np.sum(normals * d, axis=1)
+    normals = np.asarray(normals, dtype=np.float64)
+    nd = d @ normals if normals.ndim == 1 else np.sum(normals * d, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):
         s = (dists - normals @ p) / nd
     P = p + s[:, None] * d
     ok = np.isfinite(s) & (s > 0) & (P[:, 2] > 0)
-    path = s + np.linalg.norm(P, axis=1)
+    path = s + np.sqrt(np.einsum('ij,ij->i', P, P))
     K = np.array(system.receiver.camera_matrix, dtype=np.float64)
     K[0, 0], K[0, 2] = v("fx"), v("cx")
     dist_coeffs = np.asarray(system.receiver.dist_coeffs, dtype=np.float64)

@@ -9,8 +9,8 @@ over the bins labels every detection and accumulates the signal and noise
 histograms at once, near the speed of reading the bins.
 
 Snapping θ to the grid is the only approximation: with the default
-Δθ = 20 µrad the predicted path length moves by at most
-``|∂L/∂θ|·Δθ/2`` (5 mm at 5 m for the paper's system), against a bound of
+Δθ = 50 µrad the predicted path length moves by at most
+``|∂L/∂θ|·Δθ/2`` (about 5 mm at 5 m for the paper's system), against a bound of
 several metres.  The reference NumPy path
 (:func:`mems_stereo.classify.classify_bins`) applied to the **snapped**
 angles gives labels identical to the fast path; the tests check exactly that.
@@ -19,33 +19,47 @@ angles gives labels identical to the fast path; the tests check exactly that.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 
 from .classify import DEFAULT_CONFIDENCE, accepted_code_intervals
 from .system import System, system_to_json
 from .uncertainty import Spreads
 
-DEFAULT_THETA_STEP = 2e-5  # rad
+DEFAULT_THETA_STEP = 5e-5  # rad
 
 
-@dataclass(frozen=True)
 class IntervalTable:
-    """Accepted code intervals per scan-angle step and pixel.
+    """Accepted code intervals per scan-angle step and pixel, filled on demand.
+
+    Row ``j`` holds the intervals for the angle ``θ_j = theta_min + j·step``;
+    rows are computed by the reference
+    :func:`~mems_stereo.classify.accepted_code_intervals` the first time a
+    shot needs them (:meth:`ensure`), so the cost is proportional to the
+    number of distinct angle steps seen, never more than once per step.
 
     Attributes
     ----------
     theta_min : float, rad, angle of row 0.
     step : float, rad, grid spacing Δθ.
     lo, hi : (S, H*W) uint16 each; code N is signal iff lo <= N <= hi
-        (lo > hi: nothing accepted).
+        (lo > hi: nothing accepted).  Valid only where ``filled``.
+    filled : (S,) bool.
     """
 
-    theta_min: float
-    step: float
-    lo: np.ndarray
-    hi: np.ndarray
+    def __init__(self, system: System, confidence: float = DEFAULT_CONFIDENCE,
+                 spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
+                 margin: float = 0.1, min_range: float | None = None):
+        sc = system.scanner
+        half = sc.theta_mech_max * (1.0 + margin)
+        n = int(math.ceil(2 * half / step)) + 1
+        P = system.receiver.width * system.receiver.height
+        self.system, self.confidence, self.spreads = system, confidence, spreads
+        self.min_range = min_range
+        self.theta_min = float(sc.theta0 - half)
+        self.step = float(step)
+        self.lo = np.ones((n, P), dtype=np.uint16)
+        self.hi = np.zeros((n, P), dtype=np.uint16)
+        self.filled = np.zeros(n, dtype=bool)
 
     @property
     def n_steps(self) -> int:
@@ -64,41 +78,47 @@ class IntervalTable:
         j = self.index(theta)
         return np.where(j >= 0, self.theta_min + j * self.step, np.nan)
 
+    def ensure(self, rows) -> None:
+        """Compute the rows not yet filled among ``rows`` ((K,) int, −1 ignored)."""
+        r = np.unique(np.asarray(rows)[np.asarray(rows) >= 0])
+        need = r[~self.filled[r]]
+        if need.size == 0:
+            return
+        grid = self.theta_min + self.step * need
+        lo, hi = accepted_code_intervals(self.system, grid, self.confidence, self.spreads,
+                                         chunk_shots=512, min_range=self.min_range)
+        lo = lo.reshape(need.size, -1)
+        hi = hi.reshape(need.size, -1)
+        empty = lo > hi
+        self.lo[need] = np.where(empty, 1, np.clip(lo, 0, 65535)).astype(np.uint16)
+        self.hi[need] = np.where(empty, 0, np.clip(hi, 0, 65535)).astype(np.uint16)
+        self.filled[need] = True
+
+    def fill_all(self) -> IntervalTable:
+        """Compute every row now (e.g. before sending the table to workers)."""
+        self.ensure(np.arange(self.n_steps))
+        return self
+
 
 _TABLE_CACHE: dict = {}
 
 
-def build_interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
-                         spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
-                         margin: float = 0.1, min_range: float | None = None) -> IntervalTable:
-    """Compile the accepted intervals for every scan angle the system can reach.
+def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
+                   spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
+                   margin: float = 0.1, min_range: float | None = None) -> IntervalTable:
+    """The (cached, lazily filled) :class:`IntervalTable` of a system and settings.
 
-    The grid covers ``θ0 ± θ_mech,max·(1 + margin)``.  Tables are cached per
-    (system, confidence, spreads, step, margin, min_range) in the process.
-    Cost: one call of :func:`~mems_stereo.classify.accepted_code_intervals`
-    over S = 2·θ_max·(1+margin)/Δθ angles (≈ 23,000 rows for the paper's
-    system: about a second, 18 MB).
+    The grid covers ``θ0 ± θ_mech,max·(1 + margin)``; shots outside it are
+    left out like shots of unknown angle.  Filling all rows of the paper's
+    system (≈ 9,100 steps of 50 µrad × 192 pixels) takes a few seconds once.
     """
     key = (system_to_json(system), confidence, repr(spreads), step, margin, min_range)
-    if key in _TABLE_CACHE:
-        return _TABLE_CACHE[key]
-    sc = system.scanner
-    half = sc.theta_mech_max * (1.0 + margin)
-    n = int(math.ceil(2 * half / step)) + 1
-    theta_min = sc.theta0 - half
-    grid = theta_min + step * np.arange(n)
-    lo, hi = accepted_code_intervals(system, grid, confidence, spreads, chunk_shots=512,
-                                     min_range=min_range)
-    P = system.receiver.width * system.receiver.height
-    lo = np.clip(lo.reshape(n, P), 0, 65535).astype(np.uint16)
-    hi = np.clip(hi.reshape(n, P), 0, 65535).astype(np.uint16)
-    # nothing accepted: make the empty interval explicit for uint16 (lo=1 > hi=0)
-    empty = lo > hi
-    lo[empty], hi[empty] = 1, 0
-    table = IntervalTable(float(theta_min), float(step), lo, hi)
-    if len(_TABLE_CACHE) > 8:
-        _TABLE_CACHE.clear()
-    _TABLE_CACHE[key] = table
+    table = _TABLE_CACHE.get(key)
+    if table is None:
+        if len(_TABLE_CACHE) >= 8:
+            _TABLE_CACHE.clear()
+        table = _TABLE_CACHE[key] = IntervalTable(system, confidence, spreads, step, margin,
+                                                  min_range)
     return table
 
 
@@ -106,29 +126,35 @@ def build_interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
 # compiled kernel
 
 
-def _kernel_py(bins, rows, lo, hi, labels, hist_s, hist_n, n_bins):
+def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal, n_bins):
     """Reference semantics of the compiled kernel (pure Python; used when numba is absent).
 
     bins : (K, P) uint16; rows : (K,) int64 table row (−1: shot left out);
-    lo, hi : (S, P) uint16; labels : (K, P) uint8 out (may be (0, 0): not written);
-    hist_s, hist_n : (P, n_bins + 1) int64 accumulated in place (column 0 unused).
+    lo, hi : (S, P) uint16; labels : (K, P) uint8 out, or (0, 0): not written;
+    hist_raw, hist_signal : (P, n_bins + 1) int32 added to in place (column N
+    counts code N; column 0 counts the pixel-slots without a detection).
+    Codes are cast to int64 before any arithmetic (numba would otherwise mix
+    unsigned and signed integers through float64).
     """
     K, P = bins.shape
     write = labels.shape[0] == K
     for k in range(K):
         j = rows[k]
-        for p in range(P):
-            c = bins[k, p]
-            lab = 0
-            if c != 0 and j >= 0 and c <= n_bins:
-                if lo[j, p] <= c and c <= hi[j, p]:
-                    hist_s[p, c] += 1
-                    lab = 1
-                else:
-                    hist_n[p, c] += 1
-                    lab = 2
+        if j < 0:
             if write:
-                labels[k, p] = lab
+                for p in range(P):
+                    labels[k, p] = 0
+            continue
+        for p in range(P):
+            c = np.int64(bins[k, p])
+            if c > n_bins:
+                c = 0
+            hist_raw[p, c] += 1
+            ok = c != 0 and np.int64(lo[j, p]) <= c and c <= np.int64(hi[j, p])
+            if ok:
+                hist_signal[p, c] += 1
+            if write:
+                labels[k, p] = 1 if ok else (2 if c != 0 else 0)
 
 
 try:  # pragma: no cover - exercised whenever numba is installed (a declared dependency)
@@ -142,22 +168,25 @@ except ImportError:  # pragma: no cover
 
 
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
-                            hist_signal=None, hist_noise=None, want_labels: bool = True):
-    """Label a block of shots and add it to the signal and noise histograms.
+                            hist_raw=None, hist_signal=None, want_labels: bool = True):
+    """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
     ----------
     bins : (K, H, W) uint16 TDC codes.
-    theta : (K,) rad; valid : (K,) bool (False: shot left out, label 0).
-    table : :class:`IntervalTable` of the system.
-    n_bins : codes above it are ignored (validated on read).
-    hist_signal, hist_noise : (H*W, n_bins + 1) int64, added to in place
-        (allocated when None); column N counts code N, column 0 is unused.
+    theta : (K,) rad; valid : (K,) bool (False: shot left out, label 0,
+        not counted).
+    table : :class:`IntervalTable` of the system (rows filled on demand).
+    n_bins : codes above it are ignored (they are rejected on read).
+    hist_raw, hist_signal : (H*W, n_bins + 1) int32, added to in place
+        (allocated when None).  Column N counts code N; column 0 of
+        ``hist_raw`` counts valid pixel-slots without a detection.  The noise
+        histogram is ``hist_raw − hist_signal`` (columns 1..n_bins).
     want_labels : return the (K, H, W) uint8 labels (else None; faster).
 
     Returns
     -------
-    labels, hist_signal, hist_noise.  The raw histogram is their sum.
+    labels, hist_raw, hist_signal.
     """
     b = np.ascontiguousarray(bins)
     if b.dtype != np.uint16:
@@ -167,10 +196,11 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     b2 = b.reshape(K, P)
     rows = table.index(theta)
     rows[~np.asarray(valid, dtype=bool)] = -1
+    table.ensure(rows)
+    if hist_raw is None:
+        hist_raw = np.zeros((P, n_bins + 1), dtype=np.int32)
     if hist_signal is None:
-        hist_signal = np.zeros((P, n_bins + 1), dtype=np.int64)
-    if hist_noise is None:
-        hist_noise = np.zeros((P, n_bins + 1), dtype=np.int64)
+        hist_signal = np.zeros((P, n_bins + 1), dtype=np.int32)
     labels = np.empty((K, P), dtype=np.uint8) if want_labels else np.empty((0, 0), np.uint8)
-    _kernel(b2, rows, table.lo, table.hi, labels, hist_signal, hist_noise, int(n_bins))
-    return (labels.reshape(b.shape) if want_labels else None), hist_signal, hist_noise
+    _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, int(n_bins))
+    return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal

@@ -16,6 +16,7 @@ from mems_stereo.triangulation import (
     beam_angle,
     codes_from_path_length,
     coplanar_ray_intersection,
+    epipolar_stereo_point,
     paper_eq8_z,
     paper_eq9_x,
     paper_mu_pix,
@@ -93,6 +94,12 @@ def test_stereo_and_tof_agree_on_a_noise_free_detection(dtheta, dist):
     assert fl[0] == 0 and np.allclose(xs, x, atol=1e-7 * dist) and gap[0] < 1e-7
     assert np.allclose(scanner_ray_point(p, d, L)[0], x, atol=1e-9 * dist)
     assert np.allclose(pixel_ray_point(p, l, L)[0], x, atol=1e-9 * dist)
+    xe, se, *_, fe = epipolar_stereo_point(p, d, l)
+    assert fe[0] == 0 and np.allclose(xe, x, atol=1e-7 * dist)
+    # a pixel ray tilted out of the epipolar plane projects back onto the same point
+    tilt = l + np.array([[0.0, 0.01, 0.0]])
+    xt, *_ = epipolar_stereo_point(p, d, tilt / np.linalg.norm(tilt))
+    assert np.allclose(xt, x, atol=1e-6 * dist)
     s2, rho2 = coplanar_ray_intersection(p, d, l)
     assert np.allclose([s2[0], rho2[0]], [dist, np.linalg.norm(x)], rtol=1e-7)
 

@@ -31,6 +31,7 @@ from ..system import Receiver
 PLANCK = 6.62607015e-34  # J s
 C_VACUUM = 299792458.0  # m/s
 FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+DENSE_BACKGROUND = 0.5  # above this firing probability, draw every slot instead of skipping
 
 
 # --------------------------------------------------------------------------
@@ -310,7 +311,9 @@ def background_first_arrivals(rate_hz: float, n_slots: int, window: float,
 
     Constant rate λ = ``rate_hz``: a slot fires within [0, window) with
     p = 1 − exp(−λ·window) (Bernoulli, found by geometric skipping), and its
-    first arrival is exponential truncated to the window.
+    first arrival is exponential truncated to the window.  When most slots fire
+    (p > 0.5) each slot instead gets one float32 uniform u: it fires when
+    u < p, at the exponential quantile −ln(1 − u)/λ (same law).
     Returns ``index (M,) int64`` (slots that fire, increasing) and ``tau (M,)
     float64`` s.
     """
@@ -318,8 +321,13 @@ def background_first_arrivals(rate_hz: float, n_slots: int, window: float,
     if lam <= 0 or n_slots <= 0:
         return np.zeros(0, np.int64), np.zeros(0)
     p = -math.expm1(-lam * window)
-    if p >= 1.0:
-        idx = np.arange(n_slots, dtype=np.int64)
+    if p > DENSE_BACKGROUND:
+        # most slots fire: one uniform per slot, u < p fires at the exponential quantile u
+        u = rng.random(n_slots, dtype=np.float32)
+        idx = np.flatnonzero(u < p)
+        tau = np.log1p(-u[idx])
+        tau *= np.float32(-1.0 / lam)  # float32: 1e-7 relative, far below a TDC bin
+        return idx, np.minimum(tau, np.float32(window * (1 - 1e-6)))
     else:
         chunks = []
         pos = -1

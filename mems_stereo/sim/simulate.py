@@ -64,6 +64,20 @@ def _rates(background_hz, dark_count_hz, shape) -> np.ndarray:
     return rate
 
 
+def _project(points: np.ndarray, receiver) -> np.ndarray:
+    """Pixels (column, row) of points in front of the camera, (N, 2); pinhole in
+    NumPy without distortion, ``cv2.projectPoints`` (via camera.project_points) with it."""
+    if np.any(receiver.dist_coeffs):
+        return project_points(points, receiver.camera_matrix, receiver.dist_coeffs)
+    K = receiver.camera_matrix
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xn = points[:, 0] / points[:, 2]
+        yn = points[:, 1] / points[:, 2]
+    out = np.stack([K[0, 0] * xn + K[0, 1] * yn + K[0, 2], K[1, 1] * yn + K[1, 2]], axis=1)
+    out[points[:, 2] <= 0] = np.nan
+    return out
+
+
 def shot_returns(true_system: System, scene: Scene, theta, *, link: LinkBudget,
                  spot: SpotModel, n_emitted: float):
     """Geometry and mean signal of each shot.
@@ -98,7 +112,7 @@ def shot_returns(true_system: System, scene: Scene, theta, *, link: LinkBudget,
     mu = np.where(visible, mu, 0.0)
     center = np.full((x.shape[0], 2), np.nan)
     if np.any(visible):
-        center[visible] = project_points(x[visible], rc.camera_matrix, rc.dist_coeffs)
+        center[visible] = _project(x[visible], rc)
     sig_m = spot.sigma(np.where(hit, hits.t, 1.0), np.where(hit, x[:, 2], 1.0), link)
     sigma_px = sig_m[:, None] / np.asarray(rc.pixel_pitch, dtype=np.float64)[None, :]
     path = np.where(hit, hits.t + r_rx, np.nan)
@@ -145,7 +159,8 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
 
     bins = np.zeros(n_slots, dtype=np.uint16)
     label = np.zeros(n_slots, dtype=np.uint8)
-    bins[idx] = (np.floor(tau / bw) + 1).astype(np.uint16)
+    code = tau * (1.0 / bw)  # non-negative: truncation is floor
+    bins[idx] = code.astype(np.uint16) + 1
     label[idx] = 2
 
     # the earlier of signal and background wins

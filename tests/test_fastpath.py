@@ -1,0 +1,96 @@
+"""The compiled classifier against the NumPy reference: identical labels and histograms."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from mems_stereo.classify import classify_bins
+from mems_stereo.fastpath import _kernel_py, classify_and_accumulate, interval_table
+from mems_stereo.system import burkard2022
+
+
+@pytest.fixture(scope="module")
+def table():
+    return interval_table(burkard2022())
+
+
+def _random_block(rng, system, k):
+    sc = system.scanner
+    theta = sc.theta0 + sc.theta_mech_max * np.cos(rng.uniform(0, 2 * np.pi, k))
+    # codes everywhere, plus a return-like cluster near the predicted path of each shot
+    bins = rng.integers(0, system.tdc.n_bins + 1, size=(k, 1, 192)).astype(np.uint16)
+    bins[rng.random(bins.shape) < 0.3] = 0
+    valid = rng.random(k) > 0.1
+    return bins, theta, valid
+
+
+def _histograms_from_labels(bins, labels, n_bins):
+    P = bins.shape[1] * bins.shape[2]
+    b = bins.reshape(bins.shape[0], P).astype(np.int64)
+    lab = labels.reshape(b.shape)
+    pix = np.broadcast_to(np.arange(P), b.shape)
+    raw = np.zeros((P, n_bins + 1), np.int64)
+    sig = np.zeros_like(raw)
+    counted = lab > 0
+    np.add.at(raw, (pix[counted], b[counted]), 1)
+    np.add.at(sig, (pix[lab == 1], b[lab == 1]), 1)
+    return raw, sig
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.integers(0, 2**32 - 1), st.integers(1, 300))
+def test_fast_labels_equal_the_reference_on_snapped_angles(table, seed, k):
+    rng = np.random.default_rng(seed)
+    s = burkard2022()
+    bins, theta, valid = _random_block(rng, s, k)
+    labels, raw, sig = classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins)
+    ref = classify_bins(s, bins, table.snap(theta), valid)
+    np.testing.assert_array_equal(labels, ref)
+    r_raw, r_sig = _histograms_from_labels(bins, ref, s.tdc.n_bins)
+    np.testing.assert_array_equal(raw[:, 1:], r_raw[:, 1:])
+    np.testing.assert_array_equal(sig, r_sig)
+    # column 0 counts the valid empty pixel-slots
+    assert raw[:, 0].sum() == int(((bins == 0) & valid[:, None, None]).sum())
+
+
+def test_compiled_kernel_equals_its_python_semantics(table, rng):
+    s = burkard2022()
+    bins, theta, valid = _random_block(rng, s, 64)
+    rows = table.index(theta)
+    rows[~valid] = -1
+    table.ensure(rows)
+    out = []
+    for fn in (None, _kernel_py):
+        lab = np.empty((64, 192), np.uint8)
+        raw = np.zeros((192, 4097), np.int32)
+        sig = np.zeros_like(raw)
+        if fn is None:
+            lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096)
+            lab = lab.reshape(64, 192)
+        else:
+            fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig, 4096)
+        out.append((lab, raw, sig))
+    for a, b in zip(*out):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_histograms_add_over_chunks(table, rng):
+    s = burkard2022()
+    bins, theta, valid = _random_block(rng, s, 200)
+    _, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
+    raw2 = np.zeros_like(raw)
+    sig2 = np.zeros_like(sig)
+    for a in range(0, 200, 37):
+        classify_and_accumulate(bins[a:a + 37], theta[a:a + 37], valid[a:a + 37], table, 4096,
+                                raw2, sig2, want_labels=False)
+    np.testing.assert_array_equal(raw, raw2)
+    np.testing.assert_array_equal(sig, sig2)
+
+
+def test_snapping_is_within_half_a_step(table, rng):
+    th = burkard2022().scanner.theta0 + rng.uniform(-0.2, 0.2, 1000)
+    assert np.max(np.abs(table.snap(th) - th)) <= table.step / 2 + 1e-15
+    assert table.index([np.nan, 10.0]).tolist() == [-1, -1]

@@ -1,0 +1,101 @@
+"""Stereo, ToF and fused points: errors against their own reported uncertainty."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mems_stereo.camera import project_points
+from mems_stereo.cloud import REQUIRED_ATTRIBUTES
+from mems_stereo.points import detection_points, peak_points
+from mems_stereo.scanner import scan_direction
+from mems_stereo.triangulation import codes_from_path_length, path_length_of_point
+from mems_stereo.uncertainty import polar_from_cartesian, spreads_for
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+
+
+def _shots(system, rng, K, Z):
+    """Wall at z = Z: true points, pixel where the photon lands (uniform over the
+    pixel around the true image), Gaussian path length, noisy recorded angle."""
+    sp = spreads_for(system, spot_sigma=0.0)
+    th = system.scanner.theta0 + rng.uniform(-0.15, 0.15, K)
+    p = system.scanner.position
+    d = scan_direction(th, system.scanner)
+    x = p + ((Z - p[2]) / d[:, 2])[:, None] * d
+    u = project_points(x, system.receiver.camera_matrix)[:, 0]
+    col = np.rint(u).astype(int)
+    L = path_length_of_point(x, p) + rng.normal(0, sp.sigma_L(system), K)
+    code = np.floor(codes_from_path_length(L, system.tdc, system.speed_of_light) + 0.5)
+    th_meas = th + rng.normal(0, sp.sigma_theta, K)
+    ok = (col >= 0) & (col < system.receiver.width) & (code >= 1)
+    return sp, x[ok], col[ok], code[ok].astype(int), th_meas[ok]
+
+
+@pytest.mark.parametrize("Z", [1.5, 4.0])
+def test_each_estimate_within_1p5x_of_its_uncertainty(system, rng, Z):
+    sp, x, col, code, th = _shots(system, rng, 3000, Z)
+    n = x.shape[0]
+    dp = detection_points(system, np.arange(n), np.zeros(n, int), col, code, th, sp)
+    assert dp.ok.mean() > 0.99
+    # every estimate lies on the scanner ray: compare along it (the range from the
+    # projection centre is insensitive to errors near the mirror, at short range)
+    dirn = scan_direction(th, system.scanner)[dp.ok]
+    rms = {}
+    for name in ("stereo", "tof", "fused"):
+        pts, cov = getattr(dp, name)[dp.ok], getattr(dp, "cov_" + name)[dp.ok]
+        e = np.sum((pts - x[dp.ok]) * dirn, axis=1)
+        s = np.sqrt(np.einsum("ni,nij,nj->n", dirn, cov, dirn))
+        z = e / s
+        assert 1 / 1.5 < np.std(z) < 1.5, (name, np.std(z))
+        rms[name] = np.sqrt(np.mean(e ** 2))
+    # the fusion is at least as good as the better estimate (within sampling noise)
+    assert rms["fused"] <= 1.05 * min(rms["stereo"], rms["tof"])
+    assert np.all((dp.weight_stereo[dp.ok] >= 0) & (dp.weight_stereo[dp.ok] <= 1))
+
+
+def test_peak_points_on_a_wall(system, rng):
+    Z = 3.0
+    sp, x, col, code, th = _shots(system, rng, 6000, Z)
+    n = x.shape[0]
+    W = system.receiver.width
+    bins = np.zeros((n, 1, W), np.uint16)
+    bins[np.arange(n), 0, col] = code
+    labels = (bins > 0).astype(np.uint8)
+    cols = np.unique(col)
+    med = np.array([np.median(code[col == c]) for c in cols])
+    half = int(np.ceil(3 * sp.sigma_t / system.tdc.bin_width))
+    pc = peak_points(system, bins, labels, th, np.zeros_like(cols), cols,
+                     (med - half).astype(int), (med + half).astype(int), sp, min_counts=5)
+    assert not pc.missing_required()
+    for a in REQUIRED_ATTRIBUTES + ("sigma_x", "sigma_y", "sigma_z", "range_stereo",
+                                    "range_tof", "sigma_r_stereo", "sigma_r_tof"):
+        assert np.all(np.isfinite(pc[a])), a
+    dist = np.abs(pc.points[:, 2] - Z)  # distance to the wall
+    assert np.median(dist) <= 0.03, np.median(dist)
+    z = (pc.points[:, 2] - Z) / pc["sigma_z"]
+    assert np.std(z) < 1.5
+    assert np.all(pc["counts"] <= pc["counts_window"])
+
+
+@pytest.mark.skipif(not (SAMPLES / "room.h5").exists(), reason="samples/room.h5 not built")
+def test_room_sample_detection_accuracy():
+    """Simulated room: each estimate's range errors within 1.5x of its own σ."""
+    from mems_stereo.classify import classify_recording
+    from mems_stereo.recording import read_recording
+
+    rec = read_recording(SAMPLES / "room.h5")
+    res = classify_recording(rec)
+    tr = rec.truth
+    assert np.mean(res.labels[tr["label"] == 1] == 1) >= 0.98
+    assert np.mean(res.labels[tr["label"] == 2] == 2) >= 0.97
+    k, r, c = np.nonzero((res.labels == 1) & (tr["label"] == 1))
+    dp = detection_points(rec.system, k, r, c, rec.bins[k, r, c], res.theta)
+    X = tr["point"][k]
+    g = dp.ok & np.all(np.isfinite(X), 1) & (np.linalg.norm(X, axis=1) < 6)
+    for name in ("stereo", "tof", "fused"):
+        rr, _, sr, _ = polar_from_cartesian(getattr(dp, name)[g], getattr(dp, "cov_" + name)[g])
+        z = (rr - np.linalg.norm(X[g], axis=1)) / sr
+        assert np.sqrt(np.mean(z ** 2)) < 1.5, name
