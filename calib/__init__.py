@@ -1,0 +1,19 @@
+"""Calibration of the scanner–receiver pair from flat-target recordings.
+
+* :func:`calibrate_system` — classify → fit → reclassify → refit (the user's call);
+* :func:`fit_detections` — the robust joint fit on signal detections;
+* :class:`CalibrationResult` — estimates, σ, covariance, RMS, observability;
+* :mod:`calib.model` — forward model (beam → plane → pixel, path length);
+* :mod:`calib.timing` — first-photon bias of a wide pulse behind a late TDC;
+* :mod:`calib.intrinsics` — receiver intrinsics from ChArUco images (2-D arrays);
+* :mod:`calib.synth` — synthetic detections for tests.
+
+See ``docs/calibration.md``.
+"""
+
+from .calibrate import calibrate_system
+from .detections import TargetDetections, detections_from_labels
+from .fit import CalibrationResult, ObservabilityWarning, fit_detections
+
+__all__ = ["CalibrationResult", "ObservabilityWarning", "TargetDetections",
+           "calibrate_system", "detections_from_labels", "fit_detections"]

@@ -28,6 +28,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from mems_stereo.errors import NotObservableError
+from mems_stereo.scanner import scan_angle_from_phase
 from mems_stereo.system import System
 
 from .detections import TargetDetections
@@ -159,34 +160,59 @@ class _Problem:
         self.plane_names = (["alpha", "beta", "dist", "logmu"] if two_d
                             else ["alpha", "dist", "logmu"])
         self.plane_cols = [0, 1, 2, 3] if two_d else [0, 2, 3]
-        tg, ph, col, row, tt, npx = [], [], [], [], [], []
         bw = system.tdc.bin_width
-        for j, t in enumerate(targets):
-            shots, inv = np.unique(t.shot, return_inverse=True)
+        # per detection (fixed), aggregated per shot by update()
+        self.d_tgt = np.concatenate([np.full(t.n_detections, j) for j, t in enumerate(targets)])
+        self.d_shot = np.concatenate([t.shot for t in targets])
+        self.d_col = np.concatenate([t.column for t in targets])
+        self.d_row = np.concatenate([t.row for t in targets])
+        self.d_t = code_time(np.concatenate([t.code for t in targets]), bw)
+        self._aggregate([np.ones(t.n_detections, dtype=bool) for t in targets])
+        self.sigma_p = pulse_sigma(system.laser.pulse_fwhm, jitter)
+        self.window = system.tdc.n_bins * system.tdc.bin_width
+        self.tables = [_table(self.sigma_p, background_rate(t.noise_fraction, self.window), bw)
+                       for t in targets]
+        self.plane_ref = np.zeros((self.T, 4))
+        self.sigma_t = np.full(self.M, self.sigma_p)
+        self.on_sets = [np.zeros(t.phase.size, dtype=bool) for t in targets]
+
+    def _aggregate(self, keep):
+        """Per-shot observations from the kept detections of each target.
+
+        ``keep`` : list of (M_j,) bool.  Sets tgt, phase, col, row, t_meas,
+        n_pix (one entry per shot with a kept detection), ``has_signal`` per
+        target (shots with a kept detection) and resets the weights.
+        """
+        tg, ph, col, row, tt, npx, has = [], [], [], [], [], [], []
+        start = 0
+        for j, t in enumerate(self.targets):
+            sl = slice(start, start + t.n_detections)
+            start += t.n_detections
+            k = keep[j]
+            shot = self.d_shot[sl][k]
+            shots, inv = np.unique(shot, return_inverse=True)
             cnt = np.bincount(inv, minlength=shots.size)
             tmin = np.full(shots.size, np.inf)
-            np.minimum.at(tmin, inv, code_time(t.code, bw))
+            np.minimum.at(tmin, inv, self.d_t[sl][k])
             tg.append(np.full(shots.size, j))
             ph.append(t.phase[shots])
-            col.append(np.bincount(inv, t.column, shots.size) / cnt)
-            row.append(np.bincount(inv, t.row, shots.size) / cnt)
+            col.append(np.bincount(inv, self.d_col[sl][k], shots.size) / np.maximum(cnt, 1))
+            row.append(np.bincount(inv, self.d_row[sl][k], shots.size) / np.maximum(cnt, 1))
             tt.append(tmin)
             npx.append(cnt)
+            hs = np.zeros(t.phase.size, dtype=bool)
+            hs[shots] = True
+            has.append(hs)
         self.tgt = np.concatenate(tg)
         self.phase = np.concatenate(ph)
         self.col = np.concatenate(col)
         self.row = np.concatenate(row)
         self.t_meas = np.concatenate(tt)
         self.n_pix = np.concatenate(npx)
+        self.has_signal = has
         self.M = self.tgt.size
-        self.sigma_p = pulse_sigma(system.laser.pulse_fwhm, jitter)
-        self.window = system.tdc.n_bins * system.tdc.bin_width
-        self.tables = [_table(self.sigma_p, background_rate(t.noise_fraction, self.window), bw)
-                       for t in targets]
         self.weights = np.ones(self.M)
-        self.plane_ref = np.zeros((self.T, 4))
-        self.sigma_t = np.full(self.M, self.sigma_p)
-        self.on_sets = [np.zeros(t.phase.size, dtype=bool) for t in targets]
+        self.rows = [np.flatnonzero(self.tgt == j) for j in range(self.T)]
 
     @property
     def labels(self):
@@ -232,14 +258,32 @@ class _Problem:
         g = self.lambert(hits, normal) / self.g_ref[j]
         return planes[j, 3] + np.log(np.where(np.isfinite(g) & (g > 0), g, 1.0))
 
-    def update(self, values, planes, margin=1.0, max_fraction_shots=1000):
-        """Refresh what is held fixed within one solver run: σ_t, the on-sensor
-        shots of each target (a subsample for the detection-share residual),
-        and each target's mean Lambertian factor."""
+    def update(self, values, planes, gate=None, margin=1.0, max_fraction_shots=1000):
+        """Refresh what is held fixed within one solver run.
+
+        With ``gate`` (pixels), keep only detections within ``gate`` of the
+        beam's predicted image (false "signal" detections elsewhere on the
+        epipolar line are left out) and aggregate them per shot; then σ_t,
+        the on-sensor shots of each target (a subsample for the
+        detection-share residual) and each target's mean Lambertian factor.
+        """
         w = self.system.receiver.width
         h_ = self.system.receiver.height
+        if gate is not None:
+            keep = []
+            start = 0
+            for j, t in enumerate(self.targets):
+                sl = slice(start, start + t.n_detections)
+                start += t.n_detections
+                hh, _ = self.hits(values, planes, j, t.phase)
+                pred = hh.pixel[self.d_shot[sl]]
+                with np.errstate(invalid="ignore"):
+                    k = np.abs(self.d_col[sl] - pred[:, 0]) <= gate
+                    if self.two_d:
+                        k &= np.abs(self.d_row[sl] - pred[:, 1]) <= gate
+                keep.append(k)
+            self._aggregate(keep)
         self.g_ref = np.ones(self.T)
-        self.rows = [np.flatnonzero(self.tgt == j) for j in range(self.T)]
         self.frac_data = []
         for j, t in enumerate(self.targets):
             hh, nn = self.hits(values, planes, j, t.phase)
@@ -250,7 +294,7 @@ class _Problem:
             g = self.lambert(hh, nn)
             self.g_ref[j] = float(np.nanmean(g[on])) if on.any() else 1.0
             idx = np.flatnonzero(on)
-            n_on, n_hit = idx.size, int(np.count_nonzero(t.has_signal[idx]))
+            n_on, n_hit = idx.size, int(np.count_nonzero(self.has_signal[j][idx]))
             sub = idx[np.linspace(0, idx.size - 1, min(idx.size, max_fraction_shots)).astype(int)] \
                 if idx.size else idx
             self.frac_data.append((t.phase[sub], n_on, n_hit))
@@ -342,6 +386,42 @@ class _Problem:
             if n_prior:
                 J[starts[-1]:, i] = (self.prior(xp) - self.prior(xm)) / (2 * step)
         return J
+
+
+def _track_keep(prob: _Problem, values: dict, gate: float, n_bins: int = 100) -> list:
+    """Detections near the beam's track on the sensor, found without a plane.
+
+    For a fixed target the beam's image column is a smooth function of the
+    scan angle θ; true returns pile up on it while false "signal"
+    detections spread over the sensor.  Per θ bin (start values) the most
+    frequent column marks the track; detections within ``gate`` pixels of it
+    (interpolated in θ) are kept.  Returns a list of (M_j,) bool.
+    """
+    sysv = prob.system.with_params(**values)
+    w = sysv.receiver.width
+    keep = []
+    start = 0
+    for t in prob.targets:
+        sl = slice(start, start + t.n_detections)
+        start += t.n_detections
+        th = scan_angle_from_phase(t.phase[prob.d_shot[sl]], sysv.scanner)
+        col = prob.d_col[sl]
+        edges = np.linspace(th.min(), th.max() + 1e-12, n_bins + 1)
+        b = np.clip(np.searchsorted(edges, th, side="right") - 1, 0, n_bins - 1)
+        ci = np.clip(np.rint(col).astype(np.int64), 0, w - 1)
+        counts = np.zeros((n_bins, w))
+        np.add.at(counts, (b, ci), 1.0)
+        # smooth over ±1 pixel so a spot split over two pixels still wins
+        sm = counts + 0.5 * (np.roll(counts, 1, axis=1) + np.roll(counts, -1, axis=1))
+        mode = np.argmax(sm, axis=1).astype(np.float64)
+        filled = counts.sum(axis=1) >= 3
+        centres = 0.5 * (edges[1:] + edges[:-1])
+        if filled.sum() < 2:
+            keep.append(np.ones(t.n_detections, dtype=bool))
+            continue
+        track = np.interp(th, centres[filled], mode[filled])
+        keep.append(np.abs(col - track) <= gate)
+    return keep
 
 
 def _initial_planes(prob: _Problem, values: dict) -> np.ndarray:
@@ -441,7 +521,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
                    distance_std: float = 1e-3, loss: str = "soft_l1", f_scale: float = 2.0,
                    jitter: float = 0.0, n_outer: int = 3, on_unobservable: str = "raise",
                    max_std: dict | None = None, initial_values: dict | None = None,
-                   max_nfev: int = 200) -> CalibrationResult:
+                   max_nfev: int = 100, gate: float = 1.5, gate_first: float = 2.5
+                   ) -> CalibrationResult:
     """Joint robust fit of system parameters and target planes.
 
     Parameters
@@ -461,6 +542,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     on_unobservable : "raise" (:class:`NotObservableError`) or "warn".
     max_std : dict of σ limits (SI) above which a parameter is unobservable.
     initial_values : start values overriding ``system``'s.
+    gate, gate_first : pixels: detections farther than this from the beam's
+        predicted image are not the target's (first round: from the start values).
 
     Returns
     -------
@@ -498,6 +581,7 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
         system = system.with_params(**initial_values)
     prob = _Problem(targets, system, names, two_d, known_distances, distance_std, jitter)
     initial = {n: system.get_param(n) for n in SYSTEM_PARAMS}
+    prob._aggregate(_track_keep(prob, {}, gate_first))
     prob.plane_ref = _initial_planes(prob, {})
     if known_distances is not None:
         for j, d in enumerate(known_distances):
@@ -529,23 +613,16 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     res = None
     nfev = 0
     for it in range(n_outer):
+        values, planes = prob.unpack(x)
+        prob.update(values, planes, gate=gate_first if it == 0 else gate)
+        # gross time outliers (> 5σ at the current estimate) out of this round
+        r_t = prob.residual_blocks(x)["time"]
+        prob.weights[np.abs(r_t) > 5.0] = 0.0
         res = least_squares(prob.residuals, x, jac=lambda z: prob.jacobian(z), loss=loss,
                             f_scale=f_scale, method="trf", x_scale=1.0, max_nfev=max_nfev,
-                            xtol=1e-8, ftol=1e-8, gtol=1e-8, tr_solver="lsmr")
+                            xtol=1e-8, ftol=1e-8, gtol=1e-8)
         nfev += res.nfev
         x = res.x
-        values, planes = prob.unpack(x)
-        prob.update(values, planes)
-        # inliers for the next round: 5σ in either residual (gross outliers out)
-        prob.weights[:] = 1.0
-        blocks = prob.residual_blocks(x)
-        bad = np.zeros(prob.M, dtype=bool)
-        for name in ("pixel", "row", "time"):
-            if name in blocks:
-                bad |= np.abs(blocks[name]) > 5.0
-        prob.weights[bad] = 0.0
-        if it == n_outer - 1:
-            break
     H, J, rms_blocks, n_in = _covariance(prob, x)
     cov_s, sv, Vt = _inverse(H)
     cov_full = cov_s * prob.scales[:, None] * prob.scales[None, :]

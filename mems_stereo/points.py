@@ -257,3 +257,122 @@ def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None
         "shot": k[g].astype(np.int32),
     }
     return PointCloud(dp.fused[g], attrs)
+
+
+def _robust_inliers(r, sr, k: float, n_iter: int = 3):
+    """Inliers of one peak's ranges: densest cluster, then k-σ clipping around its mean.
+
+    ``r``, ``sr`` : (m,) ranges and their standard deviations, m.  Background
+    that passed the classifier inside a peak's window spreads its stereo
+    ranges over metres, while the true returns cluster within their σ: the
+    start is the range with the most neighbours within the median σ (a mode,
+    not the median, which such background would drag), then the mean of the
+    detections within ``k·σ_i`` of the current centre, repeated.
+    """
+    ok = np.isfinite(r) & np.isfinite(sr) & (sr > 0)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0:
+        return ok
+    rv, sv = r[idx], sr[idx]
+    order = np.argsort(rv)
+    rs, ss = rv[order], sv[order]
+    # neighbours within each detection's own σ: a cluster of sharp near-range
+    # background cannot outvote a broader cluster of many true returns
+    n_near = np.searchsorted(rs, rs + ss, side="right") - np.searchsorted(rs, rs - ss, side="left")
+    centre = float(rs[int(np.argmax(n_near))])
+    inl = np.zeros(idx.size, bool)
+    for _ in range(n_iter):
+        new = np.abs(rv - centre) <= k * sv
+        if not new.any():
+            break
+        inl = new
+        w = 1.0 / sv[inl] ** 2
+        centre = float(np.sum(w * rv[inl]) / np.sum(w))
+    out = np.zeros(r.shape, bool)
+    out[idx[inl]] = True
+    return out
+
+
+def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
+                                peak_code=None, spreads: Spreads | None = None,
+                                min_counts: int = 1, confidence: float = 0.997) -> PointCloud:
+    """One fused point per peak from the signal detections inside its code window.
+
+    Parameters
+    ----------
+    shot, peak, code : (M,) int — each detection's shot index, the index of
+        its peak (0..Q−1) and its TDC code (as gathered by the pipeline's
+        second pass).
+    theta : (K,) rad, scan angle of every shot.
+    rows, cols : (Q,) int, pixel of each peak; peak_code : (Q,) the
+        detector's peak code (kept as the ``code`` attribute when given).
+    min_counts : peaks with fewer inlier detections are dropped.
+    confidence : the in-peak inlier bound ``k`` (see :func:`_robust_inliers`).
+
+    Returns
+    -------
+    :class:`~mems_stereo.cloud.PointCloud` as :func:`peak_points`: the mean of
+    the inliers' fused points with covariance ``Σ C_i / n²``, and the stereo
+    and time-of-flight estimates with their own uncertainties.
+    """
+    from .classify import k_from_confidence
+
+    shot = np.asarray(shot, dtype=np.int64).ravel()
+    peak = np.asarray(peak, dtype=np.int64).ravel()
+    code = np.asarray(code, dtype=np.int64).ravel()
+    rows = np.asarray(rows, dtype=np.int64).ravel()
+    cols = np.asarray(cols, dtype=np.int64).ravel()
+    Q = rows.size
+    if not (shot.shape == peak.shape == code.shape) or cols.size != Q:
+        raise GeometryError("shot, peak, code / rows, cols: expected equal lengths")
+    dp = detection_points(system, shot, rows[peak], cols[peak], code, theta, spreads)
+    k = k_from_confidence(confidence)
+    r_i, _, sr_i, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
+    good = np.zeros(shot.size, bool)
+    order = np.argsort(peak, kind="stable")
+    bounds = np.searchsorted(peak[order], np.arange(Q + 1))
+    for q in range(Q):
+        sel = order[bounds[q]:bounds[q + 1]]
+        if sel.size:
+            good[sel] = _robust_inliers(r_i[sel], sr_i[sel], k) & dp.ok[sel]
+    window_counts = np.bincount(peak, minlength=Q)
+    gi = peak[good]
+    mean = {}
+    for name in ("stereo", "tof", "fused"):
+        x, cnt = _group_mean(gi, Q, getattr(dp, name)[good])
+        C, _ = _group_mean(gi, Q, getattr(dp, "cov_" + name)[good])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            C = C / cnt[:, None, None]
+        mean[name] = (x, C)
+    code_mean, cnt = _group_mean(gi, Q, code[good].astype(np.float64))
+    w_mean, _ = _group_mean(gi, Q, dp.weight_stereo[good])
+    keep = cnt >= max(1, int(min_counts))
+    # the inliers' own scatter (Birge ratio): when it exceeds the propagated
+    # spread (background inside the cluster, unmodelled effects), the
+    # covariances grow by the reduced χ² so the reported σ stays honest
+    xf, Cf = mean["fused"]
+    r_mean, _, _, _ = polar_from_cartesian(xf, Cf)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z2 = ((r_i[good] - r_mean[gi]) / sr_i[good]) ** 2
+        chi2 = np.bincount(gi, weights=z2, minlength=Q) / np.maximum(cnt - 1, 1)
+    birge = np.where(cnt > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+    for name in mean:
+        mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+    xf, Cf = mean["fused"]
+    r, _, sr, sphi = polar_from_cartesian(xf, Cf)
+    r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
+    r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+    sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
+    attrs = {
+        "counts": cnt.astype(np.int32), "pixel": cols.astype(np.int32),
+        "row": rows.astype(np.int32),
+        "code": (np.asarray(peak_code, dtype=np.float64) if peak_code is not None
+                 else code_mean),
+        "scatter_ratio": np.sqrt(birge),
+        "range": r, "sigma_r": sr, "sigma_phi": sphi,
+        "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
+        "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
+        "sigma_r_tof": sr_tf, "weight_stereo": w_mean,
+        "counts_window": window_counts.astype(np.int32),
+    }
+    return PointCloud(xf, attrs).select(keep & np.all(np.isfinite(xf), axis=1))

@@ -1,0 +1,146 @@
+"""Peaks of the signal histograms, with a threshold grounded in the background.
+
+After classification each pixel has a signal histogram S and a noise
+histogram N (:mod:`mems_stereo.pipeline`).  S still holds the background
+photons that happened to fall inside a shot's accepted code interval.  How
+many is known exactly from the interval table: the number of valid shots for
+which code j of pixel p was accepted, ``A[p, j]``, times the probability that
+background alone produced a first photon in bin j,
+``q·(1 − q)^(j−1)`` with ``q = λ·Δt`` and λ the pile-up-aware maximum-
+likelihood background rate estimated from N
+(:func:`mems_stereo.histogram.background_rate_mle`).
+
+The peak detector is the paper's: a moving-average filter (width = the laser
+pulse's FWHM in bins), a threshold, and the maximum — here one peak per
+pixel, where the excess of the filtered S over its expected background is
+largest and the window count exceeds the Poisson quantile of the background
+at the chosen false-alarm probability.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import poisson
+
+from .fastpath import interval_table
+from .histogram import moving_average
+from .system import System
+
+
+def acceptance_counts(system: System, theta, valid, confidence: float,
+                      min_range: float | None = None) -> np.ndarray:
+    """A[p, j]: valid shots in which code j+1 of pixel p was accepted as signal.
+
+    (P, n_bins) int64, from the interval table and the shots' angle steps (a
+    difference array over codes: O(steps × pixels), not O(shots × pixels)).
+    """
+    table = interval_table(system, confidence, min_range=min_range)
+    rows = table.index(np.where(valid, theta, np.nan))
+    rows = rows[rows >= 0]
+    table.ensure(rows)
+    used, n_row = np.unique(rows, return_counts=True)
+    n_bins = system.tdc.n_bins
+    lo = table.lo[used].astype(np.int64)  # (U, P)
+    hi = table.hi[used].astype(np.int64)
+    ok = lo <= hi
+    P = lo.shape[1]
+    diff = np.zeros((P, n_bins + 2), np.int64)
+    w = np.broadcast_to(n_row[:, None], lo.shape)
+    pix = np.broadcast_to(np.arange(P)[None, :], lo.shape)
+    np.add.at(diff, (pix[ok], lo[ok]), w[ok])
+    np.add.at(diff, (pix[ok], hi[ok] + 1), -w[ok])
+    return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
+
+
+def background_rate_from_noise(noise, raw, acceptance, n_valid: int,
+                                bin_width: float) -> np.ndarray:
+    """ML background rate per pixel from the noise histogram N, pile-up aware.
+
+    As :func:`mems_stereo.histogram.background_rate_mle` (binomial trials of
+    the shots still armed at each bin, ``n_j = n_valid − Σ_{i<j} raw_i``), but
+    a shot whose accepted interval holds bin j would have put a background
+    photon there into S, not N: such shots are no trials for N at bin j.  With
+    ``A_j`` of the ``n_valid`` shots accepting bin j, and arming independent of
+    the scan angle, the trials of N are ``n_j·(1 − A_j / n_valid)``; then
+    ``λ̂ = −ln(1 − Σ N_j / Σ n_j (1 − A_j/n_valid)) / Δt``.
+
+    Returns (P,) float64 Hz (NaN where no trial is left).
+    """
+    from .histogram import armed_shots
+
+    n_valid = max(int(n_valid), 1)
+    nj = armed_shots(raw, n_valid) * (1.0 - np.asarray(acceptance) / n_valid)
+    k = np.asarray(noise, dtype=np.float64).sum(axis=-1)
+    n = nj.sum(axis=-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(n > 0, k / n, np.nan)
+        return -np.log1p(-p) / bin_width
+
+
+def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.ndarray:
+    """Expected background counts per (pixel, bin) that pass the classifier.
+
+    ``acceptance`` (P, n_bins), ``rate_hz`` (P,).  First-photon statistics: a
+    shot's first background photon falls in bin j with q·(1 − q)^(j−1),
+    q = 1 − exp(−λ·Δt) (signal photons, rarer, are neglected here).
+    """
+    q = -np.expm1(-np.asarray(rate_hz, dtype=np.float64) * bin_width)[:, None]
+    j = np.arange(acceptance.shape[1])[None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        surv = np.exp(j * np.log1p(-np.minimum(q, 1 - 1e-15)))
+    return acceptance * q * surv
+
+
+def find_peaks(system: System, signal, noise, theta, valid, settings):
+    """One peak per pixel of the signal histogram, where it stands out of the background.
+
+    Parameters
+    ----------
+    signal, noise : (H, W, n_bins) counts (index j = code j+1).
+    theta, valid : (K,) scan angles and validity of the shots.
+    settings : :class:`mems_stereo.pipeline.Settings` (confidence, min_range,
+        smoothing_bins, false_alarm, min_counts).
+
+    Returns
+    -------
+    peaks : dict of (Q,) int64 ``row``, ``col``, ``code``, ``code_lo``,
+        ``code_hi``, ``counts`` (signal counts in the window) and float64
+        ``background`` (expected background counts in the window).
+    background_hz : (H, W) float64 ML background rate per pixel.
+    """
+    H, W, n_bins = signal.shape
+    P = H * W
+    bw = system.tdc.bin_width
+    S = np.asarray(signal, dtype=np.float64).reshape(P, n_bins)
+    N = np.asarray(noise).reshape(P, n_bins)
+    n_valid = int(np.count_nonzero(valid))
+    raw = S + N
+    A = acceptance_counts(system, theta, valid, settings.confidence, settings.min_range)
+    rate = background_rate_from_noise(N, raw, A, n_valid, bw)
+    width = settings.smoothing_bins
+    if width is None:
+        width = max(1, int(round(system.laser.pulse_fwhm / bw)))
+    width += 1 - width % 2  # odd
+    B = expected_background_in_signal(A, np.nan_to_num(rate), bw)
+    S_w = moving_average(S, width) * width  # window sums
+    B_w = moving_average(B, width) * width
+    excess = S_w - B_w
+    j = np.argmax(excess, axis=1)
+    pix = np.arange(P)
+    cnt = S_w[pix, j]
+    mu = B_w[pix, j]
+    # window positions where background can reach S at all (accepted codes)
+    n_windows = np.maximum(1.0, np.count_nonzero(A > 0, axis=1) / width)
+    thr = poisson.isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
+    keep = (cnt > thr) & (cnt >= settings.min_counts) & np.isfinite(rate)
+    code = j + 1
+    half = max(1, width)
+    q = np.flatnonzero(keep)
+    peaks = {
+        "row": (q // W).astype(np.int64), "col": (q % W).astype(np.int64),
+        "code": code[q].astype(np.int64),
+        "code_lo": np.maximum(1, code[q] - half).astype(np.int64),
+        "code_hi": np.minimum(n_bins, code[q] + half).astype(np.int64),
+        "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
+    }
+    return peaks, rate.reshape(H, W)
