@@ -494,11 +494,11 @@ def _covariance(prob: _Problem, x):
 
 def _inverse(H):
     """Pseudo-inverse by SVD with the singular values (relative to the largest)."""
-    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    d = np.sqrt(np.maximum(np.diag(H), 1e-200))
     Hn = H / d[:, None] / d[None, :]
     U, s, Vt = np.linalg.svd(Hn)
-    tol = s[0] * 1e-14
-    inv = (Vt.T * np.where(s > tol, 1.0 / np.maximum(s, tol), 0.0)) @ U.T
+    tol = max(s[0] * 1e-14, 1e-300)
+    inv = (Vt.T * (1.0 / np.maximum(s, tol)) * (s > tol)) @ U.T
     return inv / d[:, None] / d[None, :], s / s[0], Vt
 
 
@@ -623,6 +623,13 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
                             xtol=1e-8, ftol=1e-8, gtol=1e-8)
         nfev += res.nfev
         x = res.x
+    for j in range(prob.T):
+        n_used = int(np.count_nonzero(prob.weights[prob.rows[j]]))
+        if n_used < MIN_DETECTIONS_PER_TARGET:
+            raise NotObservableError(
+                f"target {j} ({targets[j].source}): only {n_used} shots with detections near "
+                f"the fitted beam's image remain (need {MIN_DETECTIONS_PER_TARGET}); the fit "
+                f"lost the target, so {', '.join(names)} cannot be estimated from these data")
     H, J, rms_blocks, n_in = _covariance(prob, x)
     cov_s, sv, Vt = _inverse(H)
     cov_full = cov_s * prob.scales[:, None] * prob.scales[None, :]

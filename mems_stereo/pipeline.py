@@ -311,19 +311,3 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     return ProcessResult(sysm, str(path), {"raw": raw, "signal": sig, "noise": noise},
                          background, peaks, cloud, counts, truth,
                          np.where(valid, theta, np.nan), valid, timings)
-
-
-def write_outputs(result: ProcessResult, cloud_path=None, histograms_path=None) -> list[Path]:
-    """Write the cloud (PLY/PCD/LAS by extension) and the histograms file."""
-    out = []
-    if cloud_path is not None:
-        from viz.export import write_cloud
-
-        out.append(write_cloud(cloud_path, result.cloud))
-    if histograms_path is not None:
-        from .histogram_io import write_histograms
-
-        h = result.histograms
-        out.append(write_histograms(histograms_path, h["raw"], h["signal"], h["noise"],
-                                    attrs={"source": result.source}))
-    return out

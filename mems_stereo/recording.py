@@ -118,7 +118,7 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     if t.size > 1 and np.any(np.diff(t) <= 0):
         i = int(np.argmax(np.diff(t) <= 0))
         raise FormatError(f"expected strictly increasing shot times, found t[{i + 1}] = "
-                          f"{t[i + 1]!r} <= t[{i}] = {t[i]!r}", source, "/shots/time")
+                          f"{float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}", source, "/shots/time")
     b_ds = _need(f, "/shots/bins", source)
     w, h = system.receiver.image_size
     if b_ds.ndim != 3 or b_ds.shape[0] != t.size or b_ds.shape[1:] != (h, w):

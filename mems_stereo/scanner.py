@@ -68,8 +68,8 @@ def validate_zero_crossings(zero_crossings, rising, source: str = "",
     steps = np.diff(zc)
     if np.any(steps <= 0):
         i = int(np.argmax(steps <= 0))
-        raise FormatError(f"expected strictly increasing times, found t[{i + 1}] = {zc[i + 1]!r}"
-                          f" <= t[{i}] = {zc[i]!r}", source, field)
+        raise FormatError(f"expected strictly increasing times, found t[{i + 1}] = "
+                          f"{float(zc[i + 1])!r} <= t[{i}] = {float(zc[i])!r}", source, field)
     r = np.asarray(rising)
     rfield = field.rsplit("/", 1)[0] + "/rising"
     if r.shape != zc.shape:

@@ -162,11 +162,11 @@ def estimate_timing_spread(timestamps, offsets, shape, t_min, t_max, coarse_bin,
 
     p, _ = curve_fit(model, x, counts, p0=[counts.max() - c0, 0.0, coarse_bin / 2, c0])
     sigma = abs(float(p[2]))
-    excess = np.clip(counts - p[3], 0.0, None)
+    excess = counts - p[3]                       # signed: noise cancels in the sums
     excess[np.abs(x - p[1]) > span / 2] = 0.0    # far wings: background only
     cum = np.cumsum(excess) / excess.sum()
-    lead = -float(x[np.searchsorted(cum, 0.01)])
-    tail = float(x[np.searchsorted(cum, 0.99)])
+    lead = -float(x[np.argmax(cum >= 0.01)])
+    tail = float(x[np.argmax(cum >= 0.99)])
     return TimingSpread(sigma, 2.0 * np.sqrt(2.0 * np.log(2.0)) * sigma, lead, tail,
                         edges, counts)
 

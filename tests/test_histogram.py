@@ -189,19 +189,19 @@ def test_background_mle_from_noise_histogram_needs_raw_for_arming(rng):
 def test_coates_correction_flattens_pileup(rng):
     rate = 6e6
     K = 20000
-    codes = first_photon_codes(rng, K, 1, rate, n_bins=256)
-    h = accumulate_histograms(codes[:, None, :], n_bins=256)
+    codes = first_photon_codes(rng, K, 1, rate, n_bins=1024)
+    h = accumulate_histograms(codes[:, None, :], n_bins=1024)
     mu = coates_correction(h.raw, h.n_shots)[0, 0]
     nj = armed_shots(h.raw, h.n_shots)[0, 0]
     good = nj > 2000
     # per bin the expected photons per shot are λΔ: the raw histogram decays, Coates' is flat
-    assert np.polyfit(np.arange(256)[good], mu[good], 1)[0] == pytest.approx(0, abs=2e-6)
+    assert np.polyfit(np.arange(1024)[good], mu[good], 1)[0] == pytest.approx(0, abs=2e-6)
     assert np.average(mu[good], weights=nj[good]) == pytest.approx(rate * DT, rel=0.02)
     raw = h.raw[0, 0].astype(float)
-    assert raw[:20].mean() > 2 * raw[150:170].mean()
+    assert raw[:50].mean() > 3 * raw[-50:].mean()          # e^{-λΔ·1000} ≈ 0.15
     # one pooled bin: Coates equals the MLE
     one = coates_correction(h.raw.sum(-1, keepdims=True), h.n_shots)[..., 0]
-    mle = background_rate_mle(h.raw.sum(-1, keepdims=True), h.n_shots, 256 * DT) * 256 * DT
+    mle = background_rate_mle(h.raw.sum(-1, keepdims=True), h.n_shots, 1024 * DT) * 1024 * DT
     assert one == pytest.approx(mle)
 
 
@@ -274,8 +274,8 @@ def test_detect_peaks_flat_top_and_pixel_threshold():
 
 
 def test_threshold_rule_detects_return_in_floodlight(rng):
-    # 6 MHz background, weak return at code 1500: the background-grounded rule finds
-    # exactly the return after Coates' correction.
+    # 6 MHz background (pile-up: the background decays by e^-0.75 before the return)
+    # and a weak return at code 400: the pile-up-aware Poisson threshold finds only it.
     rate, K = 6e6, 3200
     codes = first_photon_codes(rng, K, 1, rate, signal_code=400, signal_prob=0.15,
                                signal_sigma_bins=8)
@@ -289,26 +289,26 @@ def test_threshold_rule_detects_return_in_floodlight(rng):
     ma = moving_average(h.raw, w)
     p = detect_peaks(ma, thr, min_separation=48)
     assert len(p) >= 1
+    assert np.all(np.abs(p.code - 400) <= 16)          # no false peak in the pile-up
     assert abs(int(p.strongest((1, 1))[0][0, 0]) - 400) <= 8
-    # paper's fixed threshold on the raw histogram is dominated by the early pile-up
-    fixed = detect_peaks(ma, threshold=ma.max() * 0.5, min_separation=48)
-    assert fixed.strongest((1, 1))[0][0, 0] < 100
 
 
 # --------------------------------------------------------------------------- ranges
 def test_peak_centroid_against_monte_carlo(rng):
-    centre = 200.3
+    centre = 200.3            # return centre in units of bins: t = centre·Δ
     n_sig, bg = 400, 2.0
     cens = []
     stds = []
     for _ in range(200):
-        codes = np.floor(centre - 0.5 + 0.5 + 6 * rng.standard_normal(n_sig)).astype(int)
+        codes = np.floor(centre + 6 * rng.standard_normal(n_sig)).astype(int) + 1
         h = np.bincount(codes - 1, minlength=512)[:512] + rng.poisson(bg, 512)
         c, s, sw = peak_centroid(h[None], np.array([200]), 24, background=np.array([bg]))
         cens.append(c[0])
         stds.append(s[0])
     cens = np.array(cens)
-    assert cens.mean() == pytest.approx(centre, abs=0.15)
+    # code N spans [N−1, N)·Δ, so the centroid code is the centre + ½ (FORMAT: t = (N − ½)Δ)
+    assert cens.mean() - 0.5 == pytest.approx(centre, abs=0.1)
+    assert path_length(cens.mean(), DT) == pytest.approx(299704644.5 * centre * DT, rel=1e-3)
     assert np.mean(stds) == pytest.approx(cens.std(), rel=0.25)
 
 

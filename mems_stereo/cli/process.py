@@ -1,0 +1,114 @@
+"""``mems-stereo process``: classify detections, form histograms, find peaks, write the cloud."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ._common import Reporter
+
+NAME = "process"
+HELP = ("classify every detection as signal or noise, form the signal/noise histograms, "
+        "find the peaks and write the point cloud")
+EXAMPLE = ("mems-stereo process samples/room.h5 -o room.ply --labels room_labels.h5 "
+           "--histograms room_hist.h5")
+
+
+def add_arguments(p):
+    p.add_argument("recordings", nargs="+", metavar="REC.h5",
+                   help="recording(s) in FORMAT v1 (HDF5)")
+    p.add_argument("-o", "--output", required=True,
+                   help="point cloud to write (.ply, .pcd, .las); with several recordings a "
+                        "directory that receives <name>.ply for each")
+    p.add_argument("--system", default=None,
+                   help="system JSON to process with (e.g. a calibrated one; default: the "
+                        "recording's /system)")
+    p.add_argument("--labels", default=None, help="write the event labels (HDF5) here")
+    p.add_argument("--histograms", default=None,
+                   help="write the raw/signal/noise histograms (HDF5) here")
+    p.add_argument("--confidence", type=float, default=0.997,
+                   help="two-sided coverage of the consistency bound (default 0.997 = 3 sigma)")
+    p.add_argument("--min-range", type=float, default=None,
+                   help="optional prior: no target nearer than this, m (default: none)")
+    p.add_argument("--false-alarm", type=float, default=1e-2,
+                   help="per-pixel false-alarm probability of the peak threshold (default 0.01)")
+    p.add_argument("--chunk-shots", type=int, default=8192,
+                   help="shots read per chunk; memory does not grow with the recording "
+                        "(default 8192)")
+    p.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address; 'local' starts a LocalCluster (default: "
+                        "process here, one recording after the other)")
+    p.add_argument("--workers", type=int, default=2,
+                   help="workers of the LocalCluster with --scheduler local (default 2)")
+
+
+def _settings(args):
+    from ..pipeline import Settings
+
+    return Settings(confidence=args.confidence, min_range=args.min_range,
+                    chunk_shots=args.chunk_shots, false_alarm=args.false_alarm)
+
+
+def report_result(rep: Reporter, res, outputs=()) -> None:
+    """Print the headline numbers of a :class:`~mems_stereo.pipeline.ProcessResult`."""
+    c = res.counts
+    rep.info(f"{res.source}: {c['shots']} shots"
+             + (f" ({c['shots_unknown_angle']} of unknown scan angle, left out)"
+                if c["shots_unknown_angle"] else ""))
+    rep.info(f"  raw counts {c['raw']}, classified signal {c['signal']}, noise {c['noise']}")
+    rep.info(f"  peaks {c['peaks']}, points {c['points']}")
+    if res.truth is not None:
+        t = res.truth
+        rep.info(f"  against the truth: signal recall {t['recall']:.4f}, noise rejection "
+                 f"{t['noise_rejection']:.4f} ({t['true_signal']} laser returns, "
+                 f"{t['true_background']} background detections)")
+    for o in outputs:
+        rep.info(f"  wrote {o}")
+    rep.detail("  timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items()))
+
+
+def run(args) -> int:
+    from ..errors import FormatError
+    from ..pipeline import process_recording
+    from ..system import load_system
+
+    rep = Reporter(args)
+    system = load_system(args.system) if args.system else None
+    settings = _settings(args)
+    recs = [Path(r) for r in args.recordings]
+    for r in recs:
+        if not r.exists():
+            raise FileNotFoundError(2, "file not found", str(r))
+    many = len(recs) > 1
+    if many and (args.labels or args.histograms):
+        raise FormatError("--labels and --histograms take one recording at a time",
+                          field="--labels/--histograms")
+    out = Path(args.output)
+    targets = [out / f"{r.stem}.ply" for r in recs] if many else [out]
+
+    if args.scheduler:
+        from ..distributed import process_many
+
+        results = process_many(recs, system=system, settings=settings,
+                               scheduler=args.scheduler, n_workers=args.workers)
+    else:
+        results = []
+        for r in recs:
+            with rep.progress(total=None, desc=r.name) as bar:
+                def tick(n, bar=bar):
+                    bar.update(n)
+                results.append(process_recording(r, system=system, settings=settings,
+                                                 labels_path=args.labels, progress=tick))
+    from viz.export import write_cloud
+
+    for res, target in zip(results, targets):
+        outputs = [write_cloud(target, res.cloud)]
+        if args.labels:
+            outputs.append(Path(args.labels))
+        if args.histograms:
+            from ..histogram_io import write_histograms
+
+            h = res.histograms
+            outputs.append(write_histograms(args.histograms, h["raw"], h["signal"], h["noise"],
+                                            attrs={"source": str(res.source)}))
+        report_result(rep, res, outputs)
+    return 0

@@ -1,0 +1,133 @@
+"""Calibration fit on synthetic flat-target detections: recovery, σ, degenerate cases."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from calib.fit import ObservabilityWarning, fit_detections
+from calib.synth import synthetic_target
+from mems_stereo.errors import NotObservableError
+from mems_stereo.system import burkard2022
+
+TARGETS = [(0.05, 1.2, 3.0), (-0.1, 2.0, 1.5), (0.02, 3.5, 0.6)]  # tilt rad, distance m, μ
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    return burkard2022()
+
+
+@pytest.fixture(scope="module")
+def true_system(nominal):
+    return nominal.with_params(theta0=nominal.scanner.theta0 + 2e-3, baseline_x=-0.122,
+                               baseline_z=-0.002, tdc_offset=1.5e-9, phase_offset=5e-3)
+
+
+def _targets(true_system, n_shots, seed, spec=TARGETS):
+    rng = np.random.default_rng(seed)
+    return [synthetic_target(true_system, a, d, n_shots, rng, mu=m, lam=1e5,
+                             source=f"{d} m") for a, d, m in spec]
+
+
+@pytest.fixture(scope="module")
+def fitted(nominal, true_system):
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = fit_detections(_targets(true_system, 1500, 3), nominal)
+    return res, caught
+
+
+def test_recovers_parameters_within_3_sigma(fitted, true_system):
+    res, _ = fitted
+    assert res.converged
+    for name in res.names:
+        err = res.values[name] - true_system.get_param(name)
+        assert abs(err) < 3 * res.std[name], (name, err, res.std[name])
+    assert abs(res.values["theta0"] - true_system.get_param("theta0")) < 0.3e-3
+
+
+def test_baseline_y_found_unobservable_by_jacobian(fitted):
+    res, caught = fitted
+    assert "baseline_y" in res.unobservable and "baseline_y" not in res.names
+    msgs = [str(w.message) for w in caught if issubclass(w.category, ObservabilityWarning)]
+    assert any("baseline_y" in m for m in msgs)
+    cal = res.system.calibration
+    assert cal["unobservable"] == ["baseline_y"]
+    assert set(cal["parameters"]) == set(res.names)
+    assert cal["rms_pixel"] == pytest.approx(res.rms_pixel)
+
+
+def test_sigma_matches_scatter_of_repeated_fits(nominal, true_system, fitted):
+    """Propagated σ of θ0 vs the spread of estimates over independent data sets."""
+    res, _ = fitted
+    est = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for seed in (11, 12, 13, 14):
+            r = fit_detections(_targets(true_system, 1500, seed), nominal)
+            est.append(r.values["theta0"])
+    spread = np.std(est, ddof=1)
+    # 4 samples: the sample σ lies within a factor ~3 of the true σ with high probability
+    assert res.std["theta0"] / 3 < spread < 3 * res.std["theta0"]
+
+
+def test_single_distance_not_observable(nominal, true_system):
+    tg = _targets(true_system, 1500, 5, spec=[(0.08, 2.0, 1.0)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ObservabilityWarning)
+        with pytest.raises(NotObservableError, match="tdc_offset|baseline_x|baseline_z"):
+            fit_detections(tg, nominal)
+
+
+def test_single_distance_known_distance_or_warn(nominal, true_system):
+    tg = _targets(true_system, 1500, 5, spec=[(0.08, 2.0, 1.0)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = fit_detections(tg, nominal, on_unobservable="warn")
+    assert set(res.unobservable) - {"baseline_y"}
+    assert any("trades off" in str(w.message) for w in caught)
+
+
+def test_target_parallel_to_baseline_single_pose(nominal, true_system):
+    """A wall facing the sensor (parallel to the baseline) at one distance: error, no number."""
+    tg = _targets(true_system, 1500, 8, spec=[(0.0, 2.0, 1.0)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with pytest.raises(NotObservableError) as e:
+            fit_detections(tg, nominal)
+    assert any(n in str(e.value) for n in ("baseline_x", "tdc_offset", "target 0"))
+
+
+def test_too_few_detections(nominal, true_system):
+    tg = _targets(true_system, 1500, 6)
+    tg[1] = synthetic_target(true_system, -0.1, 2.0, 20, np.random.default_rng(1), mu=0.5)
+    with pytest.raises(NotObservableError, match="too few signal detections in target 1"):
+        fit_detections(tg, nominal)
+
+
+def test_far_start_converges_or_says_so(nominal, true_system):
+    tg = _targets(true_system, 1500, 9)
+    start = {"baseline_x": -0.135, "theta0": nominal.scanner.theta0 - 0.02}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = fit_detections(tg, nominal, initial_values=start)
+    if res.converged:
+        for name in res.names:
+            err = res.values[name] - true_system.get_param(name)
+            assert abs(err) < 4 * res.std[name], (name, err)
+    else:
+        assert "did not converge" in res.message
+
+
+def test_known_distances_break_tradeoff(nominal, true_system, fitted):
+    res, _ = fitted
+    tg = _targets(true_system, 1500, 3)
+    d_true = [d for _, d, _ in TARGETS]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r2 = fit_detections(tg, nominal, known_distances=d_true)
+    assert r2.std["tdc_offset"] < 0.5 * res.std["tdc_offset"]
+    assert r2.std["baseline_x"] < 0.5 * res.std["baseline_x"]
