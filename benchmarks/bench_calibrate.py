@@ -78,8 +78,9 @@ def main() -> int:
     for nm in res.names:
         f, unit = PARAM_UNIT[nm]
         tv = true.get_param(nm)
+        z = (res.values[nm] - tv) / res.std[nm]
         print(f"| {nm} ({unit}) | {res.initial[nm] * f:.4f} | {res.values[nm] * f:.4f} | "
-              f"{res.std[nm] * f:.4f} | {tv * f:.4f} | {(res.values[nm] - tv) / res.std[nm]:+.2f} |")
+              f"{res.std[nm] * f:.4f} | {tv * f:.4f} | {z:+.2f} |")
     print()
     print("| wall | points | nominal: median distance | calibrated | ratio |")
     print("| --- | --- | --- | --- | --- |")

@@ -31,7 +31,6 @@ from mems_stereo.errors import NotObservableError
 from mems_stereo.scanner import scan_angle_from_phase
 from mems_stereo.system import System
 
-from .detections import TargetDetections
 from .model import (
     DEFAULT_FREE,
     PARAM_SCALE,
@@ -50,6 +49,8 @@ DEFAULT_MAX_STD = {"theta0": 0.01, "theta_mech_max": 0.01, "phase_offset": 0.02,
 SIGMA_PIXEL = 1.0 / math.sqrt(12.0)  # px: uniform over the pixel's extent
 MIN_DETECTIONS_PER_TARGET = 30
 CORRELATION_REPORT = 0.9
+#: restart when θ0 or the baseline moved more than this many mm / mrad from the start
+RESTART_MOVE = 8.0
 
 
 class ObservabilityWarning(UserWarning):
@@ -108,8 +109,9 @@ class CalibrationResult:
 
     def calibration_dict(self) -> dict:
         """The ``calibration`` object written into the system JSON."""
-        params = {n: {"value": self.values[n], "std": self.std[n], "initial": self.initial[n]}
-                  for n in self.names}
+        params = {n: {"value": self.values[n],
+                      "std": self.std[n] if math.isfinite(self.std[n]) else None,
+                      "initial": self.initial[n]} for n in self.names}
         corr = {f"{a}/{b}": round(float(r), 6) for a, b, r in self.tradeoffs}
         return {"parameters": params, "rms_pixel": self.rms_pixel, "rms_time": self.rms_time,
                 "n_detections": int(self.n_detections), "fixed": list(self.fixed),
@@ -364,27 +366,30 @@ class _Problem:
         idx["prior"] = np.arange(pos, pos + self.prior(np.zeros(len(self.labels))).size)
         return idx
 
-    def jacobian(self, x, step=1e-2):
-        """Central differences in scaled units (step 0.01 of PARAM_SCALE); a
-        target's own parameters change only its segment (and the priors)."""
-        seg_sizes = [sum(v.size for v in self.segment(x, j).values()) for j in range(self.T)]
-        starts = np.concatenate([[0], np.cumsum(seg_sizes)])
-        n_prior = self.prior(x).size
-        J = np.zeros((starts[-1] + n_prior, x.size))
+    def jacobian(self, x, step=1e-2, central=True):
+        """Finite differences in scaled units (step 0.01 of PARAM_SCALE), central
+        or forward; a target's own parameters change only its segment (and the
+        priors)."""
+        segs0 = [np.concatenate(list(self.segment(x, j).values())) for j in range(self.T)]
+        starts = np.concatenate([[0], np.cumsum([s.size for s in segs0])])
+        p0 = self.prior(x)
+        r0 = np.concatenate(segs0 + [p0])
+        J = np.zeros((r0.size, x.size))
         n = len(self.names)
+        h = 2 * step if central else step
         for i in range(x.size):
             xp, xm = x.copy(), x.copy()
             xp[i] += step
             xm[i] -= step
             if i < n:
-                J[:, i] = (self.residuals(xp) - self.residuals(xm)) / (2 * step)
+                J[:, i] = (self.residuals(xp) - (self.residuals(xm) if central else r0)) / h
                 continue
             j = (i - n) // len(self.plane_names)
             rp = np.concatenate(list(self.segment(xp, j).values()))
-            rm = np.concatenate(list(self.segment(xm, j).values()))
-            J[starts[j]:starts[j + 1], i] = (rp - rm) / (2 * step)
-            if n_prior:
-                J[starts[-1]:, i] = (self.prior(xp) - self.prior(xm)) / (2 * step)
+            rm = np.concatenate(list(self.segment(xm, j).values())) if central else segs0[j]
+            J[starts[j]:starts[j + 1], i] = (rp - rm) / h
+            if p0.size:
+                J[starts[-1]:, i] = (self.prior(xp) - (self.prior(xm) if central else p0)) / h
         return J
 
 
@@ -442,7 +447,11 @@ def _initial_planes(prob: _Problem, values: dict) -> np.ndarray:
         yn = (prob.row[sel] - K[1, 2]) / K[1, 1] if prob.two_d else np.zeros(xn.size)
         r = np.stack([xn, yn, np.ones_like(xn)], axis=1)
         r /= np.linalg.norm(r, axis=1, keepdims=True)
-        L = c * (prob.t_meas[sel] - sysv.tdc.offset)
+        # undo the first-photon bias roughly (μ from the share of shots with a return)
+        frac = min(max(float(np.mean(prob.has_signal[j])), 1e-3), 0.999)
+        tau = prob.t_meas[sel]
+        bias = prob.tables[j].mean_time(tau, math.log(-math.log1p(-frac))) - tau
+        L = c * (tau - bias - sysv.tdc.offset)
         with np.errstate(divide="ignore", invalid="ignore"):
             rho = (L * L - b @ b) / (2.0 * (L - r @ b))
         P = rho[:, None] * r
@@ -463,8 +472,6 @@ def _initial_planes(prob: _Problem, values: dict) -> np.ndarray:
         nvec /= np.linalg.norm(nvec)
         alpha = math.atan2(nvec[0], nvec[2])
         beta = math.asin(np.clip(nvec[1], -1, 1))
-        t = prob.targets[j]
-        frac = min(max(float(np.mean(t.has_signal)), 1e-3), 0.999)
         planes[j] = [alpha, beta, coef[0] * nvec[2], math.log(-math.log1p(-frac))]
     return planes
 
@@ -521,8 +528,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
                    distance_std: float = 1e-3, loss: str = "soft_l1", f_scale: float = 2.0,
                    jitter: float = 0.0, n_outer: int = 3, on_unobservable: str = "raise",
                    max_std: dict | None = None, initial_values: dict | None = None,
-                   max_nfev: int = 100, gate: float = 1.5, gate_first: float = 2.5
-                   ) -> CalibrationResult:
+                   max_nfev: int = 100, gate: float = 1.5, gate_first: float = 2.5,
+                   restarts: int = 1, _quiet_structural: bool = False) -> CalibrationResult:
     """Joint robust fit of system parameters and target planes.
 
     Parameters
@@ -544,6 +551,9 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     initial_values : start values overriding ``system``'s.
     gate, gate_first : pixels: detections farther than this from the beam's
         predicted image are not the target's (first round: from the start values).
+    restarts : when θ0 or the baseline moved more than 8 mrad / 8 mm from the
+        start, fit again from the solution (fresh plane start values and
+        association), this many times.
 
     Returns
     -------
@@ -598,11 +608,12 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     for i, n in enumerate(list(prob.names)):
         if col_std[i] > limits[n]:
             unobservable.append(n)
-    if unobservable:
+    if unobservable and not _quiet_structural:
         warnings.warn(
             "not observable from these data, held at the nominal value: "
             + ", ".join(_weak_column_text(n, col_std[prob.names.index(n)]) for n in unobservable),
             ObservabilityWarning, stacklevel=2)
+    if unobservable:
         keep = [n for n in prob.names if n not in unobservable]
         prob.names = keep
         names = keep
@@ -614,11 +625,13 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     nfev = 0
     for it in range(n_outer):
         values, planes = prob.unpack(x)
-        prob.update(values, planes, gate=gate_first if it == 0 else gate)
+        # round 1 keeps the plane-free track association; later rounds gate on the model
+        prob.update(values, planes, gate=None if it == 0 else gate)
         # gross time outliers (> 5σ at the current estimate) out of this round
         r_t = prob.residual_blocks(x)["time"]
         prob.weights[np.abs(r_t) > 5.0] = 0.0
-        res = least_squares(prob.residuals, x, jac=lambda z: prob.jacobian(z), loss=loss,
+        res = least_squares(prob.residuals, x, jac=lambda z: prob.jacobian(z, central=False),
+                            loss=loss,
                             f_scale=f_scale, method="trf", x_scale=1.0, max_nfev=max_nfev,
                             xtol=1e-8, ftol=1e-8, gtol=1e-8)
         nfev += res.nfev
@@ -632,6 +645,25 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
                 f"lost the target, so {', '.join(names)} cannot be estimated from these data")
     H, J, rms_blocks, n_in = _covariance(prob, x)
     cov_s, sv, Vt = _inverse(H)
+    if restarts > 0:
+        # a start far from the solution leaves the plane start values and the
+        # association of detections behind: redo both from the solution
+        vals, _ = prob.unpack(x)
+        moved = max((abs(x[i]) for i, nm in enumerate(names)
+                     if nm in ("theta0", "baseline_x", "baseline_z")), default=0.0)
+        if moved > RESTART_MOVE:
+            again = fit_detections(
+                targets, system, free=free, fix=fix, known_distances=known_distances,
+                distance_std=distance_std, loss=loss, f_scale=f_scale, jitter=jitter,
+                n_outer=n_outer, on_unobservable=on_unobservable, max_std=max_std,
+                initial_values={nm: float(vals[nm]) for nm in names}, max_nfev=max_nfev,
+                gate=gate, gate_first=gate_first, restarts=restarts - 1,
+                _quiet_structural=True)
+            again.initial = {nm: initial[nm] for nm in again.names}
+            again.unobservable = sorted(set(again.unobservable) | set(unobservable))
+            again.system = again.system.replace(calibration=again.calibration_dict())
+            again.report = format_report(again)
+            return again
     cov_full = cov_s * prob.scales[:, None] * prob.scales[None, :]
     std_full = np.sqrt(np.maximum(np.diag(cov_full), 0.0))
     n = len(names)
@@ -670,6 +702,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
             raise NotObservableError(text)
         warnings.warn(text, ObservabilityWarning, stacklevel=2)
         unobservable += [nm for nm in weak if nm not in unobservable]
+        for nm in weak:  # never a confident number for what the data cannot tell
+            std[nm] = math.inf
 
     rms = {"pixel": rms_blocks.get("pixel", float("nan")) * SIGMA_PIXEL,
            "time": float(np.sqrt(np.mean((prob.residual_blocks(x)["time"]
@@ -691,7 +725,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
         n_detections=int(np.count_nonzero(prob.weights)), fixed=fixed,
         unobservable=unobservable, tradeoffs=tradeoffs, planes=planes, planes_std=planes_std,
         converged=converged, message=message, iterations=nfev,
-        extra={"n_total": n_total, "mu": np.exp(planes[:, 3]).tolist(), "normalised_rms": rms_blocks,
+        extra={"n_total": n_total, "mu": np.exp(planes[:, 3]).tolist(),
+               "normalised_rms": rms_blocks,
                "singular_values": sv.tolist(), "labels": labels,
                "correlation_full": corr_full})
     result.system = result.system.replace(calibration=result.calibration_dict())

@@ -90,8 +90,8 @@ def accumulate_histograms(bins, labels=None, n_bins: int = 4096, armed=None) -> 
     Returns
     -------
     :class:`Histograms` with int64 arrays.  One ``np.bincount`` over
-    ``(label·P + pixel)·n_bins + code − 1``; a dense 3200 × 192 frame takes a
-    few milliseconds.
+    ``(label·P + pixel)·n_bins + code − 1``; a dense 3200 × 192 frame with 4096
+    bins takes 0.03–0.4 s (most of it allocating the 3 × 19 MB output).
     """
     b = np.asarray(bins)
     if b.ndim != 3:

@@ -275,3 +275,78 @@ def write_labels(path: str | os.PathLike, label, theta) -> Path:
         f.create_dataset("label", data=lab, compression="gzip")
         f.create_dataset("theta", data=th)
     return Path(path)
+
+
+class RecordingWriter:
+    """Write a FORMAT v1 recording chunk by chunk (for recordings larger than memory).
+
+    Use as a context manager; the file appears (atomically) only when the
+    block exits without error and every shot was written::
+
+        with RecordingWriter(path, system, n_shots, zero_crossings, rising) as w:
+            for t, bins in chunks:
+                w.append(t, bins)
+
+    ``compression`` : None (fastest) or an h5py filter name such as "gzip".
+    """
+
+    def __init__(self, path, system: System, n_shots: int, zero_crossings, rising,
+                 compression: str | None = None, chunk_shots: int = 4096):
+        self.path = Path(path)
+        self.system = system
+        self.n_shots = int(n_shots)
+        self.zc, self.rising = validate_zero_crossings(zero_crossings, rising, str(path))
+        self.compression = compression
+        self.chunk_shots = chunk_shots
+        self._written = 0
+        self._last_time = -np.inf
+
+    def __enter__(self):
+        self._ctx = atomic_output(self.path)
+        tmp = self._ctx.__enter__()
+        try:
+            self._f = h5py.File(tmp, "w")
+            w, h = self.system.receiver.image_size
+            f = self._f
+            f.attrs["format"] = FORMAT_NAME
+            f.attrs["version"] = FORMAT_VERSION
+            f.create_dataset("system", data=system_to_json(self.system))
+            self._t = f.create_dataset("shots/time", shape=(self.n_shots,), dtype=np.float64)
+            self._b = f.create_dataset("shots/bins", shape=(self.n_shots, h, w), dtype=np.uint16,
+                                       chunks=(max(1, min(self.n_shots, self.chunk_shots)), h, w),
+                                       compression=self.compression)
+            f.create_dataset("scanner/zero_crossings", data=self.zc)
+            f.create_dataset("scanner/rising", data=self.rising.astype(np.uint8))
+        except BaseException as e:
+            self._ctx.__exit__(type(e), e, e.__traceback__)
+            raise
+        return self
+
+    def append(self, shot_time, bins) -> None:
+        """Add the next shots: (k,) float64 s, increasing; (k, H, W) uint16."""
+        t = np.asarray(shot_time, dtype=np.float64)
+        b = np.asarray(bins)
+        k = t.size
+        if b.dtype != np.uint16 or b.shape != (k,) + self._b.shape[1:]:
+            raise FormatError(f"expected uint16 bins of shape {(k,) + self._b.shape[1:]}, found "
+                              f"{b.dtype} {b.shape}", str(self.path), "/shots/bins")
+        if self._written + k > self.n_shots:
+            raise FormatError(f"more than the declared {self.n_shots} shots", str(self.path),
+                              "/shots/time")
+        if k and (t[0] <= self._last_time or np.any(np.diff(t) <= 0)):
+            raise FormatError("expected strictly increasing shot times", str(self.path),
+                              "/shots/time")
+        self._t[self._written:self._written + k] = t
+        self._b[self._written:self._written + k] = b
+        self._written += k
+        if k:
+            self._last_time = float(t[-1])
+
+    def __exit__(self, exc_type, exc, tb):
+        self._f.close()
+        if exc_type is None and self._written != self.n_shots:
+            exc = FormatError(f"{self._written} shots written, {self.n_shots} declared",
+                              str(self.path), "/shots/time")
+            self._ctx.__exit__(FormatError, exc, None)
+            raise exc
+        return self._ctx.__exit__(exc_type, exc, tb)

@@ -104,3 +104,29 @@ def test_writer_refuses_bad_arrays_and_leaves_nothing(tmp_path, dtype, drop):
     with pytest.raises(FormatError):
         write_recording(tmp_path / "w.h5", s, np.arange(k) * 1e-4, bins, [0.0, 1.0], [0, 1])
     assert not list(tmp_path.glob("*w*"))
+
+
+def test_chunked_writer_matches_one_shot_writer(tmp_path, rng):
+    from mems_stereo.recording import RecordingWriter
+
+    s, t, bins, zc, r = _tiny(rng)
+    with RecordingWriter(tmp_path / "c.h5", s, 50, zc, r, chunk_shots=16) as w:
+        for a in range(0, 50, 16):
+            w.append(t[a:a + 16], bins[a:a + 16])
+    rec = read_recording(tmp_path / "c.h5")
+    np.testing.assert_array_equal(rec.bins, bins)
+    np.testing.assert_array_equal(rec.shot_time, t)
+
+
+def test_chunked_writer_leaves_nothing_when_incomplete(tmp_path, rng):
+    from mems_stereo.recording import RecordingWriter
+
+    s, t, bins, zc, r = _tiny(rng)
+    with pytest.raises(FormatError, match="10 shots written, 50 declared"):
+        with RecordingWriter(tmp_path / "c.h5", s, 50, zc, r) as w:
+            w.append(t[:10], bins[:10])
+    with pytest.raises(FormatError, match="increasing"):
+        with RecordingWriter(tmp_path / "c.h5", s, 50, zc, r) as w:
+            w.append(t[:10], bins[:10])
+            w.append(t[:10], bins[:10])
+    assert list(tmp_path.iterdir()) == []
