@@ -10,6 +10,7 @@ recordings are classified again with it, until the estimates stop moving
 
 from __future__ import annotations
 
+import math
 import os
 import warnings
 
@@ -31,8 +32,8 @@ def _as_recording(r) -> Recording:
 
 
 def calibrate_system(recordings, system: System | str | os.PathLike | None = None, *,
-                     fix=(), free=None, target_distances=None, distance_std: float = 1e-3,
-                     confidence: float = 0.997, n_iter: int = 3,
+                     fix=(), free=None, target_distances=None, distance_std=1e-3,
+                     distance_kind: str = "axis", confidence: float = 0.997, n_iter: int = 3,
                      on_unobservable: str = "raise", progress=None,
                      **fit_kwargs) -> CalibrationResult:
     """Estimate the system from recordings of a flat target at several poses.
@@ -44,9 +45,12 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
         recording's ``/system``).
     fix, free : see :func:`calib.fit.fit_detections` (names of
         :data:`calib.model.SYSTEM_PARAMS`).
-    target_distances : per recording, the known distance (m) of its target
-        plane from the receiver's projection centre, or None where unknown.
-    distance_std : σ of a known distance, m.
+    target_distances : per recording, the measured distance (m) of its target
+        from the receiver's projection centre along the optical axis
+        (``distance_kind="axis"``, see :func:`read_target_distances`), or
+        None where unknown.
+    distance_std : σ of a measured distance, m (scalar or one per recording).
+    distance_kind : "axis" or "normal" (:func:`calib.fit.known_distance_model`).
     confidence : of the classifier's consistency test.
     n_iter : classify/fit rounds (at least 1).
     on_unobservable : "raise" or "warn".
@@ -84,6 +88,7 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
                 warnings.simplefilter("ignore")
             new = fit_detections(targets, nominal, fix=fix, free=free,
                                  known_distances=target_distances, distance_std=distance_std,
+                                 distance_kind=distance_kind,
                                  on_unobservable=on_unobservable, initial_values=start,
                                  **fit_kwargs)
         # report against the nominal start, not this round's start
@@ -99,3 +104,83 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     result.extra["rounds"] = len(history)
     result.report = format_report(result)
     return result
+
+
+DISTANCES_FORMAT = "mems-stereo/target-distances"
+
+
+def read_target_distances(path, recordings, default_std: float | None = None):
+    """Measured target distances of the given recordings from a JSON file.
+
+    The file (``samples/calib_distances.json`` is an example)::
+
+        {"format": "mems-stereo/target-distances", "version": 1,
+         "kind": "axis", "std": 0.002,
+         "targets": [{"recording": "calib_1.5m.h5", "distance": 1.494}, ...]}
+
+    ``kind`` "axis": distance (m) from the receiver's projection centre to
+    the target along the receiver's optical axis (camera z); "normal": the
+    target plane's perpendicular distance.  ``std`` (m): σ of a measurement
+    (a target entry may give its own ``std``).  Entries are matched to the
+    recordings by file name (``recording``, without directories), so the
+    file works from any working directory.
+
+    Parameters
+    ----------
+    path : the JSON file.
+    recordings : paths (or Recordings with ``source``) in the order given to
+        :func:`calibrate_system`.
+    default_std : σ (m) where the file gives none (default 0.001).
+
+    Returns
+    -------
+    (distances, stds, kind): lists with one entry per recording (None / the
+    default σ where the file has no entry), and the file's ``kind``.
+
+    Raises
+    ------
+    FormatError : not such a file, a bad field, or no recording matched.
+    """
+    import json
+    from pathlib import Path
+
+    from mems_stereo.errors import FormatError
+
+    src = str(path)
+    try:
+        doc = json.loads(Path(path).read_text())
+    except OSError as e:
+        raise FormatError(f"cannot read the target distances file: {e}", src) from None
+    except json.JSONDecodeError as e:
+        raise FormatError(f"expected JSON, found an error at line {e.lineno}: {e.msg}",
+                          src) from None
+    if not isinstance(doc, dict) or doc.get("format") != DISTANCES_FORMAT:
+        raise FormatError(f"expected format {DISTANCES_FORMAT!r}, found "
+                          f"{doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}",
+                          src, "format")
+    kind = doc.get("kind", "axis")
+    if kind not in ("axis", "normal"):
+        raise FormatError(f"expected 'axis' or 'normal', found {kind!r}", src, "kind")
+    std0 = doc.get("std", 1e-3 if default_std is None else default_std)
+    entries = doc.get("targets")
+    if not isinstance(entries, list):
+        raise FormatError("expected a list of {recording, distance[, std]}", src, "targets")
+    table = {}
+    for i, e in enumerate(entries):
+        fld = f"targets[{i}]"
+        if not isinstance(e, dict) or "recording" not in e or "distance" not in e:
+            raise FormatError("expected an object with 'recording' and 'distance'", src, fld)
+        d, sd = e["distance"], e.get("std", std0)
+        for name, v in (("distance", d), ("std", sd)):
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise FormatError(f"expected a positive number (m), found {v!r}", src,
+                                  f"{fld}.{name}")
+        table[Path(str(e["recording"])).name] = (float(d), float(sd))
+    names = [Path(getattr(r, "source", r) if isinstance(r, Recording) else r).name
+             for r in recordings]
+    dists = [table.get(n, (None, None))[0] for n in names]
+    stds = [table.get(n, (None, float(std0)))[1] for n in names]
+    if all(d is None for d in dists):
+        raise FormatError(f"expected an entry for at least one of the recordings {names}, "
+                          f"found entries for {sorted(table)}", src, "targets")
+    return dists, stds, kind

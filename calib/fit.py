@@ -113,13 +113,16 @@ class CalibrationResult:
                       "std": self.std[n] if math.isfinite(self.std[n]) else None,
                       "initial": self.initial[n]} for n in self.names}
         corr = {f"{a}/{b}": round(float(r), 6) for a, b, r in self.tradeoffs}
+        z = self.extra.get("axis_distance", [math.nan] * len(self.planes))
+        zs = self.extra.get("axis_distance_std", [math.nan] * len(self.planes))
         return {"parameters": params, "rms_pixel": self.rms_pixel, "rms_time": self.rms_time,
                 "n_detections": int(self.n_detections), "fixed": list(self.fixed),
                 "unobservable": list(self.unobservable), "correlations": corr,
                 "converged": bool(self.converged),
                 "targets": [{"alpha": float(p[0]), "beta": float(p[1]), "distance": float(p[2]),
-                             "std": [float(s) for s in ps]}
-                            for p, ps in zip(self.planes, self.planes_std)]}
+                             "std": [float(s) for s in ps], "distance_axis": float(za),
+                             "distance_axis_std": float(zsa)}
+                            for p, ps, za, zsa in zip(self.planes, self.planes_std, z, zs)]}
 
 
 # --------------------------------------------------------------------------
@@ -150,7 +153,8 @@ class _Problem:
     with a detection and by the first-photon bias itself.
     """
 
-    def __init__(self, targets, system, names, two_d, known, known_std, jitter):
+    def __init__(self, targets, system, names, two_d, known, known_std, jitter,
+                 distance_kind="axis"):
         self.targets = targets
         self.system = system
         self.names = list(names)
@@ -158,6 +162,7 @@ class _Problem:
         self.T = len(targets)
         self.known = known
         self.known_std = known_std
+        self.distance_kind = distance_kind
         self.ref = {n: system.get_param(n) for n in SYSTEM_PARAMS}
         self.plane_names = (["alpha", "beta", "dist", "logmu"] if two_d
                             else ["alpha", "dist", "logmu"])
@@ -333,10 +338,12 @@ class _Problem:
         return out
 
     def prior(self, x):
+        """Residuals of the known target distances (σ units), one per known target."""
         if self.known is None:
             return np.zeros(0)
         _, planes = self.unpack(x)
-        return np.array([(planes[j, 2] - d) / self.known_std for j, d in enumerate(self.known)
+        return np.array([(known_distance_model(planes[j], self.distance_kind) - d) / sd
+                         for j, (d, sd) in enumerate(zip(self.known, self.known_std))
                          if d is not None])
 
     def residual_blocks(self, x):
@@ -391,6 +398,26 @@ class _Problem:
             if p0.size:
                 J[starts[-1]:, i] = (self.prior(xp) - (self.prior(xm) if central else p0)) / h
         return J
+
+
+DISTANCE_KINDS = ("axis", "normal")
+
+
+def known_distance_model(plane, kind: str = "axis") -> float:
+    """The target distance a user measures, from a fitted plane (α, β, D, ...).
+
+    ``kind="axis"``: from the receiver's projection centre to the target
+    along the optical axis (camera z): ``D / n_z`` with
+    ``n = plane_normal(α, β)``.  For a line sensor, whose fit sees only the
+    plane's trace ``sin α·x + cos α·z = D`` in the scan plane, this is
+    ``D / cos α`` whatever the target's pitch, so it is exactly what the fit
+    determines.  ``kind="normal"``: the fit's own D (perpendicular distance
+    of the plane (2-D arrays) or of its trace in the scan plane (line
+    sensors) from the projection centre).  Metres.
+    """
+    if kind == "normal":
+        return float(plane[2])
+    return float(plane[2] / plane_normal(plane[0], plane[1])[2])
 
 
 def _track_keep(prob: _Problem, values: dict, gate: float, n_bins: int = 100) -> list:
@@ -525,7 +552,8 @@ def _fmt(name, v):
 
 
 def fit_detections(targets, system: System, *, free=None, fix=(), known_distances=None,
-                   distance_std: float = 1e-3, loss: str = "soft_l1", f_scale: float = 2.0,
+                   distance_std=1e-3, distance_kind: str = "axis", loss: str = "soft_l1",
+                   f_scale: float = 2.0,
                    jitter: float = 0.0, n_outer: int = 3, on_unobservable: str = "raise",
                    max_std: dict | None = None, initial_values: dict | None = None,
                    max_nfev: int = 100, gate: float = 1.5, gate_first: float = 2.5,
@@ -540,9 +568,14 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     free : system parameters to estimate (default: :data:`calib.model.DEFAULT_FREE`;
         add ``"fx"``, ``"cx"`` to refine the receiver).
     fix : names held at their value in ``system``.
-    known_distances : per target, its plane's distance from the projection
-        centre in m, or None where unknown; enters as a prior of σ
-        ``distance_std`` (m).  Breaks the baseline_z / tdc_offset trade-off.
+    known_distances : per target, its measured distance in m (see
+        ``distance_kind``), or None where unknown; enters as a prior of σ
+        ``distance_std`` (m; a scalar or one per target).  Breaks the scale
+        (baseline × distance) / TDC offset trade-off.
+    distance_kind : "axis" (default): from the receiver's projection centre
+        to the target along the optical axis, what a rangefinder aligned
+        with the receiver measures; "normal": the plane's perpendicular
+        distance D of the fit (:func:`known_distance_model`).
     loss, f_scale : robust loss of ``least_squares`` (residuals are in σ units).
     jitter : SPAD timing jitter σ, s, added to the pulse's.
     n_outer : re-estimations of the signal rates and inlier weights.
@@ -579,6 +612,18 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     if known_distances is not None and len(known_distances) != len(targets):
         raise ValueError(f"known_distances: expected {len(targets)} entries (one per target), "
                          f"found {len(known_distances)}")
+    if distance_kind not in DISTANCE_KINDS:
+        raise ValueError(f"distance_kind: expected one of {DISTANCE_KINDS}, "
+                         f"found {distance_kind!r}")
+    dist_std = np.broadcast_to(np.asarray(distance_std, dtype=np.float64),
+                               (len(targets),)).copy()
+    if not np.all(dist_std > 0):
+        raise ValueError(f"distance_std: expected positive σ (m), found {distance_std!r}")
+    if known_distances is not None:
+        known_distances = [None if d is None or not math.isfinite(d) else float(d)
+                           for d in known_distances]
+        if all(d is None for d in known_distances):
+            known_distances = None
     for j, t in enumerate(targets):
         if t.n_detections < MIN_DETECTIONS_PER_TARGET:
             raise NotObservableError(
@@ -589,14 +634,16 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     two_d = system.receiver.height > 1
     if initial_values:
         system = system.with_params(**initial_values)
-    prob = _Problem(targets, system, names, two_d, known_distances, distance_std, jitter)
+    prob = _Problem(targets, system, names, two_d, known_distances, dist_std, jitter,
+                    distance_kind)
     initial = {n: system.get_param(n) for n in SYSTEM_PARAMS}
     prob._aggregate(_track_keep(prob, {}, gate_first))
     prob.plane_ref = _initial_planes(prob, {})
     if known_distances is not None:
         for j, d in enumerate(known_distances):
-            if d is not None:
-                prob.plane_ref[j, 2] = d
+            if d is not None:  # start on the measured distance, keeping the start tilt
+                prob.plane_ref[j, 2] = d * (1.0 if distance_kind == "normal" else
+                                            plane_normal(*prob.plane_ref[j, :2])[2])
     x = np.zeros(len(prob.labels))
     values, planes = prob.unpack(x)
     prob.update(values, planes)
@@ -654,7 +701,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
         if moved > RESTART_MOVE:
             again = fit_detections(
                 targets, system, free=free, fix=fix, known_distances=known_distances,
-                distance_std=distance_std, loss=loss, f_scale=f_scale, jitter=jitter,
+                distance_std=dist_std, distance_kind=distance_kind, loss=loss,
+                f_scale=f_scale, jitter=jitter,
                 n_outer=n_outer, on_unobservable=on_unobservable, max_std=max_std,
                 initial_values={nm: float(vals[nm]) for nm in names}, max_nfev=max_nfev,
                 gate=gate, gate_first=gate_first, restarts=restarts - 1,
@@ -719,6 +767,19 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
     out_values = {nm: float(values[nm]) for nm in names}
     planes_std = np.zeros_like(planes)
     planes_std[:, prob.plane_cols] = std_full[n:].reshape(prob.T, len(prob.plane_cols))
+    # each target's distance along the optical axis (what a rangefinder on the
+    # receiver measures) with its σ from the plane parameters' covariance
+    z_axis, z_std = np.zeros(prob.T), np.zeros(prob.T)
+    npp = len(prob.plane_names)
+    for j in range(prob.T):
+        a, b, D = planes[j, 0], planes[j, 1], planes[j, 2]
+        ca, cb = math.cos(a), math.cos(b)
+        z_axis[j] = D / (ca * cb)
+        grad = {"alpha": D * math.sin(a) / (ca * ca * cb), "beta": D * math.sin(b) / (ca * cb * cb),
+                "dist": 1.0 / (ca * cb), "logmu": 0.0}
+        g = np.array([grad[pn] for pn in prob.plane_names])
+        sl = slice(n + j * npp, n + (j + 1) * npp)
+        z_std[j] = math.sqrt(max(float(g @ cov_full[sl, sl] @ g), 0.0))
     result = CalibrationResult(
         system=system.with_params(**out_values), names=names, values=out_values, std=std,
         initial={nm: initial[nm] for nm in names}, covariance=cov, correlation=corr, rms=rms,
@@ -728,6 +789,7 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
         extra={"n_total": n_total, "mu": np.exp(planes[:, 3]).tolist(),
                "normalised_rms": rms_blocks,
                "singular_values": sv.tolist(), "labels": labels,
+               "axis_distance": z_axis.tolist(), "axis_distance_std": z_std.tolist(),
                "correlation_full": corr_full})
     result.system = result.system.replace(calibration=result.calibration_dict())
     result.report = format_report(result)
@@ -746,9 +808,12 @@ def format_report(r: CalibrationResult) -> str:
         f, unit = PARAM_UNIT[n]
         lines.append(f"  {n:<16}{r.initial[n] * f:>14.4f}{r.values[n] * f:>14.4f}"
                      f"{r.std[n] * f:>12.4f}  {unit}")
+    z = r.extra.get("axis_distance", [math.nan] * len(r.planes))
+    zs = r.extra.get("axis_distance_std", [math.nan] * len(r.planes))
     for j, (p, s) in enumerate(zip(r.planes, r.planes_std)):
-        lines.append(f"  target {j}: distance {p[2]:.4f} ± {s[2] * 1e3:.2f} mm, "
-                     f"tilt {p[0] * 1e3:.2f} ± {s[0] * 1e3:.2f} mrad")
+        lines.append(f"  target {j}: distance along the optical axis {z[j]:.4f} m "
+                     f"± {zs[j] * 1e3:.2f} mm (plane: D {p[2]:.4f} m ± {s[2] * 1e3:.2f} mm, "
+                     f"tilt {p[0] * 1e3:.2f} ± {s[0] * 1e3:.2f} mrad)")
     if r.fixed:
         lines.append("  fixed: " + ", ".join(r.fixed))
     if r.unobservable:

@@ -1,13 +1,14 @@
 """Scale-out on Dask distributed: many recordings, or one large recording split by shots.
 
 The same stage functions as :mod:`mems_stereo.pipeline` run on workers over
-shot ranges; their results add (histograms, counts) or concatenate in shot
-order (peak detections), so the outcome is identical to one process.
+shot ranges; their results add (histograms, counts, peak accumulators), so
+histograms and counts are identical to one process and points equal up to
+the order of floating-point sums.
 
 * :func:`process_many` — one task per recording.
 * :func:`process_split` — one recording split into shot ranges: pass 1
-  (classify + histograms) per range, peaks on the client, pass 2 (peak
-  detections) per range, points on the client.
+  (classify + histograms) per range, peaks on the client, the two sub-passes
+  of pass 2 (peak accumulators) per range, points on the client.
 
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
@@ -29,7 +30,7 @@ from .pipeline import (
     Settings,
     accumulate_range,
     finish_processing,
-    peak_detections_range,
+    peak_pass_range,
     process_recording,
     shot_angles,
 )
@@ -78,9 +79,6 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                   scheduler="local", n_workers: int = 2, n_parts: int | None = None
                   ) -> ProcessResult:
     """Process one (large) recording split by shot ranges over Dask workers."""
-    from .peaks import find_peaks
-    from .points import points_from_peak_detections
-
     st = Settings() if settings is None else settings
     header = read_header(path)
     sysm = header.system if system is None else system
@@ -97,15 +95,23 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         for a in accs[1:]:
             acc = acc + a
         timings["classify_histogram"] = time.perf_counter() - t0
+
+        def run_pass(kind, template):
+            peaks = {k: template_peaks[k] for k in template_peaks}
+            parts_acc = client.gather([
+                client.submit(peak_pass_range, str(path), sysm, th_f, va_f, st, peaks,
+                              template, kind, a, b, pure=False) for a, b in parts])
+            total = parts_acc[0]
+            for p in parts_acc[1:]:
+                total = total + p
+            return total
+
+        from .peaks import find_peaks
+
         H, W = header.shape[1:]
         n_bins = sysm.tdc.n_bins
         sig = acc.hist_signal[:, 1:].reshape(H, W, n_bins)
         noise = (acc.hist_raw - acc.hist_signal)[:, 1:].reshape(H, W, n_bins)
-        peaks, _ = find_peaks(sysm, sig, noise, theta, valid, st)
-        pk_pixel = peaks["row"] * W + peaks["col"]
-        dets = client.gather([client.submit(peak_detections_range, str(path), sysm, th_f, va_f,
-                                            st, pk_pixel, peaks["code_lo"], peaks["code_hi"],
-                                            a, b, pure=False) for a, b in parts])
-    detections = tuple(np.concatenate([d[i] for d in dets]) for i in range(3))
-    return finish_processing(path, sysm, header, theta, valid, acc, st, timings, find_peaks,
-                             points_from_peak_detections, detections=detections)
+        template_peaks, _ = find_peaks(sysm, sig, noise, theta, valid, st)
+        return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                                 run_pass=run_pass)

@@ -19,6 +19,7 @@ angles gives labels identical to the fast path; the tests check exactly that.
 from __future__ import annotations
 
 import math
+
 import numpy as np
 
 from .classify import DEFAULT_CONFIDENCE, accepted_code_intervals

@@ -9,14 +9,16 @@ the recording's length):
    snapped angles), raw and signal histograms per pixel; optionally the
    labels file and, where the recording has ``/truth/label``, the confusion
    counts against the truth.
-2. **peaks → points** (:func:`peak_detections_range`): after the peak
-   detector has found each pixel's peak code window in the signal histogram,
-   the signal detections inside the windows are gathered and fused into one
-   point per peak (:func:`mems_stereo.points.points_from_peak_detections`).
+2. **peaks → points** (:func:`peak_pass_range`): after the peak detector
+   has found each pixel's peak code window in the signal histogram, the
+   signal detections inside the windows are streamed twice into a
+   :class:`mems_stereo.points.PeakAccumulator` (the mode of each peak's
+   ranges, then the sums over its inliers) and fused into one point per peak.
 
 Every step is a function of a shot range and returns arrays that add up
-(histograms, counts) or concatenate in order (detections), so the Dask runner
-(:mod:`mems_stereo.distributed`) gets results identical to one process.
+(histograms, counts, peak accumulators), so the Dask runner
+(:mod:`mems_stereo.distributed`) gets histograms and labels identical to one
+process, and points equal up to the order of floating-point sums (1e-12).
 """
 
 from __future__ import annotations
@@ -24,7 +26,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import h5py
 import numpy as np
@@ -137,26 +138,19 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     return RangeAccumulation(raw, sig, n_shots, n_unknown, conf, has_truth)
 
 
-def peak_detections_range(path, system: System, theta, valid, settings: Settings,
+def _iter_peak_detections(path, system: System, theta, valid, settings: Settings,
                           peak_pixel, code_lo, code_hi, start: int = 0,
                           stop: int | None = None, progress=None):
-    """Pass 2 over shots [start, stop): signal detections inside the peak windows.
-
-    ``peak_pixel`` : (Q,) flat pixel index (row·W + col) of each peak;
-    ``code_lo``, ``code_hi`` : (Q,) inclusive code window.
-
-    Returns ``(shot, peak, code)``, each (M,) int64, in shot order.
-    """
+    """Yield ``(shot, peak, code)`` (M,) int64 arrays per chunk: the signal detections
+    inside the peak windows (``peak_pixel`` flat pixel index, inclusive windows)."""
     table = interval_table(system, settings.confidence, min_range=settings.min_range)
     n_bins = system.tdc.n_bins
     P = system.receiver.width * system.receiver.height
     pk = np.asarray(peak_pixel, dtype=np.int64)
     lo = np.asarray(code_lo, dtype=np.int64)
     hi = np.asarray(code_hi, dtype=np.int64)
-    out_k, out_q, out_c = [], [], []
     if pk.size == 0:
-        e = np.zeros(0, np.int64)
-        return e, e, e
+        return
     raw32 = np.zeros((P, n_bins + 1), np.int32)
     sig32 = np.zeros((P, n_bins + 1), np.int32)
     for s0, _t, bins, in iter_shot_chunks(path, settings.chunk_shots, start, stop):
@@ -165,14 +159,31 @@ def peak_detections_range(path, system: System, theta, valid, settings: Settings
                                                raw32, sig32)
         b2 = bins.reshape(bins.shape[0], P)[:, pk].astype(np.int64)  # (k, Q)
         l2 = labels.reshape(bins.shape[0], P)[:, pk]
-        m = (l2 == 1) & (b2 >= lo) & (b2 <= hi)
-        kk, qq = np.nonzero(m)
-        out_k.append(kk + s0)
-        out_q.append(qq)
-        out_c.append(b2[kk, qq])
+        kk, qq = np.nonzero((l2 == 1) & (b2 >= lo) & (b2 <= hi))
+        yield kk + s0, qq, b2[kk, qq]
         if progress is not None:
             progress(s1 - s0)
-    return (np.concatenate(out_k), np.concatenate(out_q), np.concatenate(out_c))
+
+
+def peak_pass_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
+                    template, kind: str, start: int = 0, stop: int | None = None,
+                    progress=None):
+    """Pass 2 over shots [start, stop): feed the peak windows' signal detections to a
+    :class:`~mems_stereo.points.PeakAccumulator` (``kind`` "mode" or "inliers").
+
+    ``template`` is copied empty (keeping its centres); the filled copy is
+    returned, to be added to the other ranges' copies.
+    """
+    acc = template.empty_copy()
+    add = acc.add_mode if kind == "mode" else acc.add_inliers
+    W = system.receiver.width
+    th = np.where(valid, theta, 0.0)
+    for shot, q, code in _iter_peak_detections(path, system, theta, valid, settings,
+                                               peaks["row"] * W + peaks["col"],
+                                               peaks["code_lo"], peaks["code_hi"], start, stop,
+                                               progress):
+        add(shot, q, code, th)
+    return acc
 
 
 @dataclass
@@ -249,9 +260,6 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
     labels_path : write the event labels (FORMAT v1 outputs) there.
     progress : callable(n_shots_done) for progress bars.
     """
-    from .peaks import find_peaks
-    from .points import points_from_peak_detections
-
     st = Settings() if settings is None else settings
     t0 = time.perf_counter()
     header = read_header(path)
@@ -276,13 +284,20 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
         acc = accumulate_range(path, sysm, theta, valid, st, progress=progress)
     timings["classify_histogram"] = time.perf_counter() - t1
     return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                             find_peaks, points_from_peak_detections, progress)
+                             progress=progress)
 
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
-                      timings: dict, find_peaks, points_from_peak_detections, progress=None,
-                      detections=None) -> ProcessResult:
-    """Peaks, background and points from the accumulated histograms (shared by Dask)."""
+                      timings: dict, run_pass=None, progress=None) -> ProcessResult:
+    """Peaks, background and points from the accumulated histograms.
+
+    ``run_pass(kind, template) -> PeakAccumulator`` runs one sub-pass of pass
+    2 over the whole recording (default: here, in chunks; the Dask runner
+    passes its own).
+    """
+    from .peaks import find_peaks
+    from .points import PeakAccumulator
+
     K, H, W = header.shape
     n_bins = sysm.tdc.n_bins
     t2 = time.perf_counter()
@@ -292,15 +307,16 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     peaks, background = find_peaks(sysm, sig, noise, theta, valid, st)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    pk_pixel = peaks["row"] * W + peaks["col"]
-    if detections is None:
-        detections = peak_detections_range(path, sysm, theta, valid, st, pk_pixel,
-                                           peaks["code_lo"], peaks["code_hi"],
-                                           progress=progress)
-    det_k, det_q, det_c = detections
-    cloud = points_from_peak_detections(sysm, det_k, det_q, det_c, np.where(valid, theta, 0.0),
-                                        peaks["row"], peaks["col"], peaks["code"],
-                                        min_counts=st.min_counts, confidence=st.confidence)
+    if run_pass is None:
+        def run_pass(kind, template):
+            return peak_pass_range(path, sysm, theta, valid, st, peaks, template, kind,
+                                   progress=progress)
+    template = PeakAccumulator(sysm, peaks["row"], peaks["col"], peaks["code"],
+                               confidence=st.confidence)
+    mode = run_pass("mode", template)
+    mode.finish_mode()
+    sums = run_pass("inliers", mode)
+    cloud = sums.cloud(st.min_counts)
     timings["points"] = time.perf_counter() - t3
     counts = {
         "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),

@@ -259,38 +259,165 @@ def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None
     return PointCloud(dp.fused[g], attrs)
 
 
-def _robust_inliers(r, sr, k: float, n_iter: int = 3):
-    """Inliers of one peak's ranges: densest cluster, then k-σ clipping around its mean.
 
-    ``r``, ``sr`` : (m,) ranges and their standard deviations, m.  Background
-    that passed the classifier inside a peak's window spreads its stereo
-    ranges over metres, while the true returns cluster within their σ: the
-    start is the range with the most neighbours within the median σ (a mode,
-    not the median, which such background would drag), then the mean of the
-    detections within ``k·σ_i`` of the current centre, repeated.
+class PeakAccumulator:
+    """Streaming fusion of each peak's signal detections into one point.
+
+    Two sub-passes over the detections (each in chunks of any size, in any
+    order, on any number of workers — accumulators add with ``+``):
+
+    1. :meth:`add_mode` — every detection adds its range interval
+       ``[r_i − σ_i, r_i + σ_i]`` (fused range and its σ) to a coverage count
+       on a logarithmic range grid (relative step ``rel_step``).  The peak's
+       centre is the range covered by most intervals (:meth:`finish_mode`):
+       a mode, robust to background that passed the classifier inside the
+       window, whose stereo ranges spread over metres while true returns
+       cluster within their σ; a sharp cluster of few near-range background
+       detections cannot outvote a broader cluster of many true returns.
+    2. :meth:`add_inliers` — detections within ``k·σ_i`` of the centre add
+       their fused, stereo and time-of-flight points and covariances to
+       per-peak sums.
+
+    :meth:`cloud` returns the means, with covariance ``Σ C_i / n²`` scaled by
+    the inliers' reduced χ² when it exceeds 1 (Birge ratio: the reported σ
+    stays honest when the scatter exceeds the propagated spread).  Memory is
+    O(peaks × grid), independent of the number of detections.
     """
-    ok = np.isfinite(r) & np.isfinite(sr) & (sr > 0)
-    idx = np.flatnonzero(ok)
-    if idx.size == 0:
-        return ok
-    rv, sv = r[idx], sr[idx]
-    order = np.argsort(rv)
-    rs, ss = rv[order], sv[order]
-    # neighbours within each detection's own σ: a cluster of sharp near-range
-    # background cannot outvote a broader cluster of many true returns
-    n_near = np.searchsorted(rs, rs + ss, side="right") - np.searchsorted(rs, rs - ss, side="left")
-    centre = float(rs[int(np.argmax(n_near))])
-    inl = np.zeros(idx.size, bool)
-    for _ in range(n_iter):
-        new = np.abs(rv - centre) <= k * sv
-        if not new.any():
-            break
-        inl = new
-        w = 1.0 / sv[inl] ** 2
-        centre = float(np.sum(w * rv[inl]) / np.sum(w))
-    out = np.zeros(r.shape, bool)
-    out[idx[inl]] = True
-    return out
+
+    SUMS = ("n", "fused", "cov_fused", "stereo", "cov_stereo", "tof", "cov_tof", "code",
+            "weight", "w", "wr", "wrr", "window")
+
+    def __init__(self, system: System, rows, cols, peak_code=None,
+                 spreads: Spreads | None = None, confidence: float = 0.997,
+                 r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3):
+        from .classify import k_from_confidence
+
+        self.system = system
+        self.spreads = spreads
+        self.k = k_from_confidence(confidence)
+        self.rows = np.asarray(rows, dtype=np.int64).ravel()
+        self.cols = np.asarray(cols, dtype=np.int64).ravel()
+        if self.rows.shape != self.cols.shape:
+            raise GeometryError("rows, cols: expected equal lengths")
+        self.peak_code = None if peak_code is None else np.asarray(peak_code, np.float64)
+        self.Q = self.rows.size
+        self.log_min = float(np.log(r_min))
+        self.dlog = float(np.log1p(rel_step))
+        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
+        self.cover = np.zeros((self.Q, self.n_grid + 1), np.int64)
+        self.centre = None
+        self.sums = {
+            "n": np.zeros(self.Q), "fused": np.zeros((self.Q, 3)),
+            "cov_fused": np.zeros((self.Q, 3, 3)), "stereo": np.zeros((self.Q, 3)),
+            "cov_stereo": np.zeros((self.Q, 3, 3)), "tof": np.zeros((self.Q, 3)),
+            "cov_tof": np.zeros((self.Q, 3, 3)), "code": np.zeros(self.Q),
+            "weight": np.zeros(self.Q), "w": np.zeros(self.Q), "wr": np.zeros(self.Q),
+            "wrr": np.zeros(self.Q), "window": np.zeros(self.Q),
+        }
+
+    def empty_copy(self) -> PeakAccumulator:
+        """A zeroed accumulator of the same peaks and grid (keeps the centres)."""
+        new = object.__new__(PeakAccumulator)
+        new.__dict__.update(self.__dict__)
+        new.cover = np.zeros_like(self.cover)
+        new.sums = {k: np.zeros_like(v) for k, v in self.sums.items()}
+        return new
+
+    def __add__(self, other: PeakAccumulator) -> PeakAccumulator:
+        new = self.empty_copy()
+        new.cover = self.cover + other.cover
+        new.sums = {k: self.sums[k] + other.sums[k] for k in self.sums}
+        return new
+
+    def _points(self, shot, peak, code, theta):
+        shot = np.asarray(shot, dtype=np.int64).ravel()
+        peak = np.asarray(peak, dtype=np.int64).ravel()
+        code = np.asarray(code, dtype=np.int64).ravel()
+        if not (shot.shape == peak.shape == code.shape):
+            raise GeometryError("shot, peak, code: expected equal lengths")
+        dp = detection_points(self.system, shot, self.rows[peak], self.cols[peak], code, theta,
+                              self.spreads)
+        r, _, sr, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
+        ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
+        return peak, code, dp, r, sr, ok
+
+    def _bin(self, r):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
+        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
+
+    def add_mode(self, shot, peak, code, theta) -> None:
+        """Sub-pass 1: coverage of each detection's ±σ range interval."""
+        peak, _, _, r, sr, ok = self._points(shot, peak, code, theta)
+        lo = self._bin(r[ok] - sr[ok])
+        hi = self._bin(r[ok] + sr[ok])
+        np.add.at(self.cover, (peak[ok], lo), 1)
+        np.add.at(self.cover, (peak[ok], hi + 1), -1)
+
+    def finish_mode(self) -> np.ndarray:
+        """Fix each peak's centre range (Q,) m (NaN without detections)."""
+        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
+        j = np.argmax(density, axis=1)
+        centre = np.exp(self.log_min + (j + 0.5) * self.dlog)
+        self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
+        return self.centre
+
+    def add_inliers(self, shot, peak, code, theta) -> None:
+        """Sub-pass 2: sums over the detections within k·σ of their peak's centre."""
+        if self.centre is None:
+            raise RuntimeError("add_inliers before finish_mode")
+        peak, code, dp, r, sr, ok = self._points(shot, peak, code, theta)
+        Q = self.Q
+        self.sums["window"] += np.bincount(peak, minlength=Q)
+        with np.errstate(invalid="ignore"):
+            inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
+        q = peak[inl]
+        w = 1.0 / sr[inl] ** 2
+        s = self.sums
+        s["n"] += np.bincount(q, minlength=Q)
+        for name in ("fused", "stereo", "tof"):
+            np.add.at(s[name], q, getattr(dp, name)[inl])
+            np.add.at(s["cov_" + name], q, getattr(dp, "cov_" + name)[inl])
+        s["code"] += np.bincount(q, weights=code[inl].astype(np.float64), minlength=Q)
+        s["weight"] += np.bincount(q, weights=dp.weight_stereo[inl], minlength=Q)
+        s["w"] += np.bincount(q, weights=w, minlength=Q)
+        s["wr"] += np.bincount(q, weights=w * r[inl], minlength=Q)
+        s["wrr"] += np.bincount(q, weights=w * r[inl] ** 2, minlength=Q)
+
+    def cloud(self, min_counts: int = 1) -> PointCloud:
+        """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
+        s = self.sums
+        n = s["n"]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = {name: (s[name] / n[:, None], s["cov_" + name] / (n * n)[:, None, None])
+                    for name in ("fused", "stereo", "tof")}
+            xf = mean["fused"][0]
+            rbar = np.linalg.norm(xf, axis=1)
+            # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w
+            chi2 = (s["wrr"] - 2 * rbar * s["wr"] + rbar ** 2 * s["w"]) / np.maximum(n - 1, 1)
+        birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+        for name in mean:
+            mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+        xf, Cf = mean["fused"]
+        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
+        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
+        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            code_mean = s["code"] / n
+            w_mean = s["weight"] / n
+        attrs = {
+            "counts": n.astype(np.int32), "pixel": self.cols.astype(np.int32),
+            "row": self.rows.astype(np.int32),
+            "code": self.peak_code if self.peak_code is not None else code_mean,
+            "range": r, "sigma_r": sr, "sigma_phi": sphi,
+            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
+            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
+            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
+            "counts_window": s["window"].astype(np.int32),
+        }
+        keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
+        return PointCloud(xf, attrs).select(keep)
 
 
 def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
@@ -298,81 +425,20 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                                 min_counts: int = 1, confidence: float = 0.997) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
+    In-memory form of :class:`PeakAccumulator` (same result as streaming it).
+
     Parameters
     ----------
     shot, peak, code : (M,) int — each detection's shot index, the index of
-        its peak (0..Q−1) and its TDC code (as gathered by the pipeline's
-        second pass).
+        its peak (0..Q−1) and its TDC code.
     theta : (K,) rad, scan angle of every shot.
     rows, cols : (Q,) int, pixel of each peak; peak_code : (Q,) the
         detector's peak code (kept as the ``code`` attribute when given).
     min_counts : peaks with fewer inlier detections are dropped.
-    confidence : the in-peak inlier bound ``k`` (see :func:`_robust_inliers`).
-
-    Returns
-    -------
-    :class:`~mems_stereo.cloud.PointCloud` as :func:`peak_points`: the mean of
-    the inliers' fused points with covariance ``Σ C_i / n²``, and the stereo
-    and time-of-flight estimates with their own uncertainties.
+    confidence : sets the inlier bound ``k`` around each peak's centre.
     """
-    from .classify import k_from_confidence
-
-    shot = np.asarray(shot, dtype=np.int64).ravel()
-    peak = np.asarray(peak, dtype=np.int64).ravel()
-    code = np.asarray(code, dtype=np.int64).ravel()
-    rows = np.asarray(rows, dtype=np.int64).ravel()
-    cols = np.asarray(cols, dtype=np.int64).ravel()
-    Q = rows.size
-    if not (shot.shape == peak.shape == code.shape) or cols.size != Q:
-        raise GeometryError("shot, peak, code / rows, cols: expected equal lengths")
-    dp = detection_points(system, shot, rows[peak], cols[peak], code, theta, spreads)
-    k = k_from_confidence(confidence)
-    r_i, _, sr_i, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
-    good = np.zeros(shot.size, bool)
-    order = np.argsort(peak, kind="stable")
-    bounds = np.searchsorted(peak[order], np.arange(Q + 1))
-    for q in range(Q):
-        sel = order[bounds[q]:bounds[q + 1]]
-        if sel.size:
-            good[sel] = _robust_inliers(r_i[sel], sr_i[sel], k) & dp.ok[sel]
-    window_counts = np.bincount(peak, minlength=Q)
-    gi = peak[good]
-    mean = {}
-    for name in ("stereo", "tof", "fused"):
-        x, cnt = _group_mean(gi, Q, getattr(dp, name)[good])
-        C, _ = _group_mean(gi, Q, getattr(dp, "cov_" + name)[good])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            C = C / cnt[:, None, None]
-        mean[name] = (x, C)
-    code_mean, cnt = _group_mean(gi, Q, code[good].astype(np.float64))
-    w_mean, _ = _group_mean(gi, Q, dp.weight_stereo[good])
-    keep = cnt >= max(1, int(min_counts))
-    # the inliers' own scatter (Birge ratio): when it exceeds the propagated
-    # spread (background inside the cluster, unmodelled effects), the
-    # covariances grow by the reduced χ² so the reported σ stays honest
-    xf, Cf = mean["fused"]
-    r_mean, _, _, _ = polar_from_cartesian(xf, Cf)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z2 = ((r_i[good] - r_mean[gi]) / sr_i[good]) ** 2
-        chi2 = np.bincount(gi, weights=z2, minlength=Q) / np.maximum(cnt - 1, 1)
-    birge = np.where(cnt > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
-    for name in mean:
-        mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
-    xf, Cf = mean["fused"]
-    r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-    r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-    r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
-    sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
-    attrs = {
-        "counts": cnt.astype(np.int32), "pixel": cols.astype(np.int32),
-        "row": rows.astype(np.int32),
-        "code": (np.asarray(peak_code, dtype=np.float64) if peak_code is not None
-                 else code_mean),
-        "scatter_ratio": np.sqrt(birge),
-        "range": r, "sigma_r": sr, "sigma_phi": sphi,
-        "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
-        "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
-        "sigma_r_tof": sr_tf, "weight_stereo": w_mean,
-        "counts_window": window_counts.astype(np.int32),
-    }
-    return PointCloud(xf, attrs).select(keep & np.all(np.isfinite(xf), axis=1))
+    acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence)
+    acc.add_mode(shot, peak, code, theta)
+    acc.finish_mode()
+    acc.add_inliers(shot, peak, code, theta)
+    return acc.cloud(min_counts)

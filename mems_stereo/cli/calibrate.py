@@ -11,7 +11,8 @@ NAME = "calibrate"
 HELP = ("estimate baseline, theta0, TDC offset, scan phase and amplitude (with σ) from "
         "recordings of a flat target at several distances")
 EXAMPLE = ("mems-stereo calibrate samples/calib_1.5m.h5 samples/calib_2.5m.h5 "
-           "samples/calib_4.0m.h5 -o calibrated.json")
+           "samples/calib_4.0m.h5 --target-distances-file samples/calib_distances.json "
+           "-o calibrated.json")
 
 
 def add_arguments(p):
@@ -25,11 +26,16 @@ def add_arguments(p):
                         "phase_offset, tdc_offset, baseline_x, baseline_y, baseline_z)")
     p.add_argument("--free", nargs="+", default=[], metavar="NAME",
                    help="estimate these too (fx, cx: refine the receiver)")
-    p.add_argument("--target-distance", nargs="+", type=float, default=None, metavar="D",
-                   help="known distance (m) of each recording's target plane from the "
-                        "receiver, in the order of the recordings (use nan for unknown)")
-    p.add_argument("--distance-std", type=float, default=1e-3,
-                   help="σ of a known target distance, m (default 0.001)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--target-distance", nargs="+", type=float, default=None, metavar="D",
+                   help="measured distance (m) of each recording's target from the receiver's "
+                        "projection centre along its optical axis, in the order of the "
+                        "recordings (nan: unknown)")
+    g.add_argument("--target-distances-file", default=None, metavar="FILE.json",
+                   help="measured target distances per recording file name "
+                        "(format: samples/calib_distances.json, docs/calibration.md)")
+    p.add_argument("--distance-std", type=float, default=None, metavar="M",
+                   help="σ of a measured distance, m (default: the file's, else 0.001)")
     p.add_argument("--confidence", type=float, default=0.997,
                    help="confidence of the classifier's consistency test (default 0.997)")
     p.add_argument("--allow-unobservable", action="store_true",
@@ -39,23 +45,37 @@ def add_arguments(p):
 def run(args) -> int:
     import math
 
-    from calib.calibrate import calibrate_system
+    from calib.calibrate import calibrate_system, read_target_distances
     from calib.model import DEFAULT_FREE
 
+    from ..errors import FormatError
+
     rep = Reporter(args)
-    dists = None
+    dists, stds, kind = None, 1e-3, "axis"
+    if args.distance_std is not None and not args.distance_std > 0:
+        raise FormatError(f"expected a positive σ in m, found {args.distance_std}",
+                          field="--distance-std")
     if args.target_distance is not None:
         if len(args.target_distance) != len(args.recordings):
-            from ..errors import FormatError
-
             raise FormatError(f"expected one distance per recording ({len(args.recordings)}),"
                               f" found {len(args.target_distance)}", field="--target-distance")
         dists = [None if math.isnan(d) else d for d in args.target_distance]
+        stds = 1e-3 if args.distance_std is None else args.distance_std
+    elif args.target_distances_file is not None:
+        dists, stds, kind = read_target_distances(args.target_distances_file, args.recordings)
+        if args.distance_std is not None:
+            stds = args.distance_std
+    if dists is not None:
+        sd = stds if isinstance(stds, list) else [stds] * len(dists)
+        known = ", ".join("unknown" if d is None else f"{d:.4f} ± {s * 1e3:.1f} mm"
+                          for d, s in zip(dists, sd))
+        rep.info(f"measured target distances ({'optical axis' if kind == 'axis' else kind}):"
+                 f" {known}")
     free = list(DEFAULT_FREE) + [n for n in args.free if n not in DEFAULT_FREE]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
-                               target_distances=dists, distance_std=args.distance_std,
+                               target_distances=dists, distance_std=stds, distance_kind=kind,
                                confidence=args.confidence,
                                on_unobservable="warn" if args.allow_unobservable else "raise",
                                progress=rep.detail)
