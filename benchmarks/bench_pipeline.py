@@ -37,9 +37,10 @@ from mems_stereo.histogram import (  # noqa: E402
     detect_peaks,
     expected_background,
     moving_average,
+    moving_sum,
     poisson_threshold,
 )
-from mems_stereo.pipeline import process_recording  # noqa: E402
+from mems_stereo.pipeline import Settings, process_recording  # noqa: E402
 from mems_stereo.recording import read_recording  # noqa: E402
 from mems_stereo.triangulation import path_length_from_codes  # noqa: E402
 from mems_stereo.uncertainty import tof_pixel_point  # noqa: E402
@@ -156,8 +157,41 @@ def sigma_ratios(err, sigma) -> tuple[float, float]:
             float(np.median(np.abs(err) / sigma) / GAUSS_MAD))
 
 
+def cloud_accuracy(cloud, scene, illuminated) -> dict:
+    """Errors of a peak cloud against the true scene, per estimate, and coverage.
+
+    ``illuminated`` (H, W) bool: pixels with at least one truth-signal
+    detection.  The true range of a point is the scene's first hit on the ray
+    from the origin through the (fused) point; the stereo and ToF ranges are
+    compared with the same true range.  Only points with a true range within
+    ``MAX_TRUE_RANGE`` enter the error statistics.
+    """
+    r_true = true_ranges(scene, cloud.points)
+    near = np.isfinite(r_true) & (r_true <= MAX_TRUE_RANGE)
+    has_pt = np.zeros(illuminated.shape, bool)
+    has_pt[cloud["row"], cloud["pixel"]] = True
+    acc = {"points": len(cloud), "near": int(near.sum()),
+           "illuminated": int(illuminated.sum()), "covered": int(np.sum(illuminated & has_pt))}
+    acc["coverage"] = acc["covered"] / acc["illuminated"] if acc["illuminated"] else float("nan")
+    for est, rk, sk in (("fused", "range", "sigma_r"), ("stereo", "range_stereo",
+                                                          "sigma_r_stereo"),
+                        ("ToF", "range_tof", "sigma_r_tof")):
+        e = (cloud[rk] - r_true)[near]
+        s = cloud[sk][near]
+        rms_ratio, med_ratio = sigma_ratios(e, s)
+        acc[est] = {"median_abs": float(np.median(np.abs(e))), "mean": float(np.mean(e)),
+                    "rms": float(np.sqrt(np.mean(e ** 2))),
+                    "rms_sigma": float(np.sqrt(np.mean(s ** 2))),
+                    "rms_ratio": rms_ratio, "median_ratio": med_ratio,
+                    "beyond_3sigma": int(np.sum(np.abs(e) > 3 * s))}
+    e_f = np.abs(cloud["range"] - r_true)[near]
+    acc["within_10cm"] = int(np.sum(e_f <= 0.10))
+    acc["p90_abs"] = float(np.percentile(e_f, 90)) if e_f.size else float("nan")
+    return acc
+
+
 # --------------------------------------------------------------------------- one sample
-def evaluate(name: str, path: Path, scene_path: Path, p_false_alarm: float) -> dict:
+def evaluate(name: str, path: Path, scene_path: Path, variants=()) -> dict:
     """Process one sample and measure every figure; returns a dict of results."""
     from mems_stereo.sim.scene import load_scene
 
@@ -177,35 +211,42 @@ def evaluate(name: str, path: Path, scene_path: Path, p_false_alarm: float) -> d
     out["raw_256"] = int(raw[..., :256].sum())
     out["signal_256"] = int(sig[..., :256].sum())
 
-    # (b) raw histogram: filter, background-grounded threshold, peaks
+    # (b) raw histogram: filter, background-grounded threshold, peaks.  The
+    # false-alarm convention is the pipeline's: Settings.false_alarm per pixel,
+    # shared over the n_bins / width independent window positions.
     t = time.perf_counter()
-    code_raw, _rate = raw_histogram_peaks(raw, K, system.tdc.bin_width, width, p_false_alarm)
+    p_fa = Settings().false_alarm * width / n_bins
+    code_raw, _rate = raw_histogram_peaks(raw, K, system.tdc.bin_width, width, p_fa)
     lab_raw = window_labels(rec.bins, code_raw, width)
     out["t_raw_hist"] = time.perf_counter() - t
+    out["p_fa"] = p_fa
 
-    # 1. pattern: the raw peak code per clearly returning pixel, kept in S?
+    # 1. pattern: is the raw peak of each clearly returning pixel kept in S?
     clear = code_raw > 0
-    sig_ma = moving_average(sig, width)
-    code_sig = np.argmax(sig_ma, axis=-1) + 1
-    d = (code_sig - code_raw)[clear]
-    j = np.arange(n_bins)
-    win = clear[..., None] & (np.abs(j + 1 - code_raw[..., None]) <= width)
-    raw_ma = moving_average(raw, width)
     rr, cc = np.nonzero(clear)
-    h_raw = raw_ma[rr, cc, code_raw[clear] - 1] * width
-    h_sig = sig_ma[rr, cc, code_raw[clear] - 1] * width
+    c_raw = code_raw[clear]
+    code_s = np.argmax(moving_sum(sig, width), axis=-1)[clear] + 1  # same filter on S
+    code_p = np.zeros((H, W), np.int64)                              # the pipeline's peaks
+    code_p[res.peaks["row"], res.peaks["col"]] = res.peaks["code"]
+    code_p = code_p[clear]
+    d_s = code_s - c_raw
+    has_p = code_p > 0
+    d_p = (code_p - c_raw)[has_p]
+    h_raw = moving_sum(raw, width)[rr, cc, c_raw - 1]  # counts in the width-bin window
+    h_sig = moving_sum(sig, width)[rr, cc, c_raw - 1]
     out["pattern"] = {
-        "clear_pixels": int(clear.sum()), "same_code": int(np.sum(d == 0)),
-        "within_2": int(np.sum(np.abs(d) <= 2)), "max_abs_shift": int(np.abs(d).max())
-        if d.size else 0,
-        "raw_in_windows": int(raw[win].sum()), "signal_in_windows": int(sig[win].sum()),
-        "height_kept_median": float(np.median(h_sig / h_raw)) if d.size else float("nan"),
-        "truth_signal_in_windows": int(np.sum((lab_raw == 1) & (truth == 1))),
+        "clear_pixels": int(clear.sum()),
+        "same_s": int(np.sum(d_s == 0)), "within2_s": int(np.sum(np.abs(d_s) <= 2)),
+        "max_shift_s": int(np.abs(d_s).max()) if d_s.size else 0,
+        "with_peak": int(has_p.sum()), "within2_p": int(np.sum(np.abs(d_p) <= 2)),
+        "median_shift_p": float(np.median(np.abs(d_p))) if d_p.size else float("nan"),
+        "max_shift_p": int(np.abs(d_p).max()) if d_p.size else 0,
+        "height_raw": int(h_raw.sum()), "height_sig": int(h_sig.sum()),
     }
     # the two highest clear peaks (the paper's Fig. 8 quotes pixels 14 and 81)
-    top = np.argsort(-h_raw)[:2]
-    out["pattern"]["top"] = [(int(cc[i]), int(code_raw[rr[i], cc[i]]), float(h_raw[i]),
-                              float(h_sig[i])) for i in top]
+    top = np.argsort(-h_raw, kind="stable")[:2]
+    out["pattern"]["top"] = [(int(cc[i]), int(c_raw[i]), int(h_raw[i]), int(h_sig[i]))
+                             for i in top]
 
     # 2. classification scores
     tr = res.truth
@@ -219,31 +260,14 @@ def evaluate(name: str, path: Path, scene_path: Path, p_false_alarm: float) -> d
     # 3. accuracy of the cloud against the true scene
     t = time.perf_counter()
     scene = load_scene(scene_path)
-    cloud = res.cloud
-    r_true = true_ranges(scene, cloud.points)
-    near = np.isfinite(r_true) & (r_true <= MAX_TRUE_RANGE)
-    illum = np.zeros((H, W), bool)
-    illum[np.nonzero(np.any(truth == 1, axis=0))] = True
-    has_pt = np.zeros((H, W), bool)
-    has_pt[cloud["row"], cloud["pixel"]] = True
-    acc = {"points": len(cloud), "near": int(near.sum()),
-           "illuminated": int(illum.sum()), "covered": int(np.sum(illum & has_pt)),
-           "points_off_illuminated": int(np.sum(~illum[cloud["row"], cloud["pixel"]]))}
-    for est, rk, sk in (("fused", "range", "sigma_r"), ("stereo", "range_stereo",
-                                                          "sigma_r_stereo"),
-                        ("ToF", "range_tof", "sigma_r_tof")):
-        e = (cloud[rk] - r_true)[near]
-        s = cloud[sk][near]
-        rms_ratio, med_ratio = sigma_ratios(e, s)
-        acc[est] = {"median_abs": float(np.median(np.abs(e))), "mean": float(np.mean(e)),
-                    "rms": float(np.sqrt(np.mean(e ** 2))),
-                    "rms_sigma": float(np.sqrt(np.mean(s ** 2))),
-                    "rms_ratio": rms_ratio, "median_ratio": med_ratio}
-    e_f = np.abs(cloud["range"] - r_true)[near]
-    acc["within_10cm"] = int(np.sum(e_f <= 0.10))
-    acc["p90_abs"] = float(np.percentile(e_f, 90))
+    illum = np.any(truth == 1, axis=0)
+    acc = cloud_accuracy(res.cloud, scene, illum)
     out["accuracy"] = acc
     out["t_truth"] = time.perf_counter() - t
+    out["variants"] = []
+    for st in variants:
+        rv = process_recording(path, settings=st)
+        out["variants"].append((st, rv.truth, rv.counts, cloud_accuracy(rv.cloud, scene, illum)))
     return out
 
 

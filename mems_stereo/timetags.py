@@ -304,8 +304,9 @@ def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bi
                 last = maximum_filter(last, size=2 * R + 1, mode="nearest")
             free = ~((j >= (first - g_pre)[..., None]) & (j <= (last + g_post)[..., None]))
         m = mine[..., None]
-        cnt = _box(hist * free * m, background_radius).sum(-1)
-        cells = _box((free & m).astype(np.float64), background_radius).sum(-1)
+        # the box sum is linear: sum over the bins first, then over the box
+        cnt = _box((hist * free * m).sum(-1), background_radius)
+        cells = _box((free & m).sum(-1).astype(np.float64), background_radius)
         with np.errstate(invalid="ignore", divide="ignore"):
             r_c = cnt / (cells * bw)
         rate[mine] = r_c[mine]

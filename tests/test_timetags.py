@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.special import erf
 
 from mems_stereo.errors import FormatError
 from mems_stereo.timetags import (
@@ -11,16 +12,19 @@ from mems_stereo.timetags import (
     histogram_from_timetags,
     pixel_of_photon,
     signal_background_from_timetags,
+    window_counts_from_timetags,
 )
 
 GATE = (0.0, 200e3)          # ps, as the real data
 SIGMA = 470.0                # ps, return's timing spread
 
 
-def synthetic_scene(rng, H=48, W=48, signal_mean=1.2, bg_per_pixel=8.6, sigma=SIGMA):
+def synthetic_scene(rng, H=48, W=48, signal_mean=1.2, bg_per_pixel=8.6, sigma=SIGMA,
+                    return_depth=False):
     """Uniform background (spatially varying rate) + one return per pixel on a sloped surface.
 
-    Returns CSR time tags, the truth (signal photons, background photons) per pixel.
+    Returns CSR time tags, the truth (signal photons, background photons) per pixel
+    and, with ``return_depth``, the (H, W) true return times (ps).
     """
     yy, xx = np.mgrid[:H, :W]
     depth = 40e3 + 150.0 * xx + 100.0 * yy + np.where(xx > W // 2, 30e3, 0.0)   # ps
@@ -35,6 +39,8 @@ def synthetic_scene(rng, H=48, W=48, signal_mean=1.2, bg_per_pixel=8.6, sigma=SI
         t = np.concatenate([ts, tb])
         times.append(t[(t >= GATE[0]) & (t < GATE[1])])
     offsets = np.r_[0, np.cumsum([t.size for t in times])].astype(np.int64)
+    if return_depth:
+        return np.concatenate(times), offsets, n_s, n_b, depth
     return np.concatenate(times), offsets, n_s, n_b
 
 
@@ -98,3 +104,47 @@ def test_shape_must_match_offsets(rng):
     t, o, _, _ = synthetic_scene(rng, 4, 4)
     with pytest.raises(FormatError, match="shape"):
         signal_background_from_timetags(t, o, (4, 5), *GATE, 1000.0, 1000.0, 3000.0)
+
+
+# --------------------------------------------------------------------------- window counts
+def test_timing_spread_mean_offset_near_zero(rng):
+    t, o, _, _ = synthetic_scene(rng)
+    ts = estimate_timing_spread(t, o, (48, 48), *GATE, coarse_bin=1000.0)
+    assert abs(ts.mu) < 0.2 * SIGMA            # symmetric return: window centred on it
+
+
+def test_window_counts_match_brute_force(rng):
+    t, o, _, _ = synthetic_scene(rng, 12, 10)
+    w = window_counts_from_timetags(t, o, (12, 10), *GATE, 900.0, 1000.0, offset=37.0)
+    assert w.window == 1800.0
+    ref = np.array([np.sum(np.abs(t[o[i]:o[i + 1]] - w.centre.ravel()[i]) <= 900.0)
+                    for i in range(120)]).reshape(12, 10)
+    np.testing.assert_array_equal(w.signal, ref)
+    assert w.n_total == t.size
+    assert w.mean_signal == pytest.approx(ref.sum() / 120)
+    assert w.sbr == pytest.approx(ref.sum() / (t.size - ref.sum()))
+
+
+def test_window_count_is_signal_in_window_plus_background_in_window(rng):
+    """Closed form: E[count_i] = n_s,i · P(|d_i + σZ − c_i| ≤ h) + n_b,i · 2h / T."""
+    H = W = 48
+    t, o, n_s, n_b, depth = synthetic_scene(rng, H, W, return_depth=True)
+    h = 2 * SIGMA
+    w = window_counts_from_timetags(t, o, (H, W), *GATE, h, 1000.0)
+    d = depth - w.centre
+    p_in = 0.5 * (erf((h - d) / (SIGMA * np.sqrt(2))) + erf((h + d) / (SIGMA * np.sqrt(2))))
+    expect = (n_s * p_in).sum() + n_b.sum() * 2 * h / (GATE[1] - GATE[0])
+    # Poisson spread of the counted photons given n_s, n_b: binomial ≤ √expect
+    assert w.signal.sum() == pytest.approx(expect, abs=3 * np.sqrt(expect))
+    # the neighbours place the window well: ≥ 90 % of the signal inside ±2σ (Gaussian: 95.4 %)
+    assert (n_s * p_in).sum() / n_s.sum() > 0.9
+    # the convention counts background as signal: more than the true signal in the window
+    assert w.signal.sum() > (n_s * p_in).sum()
+
+
+def test_window_counts_validate_input(rng):
+    t, o, _, _ = synthetic_scene(rng, 4, 4)
+    with pytest.raises(FormatError, match="half_width"):
+        window_counts_from_timetags(t, o, (4, 4), *GATE, 0.0, 1000.0)
+    with pytest.raises(FormatError, match="shape"):
+        window_counts_from_timetags(t, o, (4, 5), *GATE, 900.0, 1000.0)

@@ -1,11 +1,19 @@
-"""``mems-stereo demo``: the main job on the bundled samples, end to end."""
+"""``mems-stereo demo``: the main job on the bundled samples, end to end.
+
+It runs the commands a user would type, in order, and prints their output:
+``info`` (Fig. 2), ``calibrate`` (the calibration walls), ``process`` (room
+light and floodlight), ``export`` (LAS), ``render`` (PNG, offscreen) and
+``plot`` (Figs. 8 and 9, top views), plus the Fig. 5 uncertainty bounds.
+"""
 
 from __future__ import annotations
 
+import json
+import time
 from pathlib import Path
 
-from ..acquisition import acquisition_statistics
-from ..system import preset
+import numpy as np
+
 from ._common import Reporter
 
 NAME = "demo"
@@ -16,22 +24,138 @@ EXAMPLE = "mems-stereo demo -o demo-output"
 def add_arguments(p):
     p.add_argument("-o", "--output", default="demo-output",
                    help="directory for every output (default: demo-output)")
+    p.add_argument("--samples", default=None,
+                   help="directory of the sample recordings (default: the repository's "
+                        "samples/)")
+    p.add_argument("--no-render", action="store_true",
+                   help="skip the offscreen renders (machines without OpenGL)")
+
+
+def samples_dir(explicit=None) -> Path:
+    """The bundled samples: ``explicit``, else ``samples/`` beside the package, else ./samples."""
+    from ..errors import FormatError
+
+    cands = [Path(explicit)] if explicit else [
+        Path(__file__).resolve().parents[2] / "samples", Path.cwd() / "samples"]
+    for c in cands:
+        if (c / "room.h5").exists():
+            return c
+    raise FormatError(f"no sample recordings found (looked in {', '.join(map(str, cands))})",
+                      field="--samples")
+
+
+def _step(rep, title):
+    rep.info("")
+    rep.info(f"== {title} ==")
+
+
+def _call(argv, rep) -> None:
+    from ..errors import MemsStereoError
+    from . import main
+
+    flags = ["-q"] if rep.quiet else (["-v"] if rep.verbose else [])
+    code = main([argv[0], *flags, *argv[1:]])
+    if code not in (0,):
+        raise MemsStereoError(f"step '{' '.join(argv[:1])}' failed with exit code {code}")
+
+
+def _fig5(out: Path) -> Path:
+    """Fig. 5: propagated uncertainty ellipses for several pixels and TDC codes."""
+    from viz.plots import plot_uncertainty_bounds
+
+    from ..system import preset
+    from ..triangulation import path_length_from_codes
+    from ..uncertainty import paper_spreads, propagate, tof_pixel_point
+
+    s = preset("burkard2022")
+    cols = np.array([20.0, 60.0, 96.0, 130.0, 170.0])
+    codes = np.array([16, 24, 32, 48])
+    u, n = np.meshgrid(cols, codes)
+    u, n = u.ravel(), n.ravel()
+    L = path_length_from_codes(n, s.tdc, s.speed_of_light)
+    x, C = propagate(tof_pixel_point, s, u, np.zeros_like(u), L, np.full(u.shape, s.scanner.theta0),
+                     paper_spreads(s))
+    ok = np.all(np.isfinite(x), axis=1)
+    means = x[ok][:, [0, 2]]
+    cov = C[ok][:, [0, 2]][:, :, [0, 2]]
+    labels = [f"u={int(a)}, N={int(b)}" for a, b in zip(u[ok], n[ok])]
+    return plot_uncertainty_bounds(means, cov, out, n_sigma=(1.0, 3.0), labels=labels,
+                                   scale=20.0,
+                                   title="Fig. 5: pixel + TDC quantisation (paper's model), "
+                                         "ellipses x20")
 
 
 def run(args) -> int:
     rep = Reporter(args)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    system = preset("burkard2022")
-    rep.info("== mems-stereo demo ==")
-    rep.info("system: burkard2022 (Burkard et al. 2022, Table 1)")
-    st = acquisition_statistics(system, 400, 2.5, frequency_ratio=0.0785)
-    rep.info(f"acquisition (Fig. 2 setting: 400 shots, f_mech/f_rep = 0.0785, wall at 2.5 m): "
-             f"{int((st.pixel_counts > 0).sum())} pixels hit, mean "
-             f"{st.mean_per_illuminated_pixel:.2f} accumulations per illuminated pixel")
-    from viz.plots import plot_acquisition
+    smp = samples_dir(args.samples)
+    t_start = time.perf_counter()
+    written: list[Path] = []
+    rep.info("mems-stereo demo: the paper's system, calibration, processing, clouds and "
+             f"figures (samples: {smp})")
 
-    fig2 = plot_acquisition(st, out / "fig2_acquisition.png",
-                            title="400 shots, f_mech/f_rep = 0.0785")
-    rep.info(f"  wrote {fig2}")
+    _step(rep, "1. the system and its acquisition statistics (paper Sec. 2.1, Fig. 2)")
+    _call(["info", "--shots", "400", "--ratio", "0.0785", "--distance", "2.5",
+           "--plot", str(out / "fig2_acquisition.png")], rep)
+    written.append(out / "fig2_acquisition.png")
+
+    _step(rep, "2. calibration from three flat-wall recordings (true system differs from "
+               "the nominal one in the files)")
+    cal = out / "calibrated_system.json"
+    calib_recs = sorted(str(p) for p in smp.glob("calib_*m.h5"))
+    argv = ["calibrate", *calib_recs, "-o", str(cal)]
+    dist_file = smp / "calib_distances.json"
+    if dist_file.exists():
+        argv += ["--target-distances-file", str(dist_file)]
+    _call(argv, rep)
+    written.append(cal)
+    true_file = smp / "calib_true_system.json"
+    if true_file.exists():
+        from ..system import load_system
+
+        est, true = load_system(cal), load_system(true_file)
+        rep.info("  estimate - truth: " + ", ".join(
+            f"{n} {est.get_param(n) - true.get_param(n):+.3g}"
+            for n in ("theta0", "baseline_x", "baseline_z", "tdc_offset", "phase_offset")))
+
+    _step(rep, "3. processing: classification, histograms, peaks, point clouds")
+    clouds = {}
+    for name, fig in (("room", "fig8"), ("floodlight", "fig9")):
+        rec = smp / f"{name}.h5"
+        ply = out / f"{name}.ply"
+        hist = out / f"{name}_histograms.h5"
+        labels = out / f"{name}_labels.h5"
+        _call(["process", str(rec), "-o", str(ply), "--labels", str(labels),
+               "--histograms", str(hist)], rep)
+        clouds[name] = ply
+        written += [ply, labels, hist]
+        _call(["export", str(ply), "-o", str(out / f"{name}.las")], rep)
+        written.append(out / f"{name}.las")
+        _call(["plot", "histograms", str(hist), "-o", str(out / f"{fig}_{name}_histograms.png"),
+               "--max-code", "256"], rep)
+        _call(["plot", "cloud", str(ply), "-o", str(out / f"{name}_topview.png")], rep)
+        written += [out / f"{fig}_{name}_histograms.png", out / f"{name}_topview.png"]
+
+    _step(rep, "4. figures and renders")
+    written.append(_fig5(out / "fig5_uncertainty.png"))
+    rep.info(f"  wrote {written[-1]}")
+    if not args.no_render:
+        for name, ply in clouds.items():
+            png = out / f"{name}_render.png"
+            _call(["render", str(ply), "-o", str(png), "--view", "oblique", "--point-size", "6",
+                   "--color-by", "range"], rep)
+            written.append(png)
+
+    _step(rep, "outputs")
+    missing = [p for p in written if not Path(p).exists()]
+    for p in written:
+        rep.info(f"  {p}")
+    summary = {"outputs": [str(p) for p in written], "seconds": time.perf_counter() - t_start}
+    (out / "demo_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+    rep.info(f"done in {summary['seconds']:.0f} s; every output is in {out}/")
+    if missing:
+        from ..errors import MemsStereoError
+
+        raise MemsStereoError(f"missing outputs: {', '.join(map(str, missing))}")
     return 0
