@@ -1,14 +1,19 @@
 """Calibrate the bundled calibration samples; print the time, the estimates and the wall check.
 
-    python benchmarks/bench_calibrate.py [--threads-note]
+    OMP_NUM_THREADS=1 python benchmarks/bench_calibrate.py
 
-Prints: wall-clock time of :func:`calib.calibrate_system` on
-samples/calib_*m.h5 (start: the nominal system of the recordings), each
-estimate with its σ and its error against samples/calib_true_system.json
-(in σ), and the median distance of the processed points (classified and
-triangulated by mems_stereo.classify / mems_stereo.points with the nominal
-and with the calibrated system) to each true wall plane.  Run with
-OMP_NUM_THREADS=1 for the one-core figure.
+Prints, for the three recordings samples/calib_*m.h5 (start: the nominal
+system of the recordings; truth: samples/calib_true_system.json):
+
+1. the wall-clock time of :func:`calib.calibrate_system` without and with the
+   measured target distances of samples/calib_distances.json;
+2. each estimate with its σ and its error against the truth (in σ), for both
+   runs, and the correlations that the distances break;
+3. the wall check: each recording processed by the package's pipeline
+   (:func:`mems_stereo.pipeline.process_recording`, one fused point per
+   histogram peak) with the nominal, both calibrated and the true system;
+   the median |distance| of the points to the true wall plane
+   (samples/calib_<d>m_scene.json) and the ratio nominal / calibrated.
 """
 
 from __future__ import annotations
@@ -24,37 +29,35 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib.calibrate import calibrate_system  # noqa: E402
+from calib.calibrate import calibrate_system, read_target_distances  # noqa: E402
 from calib.model import PARAM_UNIT  # noqa: E402
-from mems_stereo.classify import classify_bins  # noqa: E402
-from mems_stereo.points import detection_points  # noqa: E402
+from mems_stereo.pipeline import process_recording  # noqa: E402
 from mems_stereo.recording import read_recording  # noqa: E402
-from mems_stereo.scanner import scan_angles  # noqa: E402
 from mems_stereo.system import load_system  # noqa: E402
 
 SAMPLES = ROOT / "samples"
 
 
-def wall_distances(rec, system, scene_path):
-    """Median |distance| (m) of stereo and fused points of signal detections to the true wall."""
+def wall_plane(scene_path):
+    """(unit normal (3,), point on the plane (3,)) of the scene's first object, camera frame, m."""
     obj = json.loads(Path(scene_path).read_text())["objects"][0]
     n = np.asarray(obj["normal"], float)
-    n /= np.linalg.norm(n)
-    c = np.asarray(obj["center"], float)
-    theta, valid = scan_angles(rec.shot_time, rec.zero_crossings, rec.rising, system.scanner)
-    labels = classify_bins(system, rec.bins, theta, valid)
-    k, r, col = np.nonzero(labels == 1)
-    pts = detection_points(system, k, r, col, rec.bins[k, r, col], np.nan_to_num(theta))
-    out = {}
-    ok = pts.ok
-    for name in ("stereo", "fused"):
-        d = (getattr(pts, name)[ok] - c) @ n
-        # per pixel: the median distance of its detections (what a per-pixel peak gives)
-        px = col[ok]
-        med = [np.median(d[px == q]) for q in np.unique(px) if np.count_nonzero(px == q) >= 20]
-        out[name] = float(np.median(np.abs(d)))
-        out[name + "_pixel"] = float(np.median(np.abs(med)))
-    return out
+    return n / np.linalg.norm(n), np.asarray(obj["center"], float)
+
+
+def wall_median_distance(path, system, scene_path) -> tuple[float, int]:
+    """Median |distance| (m) of the points processed from ``path`` to the wall; point count."""
+    n, c = wall_plane(scene_path)
+    pts = process_recording(path, system=system).cloud.points
+    return float(np.median(np.abs((pts - c) @ n))), int(pts.shape[0])
+
+
+def _calibrate(recs, **kw):
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = calibrate_system(recs, **kw)
+    return res, time.perf_counter() - t0
 
 
 def main() -> int:
@@ -62,37 +65,60 @@ def main() -> int:
     if not paths:
         print("no samples/calib_*m.h5 found")
         return 1
-    recs = [read_recording(p) for p in paths]
+    recs = [read_recording(p, truth=False) for p in paths]
     true = load_system(SAMPLES / "calib_true_system.json")
-    t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        res = calibrate_system(recs)
-    dt = time.perf_counter() - t0
-    print(f"calibrate_system on {len(paths)} recordings "
-          f"({sum(r.n_shots for r in recs)} shots): {dt:.1f} s")
-    print(res.report)
+    dists, stds, kind = read_target_distances(SAMPLES / "calib_distances.json", paths)
+    n_shots = sum(r.n_shots for r in recs)
+    free, dt_free = _calibrate(recs, on_unobservable="warn")
+    known, dt_known = _calibrate(recs, target_distances=dists, distance_std=stds,
+                                 distance_kind=kind)
+    print(f"calibrate_system on {len(paths)} recordings ({n_shots} shots): "
+          f"{dt_free:.1f} s without distances, {dt_known:.1f} s with "
+          f"({free.extra['rounds']} / {known.extra['rounds']} classify/fit rounds)")
     print()
-    print("| parameter | nominal | estimate | σ | true | error/σ |")
-    print("| --- | --- | --- | --- | --- | --- |")
-    for nm in res.names:
+    print("with the measured distances (" + ", ".join(f"{d:.3f}" for d in dists)
+          + f" m along the optical axis, σ {stds[0] * 1e3:.1f} mm):")
+    print(known.report)
+    print()
+    print("| parameter | nominal | without distances | error/σ | with distances | error/σ "
+          "| true |")
+    print("| --- | --- | --- | --- | --- | --- | --- |")
+    for nm in known.names:
         f, unit = PARAM_UNIT[nm]
         tv = true.get_param(nm)
-        z = (res.values[nm] - tv) / res.std[nm]
-        print(f"| {nm} ({unit}) | {res.initial[nm] * f:.4f} | {res.values[nm] * f:.4f} | "
-              f"{res.std[nm] * f:.4f} | {tv * f:.4f} | {z:+.2f} |")
+        cells = []
+        for r in (free, known):
+            cells.append(f"{r.values[nm] * f:.4f} ± {r.std[nm] * f:.4f}")
+            cells.append(f"{(r.values[nm] - tv) / r.std[nm]:+.2f}")
+        print(f"| {nm} ({unit}) | {known.initial[nm] * f:.4f} | " + " | ".join(cells)
+              + f" | {tv * f:.4f} |")
     print()
-    print("| wall | points | nominal: median distance | calibrated | ratio |")
-    print("| --- | --- | --- | --- | --- |")
-    for p, rec in zip(paths, recs):
+    print(f"θ0 error: {abs(free.values['theta0'] - true.get_param('theta0')) * 1e3:.3f} mrad "
+          f"without, {abs(known.values['theta0'] - true.get_param('theta0')) * 1e3:.3f} mrad "
+          "with distances")
+    print("|correlation| > 0.9 without distances: "
+          + ", ".join(f"{a}/{b} {c:+.3f}" for a, b, c in free.tradeoffs))
+    print("|correlation| > 0.9 with distances:    "
+          + ", ".join(f"{a}/{b} {c:+.3f}" for a, b, c in known.tradeoffs))
+    ze = np.array(known.extra["axis_distance"])
+    print("fitted optical-axis distances: " + ", ".join(
+        f"{z:.4f} ± {s * 1e3:.2f} mm" for z, s in zip(ze, known.extra["axis_distance_std"])))
+    print()
+    print("Points on the walls: process_recording(path, system=...).cloud.points, median "
+          "|distance| to the true wall plane")
+    print("| wall | points | nominal | calibrated, no distances | ratio | calibrated, distances "
+          "| ratio | true system |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    t0 = time.perf_counter()
+    for p in paths:
         scene = p.with_name(p.stem + "_scene.json")
-        a = wall_distances(rec, rec.system, scene)
-        b = wall_distances(rec, res.system, scene)
-        for key, what in (("stereo", "stereo, per detection"), ("fused", "fused, per detection"),
-                          ("stereo_pixel", "stereo, median per pixel"),
-                          ("fused_pixel", "fused, median per pixel")):
-            print(f"| {p.stem} | {what} | {a[key] * 1e3:.1f} mm | {b[key] * 1e3:.1f} mm | "
-                  f"{a[key] / b[key]:.1f}x |")
+        a, na = wall_median_distance(p, None, scene)
+        b, _ = wall_median_distance(p, free.system, scene)
+        c, nc = wall_median_distance(p, known.system, scene)
+        t, _ = wall_median_distance(p, true, scene)
+        print(f"| {p.stem[6:]} | {na}/{nc} | {a * 1e3:.1f} mm | {b * 1e3:.1f} mm | {a / b:.1f}x | "
+              f"{c * 1e3:.1f} mm | {a / c:.1f}x | {t * 1e3:.1f} mm |")
+    print(f"(processing: {time.perf_counter() - t0:.1f} s for {4 * len(paths)} runs)")
     return 0
 
 

@@ -1,6 +1,6 @@
 """Calibrate a system from flat-target recordings: classify → fit → reclassify → refit.
 
-The classifier (:func:`mems_stereo.classify.classify_bins`) needs a system to
+The classifier (:mod:`mems_stereo.fastpath`, the pipeline's) needs a system to
 tell signal from noise; a miscalibrated one rejects true returns at the edges
 of its bounds.  So the detections are classified with the nominal system,
 the fit (:func:`calib.fit.fit_detections`) estimates a better one, and the
@@ -16,7 +16,7 @@ import warnings
 
 import numpy as np
 
-from mems_stereo.classify import classify_bins
+from mems_stereo.fastpath import classify_and_accumulate, interval_table
 from mems_stereo.recording import Recording, read_recording
 from mems_stereo.scanner import phase_from_zero_crossings, scan_angle_from_phase
 from mems_stereo.system import System, resolve_system
@@ -74,9 +74,13 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     for it in range(max(1, int(n_iter))):
         targets = []
         counts = []
+        # the compiled interval-table classifier of the pipeline (labels identical
+        # to mems_stereo.classify.classify_bins on angles snapped to 50 µrad)
+        table = interval_table(current, confidence)
         for r, (ph, ok) in zip(recs, phases):
             theta = scan_angle_from_phase(ph, current.scanner)
-            labels = classify_bins(current, r.bins, theta, ok, confidence)
+            labels = classify_and_accumulate(r.bins, np.where(ok, theta, 0.0), ok, table,
+                                             current.tdc.n_bins)[0]
             targets.append(detections_from_labels(ph, ok, r.bins, labels, source=r.source))
             counts.append(targets[-1].n_detections)
         history.append(counts)

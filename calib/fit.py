@@ -132,11 +132,17 @@ class CalibrationResult:
 _TABLES: dict = {}
 
 
-def _table(sigma: float, lam: float, bin_width: float) -> FirstPhotonTable:
-    """Cached first-photon table (λ rounded to 2 significant digits)."""
-    key = (round(sigma, 15), float(f"{lam:.2g}"), bin_width)
-    if key not in _TABLES:
-        _TABLES[key] = FirstPhotonTable(sigma, key[1], bin_width)
+def _table(sigma: float, lam: float, bin_width: float, rel: float = 0.05) -> FirstPhotonTable:
+    """Cached first-photon table: one already built for a background rate within
+    ``rel`` (5 %) of ``lam`` is reused (the rate enters the timing model only
+    through the rare background photon ahead of the pulse; the reclassification
+    rounds change the estimated rate by well under 1 %)."""
+    base = (round(sigma, 15), bin_width)
+    for (b, lam_t), table in _TABLES.items():
+        if b == base and abs(lam_t - lam) <= rel * max(lam, 1e-300):
+            return table
+    key = (base, float(f"{lam:.3g}"))
+    _TABLES[key] = FirstPhotonTable(sigma, key[1], bin_width)
     return _TABLES[key]
 
 

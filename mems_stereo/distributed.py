@@ -1,14 +1,13 @@
 """Scale-out on Dask distributed: many recordings, or one large recording split by shots.
 
 The same stage functions as :mod:`mems_stereo.pipeline` run on workers over
-shot ranges; their results add (histograms, counts, peak accumulators), so
-histograms and counts are identical to one process and points equal up to
-the order of floating-point sums.
+shot ranges; their results add exactly (histograms, counts and peak counts
+are integers), so the outcome is identical to one process, bit for bit.
 
 * :func:`process_many` — one task per recording.
 * :func:`process_split` — one recording split into shot ranges: pass 1
-  (classify + histograms) per range, peaks on the client, the two sub-passes
-  of pass 2 (peak accumulators) per range, points on the client.
+  (classify + histograms) per range, peaks on the client, pass 2 (peak
+  counts) per range, points on the client.
 
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
@@ -30,7 +29,7 @@ from .pipeline import (
     Settings,
     accumulate_range,
     finish_processing,
-    peak_pass_range,
+    peak_counts_range,
     process_recording,
     shot_angles,
 )
@@ -96,22 +95,14 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             acc = acc + a
         timings["classify_histogram"] = time.perf_counter() - t0
 
-        def run_pass(kind, template):
-            peaks = {k: template_peaks[k] for k in template_peaks}
-            parts_acc = client.gather([
-                client.submit(peak_pass_range, str(path), sysm, th_f, va_f, st, peaks,
-                              template, kind, a, b, pure=False) for a, b in parts])
-            total = parts_acc[0]
-            for p in parts_acc[1:]:
+        def count_peaks(peaks):
+            parts_pc = client.gather([
+                client.submit(peak_counts_range, str(path), sysm, th_f, va_f, st, peaks, a, b,
+                              pure=False) for a, b in parts])
+            total = parts_pc[0]
+            for p in parts_pc[1:]:
                 total = total + p
             return total
 
-        from .peaks import find_peaks
-
-        H, W = header.shape[1:]
-        n_bins = sysm.tdc.n_bins
-        sig = acc.hist_signal[:, 1:].reshape(H, W, n_bins)
-        noise = (acc.hist_raw - acc.hist_signal)[:, 1:].reshape(H, W, n_bins)
-        template_peaks, _ = find_peaks(sysm, sig, noise, theta, valid, st)
         return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                                 run_pass=run_pass)
+                                 count_peaks=count_peaks)

@@ -9,16 +9,17 @@ the recording's length):
    snapped angles), raw and signal histograms per pixel; optionally the
    labels file and, where the recording has ``/truth/label``, the confusion
    counts against the truth.
-2. **peaks → points** (:func:`peak_pass_range`): after the peak detector
+2. **peaks → points** (:func:`peak_counts_range`): after the peak detector
    has found each pixel's peak code window in the signal histogram, the
-   signal detections inside the windows are streamed twice into a
-   :class:`mems_stereo.points.PeakAccumulator` (the mode of each peak's
-   ranges, then the sums over its inliers) and fused into one point per peak.
+   signal detections inside the windows are counted by (peak, scan-angle
+   step, code) — exact integers (:class:`PeakCounts`) — and each distinct
+   triple is triangulated once, weighted by its count, and fused into one
+   point per peak (:func:`points_from_counts`).
 
 Every step is a function of a shot range and returns arrays that add up
-(histograms, counts, peak accumulators), so the Dask runner
-(:mod:`mems_stereo.distributed`) gets histograms and labels identical to one
-process, and points equal up to the order of floating-point sums (1e-12).
+(histograms, counts, peak counts: all integers), so the Dask runner
+(:mod:`mems_stereo.distributed`) and any chunk size give results identical
+to one process, bit for bit.
 """
 
 from __future__ import annotations
@@ -165,25 +166,89 @@ def _iter_peak_detections(path, system: System, theta, valid, settings: Settings
             progress(s1 - s0)
 
 
-def peak_pass_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
-                    template, kind: str, start: int = 0, stop: int | None = None,
-                    progress=None):
-    """Pass 2 over shots [start, stop): feed the peak windows' signal detections to a
-    :class:`~mems_stereo.points.PeakAccumulator` (``kind`` "mode" or "inliers").
+class PeakCounts:
+    """How often each distinct (peak, scan-angle step, code) occurs among the signal
+    detections inside the peak windows: integers, so sums over chunks and workers
+    are exact in any order.
 
-    ``template`` is copied empty (keeping its centres); the filled copy is
-    returned, to be added to the other ranges' copies.
+    Keys are ``(peak · S + step) · (n_bins + 1) + code`` with S the interval
+    table's number of angle steps; ``keys`` (U,) int64 sorted unique,
+    ``counts`` (U,) int64.  New keys are buffered and merged when the buffer
+    outgrows the merged set (amortised O(U log U)); memory is bounded by the
+    number of distinct keys, not by the recording's length.
     """
-    acc = template.empty_copy()
-    add = acc.add_mode if kind == "mode" else acc.add_inliers
+
+    def __init__(self, keys=None, counts=None):
+        self.keys = np.zeros(0, np.int64) if keys is None else np.asarray(keys, np.int64)
+        self.counts = np.zeros(0, np.int64) if counts is None else np.asarray(counts, np.int64)
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+
+    def add_keys(self, keys) -> None:
+        k = np.asarray(keys, dtype=np.int64).ravel()
+        if k.size:
+            self._pending.append(k)
+            self._n_pending += k.size
+            if self._n_pending > max(1 << 20, self.keys.size):
+                self._merge()
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        new = np.concatenate(self._pending)
+        self._pending, self._n_pending = [], 0
+        k, c = np.unique(new, return_counts=True)
+        allk = np.concatenate([self.keys, k])
+        allc = np.concatenate([self.counts, c])
+        u, inv = np.unique(allk, return_inverse=True)
+        self.keys, self.counts = u, np.bincount(inv, weights=allc).astype(np.int64)
+
+    def __add__(self, other: PeakCounts) -> PeakCounts:
+        self._merge()
+        other._merge()
+        k = np.concatenate([self.keys, other.keys])
+        c = np.concatenate([self.counts, other.counts])
+        u, inv = np.unique(k, return_inverse=True)
+        return PeakCounts(u, np.bincount(inv, weights=c).astype(np.int64))
+
+    def finished(self) -> PeakCounts:
+        self._merge()
+        return self
+
+
+def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
+                      start: int = 0, stop: int | None = None, progress=None) -> PeakCounts:
+    """Pass 2 over shots [start, stop): count the peak windows' signal detections by
+    (peak, angle step, code) — see :class:`PeakCounts`."""
+    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    S, nb = table.n_steps, system.tdc.n_bins + 1
     W = system.receiver.width
-    th = np.where(valid, theta, 0.0)
+    pc = PeakCounts()
     for shot, q, code in _iter_peak_detections(path, system, theta, valid, settings,
                                                peaks["row"] * W + peaks["col"],
                                                peaks["code_lo"], peaks["code_hi"], start, stop,
                                                progress):
-        add(shot, q, code, th)
-    return acc
+        step = table.index(theta[shot])
+        pc.add_keys((q * S + step) * nb + code)
+    return pc.finished()
+
+
+def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings):
+    """The cloud: one fused point per peak from its counted detections.
+
+    Each distinct (peak, step, code) is triangulated once at the step's grid
+    angle (the angle it was classified with) and weighted by its count.
+    """
+    from .points import points_from_peak_detections
+
+    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    S, nb = table.n_steps, system.tdc.n_bins + 1
+    k = counts.keys
+    q, step, code = k // (S * nb), (k // nb) % S, k % nb
+    theta = table.theta_min + step * table.step
+    return points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
+                                       peaks["col"], peaks["code"], min_counts=settings.min_counts,
+                                       confidence=settings.confidence, weight=counts.counts)
 
 
 @dataclass
@@ -288,15 +353,13 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
 
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
-                      timings: dict, run_pass=None, progress=None) -> ProcessResult:
+                      timings: dict, count_peaks=None, progress=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
-    ``run_pass(kind, template) -> PeakAccumulator`` runs one sub-pass of pass
-    2 over the whole recording (default: here, in chunks; the Dask runner
-    passes its own).
+    ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
+    (default: here, in chunks; the Dask runner passes its own).
     """
     from .peaks import find_peaks
-    from .points import PeakAccumulator
 
     K, H, W = header.shape
     n_bins = sysm.tdc.n_bins
@@ -307,17 +370,14 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     peaks, background = find_peaks(sysm, sig, noise, theta, valid, st)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
-    if run_pass is None:
-        def run_pass(kind, template):
-            return peak_pass_range(path, sysm, theta, valid, st, peaks, template, kind,
-                                   progress=progress)
-    template = PeakAccumulator(sysm, peaks["row"], peaks["col"], peaks["code"],
-                               confidence=st.confidence)
-    mode = run_pass("mode", template)
-    mode.finish_mode()
-    sums = run_pass("inliers", mode)
-    cloud = sums.cloud(st.min_counts)
-    timings["points"] = time.perf_counter() - t3
+    if count_peaks is None:
+        counts = peak_counts_range(path, sysm, theta, valid, st, peaks, progress=progress)
+    else:
+        counts = count_peaks(peaks)
+    timings["peak_detections"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
+    cloud = points_from_counts(sysm, peaks, counts, st)
+    timings["points"] = time.perf_counter() - t4
     counts = {
         "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),
         "raw": int(raw.sum()), "signal": int(sig.sum()), "noise": int(noise.sum()),

@@ -329,30 +329,38 @@ class PeakAccumulator:
         new.sums = {k: self.sums[k] + other.sums[k] for k in self.sums}
         return new
 
-    def _points(self, shot, peak, code, theta):
+    def _points(self, shot, peak, code, theta, weight):
         shot = np.asarray(shot, dtype=np.int64).ravel()
         peak = np.asarray(peak, dtype=np.int64).ravel()
         code = np.asarray(code, dtype=np.int64).ravel()
-        if not (shot.shape == peak.shape == code.shape):
-            raise GeometryError("shot, peak, code: expected equal lengths")
+        w = (np.ones(shot.shape) if weight is None
+             else np.asarray(weight, dtype=np.float64).ravel())
+        if not (shot.shape == peak.shape == code.shape == w.shape):
+            raise GeometryError("shot, peak, code, weight: expected equal lengths")
         dp = detection_points(self.system, shot, self.rows[peak], self.cols[peak], code, theta,
                               self.spreads)
         r, _, sr, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
-        return peak, code, dp, r, sr, ok
+        return peak, code, dp, r, sr, ok, w
 
     def _bin(self, r):
         with np.errstate(divide="ignore", invalid="ignore"):
             b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
         return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
 
-    def add_mode(self, shot, peak, code, theta) -> None:
-        """Sub-pass 1: coverage of each detection's ±σ range interval."""
-        peak, _, _, r, sr, ok = self._points(shot, peak, code, theta)
+    def add_mode(self, shot, peak, code, theta, weight=None) -> None:
+        """Sub-pass 1: coverage of each detection's ±σ range interval.
+
+        ``shot, peak, code`` (M,) int; ``theta`` (K,) rad indexed by ``shot``;
+        ``weight`` (M,) integer multiplicities (default 1): identical
+        detections counted once with their number.
+        """
+        peak, _, _, r, sr, ok, w = self._points(shot, peak, code, theta, weight)
         lo = self._bin(r[ok] - sr[ok])
         hi = self._bin(r[ok] + sr[ok])
-        np.add.at(self.cover, (peak[ok], lo), 1)
-        np.add.at(self.cover, (peak[ok], hi + 1), -1)
+        wi = np.rint(w[ok]).astype(np.int64)
+        np.add.at(self.cover, (peak[ok], lo), wi)
+        np.add.at(self.cover, (peak[ok], hi + 1), -wi)
 
     def finish_mode(self) -> np.ndarray:
         """Fix each peak's centre range (Q,) m (NaN without detections)."""
@@ -362,24 +370,26 @@ class PeakAccumulator:
         self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
         return self.centre
 
-    def add_inliers(self, shot, peak, code, theta) -> None:
-        """Sub-pass 2: sums over the detections within k·σ of their peak's centre."""
+    def add_inliers(self, shot, peak, code, theta, weight=None) -> None:
+        """Sub-pass 2: sums over the detections within k·σ of their peak's centre
+        (arguments as :meth:`add_mode`)."""
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
-        peak, code, dp, r, sr, ok = self._points(shot, peak, code, theta)
+        peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
         Q = self.Q
-        self.sums["window"] += np.bincount(peak, minlength=Q)
+        self.sums["window"] += np.bincount(peak, weights=m, minlength=Q)
         with np.errstate(invalid="ignore"):
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
         q = peak[inl]
-        w = 1.0 / sr[inl] ** 2
+        m = m[inl]
+        w = m / sr[inl] ** 2
         s = self.sums
-        s["n"] += np.bincount(q, minlength=Q)
+        s["n"] += np.bincount(q, weights=m, minlength=Q)
         for name in ("fused", "stereo", "tof"):
-            np.add.at(s[name], q, getattr(dp, name)[inl])
-            np.add.at(s["cov_" + name], q, getattr(dp, "cov_" + name)[inl])
-        s["code"] += np.bincount(q, weights=code[inl].astype(np.float64), minlength=Q)
-        s["weight"] += np.bincount(q, weights=dp.weight_stereo[inl], minlength=Q)
+            np.add.at(s[name], q, getattr(dp, name)[inl] * m[:, None])
+            np.add.at(s["cov_" + name], q, getattr(dp, "cov_" + name)[inl] * m[:, None, None])
+        s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
+        s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
         s["w"] += np.bincount(q, weights=w, minlength=Q)
         s["wr"] += np.bincount(q, weights=w * r[inl], minlength=Q)
         s["wrr"] += np.bincount(q, weights=w * r[inl] ** 2, minlength=Q)
@@ -407,14 +417,14 @@ class PeakAccumulator:
             code_mean = s["code"] / n
             w_mean = s["weight"] / n
         attrs = {
-            "counts": n.astype(np.int32), "pixel": self.cols.astype(np.int32),
+            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
             "row": self.rows.astype(np.int32),
             "code": self.peak_code if self.peak_code is not None else code_mean,
             "range": r, "sigma_r": sr, "sigma_phi": sphi,
             "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
             "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
             "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": s["window"].astype(np.int32),
+            "counts_window": np.rint(s["window"]).astype(np.int32),
         }
         keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
         return PointCloud(xf, attrs).select(keep)
@@ -422,7 +432,8 @@ class PeakAccumulator:
 
 def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
                                 peak_code=None, spreads: Spreads | None = None,
-                                min_counts: int = 1, confidence: float = 0.997) -> PointCloud:
+                                min_counts: int = 1, confidence: float = 0.997,
+                                weight=None) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -436,9 +447,10 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         detector's peak code (kept as the ``code`` attribute when given).
     min_counts : peaks with fewer inlier detections are dropped.
     confidence : sets the inlier bound ``k`` around each peak's centre.
+    weight : (M,) multiplicity of each detection (default 1).
     """
     acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence)
-    acc.add_mode(shot, peak, code, theta)
+    acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
-    acc.add_inliers(shot, peak, code, theta)
+    acc.add_inliers(shot, peak, code, theta, weight)
     return acc.cloud(min_counts)

@@ -125,9 +125,39 @@ def test_far_start_converges_or_says_so(nominal, true_system):
 def test_known_distances_break_tradeoff(nominal, true_system, fitted):
     res, _ = fitted
     tg = _targets(true_system, 800, 3)
-    d_true = [d for _, d, _ in TARGETS]
+    # measured along the optical axis (the default): the plane n(α)·x = D meets
+    # the z axis at z = D / cos α
+    d_axis = [d / np.cos(a) for a, d, _ in TARGETS]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r2 = fit_detections(tg, nominal, known_distances=d_true)
+        r2 = fit_detections(tg, nominal, known_distances=d_axis)
     assert r2.std["tdc_offset"] < 0.5 * res.std["tdc_offset"]
     assert r2.std["baseline_x"] < 0.5 * res.std["baseline_x"]
+    for name in r2.names:
+        err = r2.values[name] - true_system.get_param(name)
+        assert abs(err) < 3 * r2.std[name], (name, err, r2.std[name])
+    # the fit's own optical-axis distances agree with the measured ones
+    np.testing.assert_allclose(r2.extra["axis_distance"], d_axis, atol=3e-3)
+
+
+def test_axis_and_normal_distance_kinds_agree(nominal, true_system):
+    """The same known geometry given as optical-axis or as perpendicular distances
+    gives the same fit; an axis distance given as a perpendicular one (wrong by
+    D·(1/cos α − 1), 10 mm at α = −0.1) pulls the estimates."""
+    tg = _targets(true_system, 800, 3)
+    d_axis = [d / np.cos(a) for a, d, _ in TARGETS]
+    d_norm = [d for _, d, _ in TARGETS]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ra = fit_detections(tg, nominal, known_distances=d_axis, distance_std=5e-4)
+        rn = fit_detections(tg, nominal, known_distances=d_norm, distance_std=5e-4,
+                            distance_kind="normal")
+        rw = fit_detections(tg, nominal, known_distances=d_axis, distance_std=5e-4,
+                            distance_kind="normal")
+    for name in ra.names:  # different functions of (α, D) are pinned: close, not equal
+        tv = true_system.get_param(name)
+        assert abs(ra.values[name] - tv) < 3 * ra.std[name], name
+        assert abs(rn.values[name] - tv) < 3 * rn.std[name], name
+        assert abs(ra.values[name] - rn.values[name]) < ra.std[name], name
+    z = (rw.values["baseline_x"] - true_system.get_param("baseline_x")) / rw.std["baseline_x"]
+    assert abs(z) > 3, z

@@ -28,9 +28,9 @@ def client():
 def _same(a, b):
     for k in a.histograms:
         np.testing.assert_array_equal(a.histograms[k], b.histograms[k])
-    np.testing.assert_allclose(a.cloud.points, b.cloud.points, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(a.cloud.points, b.cloud.points)
     for k in a.cloud.attributes:
-        np.testing.assert_allclose(a.cloud[k], b.cloud[k], rtol=1e-10, atol=1e-12)
+        np.testing.assert_array_equal(a.cloud[k], b.cloud[k])
     assert a.counts == b.counts and a.truth == b.truth
 
 

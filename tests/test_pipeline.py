@@ -26,10 +26,9 @@ def test_streaming_in_chunks_equals_whole_file(room):
     small = process_recording(SAMPLES / "room.h5", settings=Settings(chunk_shots=97))
     for k in room.histograms:
         np.testing.assert_array_equal(room.histograms[k], small.histograms[k])
-    # points: the same detections, summed in another order (floating point)
-    np.testing.assert_allclose(room.cloud.points, small.cloud.points, rtol=1e-10, atol=1e-12)
+    np.testing.assert_array_equal(room.cloud.points, small.cloud.points)
     for k in room.cloud.attributes:
-        np.testing.assert_allclose(room.cloud[k], small.cloud[k], rtol=1e-10, atol=1e-12)
+        np.testing.assert_array_equal(room.cloud[k], small.cloud[k])
     assert room.counts == small.counts
 
 

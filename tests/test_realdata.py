@@ -76,9 +76,10 @@ def test_signal_and_sbr_against_published(result):
           f"(published {PUBLISHED_SBR})")
     # Statistical precision of our estimate: about 1 %.
     assert est.mean_signal_std / est.mean_signal < 0.02
-    # The physics-set estimator lands 6-8 % below the published figures (docs/histograms.md:
-    # the published background is 0.7 % below the background level of every signal-free
-    # part of the gate); the 5 % goal of issue 4 is NOT met.  Bound what we do get:
+    # The background-subtracted estimator lands 6-8 % below the published figures
+    # (docs/histograms.md: the published "background" is 0.7 % below the background level
+    # of every signal-free part of the gate, as a window-count convention would make it);
+    # it does not meet the 5 % goal of issue 4.  Bound what we do get:
     assert abs(est.mean_signal / PUBLISHED_SIGNAL - 1) < 0.10
     assert abs(est.sbr / PUBLISHED_SBR - 1) < 0.10
     # internal consistency: SBR = S / (N − S)
