@@ -1,6 +1,7 @@
 """Calibration of the scanner–receiver pair from flat-target recordings.
 
 * :func:`calibrate_system` — classify → fit → reclassify → refit (the user's call);
+* :func:`read_target_distances` — measured target distances from a JSON file;
 * :func:`fit_detections` — the robust joint fit on signal detections;
 * :class:`CalibrationResult` — estimates, σ, covariance, RMS, observability;
 * :mod:`calib.model` — forward model (beam → plane → pixel, path length);
@@ -11,9 +12,10 @@
 See ``docs/calibration.md``.
 """
 
-from .calibrate import calibrate_system
+from .calibrate import calibrate_system, read_target_distances
 from .detections import TargetDetections, detections_from_labels
 from .fit import CalibrationResult, ObservabilityWarning, fit_detections
 
 __all__ = ["CalibrationResult", "ObservabilityWarning", "TargetDetections",
-           "calibrate_system", "detections_from_labels", "fit_detections"]
+           "calibrate_system", "detections_from_labels", "fit_detections",
+           "read_target_distances"]

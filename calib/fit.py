@@ -750,8 +750,8 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
                + ")" if partners[nm] else "")
             for nm in weak)
         text = (f"not observable from these data: {msg}. Record the target at more distances, "
-                "give a known target distance (--target-distance) or fix the parameter "
-                "(--fix NAME)")
+                "give measured target distances (--target-distances-file, --target-distance) or "
+                "fix the parameter (--fix NAME)")
         if on_unobservable == "raise":
             raise NotObservableError(text)
         warnings.warn(text, ObservabilityWarning, stacklevel=2)

@@ -35,10 +35,14 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     difference array over codes: O(steps × pixels), not O(shots × pixels)).
     """
     table = interval_table(system, confidence, min_range=min_range)
-    rows = table.index(np.where(valid, theta, np.nan))
-    rows = rows[rows >= 0]
-    table.ensure(rows)
-    used, n_row = np.unique(rows, return_counts=True)
+    n_per_row = np.zeros(table.n_steps, np.int64)
+    for a in range(0, len(theta), 1 << 20):  # blocks: small temporaries
+        rows = table.index(theta[a:a + (1 << 20)])
+        rows = rows[(rows >= 0) & np.asarray(valid[a:a + (1 << 20)], bool)]
+        n_per_row += np.bincount(rows, minlength=table.n_steps)
+    used = np.flatnonzero(n_per_row)
+    n_row = n_per_row[used]
+    table.ensure(used)
     n_bins = system.tdc.n_bins
     lo = table.lo[used].astype(np.int64)  # (U, P)
     hi = table.hi[used].astype(np.int64)

@@ -91,9 +91,18 @@ class RangeAccumulation:
                                  self.has_truth and other.has_truth)
 
 
-def shot_angles(header, system: System):
-    """(theta, valid) of every shot of a recording header, from its zero crossings."""
-    return scan_angles(header.shot_time, header.zero_crossings, header.rising, system.scanner)
+def shot_angles(header, system: System, block: int = 1 << 20):
+    """(theta, valid) of every shot of a recording header, from its zero crossings.
+
+    Computed in blocks of shots so the temporaries stay small for long recordings.
+    """
+    t = header.shot_time
+    theta = np.empty(t.shape, np.float64)
+    valid = np.empty(t.shape, bool)
+    for a in range(0, t.size, block):
+        theta[a:a + block], valid[a:a + block] = scan_angles(
+            t[a:a + block], header.zero_crossings, header.rising, system.scanner)
+    return theta, valid
 
 
 def accumulate_range(path, system: System, theta, valid, settings: Settings,

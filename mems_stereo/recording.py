@@ -113,12 +113,17 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     if t_ds.ndim != 1:
         raise FormatError(f"expected shape (K,), found {t_ds.shape}", source, "/shots/time")
     t = t_ds[()].astype(np.float64)
-    if not np.all(np.isfinite(t)):
-        raise FormatError("expected finite times, found NaN or inf", source, "/shots/time")
-    if t.size > 1 and np.any(np.diff(t) <= 0):
-        i = int(np.argmax(np.diff(t) <= 0))
-        raise FormatError(f"expected strictly increasing shot times, found t[{i + 1}] = "
-                          f"{float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}", source, "/shots/time")
+    block = 1 << 20  # checked in blocks: small temporaries for long recordings
+    for a in range(0, t.size, block):
+        tb = t[a:a + block + 1]
+        if not np.all(np.isfinite(tb)):
+            raise FormatError("expected finite times, found NaN or inf", source, "/shots/time")
+        bad = np.diff(tb) <= 0
+        if bad.any():
+            i = a + int(np.argmax(bad))
+            raise FormatError(f"expected strictly increasing shot times, found t[{i + 1}] = "
+                              f"{float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}", source,
+                              "/shots/time")
     b_ds = _need(f, "/shots/bins", source)
     w, h = system.receiver.image_size
     if b_ds.ndim != 3 or b_ds.shape[0] != t.size or b_ds.shape[1:] != (h, w):
