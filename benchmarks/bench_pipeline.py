@@ -11,8 +11,10 @@ Prints, measured in this one run on samples/room.h5 (100 kHz background,
    paper's moving-average filter, a background-grounded Poisson threshold and
    the peak detector (detections in each pixel's peak window are signal),
    (c) Open3D's statistical outlier removal on the raw per-detection points;
-3. point accuracy against the true scene (ray cast through each point) and
-   each estimate's error against its own reported σ;
+3. point accuracy against the true scene (ray cast through each point),
+   coverage of the illuminated pixels, and each estimate's error against its
+   own reported σ; for the floodlight also with the ``min_range`` prior and a
+   looser peak false-alarm probability (``VARIANTS``);
 4. the time of each stage.
 
 Tables are Markdown, ready for docs/pipeline.md.

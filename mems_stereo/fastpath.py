@@ -101,6 +101,17 @@ class IntervalTable:
         return self
 
 
+def shots_per_step(table: IntervalTable, theta, valid, block: int = 1 << 20) -> np.ndarray:
+    """Number of valid shots classified with each angle step of ``table``, (S,) int64."""
+    n = np.zeros(table.n_steps, np.int64)
+    th = np.asarray(theta)
+    va = np.asarray(valid, dtype=bool)
+    for a in range(0, th.size, block):  # blocks keep the temporaries small
+        rows = table.index(th[a:a + block])
+        n += np.bincount(rows[(rows >= 0) & va[a:a + block]], minlength=table.n_steps)
+    return n
+
+
 _TABLE_CACHE: dict = {}
 
 

@@ -20,11 +20,29 @@ at the chosen false-alarm probability.
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import poisson
+from scipy.special import pdtrc
 
-from .fastpath import interval_table
+from .fastpath import interval_table, shots_per_step
 from .histogram import moving_average
 from .system import System
+
+
+def poisson_isf(alpha, mu) -> np.ndarray:
+    """Smallest integer k with P(X > k) <= alpha for X ~ Poisson(mu) (vectorised).
+
+    Bisection on ``scipy.special.pdtrc`` (the Poisson upper tail), which keeps
+    the heavy ``scipy.stats`` import off the processing path.  Equals
+    ``scipy.stats.poisson.isf(alpha, mu)`` (tested).
+    """
+    a, m = np.broadcast_arrays(np.asarray(alpha, np.float64), np.asarray(mu, np.float64))
+    lo = np.full(m.shape, -1.0)  # P(X > lo) > alpha
+    hi = np.ceil(m + 40.0 * np.sqrt(m) + 60.0)  # P(X > hi) <= alpha for any alpha > 1e-300
+    while np.any(hi - lo > 1):
+        mid = np.floor(0.5 * (lo + hi))
+        ok = pdtrc(mid, m) <= a
+        hi = np.where(ok, mid, hi)
+        lo = np.where(ok, lo, mid)
+    return hi
 
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
@@ -35,11 +53,7 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     difference array over codes: O(steps × pixels), not O(shots × pixels)).
     """
     table = interval_table(system, confidence, min_range=min_range)
-    n_per_row = np.zeros(table.n_steps, np.int64)
-    for a in range(0, len(theta), 1 << 20):  # blocks: small temporaries
-        rows = table.index(theta[a:a + (1 << 20)])
-        rows = rows[(rows >= 0) & np.asarray(valid[a:a + (1 << 20)], bool)]
-        n_per_row += np.bincount(rows, minlength=table.n_steps)
+    n_per_row = shots_per_step(table, theta, valid)
     used = np.flatnonzero(n_per_row)
     n_row = n_per_row[used]
     table.ensure(used)
@@ -135,7 +149,7 @@ def find_peaks(system: System, signal, noise, theta, valid, settings):
     mu = B_w[pix, j]
     # window positions where background can reach S at all (accepted codes)
     n_windows = np.maximum(1.0, np.count_nonzero(A > 0, axis=1) / width)
-    thr = poisson.isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
+    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
     keep = (cnt > thr) & (cnt >= settings.min_counts) & np.isfinite(rate)
     code = j + 1
     half = max(1, width)

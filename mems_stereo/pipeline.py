@@ -346,6 +346,7 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
                           f"of the processing system, found {header.shape}", str(path),
                           "/shots/bins")
     theta, valid = shot_angles(header, sysm)
+    header.shot_time = None  # only the angles are needed from here on: free O(K) memory
     timings = {"read_header": time.perf_counter() - t0}
 
     t1 = time.perf_counter()
@@ -393,6 +394,6 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
         "peaks": int(len(peaks["row"])), "points": len(cloud),
     }
     truth = truth_scores(acc.confusion) if acc.has_truth else None
+    theta[~valid] = np.nan  # (already NaN where the angle is unknown; no copy)
     return ProcessResult(sysm, str(path), {"raw": raw, "signal": sig, "noise": noise},
-                         background, peaks, cloud, counts, truth,
-                         np.where(valid, theta, np.nan), valid, timings)
+                         background, peaks, cloud, counts, truth, theta, valid, timings)

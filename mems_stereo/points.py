@@ -278,14 +278,14 @@ class PeakAccumulator:
        their fused, stereo and time-of-flight points and covariances to
        per-peak sums.
 
-    :meth:`cloud` returns the means, with covariance ``Σ C_i / n²`` scaled by
-    the inliers' reduced χ² when it exceeds 1 (Birge ratio: the reported σ
+    :meth:`cloud` returns, for each estimate (fused, stereo, time of flight),
+    the mean weighted by the inverse of the estimate's own range variance,
+    ``x̄ = Σ w_i x_i / Σ w_i`` with covariance ``Σ w_i² C_i / (Σ w_i)²``, scaled
+    by the inliers' reduced χ² when it exceeds 1 (Birge ratio: the reported σ
     stays honest when the scatter exceeds the propagated spread).  Memory is
     O(peaks × grid), independent of the number of detections.
     """
 
-    SUMS = ("n", "fused", "cov_fused", "stereo", "cov_stereo", "tof", "cov_tof", "code",
-            "weight", "w", "wr", "wrr", "window")
 
     def __init__(self, system: System, rows, cols, peak_code=None,
                  spreads: Spreads | None = None, confidence: float = 0.997,
@@ -306,14 +306,13 @@ class PeakAccumulator:
         self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
         self.cover = np.zeros((self.Q, self.n_grid + 1), np.int64)
         self.centre = None
-        self.sums = {
-            "n": np.zeros(self.Q), "fused": np.zeros((self.Q, 3)),
-            "cov_fused": np.zeros((self.Q, 3, 3)), "stereo": np.zeros((self.Q, 3)),
-            "cov_stereo": np.zeros((self.Q, 3, 3)), "tof": np.zeros((self.Q, 3)),
-            "cov_tof": np.zeros((self.Q, 3, 3)), "code": np.zeros(self.Q),
-            "weight": np.zeros(self.Q), "w": np.zeros(self.Q), "wr": np.zeros(self.Q),
-            "wrr": np.zeros(self.Q), "window": np.zeros(self.Q),
-        }
+        Q = self.Q
+        self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
+                     "wr": np.zeros(Q), "wrr": np.zeros(Q), "window": np.zeros(Q)}
+        for name in ("fused", "stereo", "tof"):  # inverse-variance weighted sums
+            self.sums["W_" + name] = np.zeros(Q)
+            self.sums["X_" + name] = np.zeros((Q, 3))
+            self.sums["C_" + name] = np.zeros((Q, 3, 3))
 
     def empty_copy(self) -> PeakAccumulator:
         """A zeroed accumulator of the same peaks and grid (keeps the centres)."""
@@ -382,29 +381,35 @@ class PeakAccumulator:
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
         q = peak[inl]
         m = m[inl]
-        w = m / sr[inl] ** 2
         s = self.sums
         s["n"] += np.bincount(q, weights=m, minlength=Q)
         for name in ("fused", "stereo", "tof"):
-            np.add.at(s[name], q, getattr(dp, name)[inl] * m[:, None])
-            np.add.at(s["cov_" + name], q, getattr(dp, "cov_" + name)[inl] * m[:, None, None])
+            x = getattr(dp, name)[inl]
+            C = getattr(dp, "cov_" + name)[inl]
+            _, _, se, _ = polar_from_cartesian(x, C)
+            w = 1.0 / np.maximum(se, 1e-12) ** 2  # each estimate by its own range variance
+            s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
+            np.add.at(s["X_" + name], q, x * (m * w)[:, None])
+            np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
+        w = 1.0 / sr[inl] ** 2
         s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
-        s["w"] += np.bincount(q, weights=w, minlength=Q)
-        s["wr"] += np.bincount(q, weights=w * r[inl], minlength=Q)
-        s["wrr"] += np.bincount(q, weights=w * r[inl] ** 2, minlength=Q)
+        s["wr"] += np.bincount(q, weights=m * w * r[inl], minlength=Q)
+        s["wrr"] += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
 
     def cloud(self, min_counts: int = 1) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
         s = self.sums
         n = s["n"]
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = {name: (s[name] / n[:, None], s["cov_" + name] / (n * n)[:, None, None])
+            # weighted means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)²
+            mean = {name: (s["X_" + name] / s["W_" + name][:, None],
+                           s["C_" + name] / (s["W_" + name] ** 2)[:, None, None])
                     for name in ("fused", "stereo", "tof")}
-            xf = mean["fused"][0]
-            rbar = np.linalg.norm(xf, axis=1)
+            W = s["W_fused"]
+            rbar = s["wr"] / W
             # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w
-            chi2 = (s["wrr"] - 2 * rbar * s["wr"] + rbar ** 2 * s["w"]) / np.maximum(n - 1, 1)
+            chi2 = (s["wrr"] - 2 * rbar * s["wr"] + rbar ** 2 * W) / np.maximum(n - 1, 1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         for name in mean:
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])

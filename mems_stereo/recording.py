@@ -112,7 +112,7 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     _check_dtype(t_ds, "f", "float64 seconds", source, "/shots/time")
     if t_ds.ndim != 1:
         raise FormatError(f"expected shape (K,), found {t_ds.shape}", source, "/shots/time")
-    t = t_ds[()].astype(np.float64)
+    t = np.asarray(t_ds[()], dtype=np.float64)  # no copy when stored as float64
     block = 1 << 20  # checked in blocks: small temporaries for long recordings
     for a in range(0, t.size, block):
         tb = t[a:a + block + 1]

@@ -124,3 +124,13 @@ def test_bad_recordings_leave_no_output(tmp_path_factory, what, seed):
     assert main(["process", str(bad), "-o", str(d / "c.ply"), "--labels",
                  str(d / "l.h5")]) == 2
     assert sorted(p.name for p in d.iterdir()) == ["bad.h5"]
+
+
+def test_poisson_quantile_equals_scipy_stats():
+    from scipy.stats import poisson
+
+    from mems_stereo.peaks import poisson_isf
+
+    mu = np.array([1e-9, 0.01, 0.5, 3.0, 47.0, 900.0, 2.5e4])
+    for alpha in (1e-6, 1e-3, 0.05, 0.5):
+        np.testing.assert_array_equal(poisson_isf(alpha, mu), poisson.isf(alpha, mu))
