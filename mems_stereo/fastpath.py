@@ -216,3 +216,53 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     labels = np.empty((K, P), dtype=np.uint8) if want_labels else np.empty((0, 0), np.uint8)
     _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, int(n_bins))
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
+
+
+def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, n_steps, nb, out):
+    """Reference semantics of the compiled peak-window kernel (see :func:`peak_window_keys`)."""
+    K = bins.shape[0]
+    Q = pix.shape[0]
+    n = 0
+    for k in range(K):
+        j = rows[k]
+        if j < 0:
+            continue
+        for q in range(Q):
+            p = pix[q]
+            c = np.int64(bins[k, p])
+            if (c != 0 and win_lo[q] <= c and c <= win_hi[q]
+                    and np.int64(lo[j, p]) <= c and c <= np.int64(hi[j, p])):
+                out[n] = (q * n_steps + j) * nb + c
+                n += 1
+    return n
+
+
+try:  # pragma: no cover - numba is a declared dependency
+    _window_keys = numba.njit(cache=True, nogil=True, boundscheck=False)(_window_keys_py)
+except NameError:  # pragma: no cover
+    _window_keys = _window_keys_py
+
+
+def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
+                     n_bins: int) -> np.ndarray:
+    """Keys of the signal detections inside the peak windows of a block of shots.
+
+    A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
+    peak's window ``[code_lo[q], code_hi[q]]`` and the classifier accepted it
+    (signal).  Its key is ``(q · S + step) · (n_bins + 1) + code``, with
+    ``step`` the shot's angle step in ``table`` (S steps).  Returns (M,) int64,
+    in shot order.  One compiled pass over the peak pixels only.
+    """
+    b = np.ascontiguousarray(bins)
+    K = b.shape[0]
+    b2 = b.reshape(K, -1)
+    if b2.dtype != np.uint16:
+        b2 = b2.astype(np.uint16)
+    rows = table.index(theta)
+    rows[~np.asarray(valid, dtype=bool)] = -1
+    table.ensure(rows)
+    pix = np.asarray(peak_pixel, dtype=np.int64)
+    out = np.empty(K * max(1, pix.size), np.int64)
+    n = _window_keys(b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
+                     np.asarray(code_hi, np.int64), int(table.n_steps), int(n_bins) + 1, out)
+    return out[:n].copy()

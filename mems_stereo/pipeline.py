@@ -33,7 +33,7 @@ import numpy as np
 
 from .classify import DEFAULT_CONFIDENCE
 from .cloud import PointCloud
-from .fastpath import classify_and_accumulate, interval_table
+from .fastpath import classify_and_accumulate, interval_table, peak_window_keys
 from .io_util import atomic_output
 from .recording import iter_shot_chunks, read_header
 from .scanner import scan_angles
@@ -148,33 +148,6 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     return RangeAccumulation(raw, sig, n_shots, n_unknown, conf, has_truth)
 
 
-def _iter_peak_detections(path, system: System, theta, valid, settings: Settings,
-                          peak_pixel, code_lo, code_hi, start: int = 0,
-                          stop: int | None = None, progress=None):
-    """Yield ``(shot, peak, code)`` (M,) int64 arrays per chunk: the signal detections
-    inside the peak windows (``peak_pixel`` flat pixel index, inclusive windows)."""
-    table = interval_table(system, settings.confidence, min_range=settings.min_range)
-    n_bins = system.tdc.n_bins
-    P = system.receiver.width * system.receiver.height
-    pk = np.asarray(peak_pixel, dtype=np.int64)
-    lo = np.asarray(code_lo, dtype=np.int64)
-    hi = np.asarray(code_hi, dtype=np.int64)
-    if pk.size == 0:
-        return
-    raw32 = np.zeros((P, n_bins + 1), np.int32)
-    sig32 = np.zeros((P, n_bins + 1), np.int32)
-    for s0, _t, bins, in iter_shot_chunks(path, settings.chunk_shots, start, stop):
-        s1 = s0 + bins.shape[0]
-        labels, _, _ = classify_and_accumulate(bins, theta[s0:s1], valid[s0:s1], table, n_bins,
-                                               raw32, sig32)
-        b2 = bins.reshape(bins.shape[0], P)[:, pk].astype(np.int64)  # (k, Q)
-        l2 = labels.reshape(bins.shape[0], P)[:, pk]
-        kk, qq = np.nonzero((l2 == 1) & (b2 >= lo) & (b2 <= hi))
-        yield kk + s0, qq, b2[kk, qq]
-        if progress is not None:
-            progress(s1 - s0)
-
-
 class PeakCounts:
     """How often each distinct (peak, scan-angle step, code) occurs among the signal
     detections inside the peak windows: integers, so sums over chunks and workers
@@ -228,17 +201,20 @@ class PeakCounts:
 def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
                       start: int = 0, stop: int | None = None, progress=None) -> PeakCounts:
     """Pass 2 over shots [start, stop): count the peak windows' signal detections by
-    (peak, angle step, code) — see :class:`PeakCounts`."""
+    (peak, angle step, code) — see :class:`PeakCounts` and
+    :func:`mems_stereo.fastpath.peak_window_keys`."""
     table = interval_table(system, settings.confidence, min_range=settings.min_range)
-    S, nb = table.n_steps, system.tdc.n_bins + 1
     W = system.receiver.width
+    pix = peaks["row"] * W + peaks["col"]
     pc = PeakCounts()
-    for shot, q, code in _iter_peak_detections(path, system, theta, valid, settings,
-                                               peaks["row"] * W + peaks["col"],
-                                               peaks["code_lo"], peaks["code_hi"], start, stop,
-                                               progress):
-        step = table.index(theta[shot])
-        pc.add_keys((q * S + step) * nb + code)
+    if pix.size == 0:
+        return pc
+    for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
+        s1 = s0 + bins.shape[0]
+        pc.add_keys(peak_window_keys(bins, theta[s0:s1], valid[s0:s1], table, pix,
+                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins))
+        if progress is not None:
+            progress(s1 - s0)
     return pc.finished()
 
 

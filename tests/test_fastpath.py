@@ -94,3 +94,29 @@ def test_snapping_is_within_half_a_step(table, rng):
     th = burkard2022().scanner.theta0 + rng.uniform(-0.2, 0.2, 1000)
     assert np.max(np.abs(table.snap(th) - th)) <= table.step / 2 + 1e-15
     assert table.index([np.nan, 10.0]).tolist() == [-1, -1]
+
+
+def test_peak_window_keys_equal_a_numpy_reference(table, rng):
+    from mems_stereo.fastpath import _window_keys_py, peak_window_keys
+
+    s = burkard2022()
+    bins, theta, valid = _random_block(rng, s, 120)
+    pix = np.array([5, 60, 61, 150])
+    lo = np.array([1, 100, 900, 30])
+    hi = np.array([4096, 800, 1500, 60])
+    keys = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096)
+    labels = classify_bins(s, bins, table.snap(theta), valid).reshape(120, -1)
+    b = bins.reshape(120, -1).astype(np.int64)
+    rows = table.index(theta)
+    expect = []
+    for k in range(120):
+        for q, p in enumerate(pix):
+            if labels[k, p] == 1 and lo[q] <= b[k, p] <= hi[q]:
+                expect.append((q * table.n_steps + rows[k]) * 4097 + b[k, p])
+    np.testing.assert_array_equal(keys, expect)
+    out = np.empty(120 * 4, np.int64)
+    r = rows.copy()
+    r[~valid] = -1
+    n = _window_keys_py(bins.reshape(120, -1), r, table.lo, table.hi, pix, lo, hi,
+                        table.n_steps, 4097, out)
+    np.testing.assert_array_equal(out[:n], keys)
