@@ -115,6 +115,19 @@ def shots_per_step(table: IntervalTable, theta, valid, block: int = 1 << 20) -> 
 _TABLE_CACHE: dict = {}
 
 
+def table_key(system: System, confidence: float = DEFAULT_CONFIDENCE,
+              spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
+              margin: float = 0.1, min_range: float | None = None) -> tuple:
+    """The cache key of a table: everything its rows depend on."""
+    return (system_to_json(system), confidence, repr(spreads), step, margin, min_range)
+
+
+def install_tables(tables: dict) -> None:
+    """Put ready tables ({key: IntervalTable}) into this process's cache (Dask workers)."""
+    for key, table in tables.items():
+        _TABLE_CACHE[key] = table
+
+
 def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
                    spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
                    margin: float = 0.1, min_range: float | None = None) -> IntervalTable:
@@ -124,7 +137,7 @@ def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
     left out like shots of unknown angle.  Filling all rows of the paper's
     system (≈ 9,100 steps of 50 µrad × 192 pixels) takes a few seconds once.
     """
-    key = (system_to_json(system), confidence, repr(spreads), step, margin, min_range)
+    key = table_key(system, confidence, spreads, step, margin, min_range)
     table = _TABLE_CACHE.get(key)
     if table is None:
         if len(_TABLE_CACHE) >= 8:

@@ -218,11 +218,16 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
     return pc.finished()
 
 
-def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings):
+def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
+                       shots_per_step=None):
     """The cloud: one fused point per peak from its counted detections.
 
     Each distinct (peak, step, code) is triangulated once at the step's grid
     angle (the angle it was classified with) and weighted by its count.
+    ``shots_per_step`` : (S,) int, valid shots per angle step of the interval
+    table (:func:`~mems_stereo.fastpath.shots_per_step`): with it the ToF and
+    fused estimates are corrected for the first-photon delay
+    (:class:`~mems_stereo.points.PeakAccumulator`).
     """
     from .points import points_from_peak_detections
 
@@ -233,7 +238,8 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     theta = table.theta_min + step * table.step
     return points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
                                        peaks["col"], peaks["code"], min_counts=settings.min_counts,
-                                       confidence=settings.confidence, weight=counts.counts)
+                                       confidence=settings.confidence, weight=counts.counts,
+                                       step=step, shots_per_step=shots_per_step)
 
 
 @dataclass

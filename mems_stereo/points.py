@@ -22,6 +22,8 @@ its covariance is ``Σ C_i / n²``.  Units: metres, receiver camera frame.
 
 from __future__ import annotations
 
+import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +54,9 @@ class DetectionPoints:
     fused, cov_fused : inverse-variance combination along the scanner ray.
     weight_stereo : (M,) weight of the stereo estimate in the fusion (0..1).
     ok : (M,) bool, False where an estimate is degenerate (all NaN then).
+    dtof_dL : (M, 3) m/m, derivative of the ToF point along the scanner ray
+        with respect to the path length L (the fused point's is
+        ``(1 − weight_stereo)`` times it), or None.
     """
 
     stereo: np.ndarray
@@ -62,6 +67,7 @@ class DetectionPoints:
     cov_fused: np.ndarray
     weight_stereo: np.ndarray
     ok: np.ndarray
+    dtof_dL: np.ndarray | None = None
 
 
 def _s_stereo(system, u, v, L, theta):
@@ -120,8 +126,9 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     ok = np.all(np.isfinite(x_st), 1) & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
     nan3 = np.where(ok[:, None], 0.0, np.nan)
     nan33 = nan3[:, :, None]
+    dxdL = scan_direction(th, system.scanner) * J_tf[:, 0, 0][:, None] + nan3
     return DetectionPoints(x_st + nan3, c_st + nan33, x_tf + nan3, c_tf + nan33,
-                           x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok)
+                           x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok, dxdL)
 
 
 def _group_mean(idx, n, values):
@@ -259,6 +266,139 @@ def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None
     return PointCloud(dp.fused[g], attrs)
 
 
+# --------------------------------------------------------------------------
+# first-photon bias of the time-of-flight estimate
+#
+# A SPAD pixel records only its first photon per shot, and the TDC nothing
+# before it starts.  With μ_w signal photons per shot arriving after the TDC
+# start (Poisson), from a Gaussian pulse of σ centred at TDC time τ0, the
+# recorded arrival u (relative to τ0, on u ≥ a = −τ0/σ in σ units) is the
+# first of them: survival S(u) = (exp(−μ_w F(u)) − exp(−μ_w)) / (1 − exp(−μ_w))
+# with F the pulse's distribution truncated to u ≥ a.  Its mean is early by
+# up to ≈ −σ·sqrt(2 ln μ_w) for a strong return and late near τ0 ≈ 0 (the
+# early part of the pulse is cut off); its variance is below σ².  (The same
+# model as calib.timing.first_photon_moments with no background, and as the
+# simulator's sampling; tests/test_tof_bias.py checks all three agree.)
+
+#: most signal photons per shot the correction considers (p = 1 − e^−50)
+MU_MAX = 50.0
+_A_GRID = (-6.0, 4.0, 101)  # a = −τ0/σ: below −6 the cut does nothing
+_LOGMU_GRID = (math.log(1e-4), math.log(MU_MAX), 97)
+
+
+def first_photon_moments(a, mu_window, n_quad: int = 801):
+    """Mean and variance of a first-photon arrival, in units of the pulse σ.
+
+    Parameters
+    ----------
+    a : (...) float64, the TDC start relative to the pulse centre, in σ
+        (``−τ0/σ``; −inf: no cut).
+    mu_window : (...) float64 > 0, expected signal photons per shot that
+        arrive after the TDC start (so that ``1 − exp(−μ_w)`` is the
+        probability of a signal detection).
+    n_quad : trapezoid nodes over the 16σ after ``max(a, −8)``.
+
+    Returns
+    -------
+    mean, var : (...) float64 (broadcast shape), the arrival time's mean
+        relative to the pulse centre and its variance, in σ and σ².
+    """
+    from scipy.special import ndtr
+
+    a, mu = np.broadcast_arrays(np.asarray(a, dtype=np.float64),
+                                np.asarray(mu_window, dtype=np.float64))
+    lo = np.maximum(a, -8.0)[..., None]
+    t = np.linspace(0.0, 16.0, n_quad)
+    u = lo + t
+    # 1 − F(u) of the truncated Gaussian, from the upper tails (no cancellation)
+    tail = ndtr(-u) / ndtr(-lo)
+    m = mu[..., None]
+    e_mu = np.exp(-m)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        surv = np.where(m > 1e-9, (np.exp(-m * (1.0 - tail)) - e_mu) / -np.expm1(-m), tail)
+    w = np.full(n_quad, t[1] - t[0])
+    w[0] = w[-1] = 0.5 * (t[1] - t[0])
+    m1 = surv @ w  # E[u − lo]
+    m2 = 2.0 * ((surv * t) @ w)  # E[(u − lo)²]
+    return lo[..., 0] + m1, np.maximum(m2 - m1 * m1, 0.0)
+
+
+@functools.lru_cache(maxsize=1)
+def _first_photon_table():
+    """(a grid, log μ_w grid, mean, var) of :func:`first_photon_moments`, tabulated once."""
+    ag = np.linspace(*_A_GRID)
+    lg = np.linspace(*_LOGMU_GRID)
+    mean = np.empty((ag.size, lg.size))
+    var = np.empty_like(mean)
+    for i, a in enumerate(ag):  # row by row: the temporaries stay (n_mu, n_quad)
+        mean[i], var[i] = first_photon_moments(a, np.exp(lg))
+    return ag, lg, mean, var
+
+
+def _table_lookup(a, logmu):
+    """Bilinear look-up of (mean, var) on the table; arguments clipped to its grid."""
+    ag, lg, mean, var = _first_photon_table()
+    fa = np.clip((np.asarray(a, dtype=np.float64) - ag[0]) / (ag[1] - ag[0]), 0.0,
+                 ag.size - 1.000001)
+    fm = np.clip((np.asarray(logmu, dtype=np.float64) - lg[0]) / (lg[1] - lg[0]), 0.0,
+                 lg.size - 1.000001)
+    fa, fm = np.broadcast_arrays(fa, fm)
+    i, j = fa.astype(np.int64), fm.astype(np.int64)
+    wa, wm = fa - i, fm - j
+
+    def bil(t):
+        return ((1 - wa) * (1 - wm) * t[i, j] + wa * (1 - wm) * t[i + 1, j]
+                + (1 - wa) * wm * t[i, j + 1] + wa * wm * t[i + 1, j + 1])
+
+    return bil(mean), bil(var)
+
+
+def first_photon_correction(n_detected, n_shots, tau_mean, sigma, n_nodes: int = 48,
+                            iterations: int = 30):
+    """Bias of the mean first-photon arrival of peaks, with its uncertainty.
+
+    Each peak has ``n_detected`` signal detections in ``n_shots`` shots that
+    lit its pixel; the detection probability p has the posterior
+    Beta(n + 1, N − n + 1) (uniform prior), so ``μ_w = −ln(1 − p)`` (capped
+    at :data:`MU_MAX`) and the first-photon delay δ(a, μ_w)
+    (:func:`first_photon_moments`) are averaged over it by Gauss–Legendre
+    quadrature in p's quantile.  The pulse centre ``τ0`` solves
+    ``τ̄ = τ0 + E[δ(−τ0/σ, μ_w)]`` (fixed point; ``|∂δ/∂a| < 1``).
+
+    Parameters
+    ----------
+    n_detected, n_shots : (Q,) float64, detections and illuminating shots
+        (``n_shots ≥ n_detected`` is enforced).
+    tau_mean : (Q,) float64, s, the mean TDC time of the detections
+        (``(N̄ − ½)·bin_width``).
+    sigma : float, s, the pulse σ (⊕ jitter).
+
+    Returns
+    -------
+    delay : (Q,) s, E[δ]: subtract from ``tau_mean`` for the pulse centre.
+    sigma_delay : (Q,) s, posterior standard deviation of δ.
+    var_arrival : (Q,) s², E[variance of one detection's arrival] (replaces σ²).
+    mu_window : (Q,) posterior mean of μ_w (photons per shot after the TDC start).
+    """
+    from scipy.special import betaincinv
+
+    n = np.maximum(np.asarray(n_detected, dtype=np.float64), 0.0)
+    N = np.maximum(np.asarray(n_shots, dtype=np.float64), n)
+    x, wq = np.polynomial.legendre.leggauss(int(n_nodes))
+    q, wq = 0.5 * (x + 1.0), 0.5 * wq
+    p = betaincinv((n + 1.0)[:, None], (N - n + 1.0)[:, None], q[None, :])  # (Q, M)
+    mu = np.clip(-np.log1p(-np.minimum(p, 1.0 - math.exp(-MU_MAX))), 1e-4, MU_MAX)
+    logmu = np.log(mu)
+    tb = np.asarray(tau_mean, dtype=np.float64) / sigma
+    t0 = tb.copy()
+    for _ in range(int(iterations)):
+        d, _ = _table_lookup(-t0[:, None], logmu)
+        t0 = tb - d @ wq
+    d, v = _table_lookup(-t0[:, None], logmu)
+    dm = d @ wq
+    dv = np.maximum((d * d) @ wq - dm * dm, 0.0)
+    return dm * sigma, np.sqrt(dv) * sigma, (v @ wq) * sigma ** 2, mu @ wq
+
 
 class PeakAccumulator:
     """Streaming fusion of each peak's signal detections into one point.
@@ -284,15 +424,37 @@ class PeakAccumulator:
     by the inliers' reduced χ² when it exceeds 1 (Birge ratio: the reported σ
     stays honest when the scatter exceeds the propagated spread).  Memory is
     O(peaks × grid), independent of the number of detections.
-    """
 
+    First-photon correction of the time-of-flight estimate (``first_photon``,
+    on by default; it needs ``shots_per_step`` and each detection's angle
+    ``step`` in :meth:`add_inliers`, and is skipped without them).  The
+    inliers' angle steps span a band ``[s_lo, s_hi]`` of the interval table's
+    grid: the shots that lit the pixel.  Its valid shots ``N`` (from
+    ``shots_per_step``) and the inlier count ``n``, less one detection and one
+    shot at each end of the band (the ends are where detections happened to
+    fall, the shots between them are unbiased trials), give the posterior of
+    the detection probability and so of the signal photons per shot μ_w; the
+    mean first-photon delay δ (early by up to several ns for a strong return,
+    late for a return at the TDC start; :func:`first_photon_correction`) is
+    removed from the ToF mean (the fused mean moves by its ToF share), the
+    timing variance of a detection becomes the first-photon one, and the
+    posterior spread of δ is added in quadrature.  Assumptions: μ the same for
+    every shot of the band (a spot much narrower than a pixel), background
+    inside the peak window negligible (room light; at 6 MHz some 10 % of the
+    inliers are background and μ_w comes out high), Gaussian pulse of the
+    system's ``pulse_fwhm`` ⊕ the spreads' jitter.
+    """
 
     def __init__(self, system: System, rows, cols, peak_code=None,
                  spreads: Spreads | None = None, confidence: float = 0.997,
-                 r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3):
+                 r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
+                 shots_per_step=None, first_photon: bool = True):
         from .classify import k_from_confidence
 
         self.system = system
+        self.shots_cum = (None if shots_per_step is None else np.concatenate(
+            [[0], np.cumsum(np.asarray(shots_per_step, dtype=np.int64).ravel())]))
+        self.first_photon = bool(first_photon)
         self.spreads = spreads
         self.k = k_from_confidence(confidence)
         self.rows = np.asarray(rows, dtype=np.int64).ravel()
@@ -313,6 +475,10 @@ class PeakAccumulator:
             self.sums["W_" + name] = np.zeros(Q)
             self.sums["X_" + name] = np.zeros((Q, 3))
             self.sums["C_" + name] = np.zeros((Q, 3, 3))
+        for name in ("fused", "tof"):  # ∂x/∂L sums for the first-photon correction
+            self.sums["D_" + name] = np.zeros((Q, 3))
+            self.sums["G_" + name] = np.zeros((Q, 3, 3))
+        self.band = _empty_band(Q)  # inliers' angle steps: min, max (merged, not summed)
 
     def empty_copy(self) -> PeakAccumulator:
         """A zeroed accumulator of the same peaks and grid (keeps the centres)."""
@@ -320,12 +486,15 @@ class PeakAccumulator:
         new.__dict__.update(self.__dict__)
         new.cover = np.zeros_like(self.cover)
         new.sums = {k: np.zeros_like(v) for k, v in self.sums.items()}
+        new.band = _empty_band(self.Q)
         return new
 
     def __add__(self, other: PeakAccumulator) -> PeakAccumulator:
         new = self.empty_copy()
         new.cover = self.cover + other.cover
         new.sums = {k: self.sums[k] + other.sums[k] for k in self.sums}
+        new.band = (np.minimum(self.band[0], other.band[0]),
+                    np.maximum(self.band[1], other.band[1]))
         return new
 
     def _points(self, shot, peak, code, theta, weight):
@@ -369,9 +538,11 @@ class PeakAccumulator:
         self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
         return self.centre
 
-    def add_inliers(self, shot, peak, code, theta, weight=None) -> None:
+    def add_inliers(self, shot, peak, code, theta, weight=None, step=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
-        (arguments as :meth:`add_mode`)."""
+        (arguments as :meth:`add_mode`; ``step`` (M,) int, the index of each
+        detection's angle on the grid of ``shots_per_step``, for the
+        first-photon correction)."""
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
         peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
@@ -391,6 +562,19 @@ class PeakAccumulator:
             s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
             np.add.at(s["X_" + name], q, x * (m * w)[:, None])
             np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
+            if name != "stereo":  # ∂x/∂L: the ToF point's, the fused point's share of it
+                share = (np.ones(q.size) if name == "tof"
+                         else 1.0 - dp.weight_stereo[inl])
+                g = dp.dtof_dL[inl] * share[:, None]
+                np.add.at(s["D_" + name], q, g * (m * w)[:, None])
+                np.add.at(s["G_" + name], q, g[:, :, None] * g[:, None, :]
+                          * (m * w * w)[:, None, None])
+        if step is not None:
+            st = np.asarray(step, dtype=np.int64).ravel()
+            if st.shape != peak.shape:
+                raise GeometryError(f"step: expected shape {peak.shape}, found {st.shape}")
+            np.minimum.at(self.band[0], q, st[inl])
+            np.maximum.at(self.band[1], q, st[inl])
         w = 1.0 / sr[inl] ** 2
         s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
@@ -411,8 +595,14 @@ class PeakAccumulator:
             # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w
             chi2 = (s["wrr"] - 2 * rbar * s["wr"] + rbar ** 2 * W) / np.maximum(n - 1, 1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+        fp = self._first_photon(mean) if self._correcting() else None
         for name in mean:
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+        if fp is not None:  # the delay's posterior spread: systematic, not scaled
+            for name in ("fused", "tof"):
+                D = s["D_" + name] / s["W_" + name][:, None]
+                mean[name] = (mean[name][0], mean[name][1] + D[:, :, None] * D[:, None, :]
+                              * (fp["sigma_L"] ** 2)[:, None, None])
         xf, Cf = mean["fused"]
         r, _, sr, sphi = polar_from_cartesian(xf, Cf)
         r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
@@ -431,14 +621,70 @@ class PeakAccumulator:
             "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
             "counts_window": np.rint(s["window"]).astype(np.int32),
         }
+        if fp is not None:
+            attrs["tof_delay"] = fp["delay"]
+            attrs["signal_photons"] = fp["mu"]
         keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
         return PointCloud(xf, attrs).select(keep)
+
+    def _correcting(self) -> bool:
+        return (self.first_photon and self.shots_cum is not None
+                and bool(np.any(self.band[1] >= 0)))
+
+    def illuminating_shots(self):
+        """``(n, N)`` (Q,) float64 per peak: inlier detections and valid shots in their
+        angle band, each less one at both ends of the band (one if it is a single step)."""
+        lo, hi = self.band
+        has = hi >= lo
+        cum = self.shots_cum
+        S = cum.size - 1
+        N = np.where(has, cum[np.clip(hi, 0, S - 1) + 1] - cum[np.clip(lo, 0, S - 1)], 0)
+        ends = np.where(hi > lo, 2.0, 1.0)
+        n = self.sums["n"]
+        return np.maximum(n - ends, 0.0) * has, np.maximum(N - ends, 0.0) * has
+
+    def _first_photon(self, mean: dict) -> dict:
+        """Apply the first-photon correction to ``mean`` (in place; see the class
+        docstring); returns the per-peak delay (s), its σ as path length (m) and μ_w."""
+        s = self.system
+        sp = spreads_for(s) if self.spreads is None else self.spreads
+        sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
+        n_all = self.sums["n"]
+        ok = self.band[1] >= self.band[0]
+        out = {"delay": np.full(self.Q, np.nan), "mu": np.full(self.Q, np.nan),
+               "sigma_L": np.zeros(self.Q)}
+        if sigma <= 0 or not np.any(ok):
+            return out
+        n, N = self.illuminating_shots()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tau = (self.sums["code"] / n_all - 0.5) * s.tdc.bin_width  # mean TDC time
+        ok &= np.isfinite(tau)
+        d, sd, var, mu = first_photon_correction(n[ok], N[ok], tau[ok], sigma)
+        c = s.speed_of_light
+        dL = np.zeros(self.Q)
+        dvar = np.zeros(self.Q)
+        dL[ok] = -c * d  # path length to add: the arrivals were early by d
+        dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
+        out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
+        for name in ("fused", "tof"):
+            W = self.sums["W_" + name]
+            D = self.sums["D_" + name] / W[:, None]
+            x, C = mean[name]
+            G = self.sums["G_" + name] / (W * W)[:, None, None]
+            C = C + G * dvar[:, None, None]
+            mean[name] = (x + D * dL[:, None], C)
+        return out
+
+
+def _empty_band(Q: int):
+    return (np.full(Q, np.iinfo(np.int64).max, np.int64), np.full(Q, -1, np.int64))
 
 
 def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
-                                weight=None) -> PointCloud:
+                                weight=None, step=None, shots_per_step=None,
+                                first_photon: bool = True) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -453,9 +699,18 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     min_counts : peaks with fewer inlier detections are dropped.
     confidence : sets the inlier bound ``k`` around each peak's centre.
     weight : (M,) multiplicity of each detection (default 1).
+    step : (M,) int, each detection's angle step on the grid of
+        ``shots_per_step`` (the interval table's), and shots_per_step : (S,)
+        int, valid shots per step: with both (and ``first_photon``) the ToF
+        and fused estimates are corrected for the first-photon delay (see
+        :class:`PeakAccumulator`) and the cloud gains ``tof_delay`` (s, the
+        delay removed) and ``signal_photons`` (μ_w per shot); without them
+        the result is the uncorrected one.
+    first_photon : apply that correction when the data allow it.
     """
-    acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence)
+    acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence,
+                          shots_per_step=shots_per_step, first_photon=first_photon)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
-    acc.add_inliers(shot, peak, code, theta, weight)
+    acc.add_inliers(shot, peak, code, theta, weight, step)
     return acc.cloud(min_counts)
