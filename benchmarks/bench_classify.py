@@ -82,8 +82,8 @@ def main():
     t_fast_nolab = best_of(lambda: fast(False))
     t_copy = best_of(lambda: bins.copy())
     big = np.tile(bins, (max(1, int(np.ceil(128e6 / bins.nbytes))), 1, 1))
-    t_copy_mem = best_of(lambda: big.copy(), 3) * bins.nbytes / big.nbytes
-    del big
+    t_copy_mem = best_of(big.copy, 3) * bins.nbytes / big.nbytes
+    big = None
     n = bins.size
     print(f"compiled classify + histograms : {t_fast * 1e3:8.2f} ms  "
           f"({n / t_fast / 1e6:7.1f} M slots/s, {n / t_fast / REALTIME_SLOTS:6.1f}x real time)")

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from .errors import FormatError
+from .validation import FieldChecker
 
 FORMAT_NAME = "mems-stereo/system"
 FORMAT_VERSION = 1
@@ -170,55 +171,9 @@ class System:
 # validation helpers
 
 
-class _Ctx:
-    """Carries the source name for error messages."""
-
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, fld: str, msg: str) -> FormatError:
-        return FormatError(msg, source=self.source, field=fld)
-
-    def get(self, d: dict, key: str, prefix: str) -> Any:
-        if not isinstance(d, dict):
-            raise self.fail(prefix, f"expected an object, found {type(d).__name__}")
-        if key not in d:
-            raise self.fail(f"{prefix}.{key}".lstrip("."), "required field is missing")
-        return d[key]
-
-    def number(self, value: Any, fld: str, *, positive: bool = False,
-               nonneg: bool = False) -> float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise self.fail(fld, f"expected a number, found {value!r}")
-        v = float(value)
-        if not math.isfinite(v):
-            raise self.fail(fld, f"expected a finite number, found {value!r}")
-        if positive and v <= 0:
-            raise self.fail(fld, f"expected a positive number, found {value!r}")
-        if nonneg and v < 0:
-            raise self.fail(fld, f"expected a non-negative number, found {value!r}")
-        return v
-
-    def array(self, value: Any, fld: str, shape: tuple) -> np.ndarray:
-        try:
-            a = np.asarray(value, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise self.fail(fld, f"expected numbers of shape {_fmt_shape(shape)}, "
-                                 f"found {value!r}") from None
-        if a.ndim != len(shape) or any(s is not None and s != n for s, n in zip(shape, a.shape)):
-            raise self.fail(fld, f"expected shape {_fmt_shape(shape)}, found {a.shape}")
-        if not np.all(np.isfinite(a)):
-            raise self.fail(fld, "expected finite numbers, found NaN or inf")
-        return a
-
-
-def _fmt_shape(shape: tuple) -> str:
-    return "(" + ", ".join("D" if s is None else str(s) for s in shape) + ")"
-
-
 def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "") -> np.ndarray:
     """Check an OpenCV camera matrix: (3, 3), finite, fx, fy > 0, last row [0, 0, 1]."""
-    ctx = _Ctx(source)
+    ctx = FieldChecker(source)
     K = ctx.array(K, fld, (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ctx.fail(fld, f"expected positive focal lengths fx, fy, found {K[0, 0]}, {K[1, 1]}")
@@ -233,7 +188,7 @@ def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "")
 def validate_normal_basis(basis: Any, fld: str = "scanner.normal_basis", source: str = "",
                           tol: float = 1e-6) -> np.ndarray:
     """Check the mirror's normal basis [e1, e2]: (2, 3), unit, orthogonal."""
-    ctx = _Ctx(source)
+    ctx = FieldChecker(source)
     B = ctx.array(basis, fld, (2, 3))
     norms = np.linalg.norm(B, axis=1)
     for i in range(2):
@@ -248,40 +203,40 @@ def validate_normal_basis(basis: Any, fld: str = "scanner.normal_basis", source:
 
 def system_from_dict(d: dict, source: str = "<dict>") -> System:
     """Build and validate a :class:`System` from its FORMAT v1 JSON object."""
-    ctx = _Ctx(source)
+    ctx = FieldChecker(source)
     if not isinstance(d, dict):
         raise ctx.fail("(top level)", f"expected a JSON object, found {type(d).__name__}")
-    fmt = ctx.get(d, "format", "")
+    fmt = ctx.req(d, "format", "")
     if fmt != FORMAT_NAME:
         raise ctx.fail("format", f"expected {FORMAT_NAME!r}, found {fmt!r}")
-    ver = ctx.get(d, "version", "")
+    ver = ctx.req(d, "version", "")
     if ver != FORMAT_VERSION:
         raise ctx.fail("version", f"expected {FORMAT_VERSION}, found {ver!r}")
 
-    r = ctx.get(d, "receiver", "")
-    K = validate_camera_matrix(ctx.get(r, "camera_matrix", "receiver"),
+    r = ctx.req(d, "receiver", "")
+    K = validate_camera_matrix(ctx.req(r, "camera_matrix", "receiver"),
                                "receiver.camera_matrix", source)
-    dist = ctx.array(ctx.get(r, "dist_coeffs", "receiver"), "receiver.dist_coeffs", (None,))
+    dist = ctx.array(ctx.req(r, "dist_coeffs", "receiver"), "receiver.dist_coeffs", (None,))
     if dist.size not in ALLOWED_DIST_LENGTHS:
         raise ctx.fail("receiver.dist_coeffs",
                        f"expected 4, 5, 8, 12 or 14 coefficients, found {dist.size}")
-    size = ctx.get(r, "image_size", "receiver")
+    size = ctx.req(r, "image_size", "receiver")
     if (not isinstance(size, (list, tuple)) or len(size) != 2
             or not all(isinstance(s, int) and not isinstance(s, bool) and s > 0 for s in size)):
         raise ctx.fail("receiver.image_size",
                        f"expected [width, height] as two positive integers, found {size!r}")
-    pitch = ctx.array(ctx.get(r, "pixel_pitch", "receiver"), "receiver.pixel_pitch", (2,))
+    pitch = ctx.array(ctx.req(r, "pixel_pitch", "receiver"), "receiver.pixel_pitch", (2,))
     if np.any(pitch <= 0):
         raise ctx.fail("receiver.pixel_pitch", f"expected positive values, found {pitch.tolist()}")
-    spad = ctx.number(ctx.get(r, "spad_diameter", "receiver"), "receiver.spad_diameter",
+    spad = ctx.number(ctx.req(r, "spad_diameter", "receiver"), "receiver.spad_diameter",
                       positive=True)
     receiver = Receiver(K, dist, (int(size[0]), int(size[1])), pitch, spad)
 
-    s = ctx.get(d, "scanner", "")
-    pos = ctx.array(ctx.get(s, "position", "scanner"), "scanner.position", (3,))
-    basis = validate_normal_basis(ctx.get(s, "normal_basis", "scanner"),
+    s = ctx.req(d, "scanner", "")
+    pos = ctx.array(ctx.req(s, "position", "scanner"), "scanner.position", (3,))
+    basis = validate_normal_basis(ctx.req(s, "normal_basis", "scanner"),
                                   "scanner.normal_basis", source)
-    dl = ctx.array(ctx.get(s, "laser_direction", "scanner"), "scanner.laser_direction", (3,))
+    dl = ctx.array(ctx.req(s, "laser_direction", "scanner"), "scanner.laser_direction", (3,))
     if abs(np.linalg.norm(dl) - 1.0) > 1e-6:
         raise ctx.fail("scanner.laser_direction",
                        f"expected a unit vector, found norm {np.linalg.norm(dl):.9g}")
@@ -289,32 +244,32 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
         position=pos,
         normal_basis=basis,
         laser_direction=dl,
-        theta0=ctx.number(ctx.get(s, "theta0", "scanner"), "scanner.theta0"),
-        f_mech=ctx.number(ctx.get(s, "f_mech", "scanner"), "scanner.f_mech", positive=True),
-        theta_mech_max=ctx.number(ctx.get(s, "theta_mech_max", "scanner"),
+        theta0=ctx.number(ctx.req(s, "theta0", "scanner"), "scanner.theta0"),
+        f_mech=ctx.number(ctx.req(s, "f_mech", "scanner"), "scanner.f_mech", positive=True),
+        theta_mech_max=ctx.number(ctx.req(s, "theta_mech_max", "scanner"),
                                   "scanner.theta_mech_max", positive=True),
         phase_offset=ctx.number(s.get("phase_offset", 0.0), "scanner.phase_offset"),
     )
 
-    la = ctx.get(d, "laser", "")
+    la = ctx.req(d, "laser", "")
     laser = Laser(
-        f_rep=ctx.number(ctx.get(la, "f_rep", "laser"), "laser.f_rep", positive=True),
-        pulse_fwhm=ctx.number(ctx.get(la, "pulse_fwhm", "laser"), "laser.pulse_fwhm",
+        f_rep=ctx.number(ctx.req(la, "f_rep", "laser"), "laser.f_rep", positive=True),
+        pulse_fwhm=ctx.number(ctx.req(la, "pulse_fwhm", "laser"), "laser.pulse_fwhm",
                               nonneg=True),
-        wavelength=ctx.number(ctx.get(la, "wavelength", "laser"), "laser.wavelength",
+        wavelength=ctx.number(ctx.req(la, "wavelength", "laser"), "laser.wavelength",
                               positive=True),
     )
 
-    t = ctx.get(d, "tdc", "")
-    n_bins = ctx.get(t, "n_bins", "tdc")
+    t = ctx.req(d, "tdc", "")
+    n_bins = ctx.req(t, "n_bins", "tdc")
     if isinstance(n_bins, bool) or not isinstance(n_bins, int) or not 1 <= n_bins <= 65535:
         raise ctx.fail("tdc.n_bins", f"expected an integer in 1..65535, found {n_bins!r}")
     tdc = TDC(
-        bin_width=ctx.number(ctx.get(t, "bin_width", "tdc"), "tdc.bin_width", positive=True),
+        bin_width=ctx.number(ctx.req(t, "bin_width", "tdc"), "tdc.bin_width", positive=True),
         n_bins=n_bins,
         offset=ctx.number(t.get("offset", 0.0), "tdc.offset"),
     )
-    c = ctx.number(ctx.get(d, "speed_of_light", ""), "speed_of_light", positive=True)
+    c = ctx.number(ctx.req(d, "speed_of_light", ""), "speed_of_light", positive=True)
     calib = d.get("calibration")
     if calib is not None and not isinstance(calib, dict):
         raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")

@@ -13,7 +13,8 @@ HELP = "print a system description and its acquisition statistics (paper Sec. 2.
 EXAMPLE = "mems-stereo info --system burkard2022 --shots 400 --distance 2.5 --plot fig2.png"
 
 
-def add_arguments(p):
+def add_acquisition_arguments(p):
+    """The options of the acquisition statistics (shared with ``plot acquisition``)."""
     p.add_argument("--system", default="burkard2022",
                    help="system JSON file or preset name (default: burkard2022)")
     p.add_argument("--shots", type=int, default=400, help="number of laser shots (default 400)")
@@ -21,6 +22,10 @@ def add_arguments(p):
                    help="distance of a flat target, m (default 2.5)")
     p.add_argument("--ratio", type=float, default=None,
                    help="f_mech/f_rep (default: from the system; the paper's Fig. 2 uses 0.0785)")
+
+
+def add_arguments(p):
+    add_acquisition_arguments(p)
     p.add_argument("--plot", default=None, help="write the Fig. 2 plot to this PNG")
 
 

@@ -14,15 +14,11 @@ EXAMPLE = ("mems-stereo plot histograms room_hist.h5 -o fig8.png --max-code 256 
 
 
 def add_arguments(p):
+    from .info import add_acquisition_arguments
+
     sub = p.add_subparsers(dest="figure", metavar="FIGURE", required=True)
     a = sub.add_parser("acquisition", help="Fig. 2: shots over scan angle and per pixel")
-    a.add_argument("--system", default="burkard2022",
-                   help="system JSON file or preset name (default burkard2022)")
-    a.add_argument("--shots", type=int, default=400, help="number of laser shots (default 400)")
-    a.add_argument("--distance", type=float, default=2.5,
-                   help="distance of a flat target, m (default 2.5)")
-    a.add_argument("--ratio", type=float, default=None,
-                   help="f_mech/f_rep (default: from the system; the paper uses 0.0785)")
+    add_acquisition_arguments(a)
     a.add_argument("-o", "--output", required=True, help="PNG to write")
     h = sub.add_parser("histograms",
                        help="Figs. 8/9: raw, signal, noise histograms from a histogram file")

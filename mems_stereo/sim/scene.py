@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import FormatError
+from ..validation import FieldChecker
 
 SCENE_FORMAT = "mems-stereo/scene"
 SCENE_VERSION = 1
@@ -266,25 +267,8 @@ def cylinder_mesh(center, radius, height, axis=(0.0, 1.0, 0.0), n_seg=CYLINDER_S
 # JSON loading and validation
 
 
-class _Checker:
-    def __init__(self, source: str):
-        self.source = source
-
-    def fail(self, fld: str, msg: str) -> FormatError:
-        return FormatError(msg, source=self.source, field=fld)
-
-    def req(self, d: dict, key: str, prefix: str) -> Any:
-        if key not in d:
-            raise self.fail(f"{prefix}.{key}" if prefix else key, "required field is missing")
-        return d[key]
-
-    def number(self, v: Any, fld: str, positive: bool = False) -> float:
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise self.fail(fld, f"expected a {'positive ' if positive else ''}number, found "
-                                 f"{json.dumps(v)}")
-        if positive and v <= 0:
-            raise self.fail(fld, f"expected a positive number, found {json.dumps(v)}")
-        return float(v)
+class _Checker(FieldChecker):
+    """Scene-specific checks on top of the shared field checker."""
 
     def vec(self, v: Any, fld: str, n: int, positive: bool = False,
             nonzero: bool = False) -> np.ndarray:
