@@ -151,44 +151,57 @@ def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
 # compiled kernel
 
 
-def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal, n_bins):
+def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal):
     """Reference semantics of the compiled kernel (pure Python; used when numba is absent).
 
-    bins : (K, P) uint16; rows : (K,) int64 table row (−1: shot left out);
-    lo, hi : (S, P) uint16; labels : (K, P) uint8 out, or (0, 0): not written;
+    bins : (K, P) uint16, codes <= n_bins (checked by the caller: the kernel
+    does no bounds checks); rows : (K,) int64 table row (−1: shot left out,
+    label 0, not counted); lo, hi : (S, P) uint16; labels : (K, P) uint8 out;
     hist_raw, hist_signal : (P, n_bins + 1) int32 added to in place (column N
-    counts code N; column 0 counts the pixel-slots without a detection).
-    Codes are cast to int64 before any arithmetic (numba would otherwise mix
-    unsigned and signed integers through float64).
+    counts code N; column 0 of ``hist_raw`` counts the slots without a
+    detection).  Codes are cast to int64 before any arithmetic (numba would
+    otherwise mix unsigned and signed integers through float64); the loop
+    body has a single data-dependent branch (the rare signal count).
     """
     K, P = bins.shape
-    write = labels.shape[0] == K
     for k in range(K):
         j = rows[k]
         if j < 0:
-            if write:
-                for p in range(P):
-                    labels[k, p] = 0
+            for p in range(P):
+                labels[k, p] = 0
             continue
         for p in range(P):
             c = np.int64(bins[k, p])
-            if c > n_bins:
-                c = 0
             hist_raw[p, c] += 1
-            ok = c != 0 and np.int64(lo[j, p]) <= c and c <= np.int64(hi[j, p])
+            ok = (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p]))
             if ok:
                 hist_signal[p, c] += 1
-            if write:
-                labels[k, p] = 1 if ok else (2 if c != 0 else 0)
+            labels[k, p] = (c != 0) * (2 - ok)
+
+
+def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal):
+    """As :func:`_kernel_py` without writing labels."""
+    K, P = bins.shape
+    for k in range(K):
+        j = rows[k]
+        if j < 0:
+            continue
+        for p in range(P):
+            c = np.int64(bins[k, p])
+            hist_raw[p, c] += 1
+            if (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p])):
+                hist_signal[p, c] += 1
 
 
 try:  # pragma: no cover - exercised whenever numba is installed (a declared dependency)
     import numba
 
-    _kernel = numba.njit(cache=True, nogil=True, boundscheck=False)(_kernel_py)
+    _jit = numba.njit(cache=True, nogil=True, boundscheck=False)
+    _kernel = _jit(_kernel_py)
+    _kernel_nolabels = _jit(_kernel_nolabels_py)
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
-    _kernel = _kernel_py
+    _kernel, _kernel_nolabels = _kernel_py, _kernel_nolabels_py
     HAVE_NUMBA = False
 
 
@@ -202,7 +215,7 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     theta : (K,) rad; valid : (K,) bool (False: shot left out, label 0,
         not counted).
     table : :class:`IntervalTable` of the system (rows filled on demand).
-    n_bins : codes above it are ignored (they are rejected on read).
+    n_bins : codes above it raise :class:`~mems_stereo.errors.FormatError`.
     hist_raw, hist_signal : (H*W, n_bins + 1) int32, added to in place
         (allocated when None).  Column N counts code N; column 0 of
         ``hist_raw`` counts valid pixel-slots without a detection.  The noise
@@ -219,6 +232,10 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     K = b.shape[0]
     P = int(np.prod(b.shape[1:]))
     b2 = b.reshape(K, P)
+    if b2.size and int(b2.max()) > n_bins:  # the kernel indexes without bounds checks
+        from .errors import FormatError
+
+        raise FormatError(f"expected codes 0..{n_bins}, found {int(b2.max())}", field="bins")
     rows = table.index(theta)
     rows[~np.asarray(valid, dtype=bool)] = -1
     table.ensure(rows)
@@ -226,8 +243,12 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         hist_raw = np.zeros((P, n_bins + 1), dtype=np.int32)
     if hist_signal is None:
         hist_signal = np.zeros((P, n_bins + 1), dtype=np.int32)
-    labels = np.empty((K, P), dtype=np.uint8) if want_labels else np.empty((0, 0), np.uint8)
-    _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, int(n_bins))
+    if want_labels:
+        labels = np.empty((K, P), dtype=np.uint8)
+        _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal)
+    else:
+        labels = None
+        _kernel_nolabels(b2, rows, table.lo, table.hi, hist_raw, hist_signal)
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
 
 

@@ -8,7 +8,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mems_stereo.classify import classify_bins
-from mems_stereo.fastpath import _kernel_py, classify_and_accumulate, interval_table
+from mems_stereo.fastpath import (
+    _kernel_nolabels_py,
+    _kernel_py,
+    classify_and_accumulate,
+    interval_table,
+)
 from mems_stereo.system import burkard2022
 
 
@@ -71,7 +76,7 @@ def test_compiled_kernel_equals_its_python_semantics(table, rng):
             lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096)
             lab = lab.reshape(64, 192)
         else:
-            fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig, 4096)
+            fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig)
         out.append((lab, raw, sig))
     for a, b in zip(*out):
         np.testing.assert_array_equal(a, b)
@@ -120,3 +125,25 @@ def test_peak_window_keys_equal_a_numpy_reference(table, rng):
     n = _window_keys_py(bins.reshape(120, -1), r, table.lo, table.hi, pix, lo, hi,
                         table.n_steps, 4097, out)
     np.testing.assert_array_equal(out[:n], keys)
+
+
+def test_kernel_without_labels_counts_the_same(table, rng):
+    s = burkard2022()
+    bins, theta, valid = _random_block(rng, s, 50)
+    rows = table.index(theta)
+    rows[~valid] = -1
+    table.ensure(rows)
+    raw_a = np.zeros((192, 4097), np.int32)
+    sig_a = np.zeros_like(raw_a)
+    _kernel_nolabels_py(bins.reshape(50, 192), rows, table.lo, table.hi, raw_a, sig_a)
+    _, raw_b, sig_b = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
+    np.testing.assert_array_equal(raw_a, raw_b)
+    np.testing.assert_array_equal(sig_a, sig_b)
+
+
+def test_codes_above_n_bins_are_refused(table):
+    from mems_stereo.errors import FormatError
+
+    bins = np.full((2, 1, 192), 5000, np.uint16)
+    with pytest.raises(FormatError, match="codes 0..4096"):
+        classify_and_accumulate(bins, np.array([0.76, 0.77]), np.ones(2, bool), table, 4096)
