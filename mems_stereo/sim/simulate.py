@@ -30,6 +30,7 @@ from ..recording import Recording
 from ..scanner import scan_direction
 from ..system import System
 from .photons import (
+    DENSE_BACKGROUND,
     LinkBudget,
     PulseShape,
     SpotModel,
@@ -139,9 +140,21 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
     delay = ret["path_length"][ks] / true_system.speed_of_light + tdc.offset
     tau_sig, _ = first_signal_arrival(mu_slot[sel], delay, pulse, window, rng)
 
-    # background + dark counts, grouped by rate (one group for a uniform rate)
     flat_rate = rates.reshape(-1)
     uniq, inverse = np.unique(flat_rate, return_inverse=True)
+    if uniq.size == 1 and -math.expm1(-float(uniq[0]) * window) > DENSE_BACKGROUND:
+        # uniform, dense background (floodlight): the same draws as
+        # background_first_arrivals, kept as whole arrays (no index scatter)
+        bins, label, tau_bg_all = _dense_background(float(uniq[0]), n_slots, window, bw, rng)
+        has_sig = np.isfinite(tau_sig)
+        s_slot, s_tau = slot_sig[has_sig], tau_sig[has_sig]
+        win = s_tau < tau_bg_all[s_slot]
+        code = np.minimum(np.floor(s_tau[win] / bw) + 1, tdc.n_bins).astype(np.uint16)
+        bins[s_slot[win]] = code
+        label[s_slot[win]] = 1
+        return _finish_chunk(bins, label, mu_slot, k, h, w, crosstalk, rng)
+
+    # background + dark counts, grouped by rate (one group for a uniform rate)
     bg_idx, bg_tau = [], []
     for g, lam in enumerate(uniq):
         pix = np.flatnonzero(inverse == g)
@@ -176,12 +189,37 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
     bins[s_slot[win]] = code
     label[s_slot[win]] = 1
 
+    return _finish_chunk(bins, label, mu_slot, k, h, w, crosstalk, rng)
+
+
+def _finish_chunk(bins, label, mu_slot, k, h, w, crosstalk, rng):
     bins = bins.reshape(k, h, w)
     label = label.reshape(k, h, w)
     if crosstalk > 0:
         _crosstalk(bins, label, crosstalk, rng)
     mu_on = mu_slot.sum(axis=(1, 2))
     return bins, label, mu_on
+
+
+def _dense_background(lam: float, n_slots: int, window: float, bw: float,
+                      rng: np.random.Generator):
+    """Codes, labels and first arrival (inf: none) of a dense uniform background.
+
+    Draws exactly what :func:`~mems_stereo.sim.photons.background_first_arrivals`
+    draws in its dense branch (one float32 uniform per slot) and applies the same
+    arithmetic, on whole arrays: bit-identical results, without the index scatter.
+    """
+    p = -math.expm1(-lam * window)
+    u = rng.random(n_slots, dtype=np.float32)
+    fires = u < p
+    tau = np.log1p(-u)
+    tau *= np.float32(-1.0 / lam)
+    np.minimum(tau, np.float32(window * (1 - 1e-6)), out=tau)
+    code = tau * (1.0 / bw)
+    bins = np.where(fires, code.astype(np.uint16) + np.uint16(1), np.uint16(0))
+    label = np.where(fires, np.uint8(2), np.uint8(0))
+    tau_all = np.where(fires, tau, np.float32(np.inf))
+    return bins, label, tau_all
 
 
 def _crosstalk(bins: np.ndarray, label: np.ndarray, p: float, rng: np.random.Generator):
