@@ -239,7 +239,8 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     return points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
                                        peaks["col"], peaks["code"], min_counts=settings.min_counts,
                                        confidence=settings.confidence, weight=counts.counts,
-                                       step=step, shots_per_step=shots_per_step)
+                                       shots_per_step=shots_per_step,
+                                       step_grid=(table.theta_min, table.step))
 
 
 @dataclass

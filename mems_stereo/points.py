@@ -18,6 +18,13 @@ optional calibration covariance) through that fixed-weight combination.
 A peak (the signal detections of one pixel inside a code window) averages
 its detections' estimates; the errors of different shots are independent, so
 its covariance is ``Σ C_i / n²``.  Units: metres, receiver camera frame.
+
+A SPAD records a shot's first photon only, so the time of flight of a strong
+return is early (first-photon pile-up) and one at the TDC start late; given
+the valid shots per scan-angle step, :class:`PeakAccumulator` estimates each
+peak's signal photons per shot from which shots fired and removes that delay
+from the ToF (and, by its share, the fused) estimate, with its uncertainty
+(:func:`first_photon_moments`, :func:`first_photon_delay`).
 """
 
 from __future__ import annotations
@@ -32,8 +39,14 @@ from .cloud import PointCloud
 from .errors import GeometryError
 from .scanner import scan_direction
 from .system import System
-from .triangulation import epipolar_stereo_point, path_length_from_codes, scanner_ray_point
+from .triangulation import (
+    epipolar_stereo_point,
+    path_length_from_codes,
+    path_length_of_point,
+    scanner_ray_point,
+)
 from .uncertainty import (
+    DEFAULT_SPOT_SIGMA,
     Spreads,
     _rays,
     jacobian,
@@ -280,8 +293,8 @@ def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None
 # model as calib.timing.first_photon_moments with no background, and as the
 # simulator's sampling; tests/test_tof_bias.py checks all three agree.)
 
-#: most signal photons per shot the correction considers (p = 1 − e^−50)
-MU_MAX = 50.0
+#: most signal photons per shot the correction considers
+MU_MAX = 100.0
 _A_GRID = (-6.0, 4.0, 101)  # a = −τ0/σ: below −6 the cut does nothing
 _LOGMU_GRID = (math.log(1e-4), math.log(MU_MAX), 97)
 
@@ -353,51 +366,98 @@ def _table_lookup(a, logmu):
     return bil(mean), bil(var)
 
 
-def first_photon_correction(n_detected, n_shots, tau_mean, sigma, n_nodes: int = 48,
-                            iterations: int = 30):
-    """Bias of the mean first-photon arrival of peaks, with its uncertainty.
+#: grid of the signal photons per shot μ0 (spot centred on the pixel) of the posterior
+MU_GRID = np.exp(np.linspace(math.log(1e-2), math.log(MU_MAX), 41))
+#: probability that a shot gives an inlier the spot model cannot explain (background
+#: inside the window, crosstalk): keeps one stray detection from forcing μ0 up
+OUTLIER_PROBABILITY = 0.02
 
-    Each peak has ``n_detected`` signal detections in ``n_shots`` shots that
-    lit its pixel; the detection probability p has the posterior
-    Beta(n + 1, N − n + 1) (uniform prior), so ``μ_w = −ln(1 − p)`` (capped
-    at :data:`MU_MAX`) and the first-photon delay δ(a, μ_w)
-    (:func:`first_photon_moments`) are averaged over it by Gauss–Legendre
-    quadrature in p's quantile.  The pulse centre ``τ0`` solves
-    ``τ̄ = τ0 + E[δ(−τ0/σ, μ_w)]`` (fixed point; ``|∂δ/∂a| < 1``).
+
+def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float = DEFAULT_SPOT_SIGMA):
+    """Share of the imaged laser spot on a pixel when the beam lights a target at range ``rng``.
+
+    The target point is on the scanner ray at angle ``theta`` (rad) at distance
+    ``rng`` (m) from the projection centre; its image (``project_points``)
+    is the centre of a Gaussian spot of σ ``spot_sigma`` (m on the sensor,
+    as :func:`~mems_stereo.uncertainty.spreads_for`); the share on pixel
+    (row, col) is the product of the per-axis Gaussian integrals over the
+    pixel (as the simulator's ``spot_fractions``).  Arguments broadcast;
+    returns float64 of the broadcast shape (0 where the ray misses that range).
+    """
+    from scipy.special import ndtr
+
+    from .camera import project_points
+
+    rows, cols, th, r = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
+                                              for a in (rows, cols, theta, rng)))
+    p = np.asarray(system.scanner.position, dtype=np.float64)
+    d = scan_direction(th.ravel(), system.scanner)
+    pd = d @ p
+    with np.errstate(invalid="ignore"):
+        s = -pd + np.sqrt(pd * pd - p @ p + r.ravel() ** 2)
+    uv = project_points(p + s[:, None] * d, system.receiver.camera_matrix,
+                        system.receiver.dist_coeffs)
+    pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
+    sc, sr = spot_sigma / pitch[0], spot_sigma / pitch[1]
+    u, v = uv[:, 0].reshape(th.shape), uv[:, 1].reshape(th.shape)
+    fc = ndtr((cols + 0.5 - u) / sc) - ndtr((cols - 0.5 - u) / sc)
+    fr = ndtr((rows + 0.5 - v) / sr) - ndtr((rows - 0.5 - v) / sr)
+    return np.nan_to_num(fc * fr, nan=0.0)
+
+
+def _detection_log_odds(f):
+    """log p − log(1 − p) of a shot with spot share f (…) on the μ0 grid -> (…, J)."""
+    p = _firing_probability(f)
+    return np.log(p) - np.log1p(-p)
+
+
+def _firing_probability(f):
+    """P(inlier) of a shot with spot share f (…) on the μ0 grid -> (…, J), in (0, 1)."""
+    e = OUTLIER_PROBABILITY
+    pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])
+    return np.minimum(e + (1 - e) * pf, 1.0 - 1e-12)
+
+
+def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
+    """Posterior first-photon delay of peaks from their spot-profile likelihood.
 
     Parameters
     ----------
-    n_detected, n_shots : (Q,) float64, detections and illuminating shots
-        (``n_shots ≥ n_detected`` is enforced).
-    tau_mean : (Q,) float64, s, the mean TDC time of the detections
-        (``(N̄ − ½)·bin_width``).
+    log_likelihood : (Q, J) log-likelihood of μ0 = :data:`MU_GRID` (signal
+        photons per shot after the TDC start with the spot centred on the
+        pixel); the prior is uniform in log μ0 over the grid.
+    f_band, n_band : (Q, B) spot shares and valid shots of the angle steps
+        around each peak's band (n 0 pads).
+    tau0 : (Q,) s, TDC time of each pulse's centre (``L/c + offset``); it
+        matters only near the TDC start, where the early part of the pulse
+        is cut off (give it from the stereo or fused point there: inverting
+        the mean arrival time is ill-conditioned at the cut).
     sigma : float, s, the pulse σ (⊕ jitter).
 
     Returns
     -------
-    delay : (Q,) s, E[δ]: subtract from ``tau_mean`` for the pulse centre.
-    sigma_delay : (Q,) s, posterior standard deviation of δ.
-    var_arrival : (Q,) s², E[variance of one detection's arrival] (replaces σ²).
-    mu_window : (Q,) posterior mean of μ_w (photons per shot after the TDC start).
+    delay : (Q,) s, E[mean arrival − pulse centre] of the detections (the
+        average over the band's shots of δ(a, μ0·f_s) weighted by their
+        detection probabilities, then over the posterior of μ0).
+    sigma_delay : (Q,) s, its posterior standard deviation.
+    var_arrival : (Q,) s², E[variance of one detection's arrival] (the
+        band's mixture of first-photon spreads).
+    mu : (Q,) posterior mean of μ0.
     """
-    from scipy.special import betaincinv
-
-    n = np.maximum(np.asarray(n_detected, dtype=np.float64), 0.0)
-    N = np.maximum(np.asarray(n_shots, dtype=np.float64), n)
-    x, wq = np.polynomial.legendre.leggauss(int(n_nodes))
-    q, wq = 0.5 * (x + 1.0), 0.5 * wq
-    p = betaincinv((n + 1.0)[:, None], (N - n + 1.0)[:, None], q[None, :])  # (Q, M)
-    mu = np.clip(-np.log1p(-np.minimum(p, 1.0 - math.exp(-MU_MAX))), 1e-4, MU_MAX)
-    logmu = np.log(mu)
-    tb = np.asarray(tau_mean, dtype=np.float64) / sigma
-    t0 = tb.copy()
-    for _ in range(int(iterations)):
-        d, _ = _table_lookup(-t0[:, None], logmu)
-        t0 = tb - d @ wq
-    d, v = _table_lookup(-t0[:, None], logmu)
-    dm = d @ wq
-    dv = np.maximum((d * d) @ wq - dm * dm, 0.0)
-    return dm * sigma, np.sqrt(dv) * sigma, (v @ wq) * sigma ** 2, mu @ wq
+    ll = np.asarray(log_likelihood, dtype=np.float64)
+    post = np.exp(ll - ll.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)  # (Q, J)
+    mu_s = MU_GRID[None, :, None] * f_band[:, None, :]  # (Q, J, B)
+    w = n_band[:, None, :] * -np.expm1(-mu_s)  # expected detections per step
+    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)
+    lm = np.log(np.clip(mu_s, 1e-4, MU_MAX))
+    a = -np.asarray(tau0, dtype=np.float64) / sigma
+    d, v = _table_lookup(a[:, None, None], lm)
+    dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0
+    vj = np.sum(w * (v + d * d), axis=2) - dj * dj  # mixture variance
+    dm = np.sum(post * dj, axis=1)
+    sd = np.sqrt(np.maximum(np.sum(post * dj * dj, axis=1) - dm * dm, 0.0))
+    return dm * sigma, sd * sigma, np.sum(post * vj, axis=1) * sigma ** 2, post @ MU_GRID
 
 
 class PeakAccumulator:
@@ -419,42 +479,53 @@ class PeakAccumulator:
        per-peak sums.
 
     :meth:`cloud` returns, for each estimate (fused, stereo, time of flight),
-    the mean weighted by the inverse of the estimate's own range variance,
+    the mean weighted by the inverse of the estimate's own range variance
+    (time of flight: equal weights, every detection has the same timing spread),
     ``x̄ = Σ w_i x_i / Σ w_i`` with covariance ``Σ w_i² C_i / (Σ w_i)²``, scaled
     by the inliers' reduced χ² when it exceeds 1 (Birge ratio: the reported σ
     stays honest when the scatter exceeds the propagated spread).  Memory is
     O(peaks × grid), independent of the number of detections.
 
     First-photon correction of the time-of-flight estimate (``first_photon``,
-    on by default; it needs ``shots_per_step`` and each detection's angle
-    ``step`` in :meth:`add_inliers`, and is skipped without them).  The
-    inliers' angle steps span a band ``[s_lo, s_hi]`` of the interval table's
-    grid: the shots that lit the pixel.  Its valid shots ``N`` (from
-    ``shots_per_step``) and the inlier count ``n``, less one detection and one
-    shot at each end of the band (the ends are where detections happened to
-    fall, the shots between them are unbiased trials), give the posterior of
-    the detection probability and so of the signal photons per shot μ_w; the
-    mean first-photon delay δ (early by up to several ns for a strong return,
-    late for a return at the TDC start; :func:`first_photon_correction`) is
-    removed from the ToF mean (the fused mean moves by its ToF share), the
-    timing variance of a detection becomes the first-photon one, and the
-    posterior spread of δ is added in quadrature.  Assumptions: μ the same for
-    every shot of the band (a spot much narrower than a pixel), background
-    inside the peak window negligible (room light; at 6 MHz some 10 % of the
-    inliers are background and μ_w comes out high), Gaussian pulse of the
+    on by default; it needs ``shots_per_step`` and ``step_grid``, the valid
+    shots per scan-angle step of the interval table's grid, and is skipped
+    without them).  A SPAD records the first photon of a shot, so a strong
+    return arrives early (δ ≈ −0.6 ns at μ = 0.35 photons per shot, −1.8 ns at
+    1, −5.9 ns at 4 with the 14.9 ns pulse) and one at the TDC start late
+    (:func:`first_photon_moments`).  μ comes from which shots fired: a shot
+    at angle θ puts the share ``f(θ)`` of the spot on the pixel
+    (:func:`spot_fraction`, target at the peak's centre range) and fires with
+    ``p = 1 − exp(−μ0·f)``.  Each inlier adds its log-odds on a grid of μ0
+    (:data:`MU_GRID`, :meth:`add_inliers`); at :meth:`cloud` the steps
+    around the inliers' angle band add ``N_s·ln(1 − p_s)`` for every valid
+    shot; the posterior of μ0 (uniform in log μ0) gives the expected delay
+    of the detections' mean (:func:`first_photon_delay`).  The spot profile
+    carries the information a saturated detection rate (every shot fires)
+    lacks: the stronger the return, the further outside the pixel the spot
+    still fires it.  The delay is removed from the ToF mean (the fused mean
+    moves by its ToF share), a detection's timing variance becomes the
+    first-photon one, and the posterior spread of the delay is added in
+    quadrature (after the Birge scaling).  Assumptions: the spot model
+    (Gaussian, ``spot_sigma``), background inside the peak window small
+    (:data:`OUTLIER_PROBABILITY`; under a 6 MHz floodlight it is not), the
+    target's range constant across the band, a Gaussian pulse of the
     system's ``pulse_fwhm`` ⊕ the spreads' jitter.
     """
 
     def __init__(self, system: System, rows, cols, peak_code=None,
                  spreads: Spreads | None = None, confidence: float = 0.997,
                  r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
-                 shots_per_step=None, first_photon: bool = True):
+                 shots_per_step=None, step_grid=None, first_photon: bool = True,
+                 spot_sigma: float = DEFAULT_SPOT_SIGMA):
         from .classify import k_from_confidence
 
         self.system = system
-        self.shots_cum = (None if shots_per_step is None else np.concatenate(
-            [[0], np.cumsum(np.asarray(shots_per_step, dtype=np.int64).ravel())]))
+        self.shots_per_step = (None if shots_per_step is None or step_grid is None
+                               else np.asarray(shots_per_step, dtype=np.int64).ravel())
+        self.step_grid = None if step_grid is None else (float(step_grid[0]),
+                                                         float(step_grid[1]))
         self.first_photon = bool(first_photon)
+        self.spot_sigma = float(spot_sigma)
         self.spreads = spreads
         self.k = k_from_confidence(confidence)
         self.rows = np.asarray(rows, dtype=np.int64).ravel()
@@ -478,6 +549,7 @@ class PeakAccumulator:
         for name in ("fused", "tof"):  # ∂x/∂L sums for the first-photon correction
             self.sums["D_" + name] = np.zeros((Q, 3))
             self.sums["G_" + name] = np.zeros((Q, 3, 3))
+        self.sums["loglik"] = np.zeros((Q, MU_GRID.size))  # inliers' log-odds on the μ0 grid
         self.band = _empty_band(Q)  # inliers' angle steps: min, max (merged, not summed)
 
     def empty_copy(self) -> PeakAccumulator:
@@ -538,11 +610,9 @@ class PeakAccumulator:
         self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
         return self.centre
 
-    def add_inliers(self, shot, peak, code, theta, weight=None, step=None) -> None:
+    def add_inliers(self, shot, peak, code, theta, weight=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
-        (arguments as :meth:`add_mode`; ``step`` (M,) int, the index of each
-        detection's angle on the grid of ``shots_per_step``, for the
-        first-photon correction)."""
+        (arguments as :meth:`add_mode`)."""
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
         peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
@@ -551,14 +621,19 @@ class PeakAccumulator:
         with np.errstate(invalid="ignore"):
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
         q = peak[inl]
-        m = m[inl]
+        m_all, m = m, m[inl]
         s = self.sums
         s["n"] += np.bincount(q, weights=m, minlength=Q)
         for name in ("fused", "stereo", "tof"):
             x = getattr(dp, name)[inl]
             C = getattr(dp, "cov_" + name)[inl]
-            _, _, se, _ = polar_from_cartesian(x, C)
-            w = 1.0 / np.maximum(se, 1e-12) ** 2  # each estimate by its own range variance
+            if name == "tof":
+                # every detection has the same timing spread: equal weights (the range
+                # variance of a ToF point near the mirror is tiny and would outweigh the rest)
+                w = np.ones(q.size)
+            else:
+                _, _, se, _ = polar_from_cartesian(x, C)
+                w = 1.0 / np.maximum(se, 1e-12) ** 2  # by the estimate's own range variance
             s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
             np.add.at(s["X_" + name], q, x * (m * w)[:, None])
             np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
@@ -569,12 +644,18 @@ class PeakAccumulator:
                 np.add.at(s["D_" + name], q, g * (m * w)[:, None])
                 np.add.at(s["G_" + name], q, g[:, :, None] * g[:, None, :]
                           * (m * w * w)[:, None, None])
-        if step is not None:
-            st = np.asarray(step, dtype=np.int64).ravel()
-            if st.shape != peak.shape:
-                raise GeometryError(f"step: expected shape {peak.shape}, found {st.shape}")
-            np.minimum.at(self.band[0], q, st[inl])
-            np.maximum.at(self.band[1], q, st[inl])
+        if self.shots_per_step is not None and self.first_photon and peak.size:
+            # band: the inliers' steps; likelihood: every detection of the window (the
+            # in-peak test drops true returns at the band's edges, where the spot is
+            # half off the pixel: counting those shots as misses would bias μ0 low)
+            th = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()]
+            t0, dt = self.step_grid
+            st = np.rint((th[inl] - t0) / dt).astype(np.int64)
+            np.minimum.at(self.band[0], q, st)
+            np.maximum.at(self.band[1], q, st)
+            f = spot_fraction(self.system, self.rows[peak], self.cols[peak], th,
+                              self.centre[peak], self.spot_sigma)
+            np.add.at(s["loglik"], peak, _detection_log_odds(f) * m_all[:, None])
         w = 1.0 / sr[inl] ** 2
         s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
@@ -628,38 +709,46 @@ class PeakAccumulator:
         return PointCloud(xf, attrs).select(keep)
 
     def _correcting(self) -> bool:
-        return (self.first_photon and self.shots_cum is not None
-                and bool(np.any(self.band[1] >= 0)))
+        return (self.first_photon and self.shots_per_step is not None
+                and bool(np.any(self.band[1] >= self.band[0])))
 
-    def illuminating_shots(self):
-        """``(n, N)`` (Q,) float64 per peak: inlier detections and valid shots in their
-        angle band, each less one at both ends of the band (one if it is a single step)."""
+    def _band_steps(self, max_steps: int = 2048):
+        """(Q, B) steps around each peak's inlier band (the band widened by its width
+        plus 8 steps on each side), the valid shots of each (0 outside) and the
+        spot share of the pixel at each step (target at the peak's centre)."""
         lo, hi = self.band
         has = hi >= lo
-        cum = self.shots_cum
-        S = cum.size - 1
-        N = np.where(has, cum[np.clip(hi, 0, S - 1) + 1] - cum[np.clip(lo, 0, S - 1)], 0)
-        ends = np.where(hi > lo, 2.0, 1.0)
-        n = self.sums["n"]
-        return np.maximum(n - ends, 0.0) * has, np.maximum(N - ends, 0.0) * has
+        pad = np.where(has, hi - lo + 8, 0)
+        a = np.where(has, lo - pad, 0)
+        b = np.where(has, hi + pad, -1)
+        B = int(min(max_steps, max(1, (b - a + 1).max())))
+        steps = a[:, None] + np.arange(B)[None, :]
+        S = self.shots_per_step.size
+        inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
+        n = np.where(inside, self.shots_per_step[np.clip(steps, 0, S - 1)], 0)
+        t0, dt = self.step_grid
+        f = spot_fraction(self.system, self.rows[:, None], self.cols[:, None], t0 + steps * dt,
+                          np.nan_to_num(self.centre, nan=1.0)[:, None], self.spot_sigma)
+        return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
 
     def _first_photon(self, mean: dict) -> dict:
         """Apply the first-photon correction to ``mean`` (in place; see the class
-        docstring); returns the per-peak delay (s), its σ as path length (m) and μ_w."""
+        docstring); returns per peak the delay (s), its σ as path length (m) and μ0."""
         s = self.system
         sp = spreads_for(s) if self.spreads is None else self.spreads
         sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
-        n_all = self.sums["n"]
-        ok = self.band[1] >= self.band[0]
         out = {"delay": np.full(self.Q, np.nan), "mu": np.full(self.Q, np.nan),
                "sigma_L": np.zeros(self.Q)}
+        # pulse centre from the fused point (stereo-dominated near the TDC start)
+        tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
+        tau = tau + s.tdc.offset
+        ok = (self.band[1] >= self.band[0]) & np.isfinite(tau) & np.isfinite(self.centre)
         if sigma <= 0 or not np.any(ok):
             return out
-        n, N = self.illuminating_shots()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            tau = (self.sums["code"] / n_all - 0.5) * s.tdc.bin_width  # mean TDC time
-        ok &= np.isfinite(tau)
-        d, sd, var, mu = first_photon_correction(n[ok], N[ok], tau[ok], sigma)
+        _, n_band, f_band = self._band_steps()
+        ll = self.sums["loglik"] + np.einsum("qb,qbj->qj", n_band,
+                                             np.log1p(-_firing_probability(f_band)))
+        d, sd, var, mu = first_photon_delay(ll[ok], f_band[ok], n_band[ok], tau[ok], sigma)
         c = s.speed_of_light
         dL = np.zeros(self.Q)
         dvar = np.zeros(self.Q)
@@ -671,8 +760,7 @@ class PeakAccumulator:
             D = self.sums["D_" + name] / W[:, None]
             x, C = mean[name]
             G = self.sums["G_" + name] / (W * W)[:, None, None]
-            C = C + G * dvar[:, None, None]
-            mean[name] = (x + D * dL[:, None], C)
+            mean[name] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
 
 
@@ -683,7 +771,7 @@ def _empty_band(Q: int):
 def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
-                                weight=None, step=None, shots_per_step=None,
+                                weight=None, shots_per_step=None, step_grid=None,
                                 first_photon: bool = True) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
@@ -699,18 +787,20 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     min_counts : peaks with fewer inlier detections are dropped.
     confidence : sets the inlier bound ``k`` around each peak's centre.
     weight : (M,) multiplicity of each detection (default 1).
-    step : (M,) int, each detection's angle step on the grid of
-        ``shots_per_step`` (the interval table's), and shots_per_step : (S,)
-        int, valid shots per step: with both (and ``first_photon``) the ToF
+    shots_per_step : (S,) int, valid shots per scan-angle step of the grid
+        ``step_grid = (theta_min, dtheta)`` (rad; the interval table's,
+        :func:`~mems_stereo.fastpath.shots_per_step`): with both (and
+        ``first_photon``) the ToF
         and fused estimates are corrected for the first-photon delay (see
         :class:`PeakAccumulator`) and the cloud gains ``tof_delay`` (s, the
-        delay removed) and ``signal_photons`` (μ_w per shot); without them
+        delay removed) and ``signal_photons`` (μ0 per shot); without them
         the result is the uncorrected one.
     first_photon : apply that correction when the data allow it.
     """
     acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence,
-                          shots_per_step=shots_per_step, first_photon=first_photon)
+                          shots_per_step=shots_per_step, step_grid=step_grid,
+                          first_photon=first_photon)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
-    acc.add_inliers(shot, peak, code, theta, weight, step)
+    acc.add_inliers(shot, peak, code, theta, weight)
     return acc.cloud(min_counts)
