@@ -151,7 +151,7 @@ def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
 # compiled kernel
 
 
-def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal):
+def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
     """Reference semantics of the compiled kernel (pure Python; used when numba is absent).
 
     bins : (K, P) uint16, codes <= n_bins (checked by the caller: the kernel
@@ -159,7 +159,8 @@ def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal):
     label 0, not counted); lo, hi : (S, P) uint16; labels : (K, P) uint8 out;
     hist_raw, hist_signal : (P, n_bins + 1) int32 added to in place (column N
     counts code N; column 0 of ``hist_raw`` counts the slots without a
-    detection).  Codes are cast to int64 before any arithmetic (numba would
+    detection); hist_angle : (P, S) int64, signal detections per pixel and
+    angle step, added to in place.  Codes are cast to int64 before any arithmetic (numba would
     otherwise mix unsigned and signed integers through float64); the loop
     body has a single data-dependent branch (the rare signal count).
     """
@@ -176,10 +177,11 @@ def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal):
             ok = (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p]))
             if ok:
                 hist_signal[p, c] += 1
+                hist_angle[p, j] += 1
             labels[k, p] = (c != 0) * (2 - ok)
 
 
-def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal):
+def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle):
     """As :func:`_kernel_py` without writing labels."""
     K, P = bins.shape
     for k in range(K):
@@ -191,6 +193,7 @@ def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal):
             hist_raw[p, c] += 1
             if (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p])):
                 hist_signal[p, c] += 1
+                hist_angle[p, j] += 1
 
 
 try:  # pragma: no cover - exercised whenever numba is installed (a declared dependency)
@@ -206,7 +209,8 @@ except ImportError:  # pragma: no cover
 
 
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
-                            hist_raw=None, hist_signal=None, want_labels: bool = True):
+                            hist_raw=None, hist_signal=None, want_labels: bool = True,
+                            hist_angle=None):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -220,11 +224,13 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         (allocated when None).  Column N counts code N; column 0 of
         ``hist_raw`` counts valid pixel-slots without a detection.  The noise
         histogram is ``hist_raw − hist_signal`` (columns 1..n_bins).
-    want_labels : return the (K, H, W) uint8 labels (else None; faster).
+    want_labels : return the (K, H, W) uint8 labels (else None).
+    hist_angle : (H*W, S) int64, signal detections per pixel and angle step of
+        ``table``, added to in place (allocated when None).
 
     Returns
     -------
-    labels, hist_raw, hist_signal.
+    labels, hist_raw, hist_signal (and hist_angle is filled in place).
     """
     b = np.ascontiguousarray(bins)
     if b.dtype != np.uint16:
@@ -243,16 +249,19 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         hist_raw = np.zeros((P, n_bins + 1), dtype=np.int32)
     if hist_signal is None:
         hist_signal = np.zeros((P, n_bins + 1), dtype=np.int32)
+    if hist_angle is None:
+        hist_angle = np.zeros((P, table.n_steps), dtype=np.int64)
     if want_labels:
         labels = np.empty((K, P), dtype=np.uint8)
-        _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal)
+        _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
     else:
         labels = None
-        _kernel_nolabels(b2, rows, table.lo, table.hi, hist_raw, hist_signal)
+        _kernel_nolabels(b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
 
 
-def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, n_steps, nb, out):
+def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb,
+                    out):
     """Reference semantics of the compiled peak-window kernel (see :func:`peak_window_keys`)."""
     K = bins.shape[0]
     Q = pix.shape[0]
@@ -262,6 +271,8 @@ def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, n_steps, nb, out):
         if j < 0:
             continue
         for q in range(Q):
+            if j < step_lo[q] or j > step_hi[q]:
+                continue
             p = pix[q]
             c = np.int64(bins[k, p])
             if (c != 0 and win_lo[q] <= c and c <= win_hi[q]
@@ -278,11 +289,12 @@ except NameError:  # pragma: no cover
 
 
 def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
-                     n_bins: int) -> np.ndarray:
+                     n_bins: int, step_lo=None, step_hi=None) -> np.ndarray:
     """Keys of the signal detections inside the peak windows of a block of shots.
 
     A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
-    peak's window ``[code_lo[q], code_hi[q]]`` and the classifier accepted it
+    peak's window ``[code_lo[q], code_hi[q]]``, its shot's angle step in
+    ``[step_lo[q], step_hi[q]]`` (default: any) and the classifier accepted it
     (signal).  Its key is ``(q · S + step) · (n_bins + 1) + code``, with
     ``step`` the shot's angle step in ``table`` (S steps).  Returns (M,) int64,
     in shot order.  One compiled pass over the peak pixels only.
@@ -296,7 +308,11 @@ def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_
     rows[~np.asarray(valid, dtype=bool)] = -1
     table.ensure(rows)
     pix = np.asarray(peak_pixel, dtype=np.int64)
+    s_lo = np.zeros(pix.size, np.int64) if step_lo is None else np.asarray(step_lo, np.int64)
+    s_hi = (np.full(pix.size, table.n_steps, np.int64) if step_hi is None
+            else np.asarray(step_hi, np.int64))
     out = np.empty(K * max(1, pix.size), np.int64)
     n = _window_keys(b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
-                     np.asarray(code_hi, np.int64), int(table.n_steps), int(n_bins) + 1, out)
+                     np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps),
+                     int(n_bins) + 1, out)
     return out[:n].copy()

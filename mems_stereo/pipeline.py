@@ -33,7 +33,7 @@ import numpy as np
 
 from .classify import DEFAULT_CONFIDENCE
 from .cloud import PointCloud
-from .fastpath import classify_and_accumulate, interval_table, peak_window_keys
+from .fastpath import classify_and_accumulate, interval_table, peak_window_keys, shots_per_step
 from .io_util import atomic_output
 from .recording import iter_shot_chunks, read_header
 from .scanner import scan_angles
@@ -70,6 +70,8 @@ class RangeAccumulation:
 
     hist_raw, hist_signal : (P, n_bins + 1) int64, column N = code N (column
         0: valid pixel-slots without detection).
+    hist_angle : (P, S) int64, signal detections per pixel and scan-angle step
+        of the interval table.
     n_shots, n_unknown : shots in the range and those of unknown angle.
     confusion : (3, 3) int64, truth label (row) × assigned label (column),
         zeros when there is no truth.
@@ -78,6 +80,7 @@ class RangeAccumulation:
 
     hist_raw: np.ndarray
     hist_signal: np.ndarray
+    hist_angle: np.ndarray
     n_shots: int
     n_unknown: int
     confusion: np.ndarray
@@ -86,6 +89,7 @@ class RangeAccumulation:
     def __add__(self, other: RangeAccumulation) -> RangeAccumulation:
         return RangeAccumulation(self.hist_raw + other.hist_raw,
                                  self.hist_signal + other.hist_signal,
+                                 self.hist_angle + other.hist_angle,
                                  self.n_shots + other.n_shots, self.n_unknown + other.n_unknown,
                                  self.confusion + other.confusion,
                                  self.has_truth and other.has_truth)
@@ -120,6 +124,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     sig = np.zeros((P, n_bins + 1), np.int64)
     raw32 = np.zeros((P, n_bins + 1), np.int32)
     sig32 = np.zeros((P, n_bins + 1), np.int32)
+    angle = np.zeros((P, table.n_steps), np.int64)
     conf = np.zeros((3, 3), np.int64)
     has_truth = True
     n_shots = n_unknown = 0
@@ -131,7 +136,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         sig32[:] = 0
         want = labels_out is not None or truth is not None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw32, sig32,
-                                               want_labels=want)
+                                               want_labels=want, hist_angle=angle)
         raw += raw32
         sig += sig32
         if labels_out is not None:
@@ -145,7 +150,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         n_unknown += int(np.count_nonzero(~v))
         if progress is not None:
             progress(s1 - s0)
-    return RangeAccumulation(raw, sig, n_shots, n_unknown, conf, has_truth)
+    return RangeAccumulation(raw, sig, angle, n_shots, n_unknown, conf, has_truth)
 
 
 class PeakCounts:
@@ -212,7 +217,8 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
     for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
         s1 = s0 + bins.shape[0]
         pc.add_keys(peak_window_keys(bins, theta[s0:s1], valid[s0:s1], table, pix,
-                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins))
+                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
+                                     peaks.get("step_lo"), peaks.get("step_hi")))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()
@@ -360,7 +366,8 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     raw = acc.hist_raw[:, 1:].reshape(H, W, n_bins)
     sig = acc.hist_signal[:, 1:].reshape(H, W, n_bins)
     noise = raw - sig
-    peaks, background = find_peaks(sysm, sig, noise, theta, valid, st)
+    peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
+                                   signal_angle=acc.hist_angle)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
@@ -369,7 +376,9 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
         counts = count_peaks(peaks)
     timings["peak_detections"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    cloud = points_from_counts(sysm, peaks, counts, st)
+    table = interval_table(sysm, st.confidence, min_range=st.min_range)
+    cloud = points_from_counts(sysm, peaks, counts, st,
+                               shots_per_step=shots_per_step(table, theta, valid))
     timings["points"] = time.perf_counter() - t4
     counts = {
         "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),

@@ -59,6 +59,13 @@ def test_fast_labels_equal_the_reference_on_snapped_angles(table, seed, k):
     np.testing.assert_array_equal(sig, r_sig)
     # column 0 counts the valid empty pixel-slots
     assert raw[:, 0].sum() == int(((bins == 0) & valid[:, None, None]).sum())
+    # signal detections per pixel and angle step
+    angle = np.zeros((192, table.n_steps), np.int64)
+    classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins, hist_angle=angle)
+    kk, pp = np.nonzero(ref.reshape(k, 192) == 1)
+    expect = np.zeros_like(angle)
+    np.add.at(expect, (pp, table.index(theta)[kk]), 1)
+    np.testing.assert_array_equal(angle, expect)
 
 
 def test_compiled_kernel_equals_its_python_semantics(table, rng):
@@ -76,7 +83,8 @@ def test_compiled_kernel_equals_its_python_semantics(table, rng):
             lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096)
             lab = lab.reshape(64, 192)
         else:
-            fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig)
+            fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig,
+               np.zeros((192, table.n_steps), np.int64))
         out.append((lab, raw, sig))
     for a, b in zip(*out):
         np.testing.assert_array_equal(a, b)
@@ -123,7 +131,7 @@ def test_peak_window_keys_equal_a_numpy_reference(table, rng):
     r = rows.copy()
     r[~valid] = -1
     n = _window_keys_py(bins.reshape(120, -1), r, table.lo, table.hi, pix, lo, hi,
-                        table.n_steps, 4097, out)
+                        np.zeros(4, np.int64), np.full(4, table.n_steps), table.n_steps, 4097, out)
     np.testing.assert_array_equal(out[:n], keys)
 
 
@@ -135,7 +143,8 @@ def test_kernel_without_labels_counts_the_same(table, rng):
     table.ensure(rows)
     raw_a = np.zeros((192, 4097), np.int32)
     sig_a = np.zeros_like(raw_a)
-    _kernel_nolabels_py(bins.reshape(50, 192), rows, table.lo, table.hi, raw_a, sig_a)
+    _kernel_nolabels_py(bins.reshape(50, 192), rows, table.lo, table.hi, raw_a, sig_a,
+                        np.zeros((192, table.n_steps), np.int64))
     _, raw_b, sig_b = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
     np.testing.assert_array_equal(raw_a, raw_b)
     np.testing.assert_array_equal(sig_a, sig_b)
