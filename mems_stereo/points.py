@@ -746,9 +746,14 @@ class PeakAccumulator:
         if sigma <= 0 or not np.any(ok):
             return out
         _, n_band, f_band = self._band_steps()
-        ll = self.sums["loglik"] + np.einsum("qb,qbj->qj", n_band,
-                                             np.log1p(-_firing_probability(f_band)))
-        d, sd, var, mu = first_photon_delay(ll[ok], f_band[ok], n_band[ok], tau[ok], sigma)
+        idx = np.flatnonzero(ok)
+        d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
+        for a in range(0, idx.size, 16):  # blocks of peaks: (16, J, B) temporaries
+            q = idx[a:a + 16]
+            ll = self.sums["loglik"][q] + np.einsum(
+                "qb,qbj->qj", n_band[q], np.log1p(-_firing_probability(f_band[q])))
+            d[a:a + 16], sd[a:a + 16], var[a:a + 16], mu[a:a + 16] = first_photon_delay(
+                ll, f_band[q], n_band[q], tau[q], sigma)
         c = s.speed_of_light
         dL = np.zeros(self.Q)
         dvar = np.zeros(self.Q)
