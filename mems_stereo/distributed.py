@@ -129,8 +129,11 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         timings["classify_histogram"] = time.perf_counter() - t0
 
         def count_peaks(peaks):
+            # pass 2 needs only the pixels, windows and bands; send them once
+            light = {k: v for k, v in peaks.items() if k != "background_by_step"}
+            pk_f = client.scatter([light], broadcast=True)[0]
             parts_pc = client.gather([
-                client.submit(peak_counts_range, str(path), sysm, th_f, va_f, st, peaks, a, b,
+                client.submit(peak_counts_range, str(path), sysm, th_f, va_f, st, pk_f, a, b,
                               pure=False) for a, b in parts])
             total = parts_pc[0]
             for p in parts_pc[1:]:

@@ -160,6 +160,8 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
         "code_lo": np.maximum(1, code[q] - half).astype(np.int64),
         "code_hi": np.minimum(n_bins, code[q] + half).astype(np.int64),
         "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
+        # expected background detections per angle step of each peak's pixel
+        "background_by_step": B[q],
     }
     return peaks, rate.reshape(H, W)
 
@@ -227,7 +229,9 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
 
     Falls back to :func:`find_code_peaks` (the paper's detector on the codes)
     when ``signal_angle`` is None.  Returns the same dict as
-    :func:`find_code_peaks` plus ``step_lo``, ``step_hi`` (the angle band).
+    :func:`find_code_peaks` plus ``step_lo``, ``step_hi`` (the angle band)
+    and ``background_by_step`` (Q, S), the expected background detections of
+    each peak's pixel per angle step.
     """
     if signal_angle is None:
         return find_code_peaks(system, signal, noise, theta, valid, settings)
@@ -265,5 +269,7 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
         "step_lo": np.maximum(0, j[q] - half).astype(np.int64),
         "step_hi": np.minimum(table.n_steps - 1, j[q] + half).astype(np.int64),
         "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
+        # expected background detections per angle step of each peak's pixel
+        "background_by_step": B[q],
     }
     return peaks, rate.reshape(H, W)

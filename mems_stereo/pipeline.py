@@ -229,7 +229,11 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     """The cloud: one fused point per peak from its counted detections.
 
     Each distinct (peak, step, code) is triangulated once at the step's grid
-    angle (the angle it was classified with) and weighted by its count.
+    angle (the angle it was classified with) and weighted by its count, times
+    the probability that a detection at that step is signal when the peaks
+    carry ``background_by_step`` (background subtraction in scan angle).
+    Peaks whose stereo and ToF ranges disagree are left out
+    (:func:`~mems_stereo.points.consistent_points`).
     ``shots_per_step`` : (S,) int, valid shots per angle step of the interval
     table (:func:`~mems_stereo.fastpath.shots_per_step`): with it the ToF and
     fused estimates are corrected for the first-photon delay
@@ -242,11 +246,24 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     k = counts.keys
     q, step, code = k // (S * nb), (k // nb) % S, k % nb
     theta = table.theta_min + step * table.step
-    return points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
-                                       peaks["col"], peaks["code"], min_counts=settings.min_counts,
-                                       confidence=settings.confidence, weight=counts.counts,
-                                       shots_per_step=shots_per_step,
-                                       step_grid=(table.theta_min, table.step))
+    weight = counts.counts.astype(np.float64)
+    bg = peaks.get("background_by_step")
+    if bg is not None and k.size:
+        # background subtraction in scan angle: the detections at a step are
+        # signal with probability (n − expected background) / n
+        qs = q * S + step
+        n_qs = np.bincount(qs, weights=weight)
+        n = n_qs[qs]
+        weight = weight * np.clip((n - bg[q, step]) / n, 0.0, 1.0)
+    from .points import consistent_points
+
+    cloud = points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
+                                        peaks["col"], peaks["code"],
+                                        min_counts=settings.min_counts,
+                                        confidence=settings.confidence, weight=weight,
+                                        shots_per_step=shots_per_step,
+                                        step_grid=(table.theta_min, table.step))
+    return consistent_points(cloud, settings.confidence)
 
 
 @dataclass

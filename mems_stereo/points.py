@@ -537,7 +537,7 @@ class PeakAccumulator:
         self.log_min = float(np.log(r_min))
         self.dlog = float(np.log1p(rel_step))
         self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
-        self.cover = np.zeros((self.Q, self.n_grid + 1), np.int64)
+        self.cover = np.zeros((self.Q, self.n_grid + 1), np.float64)
         self.centre = None
         Q = self.Q
         self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
@@ -592,15 +592,15 @@ class PeakAccumulator:
         """Sub-pass 1: coverage of each detection's ±σ range interval.
 
         ``shot, peak, code`` (M,) int; ``theta`` (K,) rad indexed by ``shot``;
-        ``weight`` (M,) integer multiplicities (default 1): identical
-        detections counted once with their number.
+        ``weight`` (M,) multiplicities (default 1): identical detections
+        counted once with their number, possibly scaled by their probability
+        of being signal.
         """
         peak, _, _, r, sr, ok, w = self._points(shot, peak, code, theta, weight)
         lo = self._bin(r[ok] - sr[ok])
         hi = self._bin(r[ok] + sr[ok])
-        wi = np.rint(w[ok]).astype(np.int64)
-        np.add.at(self.cover, (peak[ok], lo), wi)
-        np.add.at(self.cover, (peak[ok], hi + 1), -wi)
+        np.add.at(self.cover, (peak[ok], lo), w[ok])
+        np.add.at(self.cover, (peak[ok], hi + 1), -w[ok])
 
     def finish_mode(self) -> np.ndarray:
         """Fix each peak's centre range (Q,) m (NaN without detections)."""
@@ -706,6 +706,10 @@ class PeakAccumulator:
             attrs["tof_delay"] = fp["delay"]
             attrs["signal_photons"] = fp["mu"]
         keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
+        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
+        # their difference (see :func:`consistent_points`)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
         return PointCloud(xf, attrs).select(keep)
 
     def _correcting(self) -> bool:
@@ -809,3 +813,18 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     acc.finish_mode()
     acc.add_inliers(shot, peak, code, theta, weight)
     return acc.cloud(min_counts)
+
+
+def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointCloud:
+    """The points whose stereo and time-of-flight ranges agree within the bound.
+
+    Two estimates of one surface must agree: a peak whose ranges differ by
+    more than ``k·sqrt(σ_stereo² + σ_tof²)`` (attribute ``stereo_tof_z`` > k,
+    k from ``confidence``) is not one surface — a false peak of background, or
+    two surfaces inside one pixel — and is left out.
+    """
+    from .classify import k_from_confidence
+
+    if "stereo_tof_z" not in cloud.attributes:
+        return cloud
+    return cloud.select(~(cloud["stereo_tof_z"] > k_from_confidence(confidence)))
