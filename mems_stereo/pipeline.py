@@ -247,13 +247,15 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     q, step, code = k // (S * nb), (k // nb) % S, k % nb
     theta = table.theta_min + step * table.step
     weight = counts.counts.astype(np.float64)
+    background = None
     bg = peaks.get("background_by_step")
     if bg is not None and k.size:
         # background subtraction in scan angle: the detections at a step are
-        # signal with probability (n − expected background) / n
+        # signal with probability (n − expected background) / n; each entry
+        # carries its share of the step's expected background (for the σ)
         qs = q * S + step
-        n_qs = np.bincount(qs, weights=weight)
-        n = n_qs[qs]
+        n = np.bincount(qs, weights=weight)[qs]
+        background = np.minimum(bg[q, step], n) * weight / n
         weight = weight * np.clip((n - bg[q, step]) / n, 0.0, 1.0)
     from .points import consistent_points
 
@@ -261,6 +263,7 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
                                         peaks["col"], peaks["code"],
                                         min_counts=settings.min_counts,
                                         confidence=settings.confidence, weight=weight,
+                                        background=background,
                                         shots_per_step=shots_per_step,
                                         step_grid=(table.theta_min, table.step))
     return consistent_points(cloud, settings.confidence)

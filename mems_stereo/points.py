@@ -541,7 +541,9 @@ class PeakAccumulator:
         self.centre = None
         Q = self.Q
         self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
-                     "wr": np.zeros(Q), "wrr": np.zeros(Q), "window": np.zeros(Q)}
+                     "wr": np.zeros(Q), "wrr": np.zeros(Q), "window": np.zeros(Q),
+                     # background-subtraction variance: Σ b w², Σ b w² r, Σ b w² r²
+                     "b0": np.zeros(Q), "b1": np.zeros(Q), "b2": np.zeros(Q)}
         for name in ("fused", "stereo", "tof"):  # inverse-variance weighted sums
             self.sums["W_" + name] = np.zeros(Q)
             self.sums["X_" + name] = np.zeros((Q, 3))
@@ -610,9 +612,16 @@ class PeakAccumulator:
         self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
         return self.centre
 
-    def add_inliers(self, shot, peak, code, theta, weight=None) -> None:
+    def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
-        (arguments as :meth:`add_mode`)."""
+        (arguments as :meth:`add_mode`).
+
+        ``background`` (M,) : the expected background detections that were
+        subtracted at each entry (its share of its angle step's expected
+        background).  Their Poisson fluctuation is the uncertainty of the
+        subtraction; it adds ``Σ b_i w_i² (r_i − r̄)² / (Σ m_i w_i)²`` to the
+        range variance of the fused and stereo means.
+        """
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
         peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
@@ -661,6 +670,11 @@ class PeakAccumulator:
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
         s["wr"] += np.bincount(q, weights=m * w * r[inl], minlength=Q)
         s["wrr"] += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
+        if background is not None:
+            b = np.asarray(background, dtype=np.float64).ravel()[inl] * w * w
+            s["b0"] += np.bincount(q, weights=b, minlength=Q)
+            s["b1"] += np.bincount(q, weights=b * r[inl], minlength=Q)
+            s["b2"] += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
 
     def cloud(self, min_counts: int = 1) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
@@ -679,6 +693,14 @@ class PeakAccumulator:
         fp = self._first_photon(mean) if self._correcting() else None
         for name in mean:
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            var_bg = np.maximum(s["b2"] - 2 * rbar * s["b1"] + rbar ** 2 * s["b0"], 0.0) / W ** 2
+        for name in ("fused", "stereo"):  # along the viewing direction of the point
+            x0 = mean[name][0]
+            with np.errstate(invalid="ignore", divide="ignore"):
+                u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
+            add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
+            mean[name] = (x0, mean[name][1] + np.nan_to_num(add))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
             for name in ("fused", "tof"):
                 D = s["D_" + name] / s["W_" + name][:, None]
@@ -780,7 +802,7 @@ def _empty_band(Q: int):
 def points_from_peak_detections(system: System, shot, peak, code, theta, rows, cols,
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
-                                weight=None, shots_per_step=None, step_grid=None,
+                                weight=None, background=None, shots_per_step=None, step_grid=None,
                                 first_photon: bool = True) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
@@ -796,6 +818,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     min_counts : peaks with fewer inlier detections are dropped.
     confidence : sets the inlier bound ``k`` around each peak's centre.
     weight : (M,) multiplicity of each detection (default 1).
+    background : (M,) expected background subtracted at each entry (optional;
+        see :meth:`PeakAccumulator.add_inliers`).
     shots_per_step : (S,) int, valid shots per scan-angle step of the grid
         ``step_grid = (theta_min, dtheta)`` (rad; the interval table's,
         :func:`~mems_stereo.fastpath.shots_per_step`): with both (and
@@ -811,7 +835,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                           first_photon=first_photon)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
-    acc.add_inliers(shot, peak, code, theta, weight)
+    acc.add_inliers(shot, peak, code, theta, weight, background)
     return acc.cloud(min_counts)
 
 
