@@ -109,6 +109,27 @@ def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.n
     return acceptance * q * surv
 
 
+def strongest_window(counts, background, width: int, support, settings):
+    """Per row, the window of ``width`` bins with the largest excess over the background.
+
+    ``counts``, ``background`` : (P, B) observed and expected counts;
+    ``support`` : (P, B) bool, where background can occur at all (the number
+    of independent window positions is its count / width: the false-alarm
+    probability ``settings.false_alarm`` is per row, spread over them).
+    Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
+    count and expected background, and whether it passes the Poisson threshold
+    and ``settings.min_counts``.
+    """
+    S_w = moving_average(counts, width) * width  # window sums
+    B_w = moving_average(background, width) * width
+    j = np.argmax(S_w - B_w, axis=1)
+    rows = np.arange(counts.shape[0])
+    cnt, mu = S_w[rows, j], B_w[rows, j]
+    n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
+    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
+    return j, cnt, mu, (cnt > thr) & (cnt >= settings.min_counts)
+
+
 def find_code_peaks(system: System, signal, noise, theta, valid, settings):
     """The paper's detector: one peak per pixel of the signal histogram over codes.
 
@@ -140,17 +161,8 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
         width = max(1, int(round(system.laser.pulse_fwhm / bw)))
     width += 1 - width % 2  # odd
     B = expected_background_in_signal(A, np.nan_to_num(rate), bw)
-    S_w = moving_average(S, width) * width  # window sums
-    B_w = moving_average(B, width) * width
-    excess = S_w - B_w
-    j = np.argmax(excess, axis=1)
-    pix = np.arange(P)
-    cnt = S_w[pix, j]
-    mu = B_w[pix, j]
-    # window positions where background can reach S at all (accepted codes)
-    n_windows = np.maximum(1.0, np.count_nonzero(A > 0, axis=1) / width)
-    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
-    keep = (cnt > thr) & (cnt >= settings.min_counts) & np.isfinite(rate)
+    j, cnt, mu, keep = strongest_window(S, B, width, A > 0, settings)
+    keep &= np.isfinite(rate)
     code = j + 1
     half = max(1, width)
     q = np.flatnonzero(keep)
@@ -201,15 +213,11 @@ def expected_background_by_angle(table, n_per_step, rate_hz) -> np.ndarray:
     table.ensure(used)
     lo = table.lo[used].astype(np.float64)
     hi = table.hi[used].astype(np.float64)
-    a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * table_bin_width(table)),
-                             1 - 1e-15))[None, :]
+    dt = table.system.tdc.bin_width
+    a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * dt), 1 - 1e-15))[None, :]
     pacc = np.where(lo <= hi, np.exp((lo - 1.0) * a) - np.exp(hi * a), 0.0)
     out[:, used] = (pacc * n_per_step[used][:, None]).T
     return out
-
-
-def table_bin_width(table) -> float:
-    return float(table.system.tdc.bin_width)
 
 
 def find_peaks(system: System, signal, noise, theta, valid, settings, signal_angle=None):
@@ -248,15 +256,8 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
     width = footprint_steps(system, table)
     B = expected_background_by_angle(table, n_per_step, rate)
     Hs = np.asarray(signal_angle, dtype=np.float64).reshape(P, table.n_steps)
-    S_w = moving_average(Hs, width) * width
-    B_w = moving_average(B, width) * width
-    j = np.argmax(S_w - B_w, axis=1)
-    pix = np.arange(P)
-    cnt = S_w[pix, j]
-    mu = B_w[pix, j]
-    n_windows = np.maximum(1.0, np.count_nonzero(B > 0, axis=1) / width)
-    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
-    keep = (cnt > thr) & (cnt >= settings.min_counts) & np.isfinite(rate)
+    j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings)
+    keep &= np.isfinite(rate)
     q = np.flatnonzero(keep)
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
     # the peak code: the strongest code of the signal histogram in the band's codes
