@@ -60,7 +60,7 @@ class Settings:
     min_range: float | None = None
     chunk_shots: int = DEFAULT_CHUNK_SHOTS
     smoothing_bins: int | None = None
-    false_alarm: float = 1e-2
+    false_alarm: float = 1e-3
     min_counts: int = 3
 
 

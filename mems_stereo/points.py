@@ -541,7 +541,8 @@ class PeakAccumulator:
         self.centre = None
         Q = self.Q
         self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
-                     "wr": np.zeros(Q), "wrr": np.zeros(Q), "window": np.zeros(Q),
+                     "w": np.zeros(Q), "wr": np.zeros(Q), "wrr": np.zeros(Q),
+                     "window": np.zeros(Q),
                      # background-subtraction variance: Σ b w², Σ b w² r, Σ b w² r²
                      "b0": np.zeros(Q), "b1": np.zeros(Q), "b2": np.zeros(Q)}
         for name in ("fused", "stereo", "tof"):  # inverse-variance weighted sums
@@ -636,13 +637,12 @@ class PeakAccumulator:
         for name in ("fused", "stereo", "tof"):
             x = getattr(dp, name)[inl]
             C = getattr(dp, "cov_" + name)[inl]
-            if name == "tof":
-                # every detection has the same timing spread: equal weights (the range
-                # variance of a ToF point near the mirror is tiny and would outweigh the rest)
-                w = np.ones(q.size)
-            else:
-                _, _, se, _ = polar_from_cartesian(x, C)
-                w = 1.0 / np.maximum(se, 1e-12) ** 2  # by the estimate's own range variance
+            # equal weights: inside one peak the spread of the estimates is the
+            # pixel's footprint swept by the beam (stereo) or the pulse (ToF), and
+            # their σ grows with the value itself (stereo σ ∝ r²; a ToF point near
+            # the mirror has a tiny range variance): inverse-variance weights would
+            # pull every peak towards its nearest detections
+            w = np.ones(q.size)
             s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
             np.add.at(s["X_" + name], q, x * (m * w)[:, None])
             np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
@@ -665,13 +665,14 @@ class PeakAccumulator:
             f = spot_fraction(self.system, self.rows[peak], self.cols[peak], th,
                               self.centre[peak], self.spot_sigma)
             np.add.at(s["loglik"], peak, _detection_log_odds(f) * m_all[:, None])
-        w = 1.0 / sr[inl] ** 2
+        w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
+        s["w"] += np.bincount(q, weights=m * w, minlength=Q)
         s["wr"] += np.bincount(q, weights=m * w * r[inl], minlength=Q)
         s["wrr"] += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
-        if background is not None:
-            b = np.asarray(background, dtype=np.float64).ravel()[inl] * w * w
+        if background is not None:  # (the means have equal weights)
+            b = np.asarray(background, dtype=np.float64).ravel()[inl]
             s["b0"] += np.bincount(q, weights=b, minlength=Q)
             s["b1"] += np.bincount(q, weights=b * r[inl], minlength=Q)
             s["b2"] += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
@@ -681,14 +682,16 @@ class PeakAccumulator:
         s = self.sums
         n = s["n"]
         with np.errstate(invalid="ignore", divide="ignore"):
-            # weighted means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)²
+            # means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)² (w: multiplicities)
             mean = {name: (s["X_" + name] / s["W_" + name][:, None],
                            s["C_" + name] / (s["W_" + name] ** 2)[:, None, None])
                     for name in ("fused", "stereo", "tof")}
             W = s["W_fused"]
-            rbar = s["wr"] / W
-            # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w
-            chi2 = (s["wrr"] - 2 * rbar * s["wr"] + rbar ** 2 * W) / np.maximum(n - 1, 1)
+            # reduced χ² of the fused ranges about their σ-weighted mean:
+            # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w, w = 1/σ_i²
+            rbar_w = s["wr"] / s["w"]
+            chi2 = (s["wrr"] - 2 * rbar_w * s["wr"] + rbar_w ** 2 * s["w"]) / np.maximum(n - 1, 1)
+            rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         fp = self._first_photon(mean) if self._correcting() else None
         for name in mean:

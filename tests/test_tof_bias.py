@@ -213,9 +213,10 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     assert 1 / 1.5 < np.sqrt(np.mean(z1 ** 2)) < 1.5
     assert abs(np.median(on["signal_photons"]) / 4.0 - 1) < 0.35
     # the fused point moves by the ToF share only, and not away from the truth
+    # (by more than a millimetre: the stereo share dominates at 2 m)
     ef0 = np.median(np.abs(plain["range"] - plain["true"]))
     ef1 = np.median(np.abs(on["range"] - on["true"]))
-    assert ef1 <= ef0 * 1.05 + 1e-4
+    assert ef1 <= ef0 * 1.05 + 1e-3
 
 
 def test_streamed_halves_equal_one_pass(system):

@@ -29,8 +29,8 @@ def add_arguments(p):
                    help="two-sided coverage of the consistency bound (default 0.997 = 3 sigma)")
     p.add_argument("--min-range", type=float, default=None,
                    help="optional prior: no target nearer than this, m (default: none)")
-    p.add_argument("--false-alarm", type=float, default=1e-2,
-                   help="per-pixel false-alarm probability of the peak threshold (default 0.01)")
+    p.add_argument("--false-alarm", type=float, default=1e-3,
+                   help="per-pixel false-alarm probability of the peak threshold (default 0.001)")
     p.add_argument("--chunk-shots", type=int, default=8192,
                    help="shots read per chunk; memory does not grow with the recording "
                         "(default 8192)")
