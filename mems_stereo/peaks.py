@@ -231,7 +231,9 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
     a moving sum over one footprint and compared with the exactly known
     expected background per step (:func:`expected_background_by_angle`, from
     the ML background rate of the noise histogram); the strongest excess above
-    the Poisson threshold at ``settings.false_alarm`` is the peak.  Much more
+    the Poisson threshold at ``settings.false_alarm`` is the peak; pixels
+    whose footprint the sweep does not cross whole (the scan's turning point
+    lies inside it) are left out, their stereo mean would be biased.  Much more
     sensitive than the code histogram under strong background (the
     background spreads over thousands of steps but only tens of codes).
 
@@ -258,6 +260,11 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
     Hs = np.asarray(signal_angle, dtype=np.float64).reshape(P, table.n_steps)
     j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings)
     keep &= np.isfinite(rate)
+    # a pixel whose footprint the sweep does not cross whole (the scan turns
+    # inside it) sees only part of its surface: its stereo mean is biased
+    scanned = np.flatnonzero(n_per_step)
+    if scanned.size:
+        keep &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     q = np.flatnonzero(keep)
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
     # the peak code: the strongest code of the signal histogram in the band's codes
