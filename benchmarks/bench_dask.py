@@ -57,7 +57,8 @@ def main():
         t0 = time.perf_counter()
         with dask_client("local", n_workers=2) as client:
             t_start = time.perf_counter() - t0
-            process_many(paths[:2], scheduler=client)  # warm up the workers the same way
+            # warm up every worker the same way (compiled kernels, tables)
+            client.run(process_recording, str(paths[0]))
             t1 = time.perf_counter()
             many = process_many(paths, scheduler=client)
             t_many = time.perf_counter() - t1

@@ -172,8 +172,6 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
         "code_lo": np.maximum(1, code[q] - half).astype(np.int64),
         "code_hi": np.minimum(n_bins, code[q] + half).astype(np.int64),
         "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
-        # expected background detections per angle step of each peak's pixel
-        "background_by_step": B[q],
     }
     return peaks, rate.reshape(H, W)
 

@@ -399,6 +399,7 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     table = interval_table(sysm, st.confidence, min_range=st.min_range)
     cloud = points_from_counts(sysm, peaks, counts, st,
                                shots_per_step=shots_per_step(table, theta, valid))
+    peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
     timings["points"] = time.perf_counter() - t4
     counts = {
         "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),
