@@ -167,7 +167,7 @@ def armed_shots(hist, n_shots) -> np.ndarray:
 
 
 def background_rate_mle(hist, n_shots, bin_width: float, exclude=None, raw=None,
-                        return_std: bool = False):
+                        return_std: bool = False, trials_factor=None):
     """Maximum-likelihood constant background rate per pixel under first-photon pile-up.
 
     A pixel records only the first photon of a shot.  With a constant rate λ a
@@ -194,6 +194,9 @@ def background_rate_mle(hist, n_shots, bin_width: float, exclude=None, raw=None,
         disarms the pixel.  Pass the raw histogram when ``hist`` is N.
     return_std : also return the standard deviation from the Fisher
         information, ``σ_p² = p(1−p)/Σn_j``, ``σ_λ = σ_p / ((1−p)Δ)``.
+    trials_factor : (..., n_bins) or None, the share of the armed shots that
+        were trials for ``hist`` at each bin (e.g. ``1 − A_j/n_shots`` when
+        the classifier moved the background of A_j shots at bin j into S).
 
     Returns
     -------
@@ -209,6 +212,8 @@ def background_rate_mle(hist, n_shots, bin_width: float, exclude=None, raw=None,
     if not bin_width > 0:
         raise FormatError(f"bin_width must be > 0 s, found {bin_width}", field="bin_width")
     nj = armed_shots(r, n_shots)
+    if trials_factor is not None:
+        nj = nj * np.asarray(trials_factor, dtype=np.float64)
     use = np.ones(h.shape, dtype=bool) if exclude is None else ~np.broadcast_to(
         np.asarray(exclude, dtype=bool), h.shape)
     k = np.where(use, h, 0.0).sum(axis=-1)

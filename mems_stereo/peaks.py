@@ -84,15 +84,11 @@ def background_rate_from_noise(noise, raw, acceptance, n_valid: int,
 
     Returns (P,) float64 Hz (NaN where no trial is left).
     """
-    from .histogram import armed_shots
+    from .histogram import background_rate_mle
 
     n_valid = max(int(n_valid), 1)
-    nj = armed_shots(raw, n_valid) * (1.0 - np.asarray(acceptance) / n_valid)
-    k = np.asarray(noise, dtype=np.float64).sum(axis=-1)
-    n = nj.sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = np.where(n > 0, k / n, np.nan)
-        return -np.log1p(-p) / bin_width
+    return background_rate_mle(noise, n_valid, bin_width, raw=raw,
+                               trials_factor=1.0 - np.asarray(acceptance) / n_valid)
 
 
 def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.ndarray:
@@ -102,11 +98,9 @@ def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.n
     shot's first background photon falls in bin j with q·(1 − q)^(j−1),
     q = 1 − exp(−λ·Δt) (signal photons, rarer, are neglected here).
     """
-    q = -np.expm1(-np.asarray(rate_hz, dtype=np.float64) * bin_width)[:, None]
-    j = np.arange(acceptance.shape[1])[None, :]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        surv = np.exp(j * np.log1p(-np.minimum(q, 1 - 1e-15)))
-    return acceptance * q * surv
+    from .histogram import expected_background
+
+    return acceptance * expected_background(rate_hz, 1.0, bin_width, acceptance.shape[1])
 
 
 def strongest_window(counts, background, width: int, support, settings):
