@@ -145,19 +145,13 @@ def read_target_distances(path, recordings, default_std: float | None = None):
     ------
     FormatError : not such a file, a bad field, or no recording matched.
     """
-    import json
     from pathlib import Path
 
     from mems_stereo.errors import FormatError
+    from mems_stereo.validation import read_json_file
 
     src = str(path)
-    try:
-        doc = json.loads(Path(path).read_text())
-    except OSError as e:
-        raise FormatError(f"cannot read the target distances file: {e}", src) from None
-    except json.JSONDecodeError as e:
-        raise FormatError(f"expected JSON, found an error at line {e.lineno}: {e.msg}",
-                          src) from None
+    doc = read_json_file(path)
     if not isinstance(doc, dict) or doc.get("format") != DISTANCES_FORMAT:
         raise FormatError(f"expected format {DISTANCES_FORMAT!r}, found "
                           f"{doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}",

@@ -23,8 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import FormatError
-from .validation import FieldChecker
+from .validation import FieldChecker, parse_json, read_json_file
 
 FORMAT_NAME = "mems-stereo/system"
 FORMAT_VERSION = 1
@@ -312,12 +311,7 @@ def system_to_dict(system: System) -> dict:
 
 def system_from_json(text: str, source: str = "<string>") -> System:
     """Parse and validate a system description from JSON text."""
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(f"not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})",
-                          source=source) from None
-    return system_from_dict(d, source)
+    return system_from_dict(parse_json(text, source), source)
 
 
 def system_to_json(system: System) -> str:
@@ -327,12 +321,7 @@ def system_to_json(system: System) -> str:
 
 def load_system(path: str | os.PathLike) -> System:
     """Read and validate a system description JSON file."""
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise FormatError(f"cannot read file ({e.strerror})", source=str(p)) from None
-    return system_from_json(text, source=str(p))
+    return system_from_dict(read_json_file(path), source=str(Path(path)))
 
 
 def save_system(system: System, path: str | os.PathLike) -> Path:

@@ -26,6 +26,27 @@ def shown(value: Any) -> str:
         return repr(value)
 
 
+def parse_json(text: str, source: str) -> Any:
+    """Parse JSON text; a syntax error names the source, line and column."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as e:
+        raise FormatError(f"not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})",
+                          source=source) from None
+
+
+def read_json_file(path) -> Any:
+    """Read and parse a JSON file; errors name the file (and line, column)."""
+    from pathlib import Path
+
+    p = Path(path)
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as e:
+        raise FormatError(f"cannot read file ({e.strerror})", source=str(p)) from None
+    return parse_json(text, str(p))
+
+
 def _fmt_shape(shape: tuple) -> str:
     return "(" + ", ".join("D" if s is None else str(s) for s in shape) + ")"
 

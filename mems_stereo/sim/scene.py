@@ -32,8 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import FormatError
-from ..validation import FieldChecker
+from ..validation import FieldChecker, read_json_file
 
 SCENE_FORMAT = "mems-stereo/scene"
 SCENE_VERSION = 1
@@ -372,13 +371,5 @@ def scene_from_dict(d: Any, source: str = "<dict>", base_dir: str | os.PathLike 
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and validate a scene JSON file (mesh paths are relative to its folder)."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as e:
-        raise FormatError(f"cannot read file ({e.strerror})", source=str(p)) from None
-    try:
-        d = json.loads(text)
-    except json.JSONDecodeError as e:
-        raise FormatError(f"not valid JSON: {e.msg} (line {e.lineno}, column {e.colno})",
-                          source=str(p)) from None
+    d = read_json_file(p)
     return scene_from_dict(d, source=str(p), base_dir=p.parent)
