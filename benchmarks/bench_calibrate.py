@@ -10,7 +10,7 @@ system of the recordings; truth: samples/calib_true_system.json):
 2. each estimate with its σ and its error against the truth (in σ), for both
    runs, and the correlations that the distances break;
 3. the wall check: each recording processed by the package's pipeline
-   (:func:`mems_stereo.pipeline.process_recording`, one fused point per
+   (:func:`mems_stereo.pipeline.run.process_recording`, one fused point per
    histogram peak) with the nominal, both calibrated and the true system;
    the median |distance| of the points to the true wall plane
    (samples/calib_<d>m_scene.json) and the ratio nominal / calibrated.
@@ -29,11 +29,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from calib.calibrate import calibrate_system, read_target_distances  # noqa: E402
-from calib.model import PARAM_UNIT  # noqa: E402
-from mems_stereo.pipeline import process_recording  # noqa: E402
-from mems_stereo.recording import read_recording  # noqa: E402
-from mems_stereo.system import load_system  # noqa: E402
+from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
+from mems_stereo.calib.model import PARAM_UNIT
+
+from mems_stereo.io.recording import read_recording
+from mems_stereo.model.system import load_system
+from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = ROOT / "samples"
 

@@ -22,9 +22,10 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
 import numpy as np  # noqa: E402
 
-from mems_stereo.classify import classify_bins  # noqa: E402
-from mems_stereo.fastpath import classify_and_accumulate, interval_table  # noqa: E402
-from mems_stereo.system import burkard2022  # noqa: E402
+from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.consistency import classify_bins
+from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.pass1 import classify_and_accumulate
 
 REALTIME_SLOTS = 20000 * 192
 

@@ -2,7 +2,7 @@
 
 Simulates 8 room-light recordings (one second of the paper's system each,
 20,000 shots x 192 pixels, different seeds), processes them one after the
-other in this process, then with ``mems_stereo.distributed.process_many`` on a
+other in this process, then with ``mems_stereo.pipeline.distributed.process_many`` on a
 ``LocalCluster(n_workers=2, threads_per_worker=1)``, checks the results are
 identical, and prints both wall times and the speed-up (with and without the
 cluster's start-up).  On a 2-core machine the ideal speed-up is 2.
@@ -22,10 +22,10 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
 import numpy as np  # noqa: E402
 
-from mems_stereo.distributed import dask_client, process_many  # noqa: E402
-from mems_stereo.pipeline import process_recording  # noqa: E402
-from mems_stereo.sim import load_scene, simulate, write_simulation  # noqa: E402
-from mems_stereo.system import burkard2022  # noqa: E402
+from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.distributed import dask_client, process_many
+from mems_stereo.pipeline.run import process_recording
+from mems_stereo.sim import load_scene, simulate, write_simulation
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -34,18 +34,18 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 
 import numpy as np  # noqa: E402
 
-from mems_stereo.histogram import (  # noqa: E402
+from mems_stereo.geometry.uncertainty import tof_pixel_point
+from mems_stereo.io.recording import read_recording
+from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.physics.background import (
     background_rate_mle,
-    detect_peaks,
     expected_background,
-    moving_average,
     moving_sum,
     poisson_threshold,
 )
-from mems_stereo.pipeline import Settings, process_recording  # noqa: E402
-from mems_stereo.recording import read_recording  # noqa: E402
-from mems_stereo.triangulation import path_length_from_codes  # noqa: E402
-from mems_stereo.uncertainty import tof_pixel_point  # noqa: E402
+from mems_stereo.pipeline.histograms import detect_peaks, moving_average
+from mems_stereo.pipeline.run import process_recording
+from mems_stereo.pipeline.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = (("room", "room.h5", "room_scene.json"),

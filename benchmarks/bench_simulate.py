@@ -22,8 +22,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mems_stereo.sim import load_scene, simulate, write_simulation  # noqa: E402
-from mems_stereo.system import burkard2022  # noqa: E402
+from mems_stereo.model.system import burkard2022
+from mems_stereo.sim import load_scene, simulate, write_simulation
 
 
 def main() -> int:

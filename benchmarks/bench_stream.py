@@ -3,7 +3,7 @@
 Writes a dense recording of at least --gigabytes GB (default 2.0; the bins of
 the floodlight sample repeated under a synthetic scan trajectory, written
 chunk by chunk without compression), then processes it in a fresh
-subprocess with ``mems_stereo.pipeline.process_recording`` and prints the
+subprocess with ``mems_stereo.pipeline.run.process_recording`` and prints the
 wall time, pixel-slots per second, the real-time factor against the paper's
 3.84 M slots/s, and the peak resident memory (ru_maxrss) of that process.
 
@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.recording import RecordingWriter, read_recording
+from mems_stereo.io.recording import RecordingWriter, read_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 
 CHILD = r"""
 import json, resource, sys, time
 t0 = time.perf_counter()
-from mems_stereo.pipeline import process_recording
+from mems_stereo.pipeline.run import process_recording
 res = process_recording(sys.argv[1])
 dt = time.perf_counter() - t0
 print(json.dumps({"seconds": dt, "counts": res.counts, "timings": res.timings,

@@ -1,9 +1,9 @@
 """Calibrate a system from flat-target recordings: classify → fit → reclassify → refit.
 
-The classifier (:mod:`mems_stereo.fastpath`, the pipeline's) needs a system to
+The classifier (:mod:`mems_stereo.pipeline.intervals`, the pipeline's) needs a system to
 tell signal from noise; a miscalibrated one rejects true returns at the edges
 of its bounds.  So the detections are classified with the nominal system,
-the fit (:func:`calib.fit.fit_detections`) estimates a better one, and the
+the fit (:func:`mems_stereo.calib.fit.fit_detections`) estimates a better one, and the
 recordings are classified again with it, until the estimates stop moving
 (change < 0.1 σ) or ``n_iter`` rounds are done.
 """
@@ -15,14 +15,14 @@ import os
 import warnings
 
 import numpy as np
+from mems_stereo.calib.detections import detections_from_labels
+from mems_stereo.calib.fit import CalibrationResult, fit_detections, format_report
 
-from mems_stereo.fastpath import classify_and_accumulate, interval_table
-from mems_stereo.recording import Recording, read_recording
-from mems_stereo.scanner import phase_from_zero_crossings, scan_angle_from_phase
-from mems_stereo.system import System, resolve_system
-
-from .detections import detections_from_labels
-from .fit import CalibrationResult, fit_detections, format_report
+from mems_stereo.io.recording import Recording, read_recording
+from mems_stereo.model.scanner import phase_from_zero_crossings, scan_angle_from_phase
+from mems_stereo.model.system import System, resolve_system
+from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.pass1 import classify_and_accumulate
 
 
 def _as_recording(r) -> Recording:
@@ -43,23 +43,23 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     recordings : Recordings or paths of FORMAT v1 HDF5 files, one per target pose.
     system : nominal System, preset name or JSON path (default: the first
         recording's ``/system``).
-    fix, free : see :func:`calib.fit.fit_detections` (names of
-        :data:`calib.model.SYSTEM_PARAMS`).
+    fix, free : see :func:`mems_stereo.calib.fit.fit_detections` (names of
+        :data:`mems_stereo.calib.model.SYSTEM_PARAMS`).
     target_distances : per recording, the measured distance (m) of its target
         from the receiver's projection centre along the optical axis
         (``distance_kind="axis"``, see :func:`read_target_distances`), or
         None where unknown.
     distance_std : σ of a measured distance, m (scalar or one per recording).
-    distance_kind : "axis" or "normal" (:func:`calib.fit.known_distance_model`).
+    distance_kind : "axis" or "normal" (:func:`mems_stereo.calib.fit.known_distance_model`).
     confidence : of the classifier's consistency test.
     n_iter : classify/fit rounds (at least 1).
     on_unobservable : "raise" or "warn".
     progress : optional callable(str) for status lines.
-    fit_kwargs : passed to :func:`calib.fit.fit_detections`.
+    fit_kwargs : passed to :func:`mems_stereo.calib.fit.fit_detections`.
 
     Returns
     -------
-    :class:`~calib.fit.CalibrationResult`; ``result.system`` carries the
+    :class:`~mems_stereo.calib.fit.CalibrationResult`; ``result.system`` carries the
     ``calibration`` block, ``result.extra["classification"]`` the signal
     counts of each round.
     """
@@ -75,7 +75,7 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
         targets = []
         counts = []
         # the compiled interval-table classifier of the pipeline (labels identical
-        # to mems_stereo.classify.classify_bins on angles snapped to 50 µrad)
+        # to mems_stereo.pipeline.consistency.classify_bins on angles snapped to 50 µrad)
         table = interval_table(current, confidence)
         for r, (ph, ok) in zip(recs, phases):
             theta = scan_angle_from_phase(ph, current.scanner)
@@ -148,7 +148,7 @@ def read_target_distances(path, recordings, default_std: float | None = None):
     from pathlib import Path
 
     from mems_stereo.errors import FormatError
-    from mems_stereo.validation import read_json_file
+    from mems_stereo.util.jsonfile import read_json_file
 
     src = str(path)
     doc = read_json_file(path)

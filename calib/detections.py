@@ -5,7 +5,7 @@ monitor phase of every usable shot (to predict where the beam lands), which
 shots produced a signal detection (to estimate the signal rate), and each
 signal detection's pixel and TDC code.  Only the phase depends on nothing of
 the system: θ follows from it and the candidate system's θ0, amplitude and
-phase offset (``mems_stereo.scanner.scan_angle_from_phase``).
+phase offset (``mems_stereo.model.scanner.scan_angle_from_phase``).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mems_stereo.errors import FormatError
-from mems_stereo.scanner import phase_from_zero_crossings
+from mems_stereo.model.scanner import phase_from_zero_crossings
 
 
 @dataclass
@@ -83,6 +83,6 @@ def detections_from_labels(phase, valid, bins, labels, source: str = "<memory>"
 
 
 def recording_phase(recording):
-    """(K,) monitor phase and (K,) validity of a :class:`~mems_stereo.recording.Recording`."""
+    """(K,) monitor phase and (K,) validity of a :class:`~mems_stereo.io.recording.Recording`."""
     return phase_from_zero_crossings(recording.shot_time, recording.zero_crossings,
                                      recording.rising)

@@ -4,7 +4,7 @@
 phase offset, TDC offset, baseline x/y/z, optionally fx/cx) jointly with each
 target's plane (tilt α, distance D; tilt β too for 2-D arrays) from signal
 detections, by ``scipy.optimize.least_squares`` with a robust loss on the
-residuals of :mod:`calib.model`.  Uncertainties come from the Jacobian at the
+residuals of :mod:`mems_stereo.calib.model`.  Uncertainties come from the Jacobian at the
 solution: ``cov = (Σ_b J_bᵀ J_b / s_b²)⁻¹`` with ``s_b²`` the variance of the
 (normalised, inlier) residuals of block b (pixel, time).
 
@@ -25,13 +25,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
-
-from mems_stereo.errors import NotObservableError
-from mems_stereo.scanner import scan_angle_from_phase
-from mems_stereo.system import System
-
-from .model import (
+from mems_stereo.calib.model import (
     DEFAULT_FREE,
     PARAM_SCALE,
     PARAM_UNIT,
@@ -40,7 +34,13 @@ from .model import (
     code_time,
     plane_normal,
 )
-from .timing import FirstPhotonTable, background_rate, pulse_sigma
+from scipy.optimize import least_squares
+
+from mems_stereo.errors import NotObservableError
+from mems_stereo.model.scanner import scan_angle_from_phase
+from mems_stereo.model.system import System
+from mems_stereo.physics.first_photon_timing import FirstPhotonTable, background_rate
+from mems_stereo.physics.pulse import pulse_sigma
 
 #: a parameter known worse than this is "not observable" (SI units)
 DEFAULT_MAX_STD = {"theta0": 0.01, "theta_mech_max": 0.01, "phase_offset": 0.02,
@@ -568,10 +568,10 @@ def fit_detections(targets, system: System, *, free=None, fix=(), known_distance
 
     Parameters
     ----------
-    targets : list of :class:`~calib.detections.TargetDetections`, one per
+    targets : list of :class:`~mems_stereo.calib.detections.TargetDetections`, one per
         target pose (recording).
     system : the nominal system: start values and everything not fitted.
-    free : system parameters to estimate (default: :data:`calib.model.DEFAULT_FREE`;
+    free : system parameters to estimate (default: :data:`mems_stereo.calib.model.DEFAULT_FREE`;
         add ``"fx"``, ``"cx"`` to refine the receiver).
     fix : names held at their value in ``system``.
     known_distances : per target, its measured distance in m (see

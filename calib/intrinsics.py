@@ -8,7 +8,7 @@ match them to board coordinates with ``board.matchImagePoints`` and run
 set of views with a known camera matrix (``board.generateImage`` and a
 homography warp) for tests and as a sample:
 
-    python -m calib.intrinsics OUT_DIR      # writes view_*.png and K_true.txt
+    python -m mems_stereo.calib.intrinsics OUT_DIR      # writes view_*.png and K_true.txt
 
 A line sensor (one row) cannot image a board: see ``docs/calibration.md``
 for how its focal length and principal point are found, and the joint fit

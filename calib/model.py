@@ -12,7 +12,7 @@ For each signal detection (target j, shot with monitor phase φ):
   divided by σ_pix (the pixel's extent, pitch/√12 → 1/√12 px);
 * time residual: measured TDC time ``(N − ½)·bin_width`` minus the expected
   first-photon time of a return centred at ``τ0 = (s + |P|)/c + offset``
-  (:mod:`calib.timing`: truncation at the TDC start, first of several
+  (:mod:`mems_stereo.physics.first_photon_timing`: truncation at the TDC start, first of several
   photons, background), divided by that distribution's σ.
 
 All frames: receiver camera frame (OpenCV), metres, radians, seconds.
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mems_stereo.camera import project_points
-from mems_stereo.system import System
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.system import System
 
 #: system parameters the fit knows, in the order of the parameter vector
 SYSTEM_PARAMS = ("theta0", "theta_mech_max", "phase_offset", "tdc_offset",

@@ -13,12 +13,11 @@ would give.
 from __future__ import annotations
 
 import numpy as np
+from mems_stereo.calib.detections import TargetDetections
+from mems_stereo.calib.model import beam_hits, plane_normal
 
-from mems_stereo.system import System
-
-from .detections import TargetDetections
-from .model import beam_hits, plane_normal
-from .timing import pulse_sigma
+from mems_stereo.model.system import System
+from mems_stereo.physics.pulse import pulse_sigma
 
 
 def synthetic_target(system: System, alpha: float, dist: float, n_shots: int,
@@ -30,7 +29,7 @@ def synthetic_target(system: System, alpha: float, dist: float, n_shots: int,
     Parameters
     ----------
     system : the TRUE system (what the hardware is).
-    alpha, beta : rad, plane tilts (:func:`calib.model.plane_normal`).
+    alpha, beta : rad, plane tilts (:func:`mems_stereo.calib.model.plane_normal`).
     dist : m, the plane's distance from the projection centre.
     n_shots : shots at f_rep, monitor phase φ_k = 2π f_mech k / f_rep + phase0.
     rng : numpy Generator.

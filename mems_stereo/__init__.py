@@ -2,33 +2,37 @@
 
 The scanner and the SPAD receiver form a projector–camera stereo pair
 (Burkard et al., J. Optical Microsystems 2(1), 011005, 2022).  Free functions
-on NumPy arrays, one module per concept:
+on NumPy arrays, in layers that follow the data (docs/architecture.md); a
+layer imports only the layers above it in this list:
 
-* :mod:`mems_stereo.system`      system description (FORMAT v1), presets
-* :mod:`mems_stereo.scanner`     MEMS trajectory, zero crossings → θ, reflection law
-* :mod:`mems_stereo.camera`      OpenCV receiver model: pixel ↔ ray
-* :mod:`mems_stereo.epipolar`    epipolar residual, readout segment, midpoint triangulation
-* :mod:`mems_stereo.acquisition` shots over angle and pixels (paper Sec. 2.1)
-* :mod:`mems_stereo.recording`   HDF5 recordings (FORMAT v1), chunked reading and writing
-* :mod:`mems_stereo.triangulation`, :mod:`mems_stereo.uncertainty`  dtof triangulation, propagation
-* :mod:`mems_stereo.classify`, :mod:`mems_stereo.fastpath`  consistency test; its compiled form
-* :mod:`mems_stereo.histogram`, :mod:`mems_stereo.peaks`, :mod:`mems_stereo.points`  histograms,
-  background, peaks, fused points
-* :mod:`mems_stereo.pipeline`, :mod:`mems_stereo.distributed`  streamed processing; Dask
-* :mod:`mems_stereo.timetags`    the same stage for TCSPC time tags
-* :mod:`mems_stereo.sim`         the simulator
+* :mod:`mems_stereo.errors`    the exception hierarchy
+* :mod:`mems_stereo.util`      atomic writes, JSON reading with line/column errors
+* :mod:`mems_stereo.model`     system (FORMAT v1, presets), scanner, camera, TDC convention,
+  acquisition statistics
+* :mod:`mems_stereo.physics`   pulse, first photon, spot, background, link budget
+* :mod:`mems_stereo.geometry`  epipolar constraint, triangulation, uncertainty
+* :mod:`mems_stereo.io`        recordings, labels, histograms, real data
+* :mod:`mems_stereo.pipeline`  settings → angles → consistency/intervals → pass1 → peaks →
+  pass2 → fusion → cloud; run (process_recording), distributed (Dask), timetags
+* :mod:`mems_stereo.sim`       the simulator;  :mod:`mems_stereo.calib`  calibration
+* :mod:`mems_stereo.viz`       export, render, plots (Open3D, matplotlib);  ``cli``  the commands
 
 Frames, units and angles: ``docs/conventions.md``.  The core never imports
-Open3D or matplotlib; those load in :mod:`viz` only.
+Open3D or matplotlib; those load in :mod:`mems_stereo.viz` only.
 """
 
-from .acquisition import acquisition_statistics, shot_pixels
-from .camera import pixels_to_rays, project_points, receiver_rays
-from .epipolar import epipolar_pixels, epipolar_residual, epipolar_segment, triangulate_midpoint
-from .errors import FormatError, GeometryError, MemsStereoError, NotObservableError
-from .histogram import accumulate_histograms, background_rate_mle, moving_average
-from .recording import Recording, iter_shot_chunks, read_recording, write_recording
-from .scanner import (
+from mems_stereo import _deprecated
+from mems_stereo.errors import FormatError, GeometryError, MemsStereoError, NotObservableError
+from mems_stereo.geometry.epipolar import (
+    epipolar_pixels,
+    epipolar_residual,
+    epipolar_segment,
+    triangulate_midpoint,
+)
+from mems_stereo.io.recording import Recording, iter_shot_chunks, read_recording, write_recording
+from mems_stereo.model.acquisition import acquisition_statistics, shot_pixels
+from mems_stereo.model.camera import pixels_to_rays, project_points, receiver_rays
+from mems_stereo.model.scanner import (
     mirror_normal,
     phase_from_zero_crossings,
     reflect,
@@ -37,7 +41,18 @@ from .scanner import (
     theta0_exact,
     theta0_small_angle,
 )
-from .system import System, load_system, preset, save_system, system_from_dict, system_to_dict
+from mems_stereo.model.system import (
+    System,
+    load_system,
+    preset,
+    save_system,
+    system_from_dict,
+    system_to_dict,
+)
+from mems_stereo.physics.background import background_rate_mle
+from mems_stereo.pipeline.histograms import accumulate_histograms, moving_average
+
+_deprecated.install()
 
 __version__ = "0.1.0"
 

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from mems_stereo.model.system import System, burkard2022, save_system
 from mems_stereo.sim import load_scene, simulate, write_simulation
-from mems_stereo.system import System, burkard2022, save_system
 
 HERE = Path(__file__).resolve().parent
 

@@ -10,7 +10,7 @@ import pytest
 os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 os.environ.setdefault("MPLBACKEND", "Agg")
 
-from mems_stereo.system import burkard2022  # noqa: E402
+from mems_stereo.model.system import burkard2022
 
 
 @pytest.fixture

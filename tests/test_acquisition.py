@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from mems_stereo.acquisition import acquisition_statistics, shot_pixels
+from mems_stereo.model.acquisition import acquisition_statistics, shot_pixels
 
 
 def test_shots_over_angle_follow_the_arcsine_law(system):

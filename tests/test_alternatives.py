@@ -8,8 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.model.tdc import path_length_from_codes
 from mems_stereo.sim.scene import scene_from_dict
-from mems_stereo.triangulation import path_length_from_codes, path_length_of_point
 
 _SPEC = importlib.util.spec_from_file_location(
     "bench_pipeline", Path(__file__).resolve().parents[1] / "benchmarks" / "bench_pipeline.py")

@@ -6,11 +6,11 @@ import warnings
 
 import numpy as np
 import pytest
+from mems_stereo.calib.fit import ObservabilityWarning, fit_detections
+from mems_stereo.calib.synth import synthetic_target
 
-from calib.fit import ObservabilityWarning, fit_detections
-from calib.synth import synthetic_target
 from mems_stereo.errors import NotObservableError
-from mems_stereo.system import burkard2022
+from mems_stereo.model.system import burkard2022
 
 TARGETS = [(0.05, 1.2, 3.0), (-0.1, 2.0, 1.5), (0.02, 3.5, 0.6)]  # tilt rad, distance m, μ
 

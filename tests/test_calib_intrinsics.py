@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from calib.intrinsics import (
+from mems_stereo.calib.intrinsics import (
     calibrate_charuco,
     default_poses,
     make_board,

@@ -1,4 +1,4 @@
-"""First-photon timing model (calib.timing) against a Monte-Carlo of photons."""
+"""First-photon timing model (mems_stereo.physics.first_photon_timing) against a Monte-Carlo of photons."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from calib.timing import FirstPhotonTable, first_photon_moments, pulse_sigma
+from mems_stereo.physics.first_photon_timing import FirstPhotonTable, first_photon_moments
+from mems_stereo.physics.pulse import pulse_sigma
 
 SIGMA = pulse_sigma(14.9e-9)
 

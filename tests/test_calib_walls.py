@@ -17,12 +17,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mems_stereo.calib.calibrate import read_target_distances
 
-from calib.calibrate import read_target_distances
 from mems_stereo.cli import main
 from mems_stereo.errors import FormatError
-from mems_stereo.pipeline import process_recording
-from mems_stereo.system import load_system
+from mems_stereo.model.system import load_system
+from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 WALLS = ("1.5", "2.5", "4.0")

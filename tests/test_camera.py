@@ -8,7 +8,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mems_stereo.camera import (
+from mems_stereo.errors import FormatError, GeometryError
+from mems_stereo.model.camera import (
     check_intrinsics,
     pixel_grid,
     pixels_to_rays,
@@ -16,7 +17,6 @@ from mems_stereo.camera import (
     receiver_ray_derivatives,
     receiver_rays,
 )
-from mems_stereo.errors import FormatError, GeometryError
 
 K2D = np.array([[600.0, 0.0, 319.5], [0.0, 610.0, 239.5], [0.0, 0.0, 1.0]])
 DIST = np.array([-0.12, 0.05, 0.001, -0.0005, 0.0])

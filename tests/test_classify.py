@@ -5,18 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mems_stereo.camera import project_points
-from mems_stereo.classify import (
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.geometry.uncertainty import spreads_for
+from mems_stereo.io.recording import Recording
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.tdc import codes_from_path_length
+from mems_stereo.pipeline.consistency import (
     accepted_code_intervals,
     classify_bins,
     classify_detections,
     classify_recording,
     k_from_confidence,
 )
-from mems_stereo.recording import Recording
-from mems_stereo.scanner import scan_direction
-from mems_stereo.triangulation import codes_from_path_length, path_length_of_point
-from mems_stereo.uncertainty import spreads_for
 
 
 def _wall(system, rng, K=400, Z=3.0, p_bg=0.3):

@@ -5,12 +5,12 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from mems_stereo.viz.export import LAS_SCALE, read_cloud, write_cloud
+from mems_stereo.viz.render import render_available
 
 from mems_stereo.cli import main
-from mems_stereo.cloud import PointCloud
-from mems_stereo.histogram_io import write_histograms
-from viz.export import LAS_SCALE, read_cloud, write_cloud
-from viz.render import render_available
+from mems_stereo.io.histograms import write_histograms
+from mems_stereo.pipeline.cloud import PointCloud
 
 
 @pytest.fixture

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mems_stereo.distributed import dask_client, process_many, process_split, shot_ranges
-from mems_stereo.pipeline import process_recording
+from mems_stereo.pipeline.distributed import dask_client, process_many, process_split, shot_ranges
+from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 

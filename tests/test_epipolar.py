@@ -8,16 +8,16 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from mems_stereo.camera import pixels_to_rays, project_points
-from mems_stereo.epipolar import (
+from mems_stereo.geometry.epipolar import (
     epipolar_pixels,
     epipolar_residual,
     epipolar_segment,
     path_for_range,
     triangulate_midpoint,
 )
-from mems_stereo.scanner import scan_direction
-from mems_stereo.system import Receiver, burkard2022
+from mems_stereo.model.camera import pixels_to_rays, project_points
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.system import Receiver, burkard2022
 
 vec = st.lists(st.floats(-2, 2, allow_nan=False), min_size=3, max_size=3).map(np.array)
 

@@ -7,15 +7,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from mems_stereo.classify import classify_bins
-from mems_stereo.fastpath import (
-    _kernel_nolabels_py,
-    _kernel_py,
-    classify_and_accumulate,
-    interval_table,
-)
-from mems_stereo.histogram import accumulate_histograms
-from mems_stereo.system import burkard2022
+from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.consistency import classify_bins
+from mems_stereo.pipeline.histograms import accumulate_histograms
+from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.pass1 import _kernel_nolabels_py, _kernel_py, classify_and_accumulate
 
 
 @pytest.fixture(scope="module")
@@ -101,7 +97,7 @@ def test_snapping_is_within_half_a_step(table, rng):
 
 
 def test_peak_window_keys_equal_a_numpy_reference(table, rng):
-    from mems_stereo.fastpath import _window_keys_py, peak_window_keys
+    from mems_stereo.pipeline.pass2 import _window_keys_py, peak_window_keys
 
     s = burkard2022()
     bins, theta, valid = _random_block(rng, s, 120)

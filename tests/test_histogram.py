@@ -11,18 +11,20 @@ from hypothesis import strategies as st
 from scipy.optimize import minimize_scalar
 
 from mems_stereo.errors import FormatError
-from mems_stereo.histogram import (
-    Histograms,
-    accumulate_histograms,
+from mems_stereo.model.tdc import path_length
+from mems_stereo.physics.background import (
     armed_shots,
     background_rate_mle,
     coates_correction,
-    detect_peaks,
     expected_background,
-    moving_average,
-    path_length,
-    peak_centroid,
     poisson_threshold,
+)
+from mems_stereo.pipeline.histograms import (
+    Histograms,
+    accumulate_histograms,
+    detect_peaks,
+    moving_average,
+    peak_centroid,
 )
 
 DT = 312.5e-12

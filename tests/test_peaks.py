@@ -6,10 +6,12 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.fastpath import interval_table
-from mems_stereo.peaks import expected_background_by_angle, find_code_peaks, strongest_window
-from mems_stereo.pipeline import Settings, process_recording
-from mems_stereo.system import burkard2022
+from mems_stereo.model.system import burkard2022
+from mems_stereo.physics.background import expected_background_by_angle
+from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.peaks import find_code_peaks, strongest_window
+from mems_stereo.pipeline.run import process_recording
+from mems_stereo.pipeline.settings import Settings
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 

@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 
 from mems_stereo.cli import main
 from mems_stereo.errors import FormatError
-from mems_stereo.pipeline import Settings, process_recording
+from mems_stereo.pipeline.run import process_recording
+from mems_stereo.pipeline.settings import Settings
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -45,7 +46,7 @@ def test_peak_pixels_unchanged_by_classification(room):
     """Where a pixel's raw histogram has a clear return, the signal peak is at the same code."""
     raw = room.histograms["raw"][0].astype(float)
     sig = room.histograms["signal"][0].astype(float)
-    from mems_stereo.histogram import moving_average
+    from mems_stereo.pipeline.histograms import moving_average
 
     w = 49
     raw_s, sig_s = moving_average(raw, w), moving_average(sig, w)
@@ -69,7 +70,7 @@ def test_process_command_writes_cloud_labels_histograms(tmp_path, capsys):
                  "--histograms", str(hist)]) == 0
     text = capsys.readouterr().out
     assert "raw counts 19476" in text and "signal recall" in text
-    from viz.export import read_cloud
+    from mems_stereo.viz.export import read_cloud
 
     cloud = read_cloud(out)
     for name in ("counts", "pixel", "range", "sigma_r", "sigma_phi"):
@@ -129,7 +130,7 @@ def test_bad_recordings_leave_no_output(tmp_path_factory, what, seed):
 def test_poisson_quantile_equals_scipy_stats():
     from scipy.stats import poisson
 
-    from mems_stereo.peaks import poisson_isf
+    from mems_stereo.physics.background import poisson_isf
 
     mu = np.array([1e-9, 0.01, 0.5, 3.0, 47.0, 900.0, 2.5e4])
     for alpha in (1e-6, 1e-3, 0.05, 0.5):

@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mems_stereo.camera import project_points
-from mems_stereo.cloud import REQUIRED_ATTRIBUTES
-from mems_stereo.points import detection_points, peak_points
-from mems_stereo.scanner import scan_direction
-from mems_stereo.triangulation import codes_from_path_length, path_length_of_point
-from mems_stereo.uncertainty import polar_from_cartesian, spreads_for
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.geometry.uncertainty import polar_from_cartesian, spreads_for
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.tdc import codes_from_path_length
+from mems_stereo.pipeline.cloud import REQUIRED_ATTRIBUTES
+from mems_stereo.pipeline.fusion import detection_points, peak_points
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -83,8 +84,8 @@ def test_peak_points_on_a_wall(system, rng):
 @pytest.mark.skipif(not (SAMPLES / "room.h5").exists(), reason="samples/room.h5 not built")
 def test_room_sample_detection_accuracy():
     """Simulated room: each estimate's range errors within 1.5x of its own σ."""
-    from mems_stereo.classify import classify_recording
-    from mems_stereo.recording import read_recording
+    from mems_stereo.io.recording import read_recording
+    from mems_stereo.pipeline.consistency import classify_recording
 
     rec = read_recording(SAMPLES / "room.h5")
     res = classify_recording(rec)
@@ -106,13 +107,11 @@ def test_room_peaks_tof_first_photon_correction():
     """Room sample, one point per peak: with the valid shots per angle step the ToF range
     loses its first-photon bias and its errors come within 1.5x of its σ (without: 1.4x);
     the fused estimate keeps its ≤ 3 cm median error."""
-    from mems_stereo.fastpath import interval_table, shots_per_step
-    from mems_stereo.pipeline import (
-        Settings,
-        peak_counts_range,
-        points_from_counts,
-        process_recording,
-    )
+    from mems_stereo.pipeline.fusion import points_from_counts
+    from mems_stereo.pipeline.intervals import interval_table, shots_per_step
+    from mems_stereo.pipeline.pass2 import peak_counts_range
+    from mems_stereo.pipeline.run import process_recording
+    from mems_stereo.pipeline.settings import Settings
     from mems_stereo.sim import load_scene
 
     path = SAMPLES / "room.h5"

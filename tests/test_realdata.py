@@ -17,9 +17,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mems_stereo.timetags import (
+from mems_stereo.io.realdata import load_realdata_npz
+from mems_stereo.pipeline.timetags import (
     estimate_timing_spread,
-    load_realdata_npz,
     signal_background_from_timetags,
     window_counts_from_timetags,
 )

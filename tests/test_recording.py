@@ -9,14 +9,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mems_stereo.errors import FormatError
-from mems_stereo.recording import (
+from mems_stereo.io.labels import write_labels
+from mems_stereo.io.recording import (
     iter_shot_chunks,
     read_header,
     read_recording,
-    write_labels,
     write_recording,
 )
-from mems_stereo.system import burkard2022, system_to_json
+from mems_stereo.model.system import burkard2022, system_to_json
 
 
 def _tiny(rng, k=50):
@@ -107,7 +107,7 @@ def test_writer_refuses_bad_arrays_and_leaves_nothing(tmp_path, dtype, drop):
 
 
 def test_chunked_writer_matches_one_shot_writer(tmp_path, rng):
-    from mems_stereo.recording import RecordingWriter
+    from mems_stereo.io.recording import RecordingWriter
 
     s, t, bins, zc, r = _tiny(rng)
     with RecordingWriter(tmp_path / "c.h5", s, 50, zc, r, chunk_shots=16) as w:
@@ -119,7 +119,7 @@ def test_chunked_writer_matches_one_shot_writer(tmp_path, rng):
 
 
 def test_chunked_writer_leaves_nothing_when_incomplete(tmp_path, rng):
-    from mems_stereo.recording import RecordingWriter
+    from mems_stereo.io.recording import RecordingWriter
 
     s, t, bins, zc, r = _tiny(rng)
     with pytest.raises(FormatError, match="10 shots written, 50 declared"):

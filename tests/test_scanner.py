@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mems_stereo.errors import FormatError, GeometryError
-from mems_stereo.scanner import (
+from mems_stereo.model.scanner import (
     crossing_phases,
     mirror_normal,
     phase_from_zero_crossings,
@@ -39,7 +39,7 @@ def test_reflection_keeps_unit_length_and_is_an_involution(d, n):
 
 @given(st.floats(-math.pi, math.pi))
 def test_scan_direction_closed_form_for_the_paper_geometry(theta):
-    from mems_stereo.system import burkard2022
+    from mems_stereo.model.system import burkard2022
 
     sc = burkard2022().scanner
     d = scan_direction(theta, sc)
@@ -70,7 +70,7 @@ def test_non_unit_laser_direction_is_rejected(system):
 @given(st.floats(0.01, 0.5), st.floats(0.5, 50.0))
 def test_theta0_exact_crosses_the_optical_axis_at_working_distance(xm0, w):
     """Numerically: the beam at θ0 from the mirror at (−x_M0, 0, 0) meets x = 0 at z = W."""
-    from mems_stereo.system import burkard2022
+    from mems_stereo.model.system import burkard2022
 
     sc = burkard2022().scanner
     d = scan_direction(theta0_exact(xm0, w), sc)

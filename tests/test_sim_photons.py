@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from mems_stereo.model.system import burkard2022
 from mems_stereo.sim import (
     LinkBudget,
     PulseShape,
@@ -22,7 +23,6 @@ from mems_stereo.sim import (
     shot_returns,
     simulate,
 )
-from mems_stereo.system import burkard2022
 
 BW = 312.5e-12
 NBINS = 4096

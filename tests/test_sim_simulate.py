@@ -13,8 +13,9 @@ import pytest
 from scipy.optimize import brentq
 
 from mems_stereo.cli import main
-from mems_stereo.recording import read_recording
-from mems_stereo.scanner import scan_angles, scan_direction
+from mems_stereo.io.recording import read_recording
+from mems_stereo.model.scanner import scan_angles, scan_direction
+from mems_stereo.model.system import burkard2022, load_system, system_to_dict
 from mems_stereo.sim import (
     LinkBudget,
     Trajectory,
@@ -23,7 +24,6 @@ from mems_stereo.sim import (
     simulate,
     write_simulation,
 )
-from mems_stereo.system import burkard2022, load_system, system_to_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLES = ROOT / "samples"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mems_stereo.errors import FormatError
-from mems_stereo.system import (
+from mems_stereo.model.system import (
     burkard2022,
     load_system,
     preset,

@@ -7,7 +7,7 @@ import pytest
 from scipy.special import erf
 
 from mems_stereo.errors import FormatError
-from mems_stereo.timetags import (
+from mems_stereo.pipeline.timetags import (
     estimate_timing_spread,
     histogram_from_timetags,
     pixel_of_photon,

@@ -8,20 +8,18 @@ import numpy as np
 import pytest
 from scipy.special import ndtr, ndtri
 
-from mems_stereo.points import (
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.physics.first_photon import (
     MU_GRID,
-    PeakAccumulator,
     _detection_log_odds,
     _firing_probability,
     _table_lookup,
     first_photon_delay,
     first_photon_moments,
-    points_from_peak_detections,
-    spot_fraction,
 )
-from mems_stereo.scanner import scan_direction
-from mems_stereo.triangulation import path_length_of_point
-from mems_stereo.uncertainty import DEFAULT_SPOT_SIGMA
+from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
+from mems_stereo.pipeline.fusion import PeakAccumulator, points_from_peak_detections
 
 
 def _first_arrivals(rng, mu_w, a, size):
@@ -48,8 +46,9 @@ def test_moments_against_monte_carlo(rng, a, mu):
 
 
 def test_moments_against_calib_and_sim():
-    from calib.timing import first_photon_moments as calib_moments
-    from mems_stereo.sim.photons import PulseShape, first_photon_mean_delay
+    from mems_stereo.physics.first_photon import first_photon_mean_delay
+    from mems_stereo.physics.first_photon_timing import first_photon_moments as calib_moments
+    from mems_stereo.physics.pulse import PulseShape
 
     sigma = 14.9e-9 / (2 * math.sqrt(2 * math.log(2)))
     pulse = PulseShape.gaussian(14.9e-9)
@@ -122,8 +121,8 @@ def test_corrected_mean_is_unbiased_within_its_sigma(rng, mu0, a):
 
 
 def test_spot_fraction_matches_simulator(system):
-    from mems_stereo.camera import project_points
-    from mems_stereo.sim.photons import spot_fractions
+    from mems_stereo.model.camera import project_points
+    from mems_stereo.physics.spot import spot_fractions
 
     th = system.scanner.theta0 + np.array([-0.1, 0.0, 0.07])
     r = np.array([1.5, 3.0, 5.0])
@@ -150,7 +149,7 @@ def _wall_detections(system, rng, mu0, Z=2.0, K=4000):
     """First-photon detections of a wall at z = Z, a narrow Gaussian spot and μ0 photons
     per shot (whole pulse) spread over the pixels: (shot, peak, code, theta), the peaks'
     pixels and the path lengths; shots at uniform angles, no background."""
-    from mems_stereo.camera import project_points
+    from mems_stereo.model.camera import project_points
 
     th = system.scanner.theta0 + rng.uniform(-0.05, 0.05, K)
     p = system.scanner.position

@@ -7,25 +7,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.optimize import brentq
 
-from mems_stereo.camera import pixels_to_rays
-from mems_stereo.scanner import scan_direction
-from mems_stereo.triangulation import (
+from mems_stereo.geometry.triangulation import (
     FLAG_BEHIND,
     FLAG_GRAZING,
     FLAG_NO_SOLUTION,
     beam_angle,
-    codes_from_path_length,
     coplanar_ray_intersection,
     epipolar_stereo_point,
     paper_eq8_z,
     paper_eq9_x,
     paper_mu_pix,
-    path_length_from_codes,
     path_length_of_point,
     pixel_ray_point,
     scanner_ray_point,
     stereo_point,
 )
+from mems_stereo.model.camera import pixels_to_rays
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
 
 unit = st.lists(st.floats(-1, 1, allow_nan=False), min_size=3, max_size=3).map(np.array).filter(
     lambda v: np.linalg.norm(v) > 0.1).map(lambda v: v / np.linalg.norm(v))
@@ -80,7 +79,7 @@ def test_no_solution_and_grazing_give_nan_and_flags():
 @given(st.floats(-0.2, 0.2), st.floats(0.3, 40.0))
 def test_stereo_and_tof_agree_on_a_noise_free_detection(dtheta, dist):
     """Pixel ray through the beam's point: stereo, both ToF forms and coplanar closed form agree."""
-    from mems_stereo.system import burkard2022
+    from mems_stereo.model.system import burkard2022
 
     sys_ = burkard2022()
     p = sys_.scanner.position

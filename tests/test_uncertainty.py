@@ -5,11 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mems_stereo.camera import project_points
-from mems_stereo.scanner import scan_direction
-from mems_stereo.triangulation import path_length_of_point
-from mems_stereo.uncertainty import (
-    FWHM_PER_SIGMA,
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.geometry.uncertainty import (
     paper_polar_uncertainty,
     paper_spreads,
     polar_from_cartesian,
@@ -19,6 +16,9 @@ from mems_stereo.uncertainty import (
     tof_pixel_point,
     tof_point,
 )
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.physics.pulse import FWHM_PER_SIGMA
 
 
 def _truth(system, dist, dtheta=0.03):
@@ -95,8 +95,8 @@ def test_paper_polar_uncertainty_matches_monte_carlo(system, rng):
     mu_r, mu_phi, s_r, s_phi = paper_polar_uncertainty(system, uv[:, 0], code, th)
     sp = paper_spreads(system)
     n = 20000
-    from mems_stereo.triangulation import path_length_from_codes
-    from mems_stereo.uncertainty import paper_point
+    from mems_stereo.geometry.uncertainty import paper_point
+    from mems_stereo.model.tdc import path_length_from_codes
 
     u = uv[0, 0] + rng.uniform(-0.5, 0.5, n) * sp.sigma_u * np.sqrt(12)
     t = (path_length_from_codes(code, system.tdc, system.speed_of_light)[0]

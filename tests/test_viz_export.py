@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from mems_stereo.viz.export import LAS_SCALE, read_cloud, write_cloud
 
-from mems_stereo.cloud import PointCloud
 from mems_stereo.errors import FormatError
-from viz.export import LAS_SCALE, read_cloud, write_cloud
+from mems_stereo.pipeline.cloud import PointCloud
 
 
 def make_cloud(rng: np.random.Generator, n: int = 50) -> PointCloud:
@@ -149,7 +149,7 @@ def test_bad_paths(tmp_path):
 
 
 def test_failed_write_leaves_target_untouched(tmp_path, monkeypatch):
-    import viz.export as ex
+    import mems_stereo.viz.export as ex
 
     target = tmp_path / "keep.ply"
     target.write_bytes(b"old")

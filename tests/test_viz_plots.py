@@ -5,11 +5,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from mems_stereo.viz import plots
 
-from mems_stereo.cloud import PointCloud
 from mems_stereo.errors import FormatError
-from mems_stereo.histogram_io import read_histograms, write_histograms
-from viz import plots
+from mems_stereo.io.histograms import read_histograms, write_histograms
+from mems_stereo.pipeline.cloud import PointCloud
 
 
 def _png(path):

@@ -5,11 +5,17 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from mems_stereo.viz.colormap import COLORMAPS, NAN_COLOR, apply_colormap, cloud_colors, normalize
+from mems_stereo.viz.render import (
+    VIEWS,
+    render_available,
+    render_cloud,
+    render_image,
+    view_camera,
+)
 
-from mems_stereo.cloud import PointCloud
 from mems_stereo.errors import FormatError
-from viz.colormap import COLORMAPS, NAN_COLOR, apply_colormap, cloud_colors, normalize
-from viz.render import VIEWS, render_available, render_cloud, render_image, view_camera
+from mems_stereo.pipeline.cloud import PointCloud
 
 _OK, _WHY = render_available()
 needs_gl = pytest.mark.skipif(not _OK, reason=f"headless OpenGL unavailable: {_WHY}")
@@ -132,7 +138,7 @@ def test_render_cloud_writes_png(tmp_path):
 
 @needs_gl
 def test_subprocess_fallback(monkeypatch):
-    import viz.render as r
+    import mems_stereo.viz.render as r
 
     cloud, cam, w, h = _plane_scene()
     direct = render_image(cloud, "counts", w, h, camera=cam)
@@ -142,7 +148,7 @@ def test_subprocess_fallback(monkeypatch):
 
 
 def test_no_context_gives_clear_error(monkeypatch):
-    import viz.render as r
+    import mems_stereo.viz.render as r
 
     monkeypatch.setattr(r, "_render_array", lambda *a: None)
     monkeypatch.setattr(r, "_render_in_subprocess", lambda *a: None)
@@ -158,7 +164,7 @@ def test_empty_cloud_renders_background():
 
 
 def test_view_without_display(monkeypatch):
-    from viz.view import DisplayUnavailableError, view_cloud
+    from mems_stereo.viz.view import DisplayUnavailableError, view_cloud
 
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)

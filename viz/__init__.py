@@ -1,10 +1,11 @@
 """Point cloud files, Open3D rendering and viewing, matplotlib figures.
 
-* :mod:`viz.export`   – ``write_cloud`` / ``read_cloud``: .ply, .pcd (Open3D tensor clouds), .las
-* :mod:`viz.render`   – ``render_cloud``: headless PNG through Open3D + Mesa EGL
-* :mod:`viz.view`     – ``view_cloud``: interactive Open3D window (needs a display)
-* :mod:`viz.plots`    – the paper's figures with matplotlib (Agg)
-* :mod:`viz.colormap` – NumPy colormaps (no matplotlib)
+* :mod:`mems_stereo.viz.export`   – ``write_cloud`` / ``read_cloud``: .ply, .pcd (Open3D
+  tensor clouds), .las
+* :mod:`mems_stereo.viz.render`   – ``render_cloud``: headless PNG through Open3D + Mesa EGL
+* :mod:`mems_stereo.viz.view`     – ``view_cloud``: interactive Open3D window (needs a display)
+* :mod:`mems_stereo.viz.plots`    – the paper's figures with matplotlib (Agg)
+* :mod:`mems_stereo.viz.colormap` – NumPy colormaps (no matplotlib)
 
 Importing :mod:`viz` loads neither Open3D nor matplotlib; the names below
 load their module on first use.  Formats and the rendering set-up:

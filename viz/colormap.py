@@ -85,7 +85,7 @@ def normalize(values, vmin: float | None = None, vmax: float | None = None) -> n
 
 def cloud_colors(cloud, color_by: str = "range", cmap: str = "turbo",
                  vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
-    """Per-point RGB for a :class:`~mems_stereo.cloud.PointCloud`.
+    """Per-point RGB for a :class:`~mems_stereo.pipeline.cloud.PointCloud`.
 
     ``color_by`` names an attribute (``range``, ``counts``, ``sigma_r``, ...)
     or one of ``x``, ``y``, ``z`` (point coordinates, m).  Returns (N, 3)

@@ -4,7 +4,7 @@
 
 * ``.ply`` (binary little endian) and ``.pcd`` (binary): ``x, y, z`` float64
   metres in the world (receiver camera) frame and one scalar property per
-  attribute of the :class:`~mems_stereo.cloud.PointCloud`, written as an
+  attribute of the :class:`~mems_stereo.pipeline.cloud.PointCloud`, written as an
   (N, 1) tensor attribute of an ``open3d.t.geometry.PointCloud``.  Round trips
   are exact (values and dtypes) for float32/64, int32, uint8 and uint16; PCD
   also keeps int64.  Other dtypes are converted losslessly before writing
@@ -17,7 +17,7 @@
   ``intensity`` carries ``counts`` clipped to 0..65535 for other lidar tools.
   ``.laz`` needs a LAZ backend for laspy (``pip install lazrs``).
 
-Writes are atomic (:func:`mems_stereo.io_util.atomic_output`).  Files
+Writes are atomic (:func:`mems_stereo.util.atomic.atomic_output`).  Files
 written here are read back by any PLY/PCD/LAS tool (CloudCompare, PDAL).
 """
 
@@ -28,9 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.cloud import REQUIRED_ATTRIBUTES, PointCloud
 from mems_stereo.errors import FormatError
-from mems_stereo.io_util import atomic_output
+from mems_stereo.pipeline.cloud import REQUIRED_ATTRIBUTES, PointCloud
+from mems_stereo.util.atomic import atomic_output
 
 #: LAS coordinate resolution, m (quantisation error at most half of it)
 LAS_SCALE = 1e-4
@@ -72,7 +72,8 @@ def _storable(name: str, values: np.ndarray, allowed: set, path: Path) -> np.nda
 
 def _check_cloud(cloud, path: Path) -> None:
     if not isinstance(cloud, PointCloud):
-        raise FormatError(f"expected a mems_stereo.cloud.PointCloud, found {type(cloud).__name__}",
+        raise FormatError("expected a mems_stereo.pipeline.cloud.PointCloud, found "
+                          f"{type(cloud).__name__}",
                           source=str(path))
 
 

@@ -24,7 +24,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 
 from mems_stereo.errors import FormatError
-from mems_stereo.io_util import atomic_output
+from mems_stereo.util.atomic import atomic_output
 
 _FORMATS = (".png", ".pdf", ".svg")
 
@@ -54,7 +54,7 @@ def _save(fig: Figure, path: Path, dpi: int = 120) -> Path:
 def plot_acquisition(stats, path: str | os.PathLike, title: str | None = None) -> Path:
     """Fig. 2: distribution of shots over the mechanical scan angle and over pixels.
 
-    ``stats``: :class:`mems_stereo.acquisition.AcquisitionStats` (angle_edges
+    ``stats``: :class:`mems_stereo.model.acquisition.AcquisitionStats` (angle_edges
     (B+1,) rad, angle_counts (B,), pixel_counts (W,) shots per pixel column,
     mean_accumulations, mean_per_illuminated_pixel).  Returns the path.
     """
@@ -292,7 +292,7 @@ def plot_cloud_topview(cloud, path: str | os.PathLike, color_by: str = "range",
                        title: str | None = None, point_size: float = 2.0) -> Path:
     """Bird's-eye view of a point cloud: x–z scatter (m) coloured by an attribute.
 
-    ``cloud``: :class:`mems_stereo.cloud.PointCloud`; ``color_by`` an attribute
+    ``cloud``: :class:`mems_stereo.pipeline.cloud.PointCloud`; ``color_by`` an attribute
     or x/y/z.  The receiver (projection centre) is marked at the origin.
     """
     path = _check_path(path)

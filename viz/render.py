@@ -24,12 +24,11 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
+from mems_stereo.viz.colormap import cloud_colors
 
-from mems_stereo.cloud import PointCloud
 from mems_stereo.errors import FormatError, MemsStereoError
-from mems_stereo.io_util import atomic_output
-
-from .colormap import cloud_colors
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.util.atomic import atomic_output
 
 VIEWS = ("camera", "top", "side", "oblique")
 #: Debian packages the offscreen path needs
@@ -139,7 +138,8 @@ def _render_in_subprocess(points, colors, width, height, K, E, point_size, backg
         np.savez(src, points=points, colors=colors, K=K, E=E)
         opts = json.dumps({"width": width, "height": height, "point_size": point_size,
                            "background": list(map(float, background))})
-        proc = subprocess.run([sys.executable, "-m", "viz.render", str(src), str(out), opts],
+        proc = subprocess.run([sys.executable, "-m", "mems_stereo.viz.render", str(src), str(out),
+                               opts],
                               capture_output=True, text=True, timeout=300)
         if proc.returncode != 0 or not out.exists():
             return None
@@ -152,7 +152,7 @@ def render_image(cloud: PointCloud, color_by: str = "range", width: int = 1280,
                  vmin: float | None = None, vmax: float | None = None) -> np.ndarray:
     """Render ``cloud`` offscreen; returns the image (height, width, 3) uint8 RGB.
 
-    ``color_by``: an attribute name or x/y/z (see :func:`viz.colormap.cloud_colors`);
+    ``color_by``: an attribute name or x/y/z (see :func:`mems_stereo.viz.colormap.cloud_colors`);
     ``view``: one of :data:`VIEWS`, or ``camera=(K (3, 3), extrinsic (4, 4)
     world → camera)`` to set the OpenCV pinhole yourself (fx = fy and the
     principal point at the image centre, ((width-1)/2, (height-1)/2): Open3D's
@@ -229,7 +229,7 @@ def render_available() -> tuple[bool, str]:
 
 
 def _main(argv: list[str]) -> int:
-    """Worker: ``python -m viz.render IN.npz OUT.npy OPTIONS_JSON``."""
+    """Worker: ``python -m mems_stereo.viz.render IN.npz OUT.npy OPTIONS_JSON``."""
     src, out, opts = argv[0], argv[1], json.loads(argv[2])
     d = np.load(src)
     img = _render_array(d["points"], d["colors"], opts["width"], opts["height"], d["K"], d["E"],

@@ -6,11 +6,10 @@ import os
 import sys
 
 import numpy as np
+from mems_stereo.viz.colormap import cloud_colors
 
-from mems_stereo.cloud import PointCloud
 from mems_stereo.errors import MemsStereoError
-
-from .colormap import cloud_colors
+from mems_stereo.pipeline.cloud import PointCloud
 
 
 class DisplayUnavailableError(MemsStereoError):
@@ -33,7 +32,7 @@ def view_cloud(cloud: PointCloud, color_by: str = "range", cmap: str = "turbo",
     ``color_by``: ``range``, ``counts``, ``sigma_r``, ... or x/y/z.  A 0.1 m
     coordinate frame marks the receiver's projection centre (x red, y green,
     z blue).  Raises DisplayUnavailableError with no display (use
-    :func:`viz.render.render_cloud` for a PNG instead).
+    :func:`mems_stereo.viz.render.render_cloud` for a PNG instead).
     """
     colors = cloud_colors(cloud, color_by, cmap, vmin, vmax)
     if not has_display():

@@ -12,7 +12,7 @@ import argparse
 import importlib
 import sys
 
-from ..errors import MemsStereoError
+from mems_stereo.errors import MemsStereoError
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import warnings
 
-from ..system import save_system
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
+from mems_stereo.model.system import save_system
 
 NAME = "calibrate"
 HELP = ("estimate baseline, theta0, TDC offset, scan phase and amplitude (with σ) from "
@@ -45,10 +45,9 @@ def add_arguments(p):
 def run(args) -> int:
     import math
 
-    from calib.calibrate import calibrate_system, read_target_distances
-    from calib.model import DEFAULT_FREE
-
-    from ..errors import FormatError
+    from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
+    from mems_stereo.calib.model import DEFAULT_FREE
+    from mems_stereo.errors import FormatError
 
     rep = Reporter(args)
     dists, stds, kind = None, 1e-3, "axis"

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "demo"
 HELP = "run the whole chain on the bundled samples and print where every output is"
@@ -33,7 +33,7 @@ def add_arguments(p):
 
 def samples_dir(explicit=None) -> Path:
     """The bundled samples: ``explicit``, else ``samples/`` beside the package, else ./samples."""
-    from ..errors import FormatError
+    from mems_stereo.errors import FormatError
 
     cands = [Path(explicit)] if explicit else [
         Path(__file__).resolve().parents[2] / "samples", Path.cwd() / "samples"]
@@ -50,8 +50,8 @@ def _step(rep, title):
 
 
 def _call(argv, rep) -> None:
-    from ..errors import MemsStereoError
-    from . import main
+    from mems_stereo.cli import main
+    from mems_stereo.errors import MemsStereoError
 
     flags = ["-q"] if rep.quiet else (["-v"] if rep.verbose else [])
     code = main([argv[0], *flags, *argv[1:]])
@@ -61,11 +61,10 @@ def _call(argv, rep) -> None:
 
 def _fig5(out: Path) -> Path:
     """Fig. 5: propagated uncertainty ellipses for several pixels and TDC codes."""
-    from viz.plots import plot_uncertainty_bounds
-
-    from ..system import preset
-    from ..triangulation import path_length_from_codes
-    from ..uncertainty import paper_spreads, propagate, tof_pixel_point
+    from mems_stereo.geometry.uncertainty import paper_spreads, propagate, tof_pixel_point
+    from mems_stereo.model.system import preset
+    from mems_stereo.model.tdc import path_length_from_codes
+    from mems_stereo.viz.plots import plot_uncertainty_bounds
 
     s = preset("burkard2022")
     cols = np.array([20.0, 60.0, 96.0, 130.0, 170.0])
@@ -112,7 +111,7 @@ def run(args) -> int:
     written.append(cal)
     true_file = smp / "calib_true_system.json"
     if true_file.exists():
-        from ..system import load_system
+        from mems_stereo.model.system import load_system
 
         est, true = load_system(cal), load_system(true_file)
         rep.info("  estimate - truth: " + ", ".join(
@@ -155,7 +154,7 @@ def run(args) -> int:
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     rep.info(f"done in {summary['seconds']:.0f} s; every output is in {out}/")
     if missing:
-        from ..errors import MemsStereoError
+        from mems_stereo.errors import MemsStereoError
 
         raise MemsStereoError(f"missing outputs: {', '.join(map(str, missing))}")
     return 0

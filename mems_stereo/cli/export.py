@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "export"
 HELP = "convert a point cloud (.ply, .pcd, .las) keeping every per-point attribute"
@@ -16,7 +16,7 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from viz.export import read_cloud, write_cloud
+    from mems_stereo.viz.export import read_cloud, write_cloud
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)

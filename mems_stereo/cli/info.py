@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import math
 
-from ..acquisition import acquisition_statistics
-from ..system import resolve_system
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
+from mems_stereo.model.acquisition import acquisition_statistics
+from mems_stereo.model.system import resolve_system
 
 NAME = "info"
 HELP = "print a system description and its acquisition statistics (paper Sec. 2.1)"
@@ -52,7 +52,7 @@ def run(args) -> int:
     rep.info(f"  mean accumulations per pixel {st.mean_per_illuminated_pixel:.2f} "
              f"(count-weighted {st.mean_accumulations:.2f})")
     if args.plot:
-        from viz.plots import plot_acquisition
+        from mems_stereo.viz.plots import plot_acquisition
 
         out = plot_acquisition(st, args.plot, title=f"{args.shots} shots, "
                                f"f_mech/f_rep = {ratio:.4f}")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "plot"
 HELP = "write a figure: acquisition (Fig. 2), histograms (Figs. 8/9), cloud (top view)"
@@ -14,7 +14,7 @@ EXAMPLE = ("mems-stereo plot histograms room_hist.h5 -o fig8.png --max-code 256 
 
 
 def add_arguments(p):
-    from .info import add_acquisition_arguments
+    from mems_stereo.cli.info import add_acquisition_arguments
 
     sub = p.add_subparsers(dest="figure", metavar="FIGURE", required=True)
     a = sub.add_parser("acquisition", help="Fig. 2: shots over scan angle and per pixel")
@@ -40,12 +40,12 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from viz import plots
+    from mems_stereo.viz import plots
 
     rep = Reporter(args)
     if args.figure == "acquisition":
-        from ..acquisition import acquisition_statistics
-        from ..system import resolve_system
+        from mems_stereo.model.acquisition import acquisition_statistics
+        from mems_stereo.model.system import resolve_system
 
         system = resolve_system(args.system)
         st = acquisition_statistics(system, args.shots, args.distance,
@@ -55,7 +55,7 @@ def run(args) -> int:
                                      title=f"{args.shots} shots, f_mech/f_rep = {ratio:.4f}")
         rep.info(f"{out}: mean accumulations per lit pixel {st.mean_per_illuminated_pixel:.2f}")
     elif args.figure == "histograms":
-        from ..histogram_io import read_histograms
+        from mems_stereo.io.histograms import read_histograms
 
         raw, sig, noise, attrs = read_histograms(args.histograms)
         out = plots.plot_histograms(raw, sig, noise, args.output, max_code=args.max_code,
@@ -64,7 +64,7 @@ def run(args) -> int:
         rep.info(f"{out}: raw {int(raw.sum())}, signal {int(sig.sum())}, "
                  f"noise {int(noise.sum())} counts")
     else:
-        from viz.export import read_cloud
+        from mems_stereo.viz.export import read_cloud
 
         cloud = read_cloud(args.cloud)
         out = plots.plot_cloud_topview(cloud, args.output, color_by=args.color_by)

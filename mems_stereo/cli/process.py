@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "process"
 HELP = ("classify every detection as signal or noise, form the signal/noise histograms, "
@@ -42,14 +42,14 @@ def add_arguments(p):
 
 
 def _settings(args):
-    from ..pipeline import Settings
+    from mems_stereo.pipeline.settings import Settings
 
     return Settings(confidence=args.confidence, min_range=args.min_range,
                     chunk_shots=args.chunk_shots, false_alarm=args.false_alarm)
 
 
 def report_result(rep: Reporter, res, outputs=()) -> None:
-    """Print the headline numbers of a :class:`~mems_stereo.pipeline.ProcessResult`."""
+    """Print the headline numbers of a :class:`~mems_stereo.pipeline.run.ProcessResult`."""
     c = res.counts
     rep.info(f"{res.source}: {c['shots']} shots"
              + (f" ({c['shots_unknown_angle']} of unknown scan angle, left out)"
@@ -67,9 +67,9 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
 
 
 def run(args) -> int:
-    from ..errors import FormatError
-    from ..pipeline import process_recording
-    from ..system import load_system
+    from mems_stereo.errors import FormatError
+    from mems_stereo.model.system import load_system
+    from mems_stereo.pipeline.run import process_recording
 
     rep = Reporter(args)
     system = load_system(args.system) if args.system else None
@@ -86,7 +86,7 @@ def run(args) -> int:
     targets = [out / f"{r.stem}.ply" for r in recs] if many else [out]
 
     if args.scheduler:
-        from ..distributed import process_many
+        from mems_stereo.pipeline.distributed import process_many
 
         results = process_many(recs, system=system, settings=settings,
                                scheduler=args.scheduler, n_workers=args.workers)
@@ -98,14 +98,14 @@ def run(args) -> int:
                     bar.update(n)
                 results.append(process_recording(r, system=system, settings=settings,
                                                  labels_path=args.labels, progress=tick))
-    from viz.export import write_cloud
+    from mems_stereo.viz.export import write_cloud
 
     for res, target in zip(results, targets):
         outputs = [write_cloud(target, res.cloud)]
         if args.labels:
             outputs.append(Path(args.labels))
         if args.histograms:
-            from ..histogram_io import write_histograms
+            from mems_stereo.io.histograms import write_histograms
 
             h = res.histograms
             outputs.append(write_histograms(args.histograms, h["raw"], h["signal"], h["noise"],

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "render"
 HELP = "render a point cloud offscreen to a PNG (Open3D + Mesa EGL; no display needed)"
@@ -12,7 +12,7 @@ EXAMPLE = "mems-stereo render room.ply -o room.png --color-by range --view obliq
 
 
 def add_arguments(p):
-    from viz.render import VIEWS  # light: viz.render loads open3d only when rendering
+    from mems_stereo.viz.render import VIEWS
 
     p.add_argument("cloud", help="point cloud (.ply, .pcd, .las)")
     p.add_argument("-o", "--output", required=True, help="PNG to write")
@@ -30,8 +30,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from viz.export import read_cloud
-    from viz.render import render_cloud
+    from mems_stereo.viz.export import read_cloud
+    from mems_stereo.viz.render import render_cloud
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)

@@ -6,9 +6,9 @@ import sys
 
 import numpy as np
 
-from ..sim import load_scene, simulate, write_simulation
-from ..system import resolve_system
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
+from mems_stereo.model.system import resolve_system
+from mems_stereo.sim import load_scene, simulate, write_simulation
 
 NAME = "simulate"
 HELP = "simulate a recording of a scene (JSON of primitives/meshes) with ground truth"

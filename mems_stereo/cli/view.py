@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._common import Reporter
+from mems_stereo.cli._common import Reporter
 
 NAME = "view"
 HELP = "show a point cloud in an interactive Open3D window, coloured by an attribute"
@@ -19,8 +19,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from viz.export import read_cloud
-    from viz.view import view_cloud
+    from mems_stereo.viz.export import read_cloud
+    from mems_stereo.viz.view import view_cloud
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)

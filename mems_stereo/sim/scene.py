@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from ..validation import FieldChecker, read_json_file
+from mems_stereo.util.jsonfile import FieldChecker, read_json_file
 
 SCENE_FORMAT = "mems-stereo/scene"
 SCENE_VERSION = 1

@@ -24,24 +24,21 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..camera import project_points
-from ..errors import GeometryError
-from ..recording import Recording
-from ..scanner import scan_direction
-from ..system import System
-from .photons import (
+from mems_stereo.errors import GeometryError
+from mems_stereo.io.recording import Recording
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.system import System
+from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
+from mems_stereo.physics.pulse import PulseShape
+from mems_stereo.physics.spot import SpotModel, spot_fractions
+from mems_stereo.sim.photons import (
     DENSE_BACKGROUND,
-    LinkBudget,
-    PulseShape,
-    SpotModel,
     background_first_arrivals,
-    emitted_photons,
-    expected_signal_photons,
     first_signal_arrival,
-    spot_fractions,
 )
-from .scene import Scene
-from .trajectory import Trajectory, monitor_zero_crossings
+from mems_stereo.sim.scene import Scene
+from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
 
 CHUNK_SHOTS = 4096  # fixed: the random stream does not depend on progress reporting
 MIN_SLOT_PHOTONS = 1e-9
@@ -333,7 +330,7 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
 
 def write_simulation(path, recording: Recording):
     """Write a simulated :class:`Recording` (with its truth) atomically, gzip'd HDF5."""
-    from ..recording import write_recording
+    from mems_stereo.io.recording import write_recording
 
     return write_recording(path, recording.system, recording.shot_time, recording.bins,
                            recording.zero_crossings, recording.rising, truth=recording.truth)

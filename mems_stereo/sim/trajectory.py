@@ -1,6 +1,6 @@
 """The true MEMS trajectory and what the zero-crossing monitor records.
 
-Conventions of :mod:`mems_stereo.scanner`: the monitor's phase is
+Conventions of :mod:`mems_stereo.model.scanner`: the monitor's phase is
 
     φ_mon(t) = phase + 2π f_mech · (τ + ½ · drift · τ²),   τ = t − t_ref,
 
@@ -11,7 +11,7 @@ angle lags it by the scanner's ``phase_offset``:
 
     θ(t) = θ0 + θ_mech,max · cos(φ_mon(t) + phase_offset).
 
-So :func:`mems_stereo.scanner.scan_angles` with the *true* scanner recovers
+So :func:`mems_stereo.model.scanner.scan_angles` with the *true* scanner recovers
 θ from the recorded crossings (up to the monitor's timing jitter).
 """
 
@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..system import Scanner
+from mems_stereo.model.system import Scanner
 
 
 @dataclass(frozen=True)

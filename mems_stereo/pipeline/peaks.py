@@ -1,14 +1,14 @@
 """Peaks of the signal histograms, with a threshold grounded in the background.
 
 After classification each pixel has a signal histogram S and a noise
-histogram N (:mod:`mems_stereo.pipeline`).  S still holds the background
+histogram N (:mod:`mems_stereo.pipeline.run`).  S still holds the background
 photons that happened to fall inside a shot's accepted code interval.  How
 many is known exactly from the interval table: the number of valid shots for
 which code j of pixel p was accepted, ``A[p, j]``, times the probability that
 background alone produced a first photon in bin j,
 ``q·(1 − q)^(j−1)`` with ``q = λ·Δt`` and λ the pile-up-aware maximum-
 likelihood background rate estimated from N
-(:func:`mems_stereo.histogram.background_rate_mle`).
+(:func:`mems_stereo.physics.background.background_rate_mle`).
 
 The peak detector is the paper's: a moving-average filter (width = the laser
 pulse's FWHM in bins), a threshold, and the maximum — here one peak per
@@ -20,29 +20,16 @@ at the chosen false-alarm probability.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import pdtrc
 
-from .fastpath import interval_table, shots_per_step
-from .histogram import moving_average
-from .system import System
-
-
-def poisson_isf(alpha, mu) -> np.ndarray:
-    """Smallest integer k with P(X > k) <= alpha for X ~ Poisson(mu) (vectorised).
-
-    Bisection on ``scipy.special.pdtrc`` (the Poisson upper tail), which keeps
-    the heavy ``scipy.stats`` import off the processing path.  Equals
-    ``scipy.stats.poisson.isf(alpha, mu)`` (tested).
-    """
-    a, m = np.broadcast_arrays(np.asarray(alpha, np.float64), np.asarray(mu, np.float64))
-    lo = np.full(m.shape, -1.0)  # P(X > lo) > alpha
-    hi = np.ceil(m + 40.0 * np.sqrt(m) + 60.0)  # P(X > hi) <= alpha for any alpha > 1e-300
-    while np.any(hi - lo > 1):
-        mid = np.floor(0.5 * (lo + hi))
-        ok = pdtrc(mid, m) <= a
-        hi = np.where(ok, mid, hi)
-        lo = np.where(ok, lo, mid)
-    return hi
+from mems_stereo.model.system import System
+from mems_stereo.physics.background import (
+    background_rate_from_noise,
+    expected_background_by_angle,
+    expected_background_in_signal,
+    poisson_isf,
+)
+from mems_stereo.pipeline.histograms import moving_average
+from mems_stereo.pipeline.intervals import interval_table, shots_per_step
 
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
@@ -68,39 +55,6 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     np.add.at(diff, (pix[ok], lo[ok]), w[ok])
     np.add.at(diff, (pix[ok], hi[ok] + 1), -w[ok])
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
-
-
-def background_rate_from_noise(noise, raw, acceptance, n_valid: int,
-                                bin_width: float) -> np.ndarray:
-    """ML background rate per pixel from the noise histogram N, pile-up aware.
-
-    As :func:`mems_stereo.histogram.background_rate_mle` (binomial trials of
-    the shots still armed at each bin, ``n_j = n_valid − Σ_{i<j} raw_i``), but
-    a shot whose accepted interval holds bin j would have put a background
-    photon there into S, not N: such shots are no trials for N at bin j.  With
-    ``A_j`` of the ``n_valid`` shots accepting bin j, and arming independent of
-    the scan angle, the trials of N are ``n_j·(1 − A_j / n_valid)``; then
-    ``λ̂ = −ln(1 − Σ N_j / Σ n_j (1 − A_j/n_valid)) / Δt``.
-
-    Returns (P,) float64 Hz (NaN where no trial is left).
-    """
-    from .histogram import background_rate_mle
-
-    n_valid = max(int(n_valid), 1)
-    return background_rate_mle(noise, n_valid, bin_width, raw=raw,
-                               trials_factor=1.0 - np.asarray(acceptance) / n_valid)
-
-
-def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.ndarray:
-    """Expected background counts per (pixel, bin) that pass the classifier.
-
-    ``acceptance`` (P, n_bins), ``rate_hz`` (P,).  First-photon statistics: a
-    shot's first background photon falls in bin j with q·(1 − q)^(j−1),
-    q = 1 − exp(−λ·Δt) (signal photons, rarer, are neglected here).
-    """
-    from .histogram import expected_background
-
-    return acceptance * expected_background(rate_hz, 1.0, bin_width, acceptance.shape[1])
 
 
 def strongest_window(counts, background, width: int, support, settings):
@@ -131,7 +85,7 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
     ----------
     signal, noise : (H, W, n_bins) counts (index j = code j+1).
     theta, valid : (K,) scan angles and validity of the shots.
-    settings : :class:`mems_stereo.pipeline.Settings` (confidence, min_range,
+    settings : :class:`mems_stereo.pipeline.settings.Settings` (confidence, min_range,
         smoothing_bins, false_alarm, min_counts).
 
     Returns
@@ -177,7 +131,7 @@ def footprint_steps(system: System, table) -> int:
     the optical axis (or 2.5 m when they do not meet): the beam's image moves
     by |d column / d θ| pixels per radian of mirror angle.
     """
-    from .acquisition import shot_pixels
+    from mems_stereo.model.acquisition import shot_pixels
 
     sc = system.scanner
     d = 1e-4
@@ -187,29 +141,6 @@ def footprint_steps(system: System, table) -> int:
         return 3
     n = int(round(1.0 / px_per_rad / table.step))
     return max(3, n + 1 - n % 2)
-
-
-def expected_background_by_angle(table, n_per_step, rate_hz) -> np.ndarray:
-    """Expected background counts that pass the classifier, per pixel and angle step.
-
-    For step s and pixel p, a first background photon lands in the accepted
-    interval [lo, hi] with probability ``(1 − q)^(lo−1) − (1 − q)^hi``
-    (geometric first-photon law, q = 1 − exp(−λ·Δt)); times the number of
-    valid shots at that step.  Returns (P, S) float64.
-    """
-    P = table.lo.shape[1]
-    out = np.zeros((P, table.n_steps))
-    used = np.flatnonzero(n_per_step)
-    if used.size == 0:
-        return out
-    table.ensure(used)
-    lo = table.lo[used].astype(np.float64)
-    hi = table.hi[used].astype(np.float64)
-    dt = table.system.tdc.bin_width
-    a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * dt), 1 - 1e-15))[None, :]
-    pacc = np.where(lo <= hi, np.exp((lo - 1.0) * a) - np.exp(hi * a), 0.0)
-    out[:, used] = (pacc * n_per_step[used][:, None]).T
-    return out
 
 
 def find_peaks(system: System, signal, noise, theta, valid, settings, signal_angle=None):

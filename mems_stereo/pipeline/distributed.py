@@ -1,6 +1,6 @@
 """Scale-out on Dask distributed: many recordings, or one large recording split by shots.
 
-The same stage functions as :mod:`mems_stereo.pipeline` run on workers over
+The same stage functions as :mod:`mems_stereo.pipeline.run` run on workers over
 shot ranges; their results add exactly (histograms, counts and peak counts
 are integers), so the outcome is identical to one process, bit for bit.
 
@@ -24,18 +24,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .fastpath import install_tables, interval_table, table_key
-from .pipeline import (
-    ProcessResult,
-    Settings,
-    accumulate_range,
-    finish_processing,
-    peak_counts_range,
-    process_recording,
-    shot_angles,
-)
-from .recording import read_header
-from .system import System
+from mems_stereo.io.recording import read_header
+from mems_stereo.model.system import System
+from mems_stereo.pipeline.angles import shot_angles
+from mems_stereo.pipeline.intervals import install_tables, interval_table, table_key
+from mems_stereo.pipeline.pass1 import accumulate_range
+from mems_stereo.pipeline.pass2 import peak_counts_range
+from mems_stereo.pipeline.run import ProcessResult, finish_processing, process_recording
+from mems_stereo.pipeline.settings import Settings
 
 
 @contextlib.contextmanager

@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FormatError, GeometryError
-from .system import Scanner, validate_normal_basis
+from mems_stereo.errors import FormatError, GeometryError
+from mems_stereo.model.system import Scanner, validate_normal_basis
 
 PHASE_FALLING = 0.5 * math.pi
 PHASE_RISING = 1.5 * math.pi

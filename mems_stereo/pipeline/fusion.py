@@ -29,24 +29,18 @@ from the ToF (and, by its share, the fused) estimate, with its uncertainty
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from .cloud import PointCloud
-from .errors import GeometryError
-from .scanner import scan_direction
-from .system import System
-from .triangulation import (
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
-    path_length_from_codes,
     path_length_of_point,
     scanner_ray_point,
 )
-from .uncertainty import (
-    DEFAULT_SPOT_SIGMA,
+from mems_stereo.geometry.uncertainty import (
     Spreads,
     _rays,
     jacobian,
@@ -56,6 +50,63 @@ from .uncertainty import (
     stereo_point_est,
     tof_point,
 )
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.system import System
+from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.physics.first_photon import (
+    MU_GRID,
+    _detection_log_odds,
+    _firing_probability,
+    first_photon_delay,
+)
+from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.pass2 import PeakCounts
+from mems_stereo.pipeline.settings import Settings
+
+
+def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
+                       shots_per_step=None):
+    """The cloud: one fused point per peak from its counted detections.
+
+    Each distinct (peak, step, code) is triangulated once at the step's grid
+    angle (the angle it was classified with) and weighted by its count, times
+    the probability that a detection at that step is signal when the peaks
+    carry ``background_by_step`` (background subtraction in scan angle).
+    Peaks whose stereo and ToF ranges disagree are left out
+    (:func:`~mems_stereo.pipeline.fusion.consistent_points`).
+    ``shots_per_step`` : (S,) int, valid shots per angle step of the interval
+    table (:func:`~mems_stereo.pipeline.intervals.shots_per_step`): with it the ToF and
+    fused estimates are corrected for the first-photon delay
+    (:class:`~mems_stereo.pipeline.fusion.PeakAccumulator`).
+    """
+
+    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    S, nb = table.n_steps, system.tdc.n_bins + 1
+    k = counts.keys
+    q, step, code = k // (S * nb), (k // nb) % S, k % nb
+    theta = table.theta_min + step * table.step
+    weight = counts.counts.astype(np.float64)
+    background = None
+    bg = peaks.get("background_by_step")
+    if bg is not None and k.size:
+        # background subtraction in scan angle: the detections at a step are
+        # signal with probability (n − expected background) / n; each entry
+        # carries its share of the step's expected background (for the σ)
+        qs = q * S + step
+        n = np.bincount(qs, weights=weight)[qs]
+        background = np.minimum(bg[q, step], n) * weight / n
+        weight = weight * np.clip((n - bg[q, step]) / n, 0.0, 1.0)
+
+    cloud = points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
+                                        peaks["col"], peaks["code"],
+                                        min_counts=settings.min_counts,
+                                        confidence=settings.confidence, weight=weight,
+                                        background=background,
+                                        shots_per_step=shots_per_step,
+                                        step_grid=(table.theta_min, table.step))
+    return consistent_points(cloud, settings.confidence)
 
 
 @dataclass
@@ -103,8 +154,8 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     ----------
     shot_idx, rows, cols, codes : (M,) integer arrays (codes 1..n_bins).
     theta : (K,) float64 scan angle of every shot, rad (indexed by shot_idx).
-    spreads : :class:`~mems_stereo.uncertainty.Spreads` (default
-        :func:`~mems_stereo.uncertainty.spreads_for`).
+    spreads : :class:`~mems_stereo.geometry.uncertainty.Spreads` (default
+        :func:`~mems_stereo.geometry.uncertainty.spreads_for`).
     """
     sp = spreads_for(system) if spreads is None else spreads
     shot_idx = np.asarray(shot_idx, dtype=np.int64).ravel()
@@ -186,7 +237,7 @@ def peak_points(system: System, bins, labels, theta, rows, cols, code_lo, code_h
 
     Returns
     -------
-    :class:`~mems_stereo.cloud.PointCloud` of the fused points with attributes
+    :class:`~mems_stereo.pipeline.cloud.PointCloud` of the fused points with attributes
     ``counts`` int32, ``pixel`` int32 (column), ``row`` int32, ``code`` (mean
     code), ``range``, ``sigma_r``, ``sigma_phi``, ``sigma_x/y/z`` (fused), and
     per estimate ``range_stereo``, ``sigma_r_stereo``, ``range_tof``,
@@ -214,7 +265,7 @@ def peak_points(system: System, bins, labels, theta, rows, cols, code_lo, code_h
     det_code = col_bins[det_k, det_p]
     dp = detection_points(system, det_k, rows[det_p], cols[det_p], det_code, theta, spreads)
     good = dp.ok.copy()
-    from .classify import k_from_confidence
+    from mems_stereo.pipeline.consistency import k_from_confidence
 
     k = k_from_confidence(confidence)
     r_i, _, sr_i, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
@@ -279,187 +330,6 @@ def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None
     return PointCloud(dp.fused[g], attrs)
 
 
-# --------------------------------------------------------------------------
-# first-photon bias of the time-of-flight estimate
-#
-# A SPAD pixel records only its first photon per shot, and the TDC nothing
-# before it starts.  With μ_w signal photons per shot arriving after the TDC
-# start (Poisson), from a Gaussian pulse of σ centred at TDC time τ0, the
-# recorded arrival u (relative to τ0, on u ≥ a = −τ0/σ in σ units) is the
-# first of them: survival S(u) = (exp(−μ_w F(u)) − exp(−μ_w)) / (1 − exp(−μ_w))
-# with F the pulse's distribution truncated to u ≥ a.  Its mean is early by
-# up to ≈ −σ·sqrt(2 ln μ_w) for a strong return and late near τ0 ≈ 0 (the
-# early part of the pulse is cut off); its variance is below σ².  (The same
-# model as calib.timing.first_photon_moments with no background, and as the
-# simulator's sampling; tests/test_tof_bias.py checks all three agree.)
-
-#: most signal photons per shot the correction considers
-MU_MAX = 100.0
-_A_GRID = (-6.0, 4.0, 101)  # a = −τ0/σ: below −6 the cut does nothing
-_LOGMU_GRID = (math.log(1e-4), math.log(MU_MAX), 97)
-
-
-def first_photon_moments(a, mu_window, n_quad: int = 801):
-    """Mean and variance of a first-photon arrival, in units of the pulse σ.
-
-    Parameters
-    ----------
-    a : (...) float64, the TDC start relative to the pulse centre, in σ
-        (``−τ0/σ``; −inf: no cut).
-    mu_window : (...) float64 > 0, expected signal photons per shot that
-        arrive after the TDC start (so that ``1 − exp(−μ_w)`` is the
-        probability of a signal detection).
-    n_quad : trapezoid nodes over the 16σ after ``max(a, −8)``.
-
-    Returns
-    -------
-    mean, var : (...) float64 (broadcast shape), the arrival time's mean
-        relative to the pulse centre and its variance, in σ and σ².
-    """
-    from scipy.special import ndtr
-
-    a, mu = np.broadcast_arrays(np.asarray(a, dtype=np.float64),
-                                np.asarray(mu_window, dtype=np.float64))
-    lo = np.maximum(a, -8.0)[..., None]
-    t = np.linspace(0.0, 16.0, n_quad)
-    u = lo + t
-    # 1 − F(u) of the truncated Gaussian, from the upper tails (no cancellation)
-    tail = ndtr(-u) / ndtr(-lo)
-    m = mu[..., None]
-    e_mu = np.exp(-m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        surv = np.where(m > 1e-9, (np.exp(-m * (1.0 - tail)) - e_mu) / -np.expm1(-m), tail)
-    w = np.full(n_quad, t[1] - t[0])
-    w[0] = w[-1] = 0.5 * (t[1] - t[0])
-    m1 = surv @ w  # E[u − lo]
-    m2 = 2.0 * ((surv * t) @ w)  # E[(u − lo)²]
-    return lo[..., 0] + m1, np.maximum(m2 - m1 * m1, 0.0)
-
-
-@functools.lru_cache(maxsize=1)
-def _first_photon_table():
-    """(a grid, log μ_w grid, mean, var) of :func:`first_photon_moments`, tabulated once."""
-    ag = np.linspace(*_A_GRID)
-    lg = np.linspace(*_LOGMU_GRID)
-    mean = np.empty((ag.size, lg.size))
-    var = np.empty_like(mean)
-    for i, a in enumerate(ag):  # row by row: the temporaries stay (n_mu, n_quad)
-        mean[i], var[i] = first_photon_moments(a, np.exp(lg))
-    return ag, lg, mean, var
-
-
-def _table_lookup(a, logmu):
-    """Bilinear look-up of (mean, var) on the table; arguments clipped to its grid."""
-    ag, lg, mean, var = _first_photon_table()
-    fa = np.clip((np.asarray(a, dtype=np.float64) - ag[0]) / (ag[1] - ag[0]), 0.0,
-                 ag.size - 1.000001)
-    fm = np.clip((np.asarray(logmu, dtype=np.float64) - lg[0]) / (lg[1] - lg[0]), 0.0,
-                 lg.size - 1.000001)
-    fa, fm = np.broadcast_arrays(fa, fm)
-    i, j = fa.astype(np.int64), fm.astype(np.int64)
-    wa, wm = fa - i, fm - j
-
-    def bil(t):
-        return ((1 - wa) * (1 - wm) * t[i, j] + wa * (1 - wm) * t[i + 1, j]
-                + (1 - wa) * wm * t[i, j + 1] + wa * wm * t[i + 1, j + 1])
-
-    return bil(mean), bil(var)
-
-
-#: grid of the signal photons per shot μ0 (spot centred on the pixel) of the posterior
-MU_GRID = np.exp(np.linspace(math.log(1e-2), math.log(MU_MAX), 41))
-#: probability that a shot gives an inlier the spot model cannot explain (background
-#: inside the window, crosstalk): keeps one stray detection from forcing μ0 up
-OUTLIER_PROBABILITY = 0.02
-
-
-def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float = DEFAULT_SPOT_SIGMA):
-    """Share of the imaged laser spot on a pixel when the beam lights a target at range ``rng``.
-
-    The target point is on the scanner ray at angle ``theta`` (rad) at distance
-    ``rng`` (m) from the projection centre; its image (``project_points``)
-    is the centre of a Gaussian spot of σ ``spot_sigma`` (m on the sensor,
-    as :func:`~mems_stereo.uncertainty.spreads_for`); the share on pixel
-    (row, col) is the product of the per-axis Gaussian integrals over the
-    pixel (as the simulator's ``spot_fractions``).  Arguments broadcast;
-    returns float64 of the broadcast shape (0 where the ray misses that range).
-    """
-    from scipy.special import ndtr
-
-    from .camera import project_points
-
-    rows, cols, th, r = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
-                                              for a in (rows, cols, theta, rng)))
-    p = np.asarray(system.scanner.position, dtype=np.float64)
-    d = scan_direction(th.ravel(), system.scanner)
-    pd = d @ p
-    with np.errstate(invalid="ignore"):
-        s = -pd + np.sqrt(pd * pd - p @ p + r.ravel() ** 2)
-    uv = project_points(p + s[:, None] * d, system.receiver.camera_matrix,
-                        system.receiver.dist_coeffs)
-    pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
-    sc, sr = spot_sigma / pitch[0], spot_sigma / pitch[1]
-    u, v = uv[:, 0].reshape(th.shape), uv[:, 1].reshape(th.shape)
-    fc = ndtr((cols + 0.5 - u) / sc) - ndtr((cols - 0.5 - u) / sc)
-    fr = ndtr((rows + 0.5 - v) / sr) - ndtr((rows - 0.5 - v) / sr)
-    return np.nan_to_num(fc * fr, nan=0.0)
-
-
-def _detection_log_odds(f):
-    """log p − log(1 − p) of a shot with spot share f (…) on the μ0 grid -> (…, J)."""
-    p = _firing_probability(f)
-    return np.log(p) - np.log1p(-p)
-
-
-def _firing_probability(f):
-    """P(inlier) of a shot with spot share f (…) on the μ0 grid -> (…, J), in (0, 1)."""
-    e = OUTLIER_PROBABILITY
-    pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])
-    return np.minimum(e + (1 - e) * pf, 1.0 - 1e-12)
-
-
-def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
-    """Posterior first-photon delay of peaks from their spot-profile likelihood.
-
-    Parameters
-    ----------
-    log_likelihood : (Q, J) log-likelihood of μ0 = :data:`MU_GRID` (signal
-        photons per shot after the TDC start with the spot centred on the
-        pixel); the prior is uniform in log μ0 over the grid.
-    f_band, n_band : (Q, B) spot shares and valid shots of the angle steps
-        around each peak's band (n 0 pads).
-    tau0 : (Q,) s, TDC time of each pulse's centre (``L/c + offset``); it
-        matters only near the TDC start, where the early part of the pulse
-        is cut off (give it from the stereo or fused point there: inverting
-        the mean arrival time is ill-conditioned at the cut).
-    sigma : float, s, the pulse σ (⊕ jitter).
-
-    Returns
-    -------
-    delay : (Q,) s, E[mean arrival − pulse centre] of the detections (the
-        average over the band's shots of δ(a, μ0·f_s) weighted by their
-        detection probabilities, then over the posterior of μ0).
-    sigma_delay : (Q,) s, its posterior standard deviation.
-    var_arrival : (Q,) s², E[variance of one detection's arrival] (the
-        band's mixture of first-photon spreads).
-    mu : (Q,) posterior mean of μ0.
-    """
-    ll = np.asarray(log_likelihood, dtype=np.float64)
-    post = np.exp(ll - ll.max(axis=1, keepdims=True))
-    post /= post.sum(axis=1, keepdims=True)  # (Q, J)
-    mu_s = MU_GRID[None, :, None] * f_band[:, None, :]  # (Q, J, B)
-    w = n_band[:, None, :] * -np.expm1(-mu_s)  # expected detections per step
-    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)
-    lm = np.log(np.clip(mu_s, 1e-4, MU_MAX))
-    a = -np.asarray(tau0, dtype=np.float64) / sigma
-    d, v = _table_lookup(a[:, None, None], lm)
-    dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0
-    vj = np.sum(w * (v + d * d), axis=2) - dj * dj  # mixture variance
-    dm = np.sum(post * dj, axis=1)
-    sd = np.sqrt(np.maximum(np.sum(post * dj * dj, axis=1) - dm * dm, 0.0))
-    return dm * sigma, sd * sigma, np.sum(post * vj, axis=1) * sigma ** 2, post @ MU_GRID
-
-
 class PeakAccumulator:
     """Streaming fusion of each peak's signal detections into one point.
 
@@ -517,7 +387,7 @@ class PeakAccumulator:
                  r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
                  shots_per_step=None, step_grid=None, first_photon: bool = True,
                  spot_sigma: float = DEFAULT_SPOT_SIGMA):
-        from .classify import k_from_confidence
+        from mems_stereo.pipeline.consistency import k_from_confidence
 
         self.system = system
         self.shots_per_step = (None if shots_per_step is None or step_grid is None
@@ -825,7 +695,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         see :meth:`PeakAccumulator.add_inliers`).
     shots_per_step : (S,) int, valid shots per scan-angle step of the grid
         ``step_grid = (theta_min, dtheta)`` (rad; the interval table's,
-        :func:`~mems_stereo.fastpath.shots_per_step`): with both (and
+        :func:`~mems_stereo.pipeline.intervals.shots_per_step`): with both (and
         ``first_photon``) the ToF
         and fused estimates are corrected for the first-photon delay (see
         :class:`PeakAccumulator`) and the cloud gains ``tof_delay`` (s, the
@@ -850,7 +720,7 @@ def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointClou
     k from ``confidence``) is not one surface — a false peak of background, or
     two surfaces inside one pixel — and is left out.
     """
-    from .classify import k_from_confidence
+    from mems_stereo.pipeline.consistency import k_from_confidence
 
     if "stereo_tof_z" not in cloud.attributes:
         return cloud

@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import project_points
-from .scanner import scan_direction, theta_mech_samples
-from .system import System
+from mems_stereo.model.camera import project_points
+from mems_stereo.model.scanner import scan_direction, theta_mech_samples
+from mems_stereo.model.system import System
 
 
 @dataclass(frozen=True)

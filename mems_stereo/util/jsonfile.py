@@ -1,6 +1,6 @@
 """Field-by-field validation of JSON-like input, with messages that name the field.
 
-Shared by the system description (:mod:`mems_stereo.system`) and the
+Shared by the system description (:mod:`mems_stereo.model.system`) and the
 simulator's scene files (:mod:`mems_stereo.sim.scene`): every failure is a
 :class:`~mems_stereo.errors.FormatError` carrying the file, the dotted field
 and what was expected and found, e.g.
@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import FormatError
+from mems_stereo.errors import FormatError
 
 
 def shown(value: Any) -> str:

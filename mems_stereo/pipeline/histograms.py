@@ -2,7 +2,7 @@
 
 The stage after classification (paper Sec. 3.2, Figs. 8–9): the TDC codes of
 many shots are accumulated per pixel into the raw histogram, and, given the
-per-detection labels of :mod:`mems_stereo.classify`, into the signal
+per-detection labels of :mod:`mems_stereo.pipeline.consistency`, into the signal
 histogram S and the noise histogram N.  From N (or from the raw histogram
 with the return's window excluded) a maximum-likelihood estimate of the
 background rate per pixel that accounts for first-photon pile-up; the
@@ -22,10 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FormatError
-
-#: Label values of FORMAT v1 event labels.
-LABEL_NONE, LABEL_SIGNAL, LABEL_NOISE = 0, 1, 2
+from mems_stereo.errors import FormatError
+from mems_stereo.io.labels import LABEL_NOISE, LABEL_SIGNAL
+from mems_stereo.physics.background import moving_sum
 
 
 # --------------------------------------------------------------------------- formation
@@ -138,139 +137,6 @@ def accumulate_histograms(bins, labels=None, n_bins: int = 4096, armed=None) -> 
     return Histograms(raw, counts[LABEL_SIGNAL].copy(), counts[LABEL_NOISE].copy(), n_shots)
 
 
-# --------------------------------------------------------------------------- pile-up
-def _as_hist(hist, name: str = "hist") -> np.ndarray:
-    h = np.asarray(hist)
-    if h.ndim < 1 or h.shape[-1] < 1:
-        raise FormatError(f"expected (..., n_bins) counts, found shape {h.shape}", field=name)
-    if np.any(h < 0):
-        raise FormatError("counts must be >= 0", field=name)
-    return h.astype(np.float64)
-
-
-def armed_shots(hist, n_shots) -> np.ndarray:
-    """Shots still armed at the start of each bin under first-photon detection.
-
-    ``hist`` : (..., n_bins) counts of *all* detections of the pixel (raw);
-    ``n_shots`` : (...) or scalar, shots per pixel.  Returns (..., n_bins)
-    float64 ``n_j = n_shots − Σ_{i<j} h_i``.  Raises :class:`FormatError`
-    when the histogram holds more detections than shots.
-    """
-    h = _as_hist(hist)
-    n = np.asarray(n_shots, dtype=np.float64)[..., None]
-    before = np.cumsum(h, axis=-1) - h
-    nj = n - before
-    if np.any(nj - h < -1e-9):
-        raise FormatError("histogram holds more detections than shots (n_shots too small)",
-                          field="n_shots")
-    return nj
-
-
-def background_rate_mle(hist, n_shots, bin_width: float, exclude=None, raw=None,
-                        return_std: bool = False, trials_factor=None):
-    """Maximum-likelihood constant background rate per pixel under first-photon pile-up.
-
-    A pixel records only the first photon of a shot.  With a constant rate λ a
-    shot still armed at the start of bin j detects in it with probability
-    ``p = 1 − exp(−λ·Δ)``; given the armed count ``n_j = n_shots − Σ_{i<j}
-    raw_i`` the counts are independent binomials ``h_j ~ B(n_j, p)``, so the
-    log-likelihood over the included bins is ``Σ h_j ln p + (n_j − h_j)
-    ln(1 − p)``, maximised at ``p̂ = Σ h_j / Σ n_j`` and (invariance)
-
-        λ̂ = −ln(1 − Σ h_j / Σ n_j) / Δ.
-
-    Excluded bins (the return's window, or where N lacks the detections the
-    classifier moved to S) drop out of the sums but still disarm the pixel
-    through ``raw``.  Derivation: ``docs/histograms.md``.
-
-    Parameters
-    ----------
-    hist : (..., n_bins) counts of background detections (the noise histogram
-        N, or the raw histogram).
-    n_shots : (...) or scalar, shots in which the pixel was armed.
-    bin_width : s.
-    exclude : (..., n_bins) or (n_bins,) bool, True = bin not used; None = all.
-    raw : (..., n_bins) counts of all detections (default ``hist``): what
-        disarms the pixel.  Pass the raw histogram when ``hist`` is N.
-    return_std : also return the standard deviation from the Fisher
-        information, ``σ_p² = p(1−p)/Σn_j``, ``σ_λ = σ_p / ((1−p)Δ)``.
-    trials_factor : (..., n_bins) or None, the share of the armed shots that
-        were trials for ``hist`` at each bin (e.g. ``1 − A_j/n_shots`` when
-        the classifier moved the background of A_j shots at bin j into S).
-
-    Returns
-    -------
-    rate : (...) float64, Hz.  ``inf`` when every armed trial detected, NaN
-    when no bin is included or no trial was armed.  With ``return_std``:
-    ``(rate, std)``.
-    """
-    h = _as_hist(hist)
-    r = h if raw is None else _as_hist(raw, "raw")
-    if r.shape != h.shape:
-        raise FormatError(f"raw must have the shape of hist {h.shape}, found {r.shape}",
-                          field="raw")
-    if not bin_width > 0:
-        raise FormatError(f"bin_width must be > 0 s, found {bin_width}", field="bin_width")
-    nj = armed_shots(r, n_shots)
-    if trials_factor is not None:
-        nj = nj * np.asarray(trials_factor, dtype=np.float64)
-    use = np.ones(h.shape, dtype=bool) if exclude is None else ~np.broadcast_to(
-        np.asarray(exclude, dtype=bool), h.shape)
-    k = np.where(use, h, 0.0).sum(axis=-1)
-    n = np.where(use, nj, 0.0).sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = np.where(n > 0, k / n, np.nan)
-        rate = -np.log1p(-p) / bin_width
-        if not return_std:
-            return rate
-        std = np.sqrt(p * (1.0 - p) / n) / ((1.0 - p) * bin_width)
-    return rate, std
-
-
-def coates_correction(hist, n_shots) -> np.ndarray:
-    """Coates' pile-up correction: mean photon number per shot in each bin.
-
-    ``hist`` : (..., n_bins) counts of all detections; ``n_shots`` : (...) or
-    scalar.  Returns (..., n_bins) float64 ``μ_j = −ln(1 − h_j / n_j)`` with
-    ``n_j`` the armed shots (:func:`armed_shots`) — the bin-wise MLE of the
-    photon flux, free of the first-photon bias (D. Coates, J. Phys. E 1, 878,
-    1968).  ``inf`` where every armed shot detected, NaN where none was armed.
-    Multiply by ``n_shots`` for a pile-up-free histogram on the count scale.
-    """
-    h = _as_hist(hist)
-    nj = armed_shots(h, n_shots)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return -np.log1p(-np.where(nj > 0, h / nj, np.nan))
-
-
-def expected_background(rate, n_shots, bin_width: float, n_bins: int) -> np.ndarray:
-    """Expected background counts per bin for a constant rate under pile-up.
-
-    ``rate`` : (...) Hz, ``n_shots`` : (...) or scalar.  Returns (..., n_bins)
-    float64 ``n_shots·(1 − p)^j·p`` with ``p = 1 − exp(−rate·Δ)`` (geometric
-    first-photon distribution; ignores the disarming by the return, so later
-    bins are over- rather than under-estimated: a conservative threshold).
-    """
-    lam = np.asarray(rate, dtype=np.float64)[..., None]
-    n = np.asarray(n_shots, dtype=np.float64)[..., None]
-    j = np.arange(int(n_bins), dtype=np.float64)
-    x = lam * bin_width
-    return n * np.exp(-x * j) * (-np.expm1(-x))
-
-
-# --------------------------------------------------------------------------- filter, threshold
-def moving_sum(hist, width: int) -> np.ndarray:
-    """Centred moving sum of ``width`` (odd) bins along the last axis; zeros beyond the ends."""
-    width = int(width)
-    if width < 1 or width % 2 == 0:
-        raise FormatError(f"width must be an odd number >= 1, found {width}", field="width")
-    h = np.asarray(hist, dtype=np.float64)
-    half = width // 2
-    pad = [(0, 0)] * (h.ndim - 1) + [(half + 1, half)]
-    c = np.cumsum(np.pad(h, pad), axis=-1)
-    return c[..., width:] - c[..., :-width]
-
-
 def moving_average(hist, width: int) -> np.ndarray:
     """The paper's moving-average filter along the codes (last axis).
 
@@ -282,28 +148,6 @@ def moving_average(hist, width: int) -> np.ndarray:
     n_bins = np.asarray(hist).shape[-1]
     norm = moving_sum(np.ones(n_bins), width)
     return s / norm
-
-
-def poisson_threshold(background, width: int, p_false_alarm: float = 1e-3) -> np.ndarray:
-    """Threshold on the moving average that background alone exceeds with ``p_false_alarm``.
-
-    ``background`` : (..., n_bins) expected background counts per bin (e.g.
-    :func:`expected_background` of the MLE rate: pile-up included).  The sum
-    over a window is Poisson with the window's expected sum μ; the threshold
-    is the smallest k with P(X > k) ≤ p_false_alarm, divided by the window's
-    bin count (so it applies to :func:`moving_average`).  Per bin and pixel;
-    the probability is per window position, so over B positions expect about
-    ``B·p_false_alarm`` false peaks per pixel.
-    """
-    from scipy.stats import poisson
-
-    if not 0 < p_false_alarm < 1:
-        raise FormatError(f"p_false_alarm must lie in (0, 1), found {p_false_alarm}",
-                          field="p_false_alarm")
-    b = np.asarray(background, dtype=np.float64)
-    mu = moving_sum(b, width)
-    norm = moving_sum(np.ones(b.shape[-1]), width)
-    return poisson.isf(p_false_alarm, mu) / norm
 
 
 # --------------------------------------------------------------------------- peaks
@@ -439,17 +283,3 @@ def peak_centroid(hist, code, half_width: int, background=None):
         cen = np.where(sw > 0, (w * x).sum(axis=-1) / sw, np.nan)
         var = (hv * (x - cen[..., None]) ** 2).sum(axis=-1) / sw ** 2
     return cen, np.sqrt(var), sw
-
-
-def path_length(code, bin_width: float, offset: float = 0.0,
-                speed_of_light: float = 299704644.5):
-    """Path length L = c·((N − ½)·bin_width − offset), m, for (fractional) codes N.
-
-    ``code`` : array of 1-based codes (NaN or 0 → NaN); ``bin_width``,
-    ``offset`` : s; ``speed_of_light`` : m/s (in air by default, as the
-    system JSON).  L is measured mirror → target → projection centre
-    (FORMAT v1); points are :mod:`mems_stereo.points`' job.
-    """
-    n = np.asarray(code, dtype=np.float64)
-    n = np.where(n > 0, n, np.nan)
-    return speed_of_light * ((n - 0.5) * bin_width - offset)

@@ -12,7 +12,7 @@ Their 1-σ spreads (:class:`Spreads`) come from
   quadrature (the paper keeps only the quantisation);
 * the scan angle (zero-crossing interpolation, monitor noise);
 * optionally the covariance of calibrated system parameters (names as in
-  :meth:`mems_stereo.system.System.with_params`).
+  :meth:`mems_stereo.model.system.System.with_params`).
 
 Every estimator maps ``(system, u, v, L, θ) -> (N, 3)`` points; its
 covariance is ``J Σ Jᵀ`` with ``J`` from central differences (exact to first
@@ -29,11 +29,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .camera import pixels_to_rays
-from .errors import GeometryError
-from .scanner import scan_direction
-from .system import System
-from .triangulation import (
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
     paper_eq8_z,
     paper_eq9_x,
@@ -41,9 +38,12 @@ from .triangulation import (
     pixel_ray_point,
     scanner_ray_point,
 )
+from mems_stereo.model.camera import pixels_to_rays
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.system import System
+from mems_stereo.physics.pulse import FWHM_PER_SIGMA
+from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA
 
-#: FWHM / σ of a Gaussian, 2·sqrt(2 ln 2)
-FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 #: default 1-σ scan-angle uncertainty, rad (mirror angle; the beam turns by 2θ)
 DEFAULT_SIGMA_THETA = 1e-4
 
@@ -82,10 +82,6 @@ class Spreads:
     def input_sigmas(self, system: System) -> dict:
         return {"u": self.sigma_u, "v": self.sigma_v, "L": self.sigma_L(system),
                 "theta": self.sigma_theta}
-
-
-#: default 1-σ of the imaged laser spot on the sensor, metres (lens PSF + beam + defocus)
-DEFAULT_SPOT_SIGMA = 10e-6
 
 
 def pixel_extent_px(system: System, model: str = "pixel") -> tuple[float, float]:
@@ -177,7 +173,7 @@ def paper_point(system: System, u, v, L, theta) -> np.ndarray:
 
     y is 0.  Uses the pinhole focal length f = f_x · pitch_x and Eq. 10's μ_pix.
     """
-    from .triangulation import beam_angle
+    from mems_stereo.geometry.triangulation import beam_angle
 
     d = scan_direction(theta, system.scanner)
     Z = paper_eq8_z(L, beam_angle(d), float(system.scanner.position[0]))
@@ -287,7 +283,7 @@ def paper_polar_uncertainty(system: System, columns, codes, theta, spreads: Spre
     when ``spreads.sigma_theta > 0``).  Defaults to :func:`paper_spreads`.
     Returns ``(mu_r, mu_phi, sigma_r, sigma_phi)``, each (N,): m, rad.
     """
-    from .triangulation import path_length_from_codes
+    from mems_stereo.model.tdc import path_length_from_codes
 
     sp = paper_spreads(system) if spreads is None else spreads
     L = path_length_from_codes(codes, system.tdc, system.speed_of_light)

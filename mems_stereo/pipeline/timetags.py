@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import FormatError
+from mems_stereo.errors import FormatError
 
 
 # --------------------------------------------------------------------------- layout
@@ -67,7 +67,7 @@ def histogram_from_timetags(timestamps, offsets, bin_width, t_min, t_max) -> np.
     Returns
     -------
     (P, n_bins) int64 counts (reshape to (H, W, n_bins) for a raster).  Index
-    j corresponds to TDC code j + 1 of :mod:`mems_stereo.histogram`, so its
+    j corresponds to TDC code j + 1 of :mod:`mems_stereo.pipeline.histograms`, so its
     functions apply unchanged (without pile-up: ``n_shots`` = ∞).
     """
     t, pix = _check(timestamps, offsets)
@@ -410,18 +410,3 @@ def window_counts_from_timetags(timestamps, offsets, shape, t_min, t_max, half_w
     N = int(in_gate.sum())
     sbr = S / (N - S) if N > S else np.inf
     return WindowCountEstimate(signal, centre, 2.0 * float(half_width), S / (H * W), sbr, N)
-
-
-def load_realdata_npz(path) -> dict:
-    """Read an npz of the real-data layout (``timestamps_ps``, ``offsets``, ``shape``,
-    ``gate_ps``) into plain arrays, validating the fields the estimators need."""
-    with np.load(path) as z:
-        missing = {"timestamps_ps", "offsets", "shape", "gate_ps"} - set(z.files)
-        if missing:
-            raise FormatError(f"missing arrays {sorted(missing)}", source=str(path))
-        out = {k: z[k] for k in ("timestamps_ps", "offsets", "shape", "gate_ps")}
-    H, W = (int(v) for v in out["shape"])
-    if out["offsets"].size != H * W + 1:
-        raise FormatError(f"expected {H * W + 1} offsets for shape {H}x{W}, found "
-                          f"{out['offsets'].size}", source=str(path), field="offsets")
-    return out

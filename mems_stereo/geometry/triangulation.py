@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .epipolar import triangulate_midpoint
-from .errors import GeometryError
-from .system import TDC, System
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.epipolar import triangulate_midpoint
+from mems_stereo.model.system import System
 
 FLAG_OK = 0
 FLAG_NO_SOLUTION = 1  # L not finite or L <= |b|: no point on the ellipsoid
@@ -41,30 +41,6 @@ def _vec3(a, name: str) -> np.ndarray:
     if a.shape[-1:] != (3,):
         raise GeometryError(f"{name}: expected shape (..., 3), found {a.shape}")
     return a
-
-
-# --------------------------------------------------------------------------
-# codes <-> path length
-
-
-def path_length_from_codes(codes, tdc: TDC, speed_of_light: float) -> np.ndarray:
-    """Path length L = c · ((N − ½)·bin_width − offset), metres; NaN for code 0.
-
-    ``codes`` : (...) integer TDC codes (0 = no detection, 1..n_bins).
-    Returns float64 of the same shape.
-    """
-    n = np.asarray(codes, dtype=np.float64)
-    L = speed_of_light * ((n - 0.5) * tdc.bin_width - tdc.offset)
-    return np.where(n > 0, L, np.nan)
-
-
-def codes_from_path_length(L, tdc: TDC, speed_of_light: float) -> np.ndarray:
-    """Continuous TDC code of a path length (inverse of :func:`path_length_from_codes`).
-
-    ``N = (L / c + offset) / bin_width + ½``; float64, same shape as ``L``.
-    """
-    L = np.asarray(L, dtype=np.float64)
-    return (L / speed_of_light + tdc.offset) / tdc.bin_width + 0.5
 
 
 def path_length_of_point(points, scanner_position) -> np.ndarray:

@@ -30,19 +30,16 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtri
 
-from .camera import normalized_coordinates, pixel_grid
-from .errors import GeometryError
-from .scanner import scan_angles, scan_direction, scan_direction_derivative
-from .system import System
-from .triangulation import (
-    coplanar_ray_intersection,
-    path_length_from_codes,
-    pixel_ray_point,
-)
-from .uncertainty import Spreads, spreads_for
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.triangulation import coplanar_ray_intersection, pixel_ray_point
+from mems_stereo.geometry.uncertainty import Spreads, spreads_for
+from mems_stereo.io.labels import LABEL_NOISE, LABEL_NONE, LABEL_SIGNAL
+from mems_stereo.model.camera import normalized_coordinates, pixel_grid
+from mems_stereo.model.scanner import scan_angles, scan_direction, scan_direction_derivative
+from mems_stereo.model.system import System
+from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
 
 DEFAULT_CONFIDENCE = 0.997
-LABEL_NONE, LABEL_SIGNAL, LABEL_NOISE = 0, 1, 2
 
 
 def k_from_confidence(confidence: float) -> float:
@@ -177,8 +174,8 @@ def accepted_code_intervals(system: System, theta, confidence: float = DEFAULT_C
     system : the scanner–receiver pair.
     theta : (K,) float64 scan angles, rad (NaN: nothing accepted).
     confidence : two-sided coverage of the bound (default 0.997, i.e. 3σ).
-    spreads : :class:`~mems_stereo.uncertainty.Spreads` (default
-        :func:`~mems_stereo.uncertainty.spreads_for`).
+    spreads : :class:`~mems_stereo.geometry.uncertainty.Spreads` (default
+        :func:`~mems_stereo.geometry.uncertainty.spreads_for`).
     chunk_shots : shots per vectorised block (memory).
     min_range : optional prior, m (see :func:`path_length_bounds`).
 
@@ -197,9 +194,9 @@ def accepted_code_intervals(system: System, theta, confidence: float = DEFAULT_C
         b = min(K, a + chunk_shots)
         pb = path_length_bounds(system, th[a:b], confidence, spreads, min_range)
         with np.errstate(invalid="ignore"):
-            # code N's bin centre: L_N = c·((N − ½)·bin − offset)
-            nlo = np.ceil((pb.L_lo / c + tdc.offset) / tdc.bin_width + 0.5)
-            nhi = np.floor((np.minimum(pb.L_hi, 1e12) / c + tdc.offset) / tdc.bin_width + 0.5)
+            # code N's bin centre: L_N = c·((N − ½)·bin − offset) (model.tdc)
+            nlo = np.ceil(codes_from_path_length(pb.L_lo, tdc, c))
+            nhi = np.floor(codes_from_path_length(np.minimum(pb.L_hi, 1e12), tdc, c))
         ok = np.isfinite(nlo) & np.isfinite(nhi)
         nlo = np.clip(np.where(ok, nlo, 1), 1, tdc.n_bins)
         nhi = np.clip(np.where(ok, nhi, 0), 0, tdc.n_bins)
@@ -272,7 +269,7 @@ def classify_detections(system: System, shot_idx, rows, cols, codes, theta,
     (M,) bool, True for signal.  It agrees with :func:`classify_bins` except
     where the first-order bound is poor (near the beam's vanishing point).
     """
-    from .uncertainty import INPUTS, jacobian
+    from mems_stereo.geometry.uncertainty import INPUTS, jacobian
 
     sp = spreads_for(system) if spreads is None else spreads
     k = k_from_confidence(confidence)
@@ -284,7 +281,7 @@ def classify_detections(system: System, shot_idx, rows, cols, codes, theta,
 
     def offsets(sys_, u, v, L, theta):
         rc = sys_.receiver
-        from .camera import pixels_to_rays
+        from mems_stereo.model.camera import pixels_to_rays
 
         l = pixels_to_rays(np.stack([u, v], axis=1), rc.camera_matrix, rc.dist_coeffs)
         x = pixel_ray_point(p, l, L)[0]
@@ -325,10 +322,10 @@ def classify_recording(recording, system: System | None = None,
                        confidence: float = DEFAULT_CONFIDENCE,
                        spreads: Spreads | None = None,
                        min_range: float | None = None) -> ClassificationResult:
-    """Classify every detection of a :class:`~mems_stereo.recording.Recording`.
+    """Classify every detection of a :class:`~mems_stereo.io.recording.Recording`.
 
     The scan angle of each shot comes from the recorded zero crossings
-    (:func:`mems_stereo.scanner.scan_angles`); shots outside their span are
+    (:func:`mems_stereo.model.scanner.scan_angles`); shots outside their span are
     left out (label 0) and counted.  ``system`` defaults to the recording's;
     ``spreads`` and ``min_range`` as :func:`accepted_code_intervals`.
     """

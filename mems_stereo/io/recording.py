@@ -20,10 +20,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .errors import FormatError
-from .io_util import atomic_output
-from .scanner import validate_zero_crossings
-from .system import System, system_from_json, system_to_json
+from mems_stereo.errors import FormatError
+from mems_stereo.model.scanner import validate_zero_crossings
+from mems_stereo.model.system import System, system_from_json, system_to_json
+from mems_stereo.util.atomic import atomic_output
 
 FORMAT_NAME = "mems-stereo/recording"
 FORMAT_VERSION = 1
@@ -265,20 +265,6 @@ def write_recording(path: str | os.PathLike, system: System, shot_time, bins,
         for k, v in (truth or {}).items():
             v = np.asarray(v)
             f.create_dataset(f"truth/{k}", data=v, **(opts if v.ndim >= 2 and v.size else {}))
-    return Path(path)
-
-
-def write_labels(path: str | os.PathLike, label, theta) -> Path:
-    """Write event labels (FORMAT v1 outputs): ``/label`` uint8 [K,H,W], ``/theta`` [K]."""
-    lab = np.asarray(label, dtype=np.uint8)
-    th = np.asarray(theta, dtype=np.float64)
-    if lab.ndim != 3 or th.shape != (lab.shape[0],):
-        raise ValueError(f"labels: expected (K, H, W) and (K,), found {lab.shape}, {th.shape}")
-    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
-        f.attrs["format"] = "mems-stereo/labels"
-        f.attrs["version"] = 1
-        f.create_dataset("label", data=lab, compression="gzip")
-        f.create_dataset("theta", data=th)
     return Path(path)
 
 

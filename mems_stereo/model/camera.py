@@ -11,8 +11,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from .errors import GeometryError
-from .system import ALLOWED_DIST_LENGTHS, Receiver, validate_camera_matrix
+from mems_stereo.errors import GeometryError
+from mems_stereo.model.system import ALLOWED_DIST_LENGTHS, Receiver, validate_camera_matrix
 
 
 def check_intrinsics(camera_matrix, dist_coeffs=None) -> tuple[np.ndarray, np.ndarray]:

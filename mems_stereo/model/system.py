@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from .validation import FieldChecker, parse_json, read_json_file
+from mems_stereo.util.jsonfile import FieldChecker, parse_json, read_json_file
 
 FORMAT_NAME = "mems-stereo/system"
 FORMAT_VERSION = 1
@@ -326,7 +326,7 @@ def load_system(path: str | os.PathLike) -> System:
 
 def save_system(system: System, path: str | os.PathLike) -> Path:
     """Write a system description JSON atomically (temporary file, then rename)."""
-    from .io_util import atomic_write_text
+    from mems_stereo.util.atomic import atomic_write_text
 
     return atomic_write_text(path, system_to_json(system) + "\n")
 
@@ -338,7 +338,7 @@ def save_system(system: System, path: str | os.PathLike) -> Path:
 def theta0_for_working_distance(baseline_x: float, working_distance: float) -> float:
     """Exact θ0 (rad) making the transmitter axis cross the optical axis at W.
 
-    θ0 = π/4 − ½·atan(x_M0 / W); compare :func:`mems_stereo.scanner.theta0_small_angle`.
+    θ0 = π/4 − ½·atan(x_M0 / W); compare :func:`mems_stereo.model.scanner.theta0_small_angle`.
     """
     return math.pi / 4 - 0.5 * math.atan(baseline_x / working_distance)
 

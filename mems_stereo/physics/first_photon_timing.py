@@ -27,13 +27,6 @@ import math
 
 import numpy as np
 
-FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
-
-
-def pulse_sigma(pulse_fwhm: float, jitter: float = 0.0) -> float:
-    """σ of the Gaussian arrival spread, s: pulse (FWHM → σ) ⊕ SPAD jitter σ."""
-    return math.hypot(pulse_fwhm * FWHM_TO_SIGMA, jitter)
-
 
 def first_photon_moments(a, mu: float, sigma: float, lam: float = 0.0,
                          n_quad: int = 801):

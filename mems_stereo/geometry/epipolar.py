@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import pixels_to_rays, project_points
-from .errors import GeometryError
-from .system import System
+from mems_stereo.errors import GeometryError
+from mems_stereo.model.camera import pixels_to_rays, project_points
+from mems_stereo.model.system import System
 
 
 def epipolar_residual(d_scan, baseline, rays) -> np.ndarray:

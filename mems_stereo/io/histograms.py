@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FormatError
-from .io_util import atomic_output
+from mems_stereo.errors import FormatError
+from mems_stereo.util.atomic import atomic_output
 
 FORMAT_NAME = "mems-stereo/histograms"
 FORMAT_VERSION = 1

@@ -1,0 +1,2 @@
+"""Files: recordings (FORMAT v1), labels, histograms and real photon data.
+"""

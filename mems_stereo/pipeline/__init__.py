@@ -1,0 +1,28 @@
+"""The processing pipeline, one module per stage, in order:
+
+settings → angles → consistency (the per-detection test) + intervals (the
+test compiled per angle step) → pass1 (classify and histogram) → peaks →
+pass2 (counts per peak, angle step and code) → fusion (points) → cloud;
+run (process_recording) drives them; distributed wraps them for Dask;
+timetags is the same stage for TCSPC time tags.
+"""
+
+import importlib
+
+#: public names of the stage modules, importable from ``mems_stereo.pipeline``
+#: (loaded on first use, so that importing one stage does not load them all)
+_PUBLIC = {
+    "Settings": "settings", "DEFAULT_CHUNK_SHOTS": "settings",
+    "process_recording": "run", "finish_processing": "run", "ProcessResult": "run",
+    "truth_scores": "run", "shot_angles": "angles",
+    "RangeAccumulation": "pass1", "accumulate_range": "pass1",
+    "PeakCounts": "pass2", "peak_counts_range": "pass2", "points_from_counts": "fusion",
+}
+
+__all__ = sorted(_PUBLIC)
+
+
+def __getattr__(name):
+    if name in _PUBLIC:
+        return getattr(importlib.import_module(f"{__name__}.{_PUBLIC[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -1,0 +1,140 @@
+"""Pass 2: the detections inside each peak's window, counted per peak, angle step and code.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mems_stereo.io.recording import iter_shot_chunks
+from mems_stereo.model.system import System
+from mems_stereo.pipeline.intervals import IntervalTable, interval_table
+from mems_stereo.pipeline.settings import Settings
+
+
+def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb,
+                    out):
+    """Reference semantics of the compiled peak-window kernel (see :func:`peak_window_keys`)."""
+    K = bins.shape[0]
+    Q = pix.shape[0]
+    n = 0
+    for k in range(K):
+        j = rows[k]
+        if j < 0:
+            continue
+        for q in range(Q):
+            if j < step_lo[q] or j > step_hi[q]:
+                continue
+            p = pix[q]
+            c = np.int64(bins[k, p])
+            if (c != 0 and win_lo[q] <= c and c <= win_hi[q]
+                    and np.int64(lo[j, p]) <= c and c <= np.int64(hi[j, p])):
+                out[n] = (q * n_steps + j) * nb + c
+                n += 1
+    return n
+
+
+try:  # pragma: no cover - numba is a declared dependency
+    _window_keys = numba.njit(cache=True, nogil=True, boundscheck=False)(_window_keys_py)
+except NameError:  # pragma: no cover
+    _window_keys = _window_keys_py
+
+
+def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
+                     n_bins: int, step_lo=None, step_hi=None) -> np.ndarray:
+    """Keys of the signal detections inside the peak windows of a block of shots.
+
+    A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
+    peak's window ``[code_lo[q], code_hi[q]]``, its shot's angle step in
+    ``[step_lo[q], step_hi[q]]`` (default: any) and the classifier accepted it
+    (signal).  Its key is ``(q · S + step) · (n_bins + 1) + code``, with
+    ``step`` the shot's angle step in ``table`` (S steps).  Returns (M,) int64,
+    in shot order.  One compiled pass over the peak pixels only.
+    """
+    b = np.ascontiguousarray(bins)
+    K = b.shape[0]
+    b2 = b.reshape(K, -1)
+    if b2.dtype != np.uint16:
+        b2 = b2.astype(np.uint16)
+    rows = table.index(theta)
+    rows[~np.asarray(valid, dtype=bool)] = -1
+    table.ensure(rows)
+    pix = np.asarray(peak_pixel, dtype=np.int64)
+    s_lo = np.zeros(pix.size, np.int64) if step_lo is None else np.asarray(step_lo, np.int64)
+    s_hi = (np.full(pix.size, table.n_steps, np.int64) if step_hi is None
+            else np.asarray(step_hi, np.int64))
+    out = np.empty(K * max(1, pix.size), np.int64)
+    n = _window_keys(b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
+                     np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps),
+                     int(n_bins) + 1, out)
+    return out[:n].copy()
+
+
+class PeakCounts:
+    """How often each distinct (peak, scan-angle step, code) occurs among the signal
+    detections inside the peak windows: integers, so sums over chunks and workers
+    are exact in any order.
+
+    Keys are ``(peak · S + step) · (n_bins + 1) + code`` with S the interval
+    table's number of angle steps; ``keys`` (U,) int64 sorted unique,
+    ``counts`` (U,) int64.  New keys are buffered and merged when the buffer
+    outgrows the merged set (amortised O(U log U)); memory is bounded by the
+    number of distinct keys, not by the recording's length.
+    """
+
+    def __init__(self, keys=None, counts=None):
+        self.keys = np.zeros(0, np.int64) if keys is None else np.asarray(keys, np.int64)
+        self.counts = np.zeros(0, np.int64) if counts is None else np.asarray(counts, np.int64)
+        self._pending: list[np.ndarray] = []
+        self._n_pending = 0
+
+    def add_keys(self, keys) -> None:
+        k = np.asarray(keys, dtype=np.int64).ravel()
+        if k.size:
+            self._pending.append(k)
+            self._n_pending += k.size
+            if self._n_pending > max(1 << 20, self.keys.size):
+                self._merge()
+
+    def _merge(self) -> None:
+        if not self._pending:
+            return
+        new = np.concatenate(self._pending)
+        self._pending, self._n_pending = [], 0
+        k, c = np.unique(new, return_counts=True)
+        allk = np.concatenate([self.keys, k])
+        allc = np.concatenate([self.counts, c])
+        u, inv = np.unique(allk, return_inverse=True)
+        self.keys, self.counts = u, np.bincount(inv, weights=allc).astype(np.int64)
+
+    def __add__(self, other: PeakCounts) -> PeakCounts:
+        self._merge()
+        other._merge()
+        k = np.concatenate([self.keys, other.keys])
+        c = np.concatenate([self.counts, other.counts])
+        u, inv = np.unique(k, return_inverse=True)
+        return PeakCounts(u, np.bincount(inv, weights=c).astype(np.int64))
+
+    def finished(self) -> PeakCounts:
+        self._merge()
+        return self
+
+
+def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
+                      start: int = 0, stop: int | None = None, progress=None) -> PeakCounts:
+    """Pass 2 over shots [start, stop): count the peak windows' signal detections by
+    (peak, angle step, code) — see :class:`PeakCounts` and
+    :func:`mems_stereo.pipeline.pass2.peak_window_keys`."""
+    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    W = system.receiver.width
+    pix = peaks["row"] * W + peaks["col"]
+    pc = PeakCounts()
+    if pix.size == 0:
+        return pc
+    for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
+        s1 = s0 + bins.shape[0]
+        pc.add_keys(peak_window_keys(bins, theta[s0:s1], valid[s0:s1], table, pix,
+                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
+                                     peaks.get("step_lo"), peaks.get("step_hi")))
+        if progress is not None:
+            progress(s1 - s0)
+    return pc.finished()

@@ -1,0 +1,186 @@
+"""The processing chain of one recording, streamed in chunks of shots.
+
+Two passes over ``/shots/bins``, each in chunks (memory does not grow with
+the recording's length):
+
+1. **classify and accumulate** (:func:`accumulate_range`): scan angle per
+   shot from the zero crossings, labels from the compiled interval table
+   (:mod:`mems_stereo.pipeline.intervals`, identical to the NumPy reference on the
+   snapped angles), raw and signal histograms per pixel; optionally the
+   labels file and, where the recording has ``/truth/label``, the confusion
+   counts against the truth.
+2. **peaks → points** (:func:`peak_counts_range`): after the peak detector
+   has found each pixel's peak code window in the signal histogram, the
+   signal detections inside the windows are counted by (peak, scan-angle
+   step, code) — exact integers (:class:`PeakCounts`) — and each distinct
+   triple is triangulated once, weighted by its count, and fused into one
+   point per peak (:func:`points_from_counts`).
+
+Every step is a function of a shot range and returns arrays that add up
+(histograms, counts, peak counts: all integers), so the Dask runner
+(:mod:`mems_stereo.pipeline.distributed`) and any chunk size give results identical
+to one process, bit for bit.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import h5py
+import numpy as np
+
+from mems_stereo.io.recording import read_header
+from mems_stereo.model.system import System
+from mems_stereo.pipeline.angles import shot_angles
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.fusion import points_from_counts
+from mems_stereo.pipeline.intervals import interval_table, shots_per_step
+from mems_stereo.pipeline.pass1 import RangeAccumulation, accumulate_range
+from mems_stereo.pipeline.pass2 import peak_counts_range
+from mems_stereo.pipeline.settings import Settings
+from mems_stereo.util.atomic import atomic_output
+
+
+@dataclass
+class ProcessResult:
+    """Everything processing produced for one recording.
+
+    histograms : dict of (H, W, n_bins) int64 ``raw``, ``signal``, ``noise``
+        (index N−1 holds code N).
+    background_hz : (H, W) float64, ML background rate per pixel from the noise
+        histogram (pile-up aware).
+    peaks : dict of (Q,) arrays ``row``, ``col``, ``code`` (peak code),
+        ``code_lo``, ``code_hi`` (window), ``counts``.
+    cloud : :class:`~mems_stereo.pipeline.cloud.PointCloud`, one point per peak.
+    counts : dict of integers (shots, unknown angle, raw, signal, noise).
+    truth : dict with recall and noise rejection (None without truth).
+    timings : dict of seconds per stage.
+    """
+
+    system: System
+    source: str
+    histograms: dict
+    background_hz: np.ndarray
+    peaks: dict
+    cloud: PointCloud
+    counts: dict
+    truth: dict | None
+    theta: np.ndarray
+    valid: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+
+def truth_scores(confusion: np.ndarray) -> dict:
+    """Recall and noise rejection from a truth × assigned confusion matrix."""
+    c = np.asarray(confusion)
+    n_sig = c[1, 1] + c[1, 2]
+    n_bg = c[2, 1] + c[2, 2]
+    return {
+        "true_signal": int(n_sig), "true_background": int(n_bg),
+        "recall": float(c[1, 1] / n_sig) if n_sig else float("nan"),
+        "noise_rejection": float(c[2, 2] / n_bg) if n_bg else float("nan"),
+        "precision": float(c[1, 1] / (c[1, 1] + c[2, 1])) if (c[1, 1] + c[2, 1]) else
+        float("nan"),
+    }
+
+
+def _labels_file(path, K: int, shape):
+    """Context: an HDF5 labels file written atomically; yields the /label dataset."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def ctx():
+        with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+            f.attrs["format"] = "mems-stereo/labels"
+            f.attrs["version"] = 1
+            ds = f.create_dataset("label", shape=(K,) + tuple(shape), dtype=np.uint8,
+                                  chunks=(max(1, min(K, 4096)),) + tuple(shape),
+                                  compression="gzip")
+            yield f, ds
+
+    return ctx()
+
+
+def process_recording(path: str | os.PathLike, system: System | None = None,
+                      settings: Settings | None = None, labels_path=None,
+                      progress=None) -> ProcessResult:
+    """Classify, histogram, find peaks and triangulate one recording (streamed).
+
+    Parameters
+    ----------
+    path : FORMAT v1 recording (validated on read; see docs/formats.md).
+    system : system to process with (default: the recording's ``/system``),
+        e.g. a calibrated one.
+    settings : :class:`Settings`.
+    labels_path : write the event labels (FORMAT v1 outputs) there.
+    progress : callable(n_shots_done) for progress bars.
+    """
+    st = Settings() if settings is None else settings
+    t0 = time.perf_counter()
+    header = read_header(path)
+    sysm = header.system if system is None else system
+    K, H, W = header.shape
+    if (H, W) != (sysm.receiver.height, sysm.receiver.width):
+        from mems_stereo.errors import FormatError
+
+        raise FormatError(f"expected shape (K, {sysm.receiver.height}, {sysm.receiver.width}) "
+                          f"of the processing system, found {header.shape}", str(path),
+                          "/shots/bins")
+    theta, valid = shot_angles(header, sysm)
+    header.shot_time = None  # only the angles are needed from here on: free O(K) memory
+    timings = {"read_header": time.perf_counter() - t0}
+
+    t1 = time.perf_counter()
+    if labels_path is not None:
+        with _labels_file(labels_path, K, (H, W)) as (f, ds):
+            acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
+                                   progress=progress)
+            f.create_dataset("theta", data=np.where(valid, theta, np.nan))
+    else:
+        acc = accumulate_range(path, sysm, theta, valid, st, progress=progress)
+    timings["classify_histogram"] = time.perf_counter() - t1
+    return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                             progress=progress)
+
+
+def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
+                      timings: dict, count_peaks=None, progress=None) -> ProcessResult:
+    """Peaks, background and points from the accumulated histograms.
+
+    ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
+    (default: here, in chunks; the Dask runner passes its own).
+    """
+    from mems_stereo.pipeline.peaks import find_peaks
+
+    K, H, W = header.shape
+    n_bins = sysm.tdc.n_bins
+    t2 = time.perf_counter()
+    raw = acc.hist_raw[:, 1:].reshape(H, W, n_bins)
+    sig = acc.hist_signal[:, 1:].reshape(H, W, n_bins)
+    noise = raw - sig
+    peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
+                                   signal_angle=acc.hist_angle)
+    timings["peaks"] = time.perf_counter() - t2
+    t3 = time.perf_counter()
+    if count_peaks is None:
+        counts = peak_counts_range(path, sysm, theta, valid, st, peaks, progress=progress)
+    else:
+        counts = count_peaks(peaks)
+    timings["peak_detections"] = time.perf_counter() - t3
+    t4 = time.perf_counter()
+    table = interval_table(sysm, st.confidence, min_range=st.min_range)
+    cloud = points_from_counts(sysm, peaks, counts, st,
+                               shots_per_step=shots_per_step(table, theta, valid))
+    peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
+    timings["points"] = time.perf_counter() - t4
+    counts = {
+        "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),
+        "raw": int(raw.sum()), "signal": int(sig.sum()), "noise": int(noise.sum()),
+        "peaks": int(len(peaks["row"])), "points": len(cloud),
+    }
+    truth = truth_scores(acc.confusion) if acc.has_truth else None
+    theta[~valid] = np.nan  # (already NaN where the angle is unknown; no copy)
+    return ProcessResult(sysm, str(path), {"raw": raw, "signal": sig, "noise": noise},
+                         background, peaks, cloud, counts, truth, theta, valid, timings)
