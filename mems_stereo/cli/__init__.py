@@ -16,6 +16,7 @@ from mems_stereo.errors import MemsStereoError
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
+    "import_",
 ]
 
 
