@@ -24,6 +24,7 @@ _LAZY = {
     "plot_uncertainty_bounds": "plots", "plot_calibration_residuals": "plots",
     "plot_cloud_topview": "plots",
     "apply_colormap": "colormap", "cloud_colors": "colormap",
+    "write_calibration_report": "calib_report", "write_ros2_bag": "export",
 }
 
 __all__ = sorted(_LAZY)
