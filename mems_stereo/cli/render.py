@@ -27,6 +27,13 @@ def add_arguments(p):
     p.add_argument("--cmap", default="turbo", choices=["turbo", "viridis"])
     p.add_argument("--vmin", type=float, default=None, help="value at the colormap's start")
     p.add_argument("--vmax", type=float, default=None, help="value at the colormap's end")
+    p.add_argument("--decorate", action="store_true",
+                   help="draw a ground grid with its scale and a colour bar")
+    p.add_argument("--system", default=None,
+                   help="system JSON or preset: draw the scanner and receiver at their poses "
+                        "(implies --decorate)")
+    p.add_argument("--ellipsoids", type=float, default=None, metavar="N_SIGMA",
+                   help="draw N_SIGMA σ ellipsoids from sigma_r, sigma_phi (implies --decorate)")
 
 
 def run(args) -> int:
@@ -35,10 +42,18 @@ def run(args) -> int:
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)
+    deco = None
+    if args.decorate or args.system or args.ellipsoids:
+        from mems_stereo.model.system import resolve_system
+        from mems_stereo.viz.render import Decorations
+
+        deco = Decorations(system=resolve_system(args.system) if args.system else None,
+                           ellipsoids=bool(args.ellipsoids),
+                           n_sigma=args.ellipsoids or 3.0)
     t0 = time.perf_counter()
     out = render_cloud(cloud, args.output, color_by=args.color_by, width=args.width,
                        height=args.height, view=args.view, point_size=args.point_size,
-                       cmap=args.cmap, vmin=args.vmin, vmax=args.vmax)
+                       cmap=args.cmap, vmin=args.vmin, vmax=args.vmax, decorations=deco)
     rep.info(f"{out}: {len(cloud)} points, {args.width} x {args.height} px, view {args.view}, "
              f"coloured by {args.color_by}")
     rep.detail(f"rendered in {time.perf_counter() - t0:.2f} s")
