@@ -23,9 +23,9 @@ def add_arguments(p):
     p.add_argument("--all-photons", action="store_true",
                    help="keep every photon, not only the first per shot and pixel: write the "
                         "time-tag layout (.npz) of the TCSPC path instead of a recording")
-    p.add_argument("--chunk-records", type=int, default=1 << 22,
-                   help="events read per block; memory does not grow with the file "
-                        "(default 4194304)")
+    p.add_argument("--chunk-records", type=int, default=1 << 21,
+                   help="records read per block; memory does not grow with the file "
+                        "(default 2097152)")
     p.add_argument("--window-shots", type=int, default=8192,
                    help="shots assembled in memory before they are written (default 8192)")
 

@@ -1,8 +1,8 @@
 """PicoQuant PTU files (T2 and T3 TTTR records): header, streamed events, a small encoder.
 
 Reading goes through the `ptufile` package: it parses the tag header and
-memory-maps the 32-bit records, so a file of any size is read in blocks of
-``chunk_records`` records (memory bounded by the block).  T3 records are
+gives the records' offset; the 32-bit records are then read in blocks of
+``chunk_records`` records (memory bounded by the block, whatever the file size).  T3 records are
 decoded by ``ptufile``; the overflow count is carried from block to block.
 T2 records of the HydraHarp / TimeHarp 260 / MultiHarp / PicoHarp 330
 layout are decoded here (vectorised NumPy), because ``ptufile`` reports a
@@ -155,48 +155,67 @@ def _decode_t2_generic(rec: np.ndarray, wrap: int, v1: bool, carry: int):
     return macro, kind, ch, keep, (int(cum[-1]) if cum.size else carry)
 
 
-def iter_ptu_events(path: str | os.PathLike, chunk_records: int = 1 << 22
+def iter_ptu_events(path: str | os.PathLike, chunk_records: int = 1 << 21
                     ) -> Iterator[tuple[PtuHeader, EventBlock]]:
     """Yield ``(header, EventBlock)`` for consecutive blocks of ``chunk_records`` records.
 
-    Memory: O(chunk_records) whatever the file size (records are memory-mapped).
+    Memory: O(chunk_records) whatever the file size: the records are read
+    block by block with ``readinto`` (not memory-mapped, whose pages would
+    count as resident memory as the file is swept).
     """
     source = str(path)
     chunk_records = max(1, int(chunk_records))
     with _open(path) as p:
         hdr = _header(p, source)
-        if hdr.n_records == 0:
-            return
-        rec = p.read_records(memmap=True)
-        rt = hdr.record_type
-        carry = 0  # overflow units (T3: syncs, T2 generic: wraps) before this block
-        for a in range(0, rec.size, chunk_records):
-            blk = np.ascontiguousarray(rec[a:a + chunk_records])
-            if hdr.mode == "T2" and rt in _T2_GENERIC:
-                macro, kind, ch, keep, carry = _decode_t2_generic(
-                    blk, _T2_GENERIC[rt], rt == 0x00010204, carry)
-                ev = EventBlock(macro[keep], np.zeros(int(keep.sum()), np.int64), kind[keep],
-                                ch[keep])
-            else:
-                d = p.decode_records(blk)
-                t = d["time"].astype(np.int64) + carry
-                if hdr.mode == "T3":
-                    wrap = _T3_WRAP[rt]
-                    micro = d["dtime"].astype(np.int64)
-                else:  # PicoHarp T2: no separate sync events
-                    wrap = 210698240
-                    micro = np.zeros(t.size, np.int64)
-                chan = d["channel"].astype(np.int16)
-                mark = d["marker"].astype(np.int16)
-                photon = chan >= 0
-                keep = photon | (mark > 0)
-                if t.size:
-                    carry = int(t[-1]) // wrap * wrap
-                micro = np.where(photon, micro, 0)  # ptufile gives markers dtime -1
-                ev = EventBlock(t[keep], micro[keep],
-                                np.where(photon, PHOTON, MARKER).astype(np.int8)[keep],
-                                np.where(photon, chan, mark)[keep])
-            yield hdr, ev
+        offset = int(p.record_offset)
+    if hdr.n_records == 0:
+        return
+    rt = hdr.record_type
+    carry = 0  # overflow units (T3: syncs, T2 generic: wraps) before this block
+    decoder = None
+    if not (hdr.mode == "T2" and rt in _T2_GENERIC):
+        decoder = _open(path)  # ptufile decodes T3 and PicoHarp T2 blocks
+    buf = np.empty(chunk_records, dtype="<u4")
+    try:
+        with open(path, "rb") as fh:
+            fh.seek(offset)
+            left = hdr.n_records
+            while left > 0:
+                n = fh.readinto(memoryview(buf)[:min(left, chunk_records)]) // 4
+                if n == 0:
+                    raise FormatError(f"file ends {left} records before the "
+                                      f"{hdr.n_records} its header declares", source,
+                                      "TTResult_NumberOfRecords")
+                left -= n
+                blk = buf[:n]
+                if decoder is None:
+                    macro, kind, ch, keep, carry = _decode_t2_generic(
+                        blk, _T2_GENERIC[rt], rt == 0x00010204, carry)
+                    ev = EventBlock(macro[keep], np.zeros(int(keep.sum()), np.int64),
+                                    kind[keep], ch[keep])
+                else:
+                    d = decoder.decode_records(blk)
+                    t = d["time"].astype(np.int64) + carry
+                    if hdr.mode == "T3":
+                        wrap = _T3_WRAP[rt]
+                        micro = d["dtime"].astype(np.int64)
+                    else:  # PicoHarp T2: no separate sync events
+                        wrap = 210698240
+                        micro = np.zeros(t.size, np.int64)
+                    chan = d["channel"].astype(np.int16)
+                    mark = d["marker"].astype(np.int16)
+                    photon = chan >= 0
+                    keep = photon | (mark > 0)
+                    if t.size:
+                        carry = int(t[-1]) // wrap * wrap
+                    micro = np.where(photon, micro, 0)  # ptufile gives markers dtime -1
+                    ev = EventBlock(t[keep], micro[keep],
+                                    np.where(photon, PHOTON, MARKER).astype(np.int8)[keep],
+                                    np.where(photon, chan, mark)[keep])
+                yield hdr, ev
+    finally:
+        if decoder is not None:
+            decoder.close()
 
 
 # --------------------------------------------------------------------------- encoder
@@ -241,12 +260,14 @@ def ptu_header_bytes(mode: str, global_resolution: float, resolution: float,
     return b"PQTTTR\0\x001.0.00\0\0" + b"".join(_tag(n, v) for n, v in tags)
 
 
-def encode_t2(time, kind, channel) -> np.ndarray:
+def encode_t2(time, kind, channel, prev_wrap: int = 0) -> np.ndarray:
     """Generic T2 records of time-ordered events, overflow records inserted.
 
     time : (n,) int64 time tags (global resolution), non-decreasing; kind :
     (n,) PHOTON / SYNC / MARKER; channel : (n,) photon input 0..62 or marker
-    mask 1..15.  Returns (m,) uint32 records.
+    mask 1..15.  ``prev_wrap`` : the overflow count (``time // 2**25``) of the
+    last event already written, to encode a long stream block by block.
+    Returns (m,) uint32 records.
     """
     t = np.asarray(time, dtype=np.int64)
     kind = np.asarray(kind)
@@ -259,7 +280,7 @@ def encode_t2(time, kind, channel) -> np.ndarray:
     wrap = 1 << 25
     w = t // wrap
     # one overflow record (count = the jump) before each event whose wrap count grew
-    jump = np.diff(np.concatenate([[0], w]))
+    jump = np.diff(np.concatenate([[prev_wrap], w]))
     special = kind != PHOTON
     code = np.where(kind == SYNC, 0, ch)
     ev = ((special.astype(np.uint64) << 31) | (code.astype(np.uint64) << 25)
@@ -324,7 +345,7 @@ def write_ptu(path: str | os.PathLike, mode: str, records, *, global_resolution:
 
 
 # --------------------------------------------------------------------------- import glue
-def ptu_stream(path: str | os.PathLike, chunk_records: int = 1 << 22):
+def ptu_stream(path: str | os.PathLike, chunk_records: int = 1 << 21):
     """``(StreamInfo, open_blocks)`` of a PTU file for :mod:`mems_stereo.io.tttr`.
 
     ``open_blocks()`` returns a fresh iterator of :class:`EventBlock`.
