@@ -366,3 +366,32 @@ def test_cli_import_errors_are_one_line(tmp_path, capsys):
                    "-o", str(tmp_path / "o.h5"), "--all-photons"])
     assert rc == 2 and ".npz" in capsys.readouterr().err
     assert not (tmp_path / "o.h5").exists()
+
+
+def test_photon_hdf5_t3_like_round_trip(small_rec, tmp_path):
+    """nanotimes + timestamps in laser periods: read like T3 (shot = timestamp)."""
+    rec = small_rec
+    period = 1.0 / rec.system.laser.f_rep
+    origin = np.floor(min(rec.zero_crossings[0], 0.0) / period) * period
+    k0 = int(round(-origin / period))
+    k, p = np.nonzero(rec.bins.reshape(rec.n_shots, -1))
+    code = rec.bins.reshape(rec.n_shots, -1)[k, p].astype(np.int64)
+    zs = np.floor((rec.zero_crossings - origin) / period).astype(np.int64)
+    ts = np.concatenate([k + k0, zs])
+    det = np.concatenate([p, np.where(rec.rising > 0, 50, 51)])
+    nt = np.concatenate([code - 1, np.zeros(zs.size, np.int64)])
+    o = np.argsort(ts, kind="stable")
+    write_photon_hdf5_events(tmp_path / "t3.h5", ts[o], det[o], timestamps_unit=period,
+                             nanotimes=nt[o], tcspc_unit=rec.system.tdc.bin_width,
+                             tcspc_num_bins=4096, laser_repetition_rate=rec.system.laser.f_rep)
+    mp = {"format": "mems-stereo/tttr-map", "version": 1,
+          "pixels": [[i, i, 0] for i in range(rec.bins.shape[2])],
+          "zero_crossings": {"source": "channel", "rising_edge": 50, "falling_edge": 51},
+          "shots": {"first": k0, "count": rec.n_shots}, "time_origin": float(origin)}
+    info, blocks = photon_hdf5_stream(tmp_path / "t3.h5", block=333)
+    assert info.mode == "T3" and info.micro_unit == rec.system.tdc.bin_width
+    events_to_recording(blocks, info, map_from_dict(mp), rec.system, tmp_path / "o.h5")
+    r2 = read_recording(tmp_path / "o.h5")
+    np.testing.assert_array_equal(r2.bins, rec.bins)
+    np.testing.assert_allclose(r2.shot_time, rec.shot_time, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(r2.rising, rec.rising)
