@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.stats import poisson
@@ -64,6 +64,7 @@ class Settings2D:
     false_alarm : per-pixel false-alarm probability of a peak.
     min_counts : fewest signal detections in a peak.
     window_sigma : half width of a peak window, in timing σ.
+    pileup_correction : correct each peak for the first-photon bias (:func:`pileup_correction`).
     """
 
     r_min: float | None = None
@@ -74,6 +75,7 @@ class Settings2D:
     false_alarm: float = 1e-3
     min_counts: int = 3
     window_sigma: float = 3.0
+    pileup_correction: bool = True
 
 
 @dataclass
@@ -292,7 +294,91 @@ def find_pixel_peaks(system: System, hist_signal: np.ndarray, exposure: np.ndarr
     return PixelPeaks(pix, mean_code, counts, bg[keep], L)
 
 
-def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D) -> PointCloud:
+def pileup_correction(system: System, peaks: PixelPeaks, gate: Gate, d_scan: np.ndarray,
+                      settings: Settings2D, spot=None):
+    """Correct each peak's path length for the first-photon (pile-up) bias.
+
+    A pixel that receives m return photons in a shot records the *first* one,
+    earlier than the pulse centre on average by D(m) =
+    :func:`~mems_stereo.physics.first_photon.first_photon_mean_delay` (m) − D(0).
+    For each peak, every read shot k gives the pixel the share f_k of the spot
+    whose centre is the image of the beam point at the peak's path length
+    (Gaussian spot of :class:`~mems_stereo.physics.spot.SpotModel`, σ at that
+    range); the spot's mean photon number μ solves
+    ``Σ_k (1 − exp(−μ f_k)) = counts − background`` (bisection), and the
+    peak's bias is the detection-weighted mean of D(μ f_k).
+
+    Returns ``(L_corrected (P,) m, sigma_bias (P,) m, mu (P,))``; the σ is 30 %
+    of the correction (μ varies over the pixel's footprint).
+    """
+    from scipy.special import ndtr
+
+    from mems_stereo.geometry.triangulation import scanner_ray_point
+    from mems_stereo.physics.first_photon import first_photon_mean_delay
+    from mems_stereo.physics.link_budget import LinkBudget
+    from mems_stereo.physics.pulse import PulseShape
+    from mems_stereo.physics.spot import SpotModel
+
+    rc = system.receiver
+    w = rc.image_size[0]
+    P = peaks.pixel.size
+    idx = np.full(gate.n_pixels, -1, np.int64)
+    idx[peaks.pixel] = np.arange(P)
+    shot = np.repeat(np.arange(gate.n_shots, dtype=np.int64), gate.counts())
+    j = idx[gate.pixels]
+    sel = (j >= 0) & np.all(np.isfinite(d_scan[shot]), axis=1)
+    shot, j = shot[sel], j[sel]
+    # spot centre of each (shot, peak pixel) at the peak's path length
+    x = scanner_ray_point(system.scanner.position, d_scan[shot], peaks.L[j])[0]
+    K = rc.camera_matrix
+    if np.any(rc.dist_coeffs):
+        from mems_stereo.model.camera import project_points
+
+        uvc = project_points(x, K, rc.dist_coeffs)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            uvc = np.stack([K[0, 0] * x[:, 0] / x[:, 2] + K[0, 2],
+                            K[1, 1] * x[:, 1] / x[:, 2] + K[1, 2]], axis=1)
+    spot = SpotModel() if spot is None else spot
+    pitch = np.asarray(rc.pixel_pitch, float)
+    link = LinkBudget(focal_length=float(K[0, 0] * pitch[0]))
+    rng_tx = np.linalg.norm(x - system.scanner.position, axis=1)
+    sig = spot.sigma(np.nan_to_num(rng_tx, nan=1.0), np.nan_to_num(x[:, 2], nan=1.0), link)
+    pix = peaks.pixel[j]
+    du = (pix % w) - uvc[:, 0]
+    dv = (pix // w) - uvc[:, 1]
+    su, sv = sig / pitch[0], sig / pitch[1]
+    f = ((ndtr((du + 0.5) / su) - ndtr((du - 0.5) / su))
+         * (ndtr((dv + 0.5) / sv) - ndtr((dv - 0.5) / sv)))
+    f = np.nan_to_num(f, nan=0.0)
+    keep = f > 1e-4
+    f, j = f[keep], j[keep]
+    target = np.maximum(peaks.counts - peaks.background, 0.5)
+    lo = np.zeros(P)
+    hi = np.full(P, 50.0)
+    for _ in range(40):  # Σ_k (1 − exp(−μ f_k)) is increasing in μ
+        mid = 0.5 * (lo + hi)
+        expect = np.bincount(j, -np.expm1(-mid[j] * f), minlength=P)
+        over = expect > target
+        hi = np.where(over, mid, hi)
+        lo = np.where(over, lo, mid)
+    mu = 0.5 * (lo + hi)
+    pulse = PulseShape.gaussian(system.laser.pulse_fwhm, settings.timing_jitter)
+    grid = np.concatenate([[0.0], np.geomspace(1e-3, 50.0, 120)])
+    table = first_photon_mean_delay(np.maximum(grid, 1e-12), pulse)
+    table = table - table[0]
+    m = mu[j] * f
+    pdet = -np.expm1(-m)
+    num = np.bincount(j, pdet * np.interp(m, grid, table), minlength=P)
+    den = np.bincount(j, pdet, minlength=P)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        bias_t = np.where(den > 0, num / den, 0.0)  # s, <= 0
+    corr = system.speed_of_light * bias_t
+    return peaks.L - corr, 0.3 * np.abs(corr), mu
+
+
+def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
+                     sigma_extra=None) -> PointCloud:
     """Points of the pixel peaks with their 3 × 3 covariances → PointCloud.
 
     Attributes: counts, pixel (column), row, range, sigma_r, sigma_phi (FORMAT v1),
@@ -309,8 +395,11 @@ def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D) ->
         # inputs (u, v, L, θ1, θ2): pixel extent 1/√12 px, σ_L of the mean of n
         # detections; the angles do not enter the pixel-ray point
         pts, J = jacobian_2d(pixel_point_2d, system, u, v, peaks.L, 0.0, 0.0)
+        var_L = (sl / np.sqrt(n)) ** 2
+        if sigma_extra is not None:
+            var_L = var_L + np.asarray(sigma_extra, float) ** 2
         var = np.stack([np.full(u.size, 1.0 / 12.0), np.full(u.size, 1.0 / 12.0),
-                        (sl / np.sqrt(n)) ** 2, np.zeros(u.size), np.zeros(u.size)], axis=1)
+                        var_L, np.zeros(u.size), np.zeros(u.size)], axis=1)
         cov = np.einsum("nik,nk,njk->nij", J, var, J)
     good = np.all(np.isfinite(pts), axis=1)
     pts, cov = pts[good], cov[good]
@@ -384,7 +473,11 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     slots = max(1, int(gate.pixels.size))
     noise_rate = n_noise / slots / nb  # per read slot and bin
     peaks = find_pixel_peaks(system, hist, exposure, noise_rate, settings)
-    cloud = cloud_from_peaks(system, peaks, settings)
+    sigma_extra = None
+    if settings.pileup_correction and peaks.pixel.size:
+        L_corr, sigma_extra, _ = pileup_correction(system, peaks, gate, d, settings)
+        peaks = replace(peaks, L=L_corr)
+    cloud = cloud_from_peaks(system, peaks, settings, sigma_extra)
     timings["peaks+cloud"] = time.perf_counter() - t0
 
     counts = {"shots": rec.n_shots, "shots_unknown_angle": int(np.count_nonzero(~valid)),
