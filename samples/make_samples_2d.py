@@ -39,7 +39,7 @@ class Sample2D:
 
 
 SAMPLES_2D = [
-    Sample2D("lissajous64", 21, 40000),
+    Sample2D("lissajous64", 21, 60000),
     Sample2D("raster128x96", 22, 100000),
 ]
 

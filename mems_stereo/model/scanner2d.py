@@ -333,9 +333,10 @@ def lissajous64() -> System:
 
 def raster128x96() -> System:
     """128 × 96 SPAD array (40 µm pixels, f = 6 mm: 46° × 35°) with a raster mirror:
-    resonant fast axis 1570 Hz ± 12°, quasi-static slow axis 20 Hz triangle ± 12.5°."""
+    resonant fast axis 1570 Hz ± 12°, quasi-static slow axis 8 Hz triangle ± 12.5°
+    (196 lines a sweep), 400 kHz shots."""
     return _two_axis_system(128, 96, 40e-6, 6e-3, "quasistatic", 1570.0, math.radians(12.0),
-                            20.0, math.radians(12.5), 400e3)
+                            8.0, math.radians(12.5), 400e3)
 
 
 TWO_AXIS_PRESETS = {"lissajous64": lissajous64, "raster128x96": raster128x96}

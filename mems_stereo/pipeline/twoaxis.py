@@ -41,7 +41,7 @@ import numpy as np
 from scipy.stats import poisson
 
 from mems_stereo.errors import FormatError
-from mems_stereo.geometry.gating import Gate, GateSpec, full_gate, gate_pixels
+from mems_stereo.geometry.gating import Gate, GateSpec, gate_half_width, gate_pixels
 from mems_stereo.geometry.twoaxis import jacobian_2d, pixel_point_2d, timing_sigma
 from mems_stereo.geometry.uncertainty import polar_from_cartesian
 from mems_stereo.io.recording2d import Recording2D, read_recording_2d
@@ -261,37 +261,41 @@ def find_pixel_peaks(system: System, hist_signal: np.ndarray, exposure: np.ndarr
     st = timing_sigma(system, settings.timing_jitter)
     half = max(1, int(math.ceil(settings.window_sigma * st / tdc.bin_width)))
     width = 2 * half + 1
-    csum = np.concatenate([np.zeros((hist_signal.shape[0], 1), np.int64),
-                           np.cumsum(hist_signal, axis=1, dtype=np.int64)], axis=1)
     nb = hist_signal.shape[1]
+    cand = np.flatnonzero(hist_signal.sum(axis=1) >= settings.min_counts)
+    hs = hist_signal[cand]
+    csum = np.concatenate([np.zeros((cand.size, 1), np.int64),
+                           np.cumsum(hs, axis=1, dtype=np.int64)], axis=1)
     lo = np.clip(np.arange(nb) - half, 0, nb)
     hi = np.clip(np.arange(nb) + half + 1, 0, nb)
     win = csum[:, hi] - csum[:, lo]
-    best = np.argmax(win, axis=1)
-    n = win[np.arange(win.shape[0]), best]
-    bg = np.asarray(exposure, float) * noise_rate * width
+    best = np.argmax(win, axis=1) if cand.size else np.zeros(0, np.int64)
+    n = win[np.arange(cand.size), best]
+    bg_all = np.asarray(exposure, float) * noise_rate * width
+    bg = bg_all[cand]
     thr = np.maximum(settings.min_counts, poisson.isf(settings.false_alarm, bg) + 1)
     keep = n >= thr
-    pix = np.flatnonzero(keep)
+    pix = cand[keep]
     codes = np.arange(1, nb + 1, dtype=np.float64)
     mean_code = np.empty(pix.size)
     counts = np.empty(pix.size, np.int64)
-    for j, (pi, b) in enumerate(zip(pix, best[keep])):
+    for j, (row, b) in enumerate(zip(hs[keep], best[keep])):
         # re-centre the window on the mean twice (truncated mean)
         c = float(b + 1)
         for _ in range(2):
             a0 = max(0, int(round(c)) - 1 - half)
             a1 = min(nb, int(round(c)) + half)
-            h = hist_signal[pi, a0:a1]
+            h = row[a0:a1]
             tot = h.sum()
             if tot == 0:
                 break
             c = float(h @ codes[a0:a1]) / tot
         mean_code[j] = c
-        counts[j] = int(hist_signal[pi, max(0, int(round(c)) - 1 - half):
-                                    min(nb, int(round(c)) + half)].sum())
+        counts[j] = int(row[max(0, int(round(c)) - 1 - half):min(nb, int(round(c)) + half)].sum())
+    ok = counts >= thr[keep]  # still significant after re-centring
+    pix, mean_code, counts, bgk = pix[ok], mean_code[ok], counts[ok], bg[keep][ok]
     L = event_path_lengths(system, mean_code)
-    return PixelPeaks(pix, mean_code, counts, bg[keep], L)
+    return PixelPeaks(pix, mean_code, counts, bgk, L)
 
 
 def pileup_correction(system: System, peaks: PixelPeaks, gate: Gate, d_scan: np.ndarray,
@@ -421,10 +425,10 @@ def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
 
 
 def recompute_gate(rec: Recording2D, system: System, d_scan: np.ndarray) -> Gate:
-    """The gate the recording was read with, from its /readout parameters."""
-    w, h = system.receiver.image_size
-    if rec.readout["mode"] == "full":
-        return full_gate(rec.n_shots, w * h)
+    """The gate a gated recording was read with, from its /readout parameters."""
+    if rec.readout["mode"] != "gated":
+        raise FormatError(f"expected a gated readout, found {rec.readout['mode']!r}",
+                          rec.source, "/readout attrs/mode")
     spec = GateSpec(rec.readout["r_min"], rec.readout["r_max"], rec.readout["half_width"])
     return gate_pixels(system, d_scan, spec)
 
@@ -452,39 +456,46 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     th1, th2, d, valid = shot_directions(rec, system)
     timings["angles"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    nominal_d = d if system is rec.system else shot_directions(rec, rec.system)[2]
-    gate = recompute_gate(rec, rec.system, nominal_d)
-    exposure = gate.exposure()
-    timings["gate"] = time.perf_counter() - t0
-
     r_min = settings.r_min or rec.readout.get("r_min", 0.3)
     r_max = settings.r_max or rec.readout.get("r_max", 30.0)
+    w, h = system.receiver.image_size
+    t0 = time.perf_counter()
+    if rec.readout["mode"] == "gated":
+        nominal_d = d if system is rec.system else shot_directions(rec, rec.system)[2]
+        gate = recompute_gate(rec, rec.system, nominal_d)
+        exposure = gate.exposure()
+        slots = int(gate.pixels.size)
+        model_gate = gate
+    else:  # every pixel read: the band is needed only for the pile-up model
+        gate = None
+        exposure = np.full(w * h, rec.n_shots, np.int64)
+        slots = rec.n_shots * w * h
+        model_gate = gate_pixels(system, d, GateSpec(r_min, r_max, gate_half_width(system)))
+    timings["gate"] = time.perf_counter() - t0
+
     t0 = time.perf_counter()
     labels = classify_events(system, d, rec.event_shot, rec.event_pixel, rec.event_code,
                              r_min, r_max, settings)
     timings["classify"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    w, h = system.receiver.image_size
     nb = system.tdc.n_bins
     hist = pixel_histograms(w * h, nb, rec.event_pixel, rec.event_code, labels == 1)
     n_noise = int(np.count_nonzero(labels == 2))
-    slots = max(1, int(gate.pixels.size))
-    noise_rate = n_noise / slots / nb  # per read slot and bin
+    noise_rate = n_noise / max(1, slots) / nb  # per read slot and bin
     peaks = find_pixel_peaks(system, hist, exposure, noise_rate, settings)
     sigma_extra = None
     if settings.pileup_correction and peaks.pixel.size:
-        L_corr, sigma_extra, _ = pileup_correction(system, peaks, gate, d, settings)
+        L_corr, sigma_extra, _ = pileup_correction(system, peaks, model_gate, d, settings)
         peaks = replace(peaks, L=L_corr)
     cloud = cloud_from_peaks(system, peaks, settings, sigma_extra)
     timings["peaks+cloud"] = time.perf_counter() - t0
 
     counts = {"shots": rec.n_shots, "shots_unknown_angle": int(np.count_nonzero(~valid)),
-              "slots_read": int(gate.pixels.size), "read_fraction": gate.read_fraction(),
+              "slots_read": slots, "read_fraction": slots / max(1, rec.n_shots * w * h),
               "events": rec.n_events, "signal": int(np.count_nonzero(labels == 1)),
               "noise": n_noise, "peaks": int(peaks.pixel.size), "points": len(cloud)}
-    if int(gate.counts().sum()) != int(rec.read_count.sum()):
+    if gate is not None and int(gate.counts().sum()) != int(rec.read_count.sum()):
         counts["gate_mismatch"] = int(gate.counts().sum()) - int(rec.read_count.sum())
     truth = None
     if "label" in rec.truth:
