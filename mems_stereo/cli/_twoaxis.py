@@ -87,3 +87,32 @@ def _write_labels(path, res) -> Path:
         f.create_dataset("theta1", data=res.theta1)
         f.create_dataset("theta2", data=res.theta2)
     return Path(path)
+
+
+def calibrate(args, rep) -> int:
+    """``mems-stereo calibrate`` for two-axis wall recordings (calib/twoaxis.py).
+
+    The receiver's intrinsics come from ``--system`` (e.g. a ChArUco result
+    written into it); ``--free fx fy cx cy`` refines them in the joint fit;
+    ``--fix`` holds parameters.  Target distances are not used (the walls'
+    poses are estimated).
+    """
+    from mems_stereo.calib.twoaxis import TWO_AXIS_PARAMS, calibrate_two_axis
+    from mems_stereo.model.scanner2d import require_two_axis, resolve_any_system
+    from mems_stereo.model.system import save_system
+
+    if args.target_distance is not None or args.target_distances_file is not None:
+        raise FormatError("two-axis calibration estimates the walls' poses: target distances "
+                          "are not used", field="--target-distance(s-file)")
+    system = resolve_any_system(args.system) if args.system else None
+    if system is not None:
+        require_two_axis(system, "--system")
+    free = [n for n in TWO_AXIS_PARAMS if n not in args.fix]
+    if system is not None and system.scanner.axis2.mode != "resonant":
+        free = [n for n in free if n not in ("theta_mech_max_2", "phase_offset_2")]
+    free += [n for n in args.free if n in ("fx", "fy", "cx", "cy") and n not in free]
+    res = calibrate_two_axis(args.recordings, system, free=tuple(free))
+    out = save_system(res.system, args.output)
+    rep.info(res.report())
+    rep.info(f"wrote {out}")
+    return 0
