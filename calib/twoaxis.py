@@ -346,10 +346,12 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
     prior = {}
     if intrinsics is not None and refine_intrinsics:
         std_i = np.asarray(intrinsics.std, float).ravel()
+        std4 = np.zeros(4)
+        std4[:min(4, std_i.size)] = std_i[:4]
+        if std4[0] <= 0 < std4[1] or std4[1] <= 0 < std4[0]:
+            std4[:2] = max(std4[0], std4[1])  # fixed aspect ratio: fx and fy move together
         for j, n in enumerate(("fx", "fy", "cx", "cy")):
-            sd = float(std_i[j]) if std_i.size > j and std_i[j] > 0 else None
-            if sd is None and n == "fy" and std_i.size and std_i[0] > 0:
-                sd = float(std_i[0])  # fixed aspect ratio: fy moves with fx
+            sd = float(std4[j]) if std4[j] > 0 else None
             if sd is not None:
                 prior[n] = (get_param_2d(sys0, n), sd)
         free = free + tuple(n for n in prior if n not in free)

@@ -113,3 +113,51 @@ def test_cli_calibrates_the_sample_walls(tmp_path):
         assert abs(get_param_2d(est, n) - get_param_2d(true, n)) < 3e-4
     for n in ("baseline_x", "baseline_y", "baseline_z"):
         assert abs(get_param_2d(est, n) - get_param_2d(true, n)) < 2e-3
+
+
+def test_charuco_intrinsics_feed_the_raster_calibration():
+    """Rendered ChArUco views of the 128 x 96 array → calibrate_charuco → the joint fit."""
+    import cv2
+    from mems_stereo.calib.intrinsics import calibrate_charuco, make_board, synthetic_charuco_views
+
+    from mems_stereo.model.scanner2d import raster128x96
+
+    nom = raster128x96()
+    offs = {"theta0": 2e-3, "theta0_2": -1.5e-3, "baseline_x": 0.003, "baseline_y": -0.002,
+            "baseline_z": 0.002, "tdc_offset": 5e-10}
+    true = with_params_2d(nom, **{k: get_param_2d(nom, k) + v for k, v in offs.items()})
+    board = make_board((5, 4), 0.04, 0.03)
+    rng = np.random.default_rng(0)
+    poses = []
+    for _ in range(40):
+        r = rng.uniform(-0.5, 0.5, 3)
+        r[2] *= 0.5
+        poses.append((r, np.array([-0.1 + rng.uniform(-0.03, 0.03),
+                                   -0.08 + rng.uniform(-0.03, 0.03), 0.3 * rng.uniform(0.9, 1.2)])))
+    views = synthetic_charuco_views(board, true.receiver.camera_matrix, (128, 96), poses,
+                                    px_per_m=4000)
+    flags = (cv2.CALIB_FIX_K1 | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_ZERO_TANGENT_DIST
+             | cv2.CALIB_FIX_ASPECT_RATIO)
+    intr = calibrate_charuco(views, board, flags=flags, min_corners=4)
+    fx_true = true.receiver.camera_matrix[0, 0]
+    assert abs(intr.camera_matrix[0, 0] - fx_true) > 1.0  # a 128 x 96 board fit is coarse
+    a2 = nom.scanner.axis2
+    obs = []
+    for wall in WALLS:
+        m = 800
+        o = WallObservations(rng.uniform(0, 2 * np.pi, m), np.full(m, np.nan),
+                             rng.uniform(-a2.theta_mech_max, a2.theta_mech_max, m),
+                             np.zeros((m, 2)), np.ones(m, np.int64), np.zeros(m), 0.0, "syn")
+        uv, L = predict_wall(true, o, np.array(wall))
+        ok = np.all((uv > 0) & (uv < [127, 95]), axis=1)
+        obs.append(WallObservations(o.phase1[ok], o.phase2[ok], o.theta2_mech[ok],
+                                    uv[ok] + rng.normal(0, 0.3, (ok.sum(), 2)), o.n[ok],
+                                    L[ok] + rng.normal(0, 0.04, ok.sum()), 0.0, "syn"))
+    res = calibrate_two_axis(None, nom, observations=obs, intrinsics=intr, timing_jitter=0.0,
+                             spot_sigma_px=np.sqrt(0.09 - 1 / 12))
+    v = dict(zip(res.names, res.values))
+    s = dict(zip(res.names, res.std))
+    assert "theta_mech_max_2" not in v  # raster: the position channel gives θ2_mech
+    assert abs(v["fx"] - fx_true) < max(1.0, 4 * s["fx"])
+    for n in ("baseline_x", "baseline_y", "baseline_z", "theta0", "theta0_2"):
+        assert abs(v[n] - get_param_2d(true, n)) < 4 * s[n]
