@@ -50,6 +50,12 @@ def run(args) -> int:
     from mems_stereo.errors import FormatError
 
     rep = Reporter(args)
+    from mems_stereo.io.recording2d import is_two_axis_recording
+
+    if any(is_two_axis_recording(r) for r in args.recordings):  # two-axis: cli/_twoaxis.py
+        from mems_stereo.cli import _twoaxis
+
+        return _twoaxis.calibrate(args, rep)
     dists, stds, kind = None, 1e-3, "axis"
     if args.distance_std is not None and not args.distance_std > 0:
         raise FormatError(f"expected a positive σ in m, found {args.distance_std}",

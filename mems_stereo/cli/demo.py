@@ -146,6 +146,21 @@ def run(args) -> int:
                    "--color-by", "range"], rep)
             written.append(png)
 
+    _step(rep, "5. two-axis scanners with 2-D SPAD arrays (docs/two_axis.md)")
+    for name in ("lissajous64", "raster128x96"):
+        rec = smp / f"{name}.h5"
+        if not rec.exists():
+            continue
+        ply = out / f"{name}.ply"
+        _call(["process", str(rec), "-o", str(ply)], rep)
+        written.append(ply)
+        if not args.no_render:
+            for view in ("camera", "oblique"):
+                png = out / f"{name}_{view}_render.png"
+                _call(["render", str(ply), "-o", str(png), "--view", view, "--point-size", "4",
+                       "--color-by", "range"], rep)
+                written.append(png)
+
     _step(rep, "outputs")
     missing = [p for p in written if not Path(p).exists()]
     for p in written:

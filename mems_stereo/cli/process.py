@@ -78,6 +78,16 @@ def run(args) -> int:
     for r in recs:
         if not r.exists():
             raise FileNotFoundError(2, "file not found", str(r))
+    from mems_stereo.io.recording2d import is_two_axis_recording
+
+    two = [is_two_axis_recording(r) for r in recs]
+    if any(two):  # two-axis recordings: cli/_twoaxis.py
+        if not all(two):
+            raise FormatError("expected all one-axis or all two-axis recordings, found both",
+                              field="REC.h5")
+        from mems_stereo.cli import _twoaxis
+
+        return _twoaxis.process(args, rep, recs, system)
     many = len(recs) > 1
     if many and (args.labels or args.histograms):
         raise FormatError("--labels and --histograms take one recording at a time",

@@ -7,7 +7,7 @@ import sys
 import numpy as np
 
 from mems_stereo.cli._common import Reporter
-from mems_stereo.model.system import resolve_system
+from mems_stereo.model.scanner2d import is_two_axis, resolve_any_system
 from mems_stereo.sim import load_scene, simulate, write_simulation
 
 NAME = "simulate"
@@ -27,7 +27,8 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--system", default="burkard2022",
                    help="nominal system written into the recording: JSON file or preset "
-                        "(default burkard2022)")
+                        "(burkard2022; two-axis: lissajous64, raster128x96; default "
+                        "burkard2022)")
     p.add_argument("--true-system", default=None,
                    help="system that generates the photons (default: --system)")
     p.add_argument("--drift", type=float, default=0.0,
@@ -42,10 +43,14 @@ def run(args) -> int:
         print(f"mems-stereo simulate: error: --shots: expected a positive integer, found "
               f"{args.shots}", file=sys.stderr)
         return 2
-    system = resolve_system(args.system)
-    true_system = resolve_system(args.true_system) if args.true_system else None
+    system = resolve_any_system(args.system)
+    true_system = resolve_any_system(args.true_system) if args.true_system else None
     scene = load_scene(args.scene)
     rep.detail(f"{scene!r}")
+    if is_two_axis(system):  # two-axis scanner, 2-D array: cli/_twoaxis.py
+        from mems_stereo.cli import _twoaxis
+
+        return _twoaxis.simulate(args, rep, system, true_system, scene)
     with rep.progress(args.shots, "simulating") as bar:
         rec = simulate(system, scene, args.shots, rng=np.random.default_rng(args.seed),
                        background_hz=args.background, dark_count_hz=args.dark,

@@ -89,6 +89,9 @@ def validate_header(f: h5py.File, source: str) -> System:
     if ver is None or int(np.asarray(ver)) != FORMAT_VERSION:
         raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found {ver!r}",
                           source, "attrs/version")
+    if int(np.asarray(f.attrs.get("scan_axes", 1))) != 1:  # two-axis extension
+        raise FormatError("a two-axis recording (scan_axes = 2): read it with "
+                          "mems_stereo.io.recording2d.read_recording_2d", source, "attrs/scan_axes")
     ds = _need(f, "/system", source)
     raw = ds[()]
     if isinstance(raw, bytes):

@@ -72,6 +72,8 @@ class Scanner:
     theta_mech_max : float, rad, mechanical amplitude
     phase_offset : float, rad, delay of the true phase behind the phase of the
         zero-crossing monitor (added field, default 0; estimated by calibration)
+    axis2 : optional second mirror axis (:class:`mems_stereo.model.scanner2d.Axis2`,
+        JSON ``scanner.axis2``); None for the one-axis scanner of version 1
     """
 
     position: np.ndarray
@@ -81,6 +83,7 @@ class Scanner:
     f_mech: float
     theta_mech_max: float
     phase_offset: float = 0.0
+    axis2: Any = None
 
 
 @dataclass(frozen=True)
@@ -249,6 +252,10 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
                                   "scanner.theta_mech_max", positive=True),
         phase_offset=ctx.number(s.get("phase_offset", 0.0), "scanner.phase_offset"),
     )
+    if s.get("axis2") is not None:  # two-axis extension (docs/two_axis.md)
+        from mems_stereo.model.scanner2d import axis2_from_dict
+
+        scanner = replace(scanner, axis2=axis2_from_dict(s["axis2"], scanner, source))
 
     la = ctx.req(d, "laser", "")
     laser = Laser(
@@ -304,6 +311,10 @@ def system_to_dict(system: System) -> dict:
     }
     if s.phase_offset != 0.0:
         d["scanner"]["phase_offset"] = float(s.phase_offset)
+    if s.axis2 is not None:  # two-axis extension (docs/two_axis.md)
+        from mems_stereo.model.scanner2d import axis2_to_dict
+
+        d["scanner"]["axis2"] = axis2_to_dict(s.axis2)
     if system.calibration is not None:
         d["calibration"] = copy.deepcopy(system.calibration)
     return d

@@ -1,0 +1,118 @@
+"""Two-axis dispatch of the ``simulate`` and ``process`` commands (docs/two_axis.md).
+
+The commands call these when the system has ``scanner.axis2`` (simulate) or
+the recording carries ``scan_axes = 2`` (process); everything else about the
+commands is unchanged.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mems_stereo.errors import FormatError
+
+
+def simulate(args, rep, system, true_system, scene) -> int:
+    """``mems-stereo simulate`` for a two-axis system: gated event recording."""
+    from mems_stereo.io.recording2d import write_recording_2d
+    from mems_stereo.sim.simulate2d import simulate_2d
+
+    if args.drift or args.crosstalk:
+        raise FormatError("--drift and --crosstalk are not modelled for two-axis systems",
+                          field="--drift/--crosstalk")
+    with rep.progress(args.shots, "simulating") as bar:
+        rec = simulate_2d(system, scene, args.shots, rng=np.random.default_rng(args.seed),
+                          background_hz=args.background, dark_count_hz=args.dark,
+                          true_system=true_system, progress=bar.update)
+    out = write_recording_2d(args.output, rec)
+    lab = rec.truth["label"]
+    k = rec.n_shots
+    w, h = system.receiver.image_size
+    rep.info(f"wrote {out}: {k} shots (two-axis, {w} x {h} array, "
+             f"{rec.read_count.mean() / (w * h):.2%} of the pixels read per shot), "
+             f"{int((lab == 1).sum())} laser-return detections, {int((lab == 2).sum())} "
+             f"background detections; laser returns outside the gate: "
+             f"{int(rec.truth['signal_lost'])} of {int(rec.truth['signal_total'])}")
+    return 0
+
+
+def process(args, rep, recs, system) -> int:
+    """``mems-stereo process`` for two-axis recordings: per-pixel peaks → cloud."""
+    from mems_stereo.pipeline.twoaxis import Settings2D, process_recording_2d
+    from mems_stereo.viz.export import write_cloud
+
+    if args.histograms or args.scheduler:
+        raise FormatError("--histograms and --scheduler are not available for two-axis "
+                          "recordings", field="--histograms/--scheduler")
+    many = len(recs) > 1
+    if many and args.labels:
+        raise FormatError("--labels takes one recording at a time", field="--labels")
+    out = Path(args.output)
+    settings = Settings2D(false_alarm=args.false_alarm)
+    for r in recs:
+        target = out / f"{r.stem}.ply" if many else out
+        res = process_recording_2d(r, system=system, settings=settings)
+        if len(res.cloud) == 0:
+            raise FormatError("no peak passed the threshold: no point cloud written", str(r))
+        outputs = [write_cloud(target, res.cloud)]
+        if args.labels:
+            outputs.append(_write_labels(args.labels, res))
+        c = res.counts
+        rep.info(f"{res.source}: {c['shots']} shots (two-axis)"
+                 + (f" ({c['shots_unknown_angle']} of unknown scan angle, left out)"
+                    if c["shots_unknown_angle"] else ""))
+        rep.info(f"  read {c['read_fraction']:.2%} of the pixel slots; events {c['events']}, "
+                 f"classified signal {c['signal']}, noise {c['noise']}")
+        rep.info(f"  peaks {c['peaks']}, points {c['points']}")
+        if res.truth is not None:
+            t = res.truth
+            rep.info(f"  against the truth: signal recall {t['recall']:.4f}, noise rejection "
+                     f"{t['noise_rejection']:.4f} ({t['true_signal']} laser returns, "
+                     f"{t['true_background']} background detections)")
+        for o in outputs:
+            rep.info(f"  wrote {o}")
+        rep.detail("  timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items()))
+    return 0
+
+
+def _write_labels(path, res) -> Path:
+    import h5py
+
+    from mems_stereo.util.atomic import atomic_output
+
+    with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
+        f.create_dataset("event_label", data=res.labels, compression="gzip")
+        f.create_dataset("theta1", data=res.theta1)
+        f.create_dataset("theta2", data=res.theta2)
+    return Path(path)
+
+
+def calibrate(args, rep) -> int:
+    """``mems-stereo calibrate`` for two-axis wall recordings (calib/twoaxis.py).
+
+    The receiver's intrinsics come from ``--system`` (e.g. a ChArUco result
+    written into it); ``--free fx fy cx cy`` refines them in the joint fit;
+    ``--fix`` holds parameters.  Target distances are not used (the walls'
+    poses are estimated).
+    """
+    from mems_stereo.calib.twoaxis import TWO_AXIS_PARAMS, calibrate_two_axis
+    from mems_stereo.model.scanner2d import require_two_axis, resolve_any_system
+    from mems_stereo.model.system import save_system
+
+    if args.target_distance is not None or args.target_distances_file is not None:
+        raise FormatError("two-axis calibration estimates the walls' poses: target distances "
+                          "are not used", field="--target-distance(s-file)")
+    system = resolve_any_system(args.system) if args.system else None
+    if system is not None:
+        require_two_axis(system, "--system")
+    free = [n for n in TWO_AXIS_PARAMS if n not in args.fix]
+    if system is not None and system.scanner.axis2.mode != "resonant":
+        free = [n for n in free if n not in ("theta_mech_max_2", "phase_offset_2")]
+    free += [n for n in args.free if n in ("fx", "fy", "cx", "cy") and n not in free]
+    res = calibrate_two_axis(args.recordings, system, free=tuple(free))
+    out = save_system(res.system, args.output)
+    rep.info(res.report())
+    rep.info(f"wrote {out}")
+    return 0

@@ -1,0 +1,275 @@
+"""Simulate a two-axis MEMS scanner with a 2-D SPAD array, with epipolar readout gating.
+
+The same physics as the one-axis simulator (:mod:`mems_stereo.sim.simulate`):
+rays cast into the :class:`~mems_stereo.sim.scene.Scene`, the link budget
+(:mod:`mems_stereo.physics.link_budget`), the imaged spot
+(:class:`~mems_stereo.physics.spot.SpotModel`), first-photon sampling of the
+laser return and of background + dark counts (:mod:`mems_stereo.sim.photons`).
+What differs:
+
+* the beam direction comes from both mirror axes (true trajectories: the fast
+  axis as :class:`~mems_stereo.sim.trajectory.Trajectory`; axis 2 resonant
+  (Lissajous, its own zero-crossing monitor) or a quasi-static triangle
+  (raster, a sampled position channel with Gaussian noise));
+* only the pixels of each shot's gate are read (:mod:`mems_stereo.geometry.gating`),
+  computed, as hardware would, from the *nominal* system and the angles the
+  monitors give; laser returns outside the gate are lost (counted in the truth);
+  ``gate=None`` reads every pixel;
+* the output is the event list of :mod:`mems_stereo.io.recording2d`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.gating import GateSpec, full_gate, gate_pixels
+from mems_stereo.io.recording2d import Recording2D
+from mems_stereo.model.scanner2d import (
+    TWO_AXIS_LINK,
+    Axis2Monitor,
+    require_two_axis,
+    scan_angles_2d,
+    scan_direction_2d,
+    triangle_wave,
+)
+from mems_stereo.model.system import System
+from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
+from mems_stereo.physics.pulse import PulseShape
+from mems_stereo.physics.spot import SpotModel, spot_fractions
+from mems_stereo.sim.photons import background_first_arrivals, first_signal_arrival
+from mems_stereo.sim.scene import Scene
+from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
+
+CHUNK_SHOTS = 8192
+MIN_SLOT_PHOTONS = 1e-9
+
+
+def default_link() -> LinkBudget:
+    """The two-axis presets' link budget (:data:`mems_stereo.model.scanner2d.TWO_AXIS_LINK`)."""
+    return LinkBudget(**TWO_AXIS_LINK)
+
+
+def default_gate_spec(system: System, r_min: float = 0.5, r_max: float = 8.0,
+                      spot: SpotModel | None = None, link: LinkBudget | None = None) -> GateSpec:
+    """Gate for the working range: half width from the largest imaged spot σ over
+    [r_min, r_max] (:class:`SpotModel`) and :func:`~mems_stereo.geometry.gating.gate_half_width`."""
+    from mems_stereo.geometry.gating import gate_half_width
+
+    spot = SpotModel() if spot is None else spot
+    link = default_link() if link is None else link
+    r = np.geomspace(r_min, r_max, 64)
+    sig = float(np.max(spot.sigma(r, r, link)))
+    return GateSpec(r_min, r_max, gate_half_width(system, sig))
+
+
+def _returns(true_system: System, scene: Scene, dirs: np.ndarray, link: LinkBudget,
+             spot: SpotModel, n_emitted: float) -> dict:
+    """Per shot: hit point, visibility, mean signal, spot centre and σ (px) —
+    the one-axis simulator's ``shot_returns`` for given beam directions."""
+    rc = true_system.receiver
+    origin = np.asarray(true_system.scanner.position, dtype=np.float64)
+    hits = scene.cast(origin, dirs)
+    x, hit = hits.point, hits.hit
+    r_rx = np.linalg.norm(x, axis=1)
+    visible = np.zeros(hit.shape, dtype=bool)
+    if np.any(hit):
+        back = scene.cast(np.zeros(3), x[hit] / r_rx[hit, None])
+        visible[hit] = back.t >= r_rx[hit] - (1e-4 + 1e-5 * r_rx[hit])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cos_emit = -np.sum(hits.normal * x, axis=1) / r_rx
+        cos_view = x[:, 2] / r_rx
+    refl = np.zeros(hit.shape)
+    refl[hit] = scene.reflectivity[hits.object_index[hit]]
+    mu = expected_signal_photons(n_emitted, refl, np.where(visible, cos_emit, 0.0),
+                                 np.where(visible, cos_view, 0.0), np.where(hit, r_rx, 1.0),
+                                 link, rc)
+    mu = np.where(visible, mu, 0.0)
+    center = np.full((x.shape[0], 2), np.nan)
+    if np.any(visible):
+        K = rc.camera_matrix
+        xv = x[visible]
+        if np.any(rc.dist_coeffs):
+            from mems_stereo.model.camera import project_points
+
+            center[visible] = project_points(xv, K, rc.dist_coeffs)
+        else:
+            center[visible] = np.stack([K[0, 0] * xv[:, 0] / xv[:, 2] + K[0, 2],
+                                        K[1, 1] * xv[:, 1] / xv[:, 2] + K[1, 2]], axis=1)
+    sig_m = spot.sigma(np.where(hit, hits.t, 1.0), np.where(hit, x[:, 2], 1.0), link)
+    sigma_px = sig_m[:, None] / np.asarray(rc.pixel_pitch, dtype=np.float64)[None, :]
+    path = np.where(hit, hits.t + r_rx, np.nan)
+    return {"point": x, "path_length": path, "mu": mu, "center": center,
+            "sigma_px": sigma_px, "visible": visible}
+
+
+def _axis2_truth(system: System, n_shots: int, shot_time: np.ndarray, rng, phase2,
+                 zc_jitter: float, position_rate: float, position_noise: float):
+    """True θ2 per shot and the axis-2 monitor record."""
+    a2 = require_two_axis(system)
+    if a2.mode == "resonant":
+        traj = Trajectory(a2.f_mech, float(phase2), 0.0, float(shot_time[0]), a2.theta0,
+                          a2.theta_mech_max, a2.phase_offset)
+        z2, r2 = monitor_zero_crossings(traj, shot_time, rng, zc_jitter)
+        return traj.theta(shot_time), Axis2Monitor(zero_crossings=z2, rising=r2)
+
+    def mech(t):
+        return a2.theta_mech_max * triangle_wave(2 * np.pi * a2.f_mech * (t - shot_time[0])
+                                                 + phase2 + a2.phase_offset)
+
+    dt = 1.0 / position_rate
+    pt = np.arange(shot_time[0] - 2 * dt, shot_time[-1] + 2 * dt, dt)
+    pp = mech(pt) + rng.normal(0.0, position_noise, size=pt.shape)
+    return a2.theta0 + mech(shot_time), Axis2Monitor(time=pt, position=pp)
+
+
+def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Generator,
+                background_hz: float = 1e5, dark_count_hz: float = 1e3,
+                true_system: System | None = None, gate: GateSpec | None | str = "auto",
+                phase: float | None = None, phase2: float | None = None,
+                zc_jitter: float = 20e-9, timing_jitter: float = 50e-12,
+                position_rate: float = 20e3, position_noise: float = 2e-5,
+                link: LinkBudget | None = None, spot: SpotModel | None = None,
+                truth_per_shot: bool = True, progress=None) -> Recording2D:
+    """Simulate ``n_shots`` shots of a two-axis scanner and a 2-D SPAD array.
+
+    Parameters
+    ----------
+    system : nominal two-axis System (written into the recording; the gate uses it).
+    scene : the scene.
+    n_shots : K >= 1; shots at 1 / f_rep from t = 0.
+    rng : numpy.random.Generator (the only randomness).
+    background_hz, dark_count_hz : per pixel, Hz (uniform over the array).
+    true_system : the System that makes the photons (default ``system``).
+    gate : a :class:`GateSpec`, "auto" (:func:`default_gate_spec`) or None (read all).
+    phase, phase2 : rad, monitor phases of the axes at t = 0 (None: uniform from rng).
+    zc_jitter : s, zero-crossing monitor jitter (both resonant axes).
+    timing_jitter : s, SPAD + TDC + trigger jitter.
+    position_rate, position_noise : Hz, rad — the quasistatic axis' position channel.
+    link, spot : :class:`LinkBudget` (default :func:`default_link`), :class:`SpotModel`.
+    truth_per_shot : store θ1, θ2 (K,) and the hit point (K, 3) in the truth.
+
+    Returns
+    -------
+    :class:`~mems_stereo.io.recording2d.Recording2D` with truth ``label`` (E,)
+    uint8 (1 laser return, 2 background/dark) and the attributes
+    ``signal_total`` (laser-return detections on the whole array, read or not)
+    and ``signal_lost`` (those outside the gate).
+    """
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError("rng: expected a numpy.random.Generator")
+    n_shots = int(n_shots)
+    if n_shots < 1:
+        raise ValueError(f"n_shots: expected a positive integer, found {n_shots}")
+    require_two_axis(system)
+    ts = system if true_system is None else true_system
+    require_two_axis(ts, "true_system")
+    if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
+        raise GeometryError("true_system: expected the nominal system's image_size")
+    if background_hz < 0 or dark_count_hz < 0:
+        raise ValueError("background_hz, dark_count_hz: expected non-negative rates")
+    link = default_link() if link is None else link
+    spot = SpotModel() if spot is None else spot
+    if isinstance(gate, str):
+        if gate != "auto":
+            raise ValueError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
+        gate = default_gate_spec(system, spot=spot, link=link)
+    w, h = system.receiver.image_size
+    npix = w * h
+    sc = ts.scanner
+
+    if phase is None:
+        phase = float(rng.uniform(0.0, 2 * math.pi))
+    if phase2 is None:
+        phase2 = float(rng.uniform(0.0, 2 * math.pi))
+    shot_time = np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
+    traj1 = Trajectory(sc.f_mech, phase, 0.0, 0.0, sc.theta0, sc.theta_mech_max,
+                       sc.phase_offset)
+    zc, rising = monitor_zero_crossings(traj1, shot_time, rng, zc_jitter)
+    theta1 = traj1.theta(shot_time)
+    theta2, mon2 = _axis2_truth(ts, n_shots, shot_time, rng, phase2, zc_jitter,
+                                position_rate, position_noise)
+
+    # what the hardware knows: the nominal system and the monitors' angles
+    th1_n, th2_n, valid_n = scan_angles_2d(shot_time, zc, rising, mon2, system.scanner)
+
+    pulse = PulseShape.gaussian(ts.laser.pulse_fwhm, timing_jitter)
+    n_emit = emitted_photons(link, pulse, ts.laser.wavelength)
+    tdc = ts.tdc
+    bw, window = tdc.bin_width, tdc.n_bins * tdc.bin_width
+    lam = float(background_hz + dark_count_hz)
+
+    ev_key, ev_code, ev_label, counts = [], [], [], []
+    point = np.full((n_shots, 3), np.nan)
+    sig_total = 0
+    sig_lost = 0
+    for s0 in range(0, n_shots, CHUNK_SHOTS):
+        s1 = min(n_shots, s0 + CHUNK_SHOTS)
+        k = s1 - s0
+        dirs = scan_direction_2d(theta1[s0:s1], theta2[s0:s1], sc)
+        ret = _returns(ts, scene, dirs, link, spot, n_emit)
+        point[s0:s1] = np.where(ret["visible"][:, None], ret["point"], np.nan)
+        # readout gate from the nominal angles (unknown angle: nothing read)
+        if gate is None:
+            g = full_gate(k, npix)
+        else:
+            dn = scan_direction_2d(th1_n[s0:s1], th2_n[s0:s1], system.scanner)
+            dn[~valid_n[s0:s1]] = np.nan
+            g = gate_pixels(system, dn, gate)
+        counts.append(g.counts())
+        read_keys = g.keys()  # chunk-local slot keys, increasing
+
+        # laser return on the spot's pixels
+        rows, cols, frac = spot_fractions(ret["center"], ret["sigma_px"], (w, h), spot.radius)
+        mu_slot = ret["mu"][:, None, None] * frac
+        sel = mu_slot > MIN_SLOT_PHOTONS
+        ks, ri, ci = np.nonzero(sel)
+        slot_sig = ks * npix + rows[ks, ri] * w + cols[ks, ci]
+        delay = ret["path_length"][ks] / ts.speed_of_light + tdc.offset
+        tau_sig, _ = first_signal_arrival(mu_slot[sel], delay, pulse, window, rng)
+        has = np.isfinite(tau_sig)
+        slot_sig, tau_sig = slot_sig[has], tau_sig[has]
+        sig_total += int(slot_sig.size)
+
+        # background + dark counts on the read slots only
+        bidx, btau = background_first_arrivals(lam, read_keys.size, window, rng)
+        b_key = read_keys[bidx]
+        if gate is None:
+            in_gate = np.ones(slot_sig.shape, bool)
+        else:
+            pos = np.minimum(np.searchsorted(read_keys, slot_sig), max(0, read_keys.size - 1))
+            in_gate = ((read_keys[pos] == slot_sig) if read_keys.size
+                       else np.zeros(slot_sig.shape, bool))
+        sig_lost += int(np.count_nonzero(~in_gate))
+        slot_sig, tau_sig = slot_sig[in_gate], tau_sig[in_gate]
+
+        # the earlier of signal and background wins
+        keys = np.concatenate([b_key, slot_sig])
+        taus = np.concatenate([btau.astype(np.float64), tau_sig])
+        labs = np.concatenate([np.full(b_key.size, 2, np.uint8), np.ones(slot_sig.size, np.uint8)])
+        order = np.lexsort((taus, keys))
+        keys, taus, labs = keys[order], taus[order], labs[order]
+        first = np.ones(keys.size, bool)
+        first[1:] = keys[1:] != keys[:-1]
+        keys, taus, labs = keys[first], taus[first], labs[first]
+        code = np.minimum(np.floor(taus / bw) + 1, tdc.n_bins).astype(np.uint16)
+        ev_key.append(keys + s0 * npix)
+        ev_code.append(code)
+        ev_label.append(labs)
+        if progress is not None:
+            progress(k)
+
+    key = np.concatenate(ev_key) if ev_key else np.zeros(0, np.int64)
+    readout = ({"mode": "full"} if gate is None else
+               {"mode": "gated", "r_min": gate.r_min, "r_max": gate.r_max,
+                "half_width": gate.half_width})
+    truth = {"label": np.concatenate(ev_label), "signal_total": np.int64(sig_total),
+             "signal_lost": np.int64(sig_lost), "phase": np.float64(phase),
+             "phase2": np.float64(phase2)}
+    if truth_per_shot:
+        truth.update({"theta1": theta1, "theta2": theta2, "point": point})
+    return Recording2D(system, shot_time, zc, rising.astype(np.uint8), mon2, readout,
+                       np.concatenate(counts), key // npix, key % npix,
+                       np.concatenate(ev_code), truth, "<simulated>")
