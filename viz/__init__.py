@@ -24,6 +24,7 @@ _LAZY = {
     "plot_uncertainty_bounds": "plots", "plot_calibration_residuals": "plots",
     "plot_cloud_topview": "plots",
     "apply_colormap": "colormap", "cloud_colors": "colormap",
+    "cloud_to_open3d": "convert",
 }
 
 __all__ = sorted(_LAZY)
