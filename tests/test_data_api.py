@@ -144,3 +144,10 @@ def test_samples_command_copies(tmp_path, capsys):
     assert (tmp_path / "s" / "room.h5").read_bytes() == ms.data.path("room.h5").read_bytes()
     assert main(["samples", "-o", str(tmp_path / "s"), "rooom.h5"]) == 2
     assert "did you mean 'room.h5'" in capsys.readouterr().err
+
+
+def test_simulate_of_a_recording_says_it_is_not_a_scene(tmp_path, capsys):
+    assert main(["simulate", str(ms.data.path("room.h5")), "-o", str(tmp_path / "x.h5")]) == 2
+    err = capsys.readouterr().err
+    assert "expected a JSON text file, found binary data (an HDF5 file)" in err
+    assert "Traceback" not in err and not (tmp_path / "x.h5").exists()
