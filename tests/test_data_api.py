@@ -151,3 +151,12 @@ def test_simulate_of_a_recording_says_it_is_not_a_scene(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "expected a JSON text file, found binary data (an HDF5 file)" in err
     assert "Traceback" not in err and not (tmp_path / "x.h5").exists()
+
+
+def test_not_observable_gets_advice():
+    from mems_stereo.cli._ux import format_error
+    from mems_stereo.errors import NotObservableError
+
+    lines = format_error("calibrate", NotObservableError("theta0: σ = 7e6 mrad " * 40)).splitlines()
+    assert lines[0].startswith("mems-stereo calibrate: error: theta0") and len(lines[0]) < 360
+    assert "more distances" in lines[1] and "-v" in lines[2]

@@ -9,6 +9,8 @@ A small Markdown collector finds the fenced blocks (```lang ... ```).  How each 
 * ``bash``, ``sh``, ``console`` and blocks without a language: ``bash -e`` with the
   interpreter's ``bin/`` first on PATH (so ``mems-stereo`` is the installed one).
 * ``json``: parsed (``json.loads``); nothing else.
+* Indented (4-space) blocks are read as literal text — output listings, package
+  lists — and not run; every command a reader is meant to type is in a fenced block.
 * A block right after a line ``<!-- docs-test: skip REASON -->`` does not run; the test
   prints each with its reason.  The only such blocks are the README's two set-up
   commands (they install Debian packages as root and build ``.venv`` in the repository).

@@ -62,6 +62,14 @@ class HelpfulParser(argparse.ArgumentParser):
         self.exit(2, text + "\n")
 
 
+#: advice for errors whose message carries none, by exception class name
+ADVICE = {
+    "NotObservableError": "record the target at more distances (three or more), give the "
+                          "measured distances (--target-distances-file), or --fix the parameters "
+                          "named; --allow-unobservable holds them at their nominal values",
+}
+
+
 def format_error(command: str | None, exc: BaseException, verbose: bool = False) -> str:
     """``mems-stereo CMD: error: <first line>`` plus the advice line(s), if any.
 
@@ -71,6 +79,8 @@ def format_error(command: str | None, exc: BaseException, verbose: bool = False)
     """
     text = str(exc).strip() or type(exc).__name__
     first, _, rest = text.partition("\n")
+    if not rest:
+        rest = ADVICE.get(type(exc).__name__, "")
     if not verbose and len(first) > MAX_ERROR_CHARS:
         first = first[:MAX_ERROR_CHARS - 1].rstrip() + "…"
         rest = (rest + "\n" if rest else "") + "(-v prints the whole message)"
