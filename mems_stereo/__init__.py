@@ -21,7 +21,7 @@ Frames, units and angles: ``docs/conventions.md``.  The core never imports
 Open3D or matplotlib; those load in :mod:`mems_stereo.viz` only.
 """
 
-from mems_stereo import _deprecated
+from mems_stereo import _deprecated, data
 from mems_stereo.errors import FormatError, GeometryError, MemsStereoError, NotObservableError
 from mems_stereo.geometry.epipolar import (
     epipolar_pixels,
@@ -42,6 +42,7 @@ from mems_stereo.model.scanner import (
     theta0_small_angle,
 )
 from mems_stereo.model.system import (
+    PRESETS,
     System,
     load_system,
     preset,
@@ -54,10 +55,25 @@ from mems_stereo.pipeline.histograms import accumulate_histograms, moving_averag
 
 _deprecated.install()
 
+#: loaded on first use (the pipeline loads numba): ``ms.process_recording``, ...
+_LAZY = {"process_recording": "mems_stereo.pipeline.run",
+         "classify_recording": "mems_stereo.pipeline.pass1",
+         "Settings": "mems_stereo.pipeline.settings",
+         "PointCloud": "mems_stereo.pipeline.cloud"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'mems_stereo' has no attribute {name!r}")
+
 __version__ = "0.1.0"
 
 __all__ = [
-    "accumulate_histograms", "background_rate_mle", "moving_average",
+    "accumulate_histograms", "background_rate_mle", "data", "moving_average",
+    "PRESETS", "PointCloud", "Settings", "classify_recording", "process_recording",
     "FormatError", "GeometryError", "MemsStereoError", "NotObservableError", "Recording",
     "System", "acquisition_statistics", "epipolar_pixels", "epipolar_residual",
     "epipolar_segment", "iter_shot_chunks", "load_system", "mirror_normal",

@@ -6,7 +6,9 @@
 
 Every recording is made by :func:`mems_stereo.sim.simulate` with a
 ``numpy.random.default_rng(seed)``; the seeds, shot counts and backgrounds
-are listed in ``SAMPLES`` below and in samples/README.md.
+are listed in ``SAMPLES`` below and in samples/README.md.  All of them are
+recorded by one true system (nominal + ``CALIB_OFFSETS``, written as
+calib_true_system.json) and carry the nominal system in ``/system``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from mems_stereo.sim import load_scene, simulate, write_simulation
 
 HERE = Path(__file__).resolve().parent
 
-# the calibration samples' true system: nominal + these offsets (SI units)
+# the samples' true system: nominal + these offsets (SI units)
 CALIB_OFFSETS = {
     "baseline_x": +0.004,  # m: mirror 4 mm closer to the receiver than nominal (-0.121 m)
     "baseline_z": -0.003,  # m
@@ -40,13 +42,13 @@ class Sample:
     seed: int
     n_shots: int
     background_hz: float
-    true_system: str  # "nominal" or "calib"
+    true_system: str  # "calib" (calib_true_system.json; every shipped sample) or "nominal"
     drift: float = 0.0  # 1/s
 
 
 SAMPLES = [
-    Sample("room", "room_scene.json", 1, 800, 1e5, "nominal", 1e-3),
-    Sample("floodlight", "room_scene.json", 2, 3200, 6e6, "nominal", 1e-3),
+    Sample("room", "room_scene.json", 1, 800, 1e5, "calib", 1e-3),
+    Sample("floodlight", "room_scene.json", 2, 3200, 6e6, "calib", 1e-3),
     Sample("calib_1.5m", "calib_1.5m_scene.json", 11, 4000, 1e5, "calib", 2e-3),
     Sample("calib_2.5m", "calib_2.5m_scene.json", 12, 4000, 1e5, "calib", -1e-3),
     Sample("calib_4.0m", "calib_4.0m_scene.json", 13, 4000, 1e5, "calib", 1.5e-3),

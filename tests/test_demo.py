@@ -7,9 +7,17 @@ import json
 from mems_stereo.cli import main
 
 
-def test_demo_writes_every_output(tmp_path, capsys):
-    out = tmp_path / "demo"
-    assert main(["demo", "-o", str(out)]) == 0
+def test_demo_writes_every_output(tmp_path, capsys, monkeypatch):
+    """Runs ``mems-stereo demo --help``'s example as it stands, from an empty folder."""
+    import shlex
+
+    from mems_stereo.cli import demo
+
+    monkeypatch.chdir(tmp_path)
+    argv = shlex.split(demo.EXAMPLE)
+    assert argv[:2] == ["mems-stereo", "demo"]
+    assert main(argv[1:]) == 0
+    out = tmp_path / argv[argv.index("-o") + 1]
     text = capsys.readouterr().out
     summary = json.loads((out / "demo_summary.json").read_text())
     names = {p.split("/")[-1] for p in summary["outputs"]}
@@ -19,5 +27,16 @@ def test_demo_writes_every_output(tmp_path, capsys):
         assert name in names
     for p in summary["outputs"]:
         assert (out / p.split("/")[-1]).stat().st_size > 0
-    assert "signal recall" in text and "raw counts 19476" in text
+    assert "signal recall" in text and "raw counts 19518" in text
     assert "not observable from these data: baseline_y" in text
+    # one sample story: the calibrated system beats the nominal one on both scenes
+    verdicts = summary["calibration_gain_verdicts"]
+    assert set(verdicts) == {"room", "floodlight"}
+    for scene, v in verdicts.items():
+        assert v == {"median_error": True, "coverage": True, "recall": True}, scene
+    rows = {(r["scene"], r["system"]): r for r in summary["calibration_gain"]}
+    for scene in verdicts:
+        n, c = rows[scene, "nominal"], rows[scene, "calibrated"]
+        assert c["median_error"] < n["median_error"] and c["coverage"] > n["coverage"]
+        assert c["recall"] >= n["recall"]
+    assert "median point error" in text

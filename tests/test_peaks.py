@@ -46,7 +46,10 @@ def test_strongest_window_finds_an_injected_cluster(rng):
 
 def test_angle_detector_covers_more_than_the_papers_code_detector():
     """Under the 6 MHz floodlight, peaks in scan angle find far more pixels than peaks in code."""
-    res = process_recording(SAMPLES / "floodlight.h5")
+    from mems_stereo.model.system import load_system
+
+    res = process_recording(SAMPLES / "floodlight.h5",
+                            system=load_system(SAMPLES / "calib_true_system.json"))
     sig, noise = res.histograms["signal"], res.histograms["noise"]
     code_peaks, _ = find_code_peaks(res.system, sig, noise, np.nan_to_num(res.theta), res.valid,
                                     Settings())

@@ -67,9 +67,10 @@ def test_process_command_writes_cloud_labels_histograms(tmp_path, capsys):
     lab = tmp_path / "labels.h5"
     hist = tmp_path / "hist.h5"
     assert main(["process", str(SAMPLES / "room.h5"), "-o", str(out), "--labels", str(lab),
-                 "--histograms", str(hist)]) == 0
+                 "--histograms", str(hist), "--system",
+                 str(SAMPLES / "calib_true_system.json")]) == 0
     text = capsys.readouterr().out
-    assert "raw counts 19476" in text and "signal recall" in text
+    assert "raw counts 19518" in text and "signal recall" in text
     from mems_stereo.viz.export import read_cloud
 
     cloud = read_cloud(out)

@@ -25,6 +25,7 @@ _LAZY = {
     "plot_cloud_topview": "plots",
     "apply_colormap": "colormap", "cloud_colors": "colormap",
     "write_calibration_report": "calib_report", "write_ros2_bag": "export",
+    "cloud_to_open3d": "convert",
 }
 
 __all__ = sorted(_LAZY)

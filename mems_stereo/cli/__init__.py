@@ -1,9 +1,11 @@
 """The ``mems-stereo`` command line: thin wrappers that parse, call the API, report.
 
 Each command lives in its own module exposing ``NAME``, ``HELP``,
-``EXAMPLE``, ``add_arguments(parser)`` and ``run(args) -> int``.  User
-mistakes (:class:`~mems_stereo.errors.MemsStereoError`, missing files) are
-printed on stderr as one line, with exit code 2 and no traceback.
+``EXAMPLE`` (one command line or a list of them, run in order from an empty
+folder: tests/test_docs.py executes them), ``add_arguments(parser)`` and
+``run(args) -> int``.  User mistakes (:class:`~mems_stereo.errors.MemsStereoError`,
+missing files) are printed on stderr as one line, with the advice on a
+second, exit code 2 and no traceback.
 """
 
 from __future__ import annotations
@@ -12,11 +14,13 @@ import argparse
 import importlib
 import sys
 
+from mems_stereo.cli._ux import HelpfulParser, format_error
 from mems_stereo.errors import MemsStereoError
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
     "import_",
+    "samples",
 ]
 
 
@@ -33,11 +37,26 @@ def _load_commands():
     return cmds
 
 
+def examples(mod) -> list[str]:
+    """A command module's example command lines (``EXAMPLE``: a string or a list)."""
+    ex = mod.EXAMPLE
+    return [ex] if isinstance(ex, str) else list(ex)
+
+
+def epilog(lines: list[str]) -> str:
+    """The ``--help`` epilog: one example command per line."""
+    return ("examples (run in order from any folder):\n" if len(lines) > 1 else "example:\n") \
+        + "\n".join("  " + x for x in lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = HelpfulParser(
         prog="mems-stereo",
         description="Calibrate a MEMS-scanner / SPAD-receiver pair, turn raw TDC frames "
                     "into classified detections and point clouds, and look at them.",
+        epilog="start with:\n  mems-stereo samples -o samples    # the bundled recordings\n"
+               "  mems-stereo demo -o demo-output   # the whole chain on them\n"
+               "mems-stereo COMMAND --help shows an example of each command",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version="mems-stereo 0.1.0")
@@ -47,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for mod in _load_commands():
         p = sub.add_parser(mod.NAME, help=mod.HELP, description=mod.HELP,
-                           epilog="example:\n  " + mod.EXAMPLE,
+                           epilog=epilog(examples(mod)),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                        help="print only errors")
@@ -67,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args._run(args) or 0)
     except MemsStereoError as e:
-        print(f"mems-stereo {args.command}: error: {e}", file=sys.stderr)
+        print(format_error(args.command, e, bool(getattr(args, "verbose", False))),
+              file=sys.stderr)
         return 2
     except FileNotFoundError as e:
         print(f"mems-stereo {args.command}: error: {e.filename}: file not found",

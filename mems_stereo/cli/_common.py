@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 
 class Reporter:
     """Prints according to ``--quiet`` / ``--verbose``; progress on stderr."""
@@ -22,7 +20,6 @@ class Reporter:
 
     def progress(self, total: int, desc: str, unit: str = "shot"):
         """A tqdm progress bar on stderr (disabled when quiet or not a terminal)."""
-        from tqdm.auto import tqdm
+        from mems_stereo.cli._ux import progress_bar
 
-        return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr,
-                    disable=self.quiet or not sys.stderr.isatty(), leave=False)
+        return progress_bar(total, desc, unit, quiet=self.quiet)

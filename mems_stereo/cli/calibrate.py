@@ -10,9 +10,11 @@ from mems_stereo.model.system import save_system
 NAME = "calibrate"
 HELP = ("estimate baseline, theta0, TDC offset, scan phase and amplitude (with σ) from "
         "recordings of a flat target at several distances")
-EXAMPLE = ("mems-stereo calibrate samples/calib_1.5m.h5 samples/calib_2.5m.h5 "
+EXAMPLE = ["mems-stereo samples -o samples",
+           "mems-stereo calibrate samples/calib_1.5m.h5 samples/calib_2.5m.h5 "
            "samples/calib_4.0m.h5 --target-distances-file samples/calib_distances.json "
-           "-o calibrated.json")
+           "-o calibrated.json",
+           "mems-stereo process samples/room.h5 -o room.ply --system calibrated.json"]
 
 
 def add_arguments(p):
@@ -77,13 +79,16 @@ def run(args) -> int:
         rep.info(f"measured target distances ({'optical axis' if kind == 'axis' else kind}):"
                  f" {known}")
     free = list(DEFAULT_FREE) + [n for n in args.free if n not in DEFAULT_FREE]
-    with warnings.catch_warnings(record=True) as caught:
+    from mems_stereo.cli._ux import StatusProgress
+
+    with warnings.catch_warnings(record=True) as caught, \
+            StatusProgress("calibrating", rep.quiet, rep.verbose) as status:
         warnings.simplefilter("always")
         res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
                                target_distances=dists, distance_std=stds, distance_kind=kind,
                                confidence=args.confidence,
                                on_unobservable="warn" if args.allow_unobservable else "raise",
-                               progress=rep.detail)
+                               progress=status)
     for w in caught:
         rep.info(f"warning: {w.message}")
     out = save_system(res.system, args.output)

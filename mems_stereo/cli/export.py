@@ -6,7 +6,9 @@ from mems_stereo.cli._common import Reporter
 
 NAME = "export"
 HELP = "convert a point cloud (.ply, .pcd, .las) keeping every per-point attribute"
-EXAMPLE = "mems-stereo export room.ply -o room.las"
+EXAMPLE = ["mems-stereo samples -o samples room.h5",
+           "mems-stereo process samples/room.h5 -o room.ply",
+           "mems-stereo export room.ply -o room.las"]
 
 
 def add_arguments(p):

@@ -10,7 +10,9 @@ from mems_stereo.model.system import resolve_system
 
 NAME = "info"
 HELP = "print a system description and its acquisition statistics (paper Sec. 2.1)"
-EXAMPLE = "mems-stereo info --system burkard2022 --shots 400 --distance 2.5 --plot fig2.png"
+EXAMPLE = ["mems-stereo info --system burkard2022 --shots 400 --distance 2.5 --plot fig2.png",
+           "mems-stereo samples -o samples calib_true_system.json",
+           "mems-stereo info --system samples/calib_true_system.json"]
 
 
 def add_acquisition_arguments(p):

@@ -8,27 +8,50 @@ from mems_stereo.cli._common import Reporter
 
 NAME = "plot"
 HELP = "write a figure: acquisition (Fig. 2), histograms (Figs. 8/9), cloud (top view)"
-EXAMPLE = ("mems-stereo plot histograms room_hist.h5 -o fig8.png --max-code 256  |  "
-           "mems-stereo plot acquisition --shots 400 -o fig2.png  |  "
-           "mems-stereo plot cloud room.ply -o top.png")
+EXAMPLE = ["mems-stereo samples -o samples room.h5",
+           "mems-stereo process samples/room.h5 -o room.ply --histograms room_hist.h5",
+           "mems-stereo plot histograms room_hist.h5 -o fig8.png --max-code 256",
+           "mems-stereo plot acquisition --shots 400 -o fig2.png",
+           "mems-stereo plot cloud room.ply -o top.png"]
+#: per figure: (description, example lines run after those of EXAMPLE that make their input)
+FIGURES = {
+    "acquisition": ("Fig. 2 of the paper: how many shots land on each pixel and scan angle, "
+                    "for a system, a shot count and a target distance",
+                    ["mems-stereo plot acquisition --shots 400 --ratio 0.0785 -o fig2.png"]),
+    "histograms": ("Figs. 8/9 of the paper: the raw, signal and noise histograms (pixel x TDC "
+                   "code) of a histogram file written by 'mems-stereo process --histograms'",
+                   ["mems-stereo samples -o samples room.h5",
+                    "mems-stereo process samples/room.h5 -o room.ply --histograms room_hist.h5",
+                    "mems-stereo plot histograms room_hist.h5 -o fig8.png --max-code 256"]),
+    "cloud": ("top view (x-z plane) of a point cloud, coloured by an attribute",
+              ["mems-stereo samples -o samples room.h5",
+               "mems-stereo process samples/room.h5 -o room.ply",
+               "mems-stereo plot cloud room.ply -o top.png --color-by range"]),
+}
 
 
 def add_arguments(p):
+    from mems_stereo.cli import epilog
     from mems_stereo.cli.info import add_acquisition_arguments
 
     sub = p.add_subparsers(dest="figure", metavar="FIGURE", required=True)
-    a = sub.add_parser("acquisition", help="Fig. 2: shots over scan angle and per pixel")
+
+    def fig_parser(name, help_):
+        desc, ex = FIGURES[name]
+        return sub.add_parser(name, help=help_, description=desc, epilog=epilog(ex),
+                              formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    a = fig_parser("acquisition", "Fig. 2: shots over scan angle and per pixel")
     add_acquisition_arguments(a)
     a.add_argument("-o", "--output", required=True, help="PNG to write")
-    h = sub.add_parser("histograms",
-                       help="Figs. 8/9: raw, signal, noise histograms from a histogram file")
+    h = fig_parser("histograms", "Figs. 8/9: raw, signal, noise histograms from a histogram file")
     h.add_argument("histograms", help="HDF5 histogram file (/raw /signal /noise)")
     h.add_argument("-o", "--output", required=True, help="PNG to write")
     h.add_argument("--max-code", type=int, default=None,
                    help="show TDC codes 1..N only (the paper shows 256)")
     h.add_argument("--row", type=int, default=None, help="sensor row (default: sum of rows)")
     h.add_argument("--linear", action="store_true", help="linear colour scale (default log)")
-    c = sub.add_parser("cloud", help="top view (x–z) of a point cloud")
+    c = fig_parser("cloud", "top view (x–z) of a point cloud")
     c.add_argument("cloud", help="point cloud (.ply, .pcd, .las)")
     c.add_argument("-o", "--output", required=True, help="PNG to write")
     c.add_argument("--color-by", default="range", help="attribute or x/y/z (default range)")

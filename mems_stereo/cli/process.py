@@ -9,8 +9,12 @@ from mems_stereo.cli._common import Reporter
 NAME = "process"
 HELP = ("classify every detection as signal or noise, form the signal/noise histograms, "
         "find the peaks and write the point cloud")
-EXAMPLE = ("mems-stereo process samples/room.h5 -o room.ply --labels room_labels.h5 "
-           "--histograms room_hist.h5")
+EXAMPLE = ["mems-stereo samples -o samples",
+           "mems-stereo process samples/room.h5 -o room.ply --labels room_labels.h5 "
+           "--histograms room_hist.h5",
+           "mems-stereo process samples/room.h5 -o room_true.ply "
+           "--system samples/calib_true_system.json    # or your calibrated system "
+           "(mems-stereo calibrate --help)"]
 
 
 def add_arguments(p):
@@ -68,11 +72,11 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
 
 def run(args) -> int:
     from mems_stereo.errors import FormatError
-    from mems_stereo.model.system import load_system
+    from mems_stereo.model.system import resolve_system
     from mems_stereo.pipeline.run import process_recording
 
     rep = Reporter(args)
-    system = load_system(args.system) if args.system else None
+    system = resolve_system(args.system) if args.system else None
     settings = _settings(args)
     recs = [Path(r) for r in args.recordings]
     for r in recs:

@@ -8,7 +8,9 @@ from mems_stereo.cli._common import Reporter
 
 NAME = "render"
 HELP = "render a point cloud offscreen to a PNG (Open3D + Mesa EGL; no display needed)"
-EXAMPLE = "mems-stereo render room.ply -o room.png --color-by range --view oblique"
+EXAMPLE = ["mems-stereo samples -o samples room.h5",
+           "mems-stereo process samples/room.h5 -o room.ply",
+           "mems-stereo render room.ply -o room.png --color-by range --view oblique"]
 
 
 def add_arguments(p):
@@ -19,8 +21,10 @@ def add_arguments(p):
     p.add_argument("--color-by", default="range",
                    help="attribute (range, counts, sigma_r, sigma_phi, pixel, ...) or x/y/z "
                         "(default range)")
-    p.add_argument("--view", default="camera", choices=VIEWS,
-                   help="camera: the receiver's viewpoint; top, side, oblique (default camera)")
+    p.add_argument("--view", default="oblique", choices=VIEWS,
+                   help="oblique: from above and behind the sensor, shows a line sensor's "
+                        "cloud (default); top: from above; side; camera: the receiver's own "
+                        "viewpoint (a line sensor's cloud is then a single row of dots)")
     p.add_argument("--width", type=int, default=1280, help="pixels (default 1280)")
     p.add_argument("--height", type=int, default=960, help="pixels (default 960)")
     p.add_argument("--point-size", type=float, default=3.0, help="pixels (default 3)")

@@ -12,7 +12,9 @@ from mems_stereo.sim import load_scene, simulate, write_simulation
 
 NAME = "simulate"
 HELP = "simulate a recording of a scene (JSON of primitives/meshes) with ground truth"
-EXAMPLE = "mems-stereo simulate samples/room_scene.json -o room.h5 --shots 800 --seed 1"
+EXAMPLE = ["mems-stereo samples -o samples room_scene.json calib_true_system.json",
+           "mems-stereo simulate samples/room_scene.json -o room.h5 --shots 800 --seed 1 "
+           "--true-system samples/calib_true_system.json"]
 
 
 def add_arguments(p):

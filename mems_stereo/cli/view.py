@@ -6,7 +6,9 @@ from mems_stereo.cli._common import Reporter
 
 NAME = "view"
 HELP = "show a point cloud in an interactive Open3D window, coloured by an attribute"
-EXAMPLE = "mems-stereo view room.ply --color-by sigma_r"
+EXAMPLE = ["mems-stereo samples -o samples room.h5",
+           "mems-stereo process samples/room.h5 -o room.ply",
+           "mems-stereo view room.ply --color-by sigma_r    # opens a window: needs a display"]
 
 
 def add_arguments(p):

@@ -62,6 +62,51 @@ class Recording:
     def has_truth(self) -> bool:
         return "label" in self.truth
 
+    def __repr__(self) -> str:
+        K = self.n_shots
+        dur = float(self.shot_time[-1] - self.shot_time[0]) if K > 1 else 0.0
+        return (f"<Recording {self.source}: {K} shots x {tuple(self.bins.shape[1:])} pixels, "
+                f"{dur * 1e3:.3g} ms, {len(self.zero_crossings)} zero crossings"
+                f"{', with truth' if self.has_truth else ''}>")
+
+    @classmethod
+    def concatenate(cls, chunks) -> Recording:
+        """One recording from consecutive chunks of shots of one acquisition.
+
+        ``chunks`` : Recordings of the same system, shot times increasing
+        across chunks.  Zero crossings are merged (duplicates, as two chunks
+        that both carry the same crossing, kept once); truth arrays with one
+        entry per shot are joined.
+        """
+        chunks = list(chunks)
+        if not chunks:
+            raise FormatError("expected at least one chunk of shots", field="chunks")
+        first = chunks[0]
+        if len(chunks) == 1:
+            return first
+        ref = system_to_json(first.system)
+        for c in chunks[1:]:
+            if c.system is not first.system and system_to_json(c.system) != ref:
+                raise FormatError("expected chunks of one system, found different ones",
+                                  c.source, "/system")
+        t = np.concatenate([np.asarray(c.shot_time, np.float64) for c in chunks])
+        if np.any(np.diff(t) <= 0):
+            raise FormatError("expected chunks in shot order (strictly increasing times)",
+                              field="/shots/time")
+        zc = np.concatenate([np.asarray(c.zero_crossings, np.float64) for c in chunks])
+        ri = np.concatenate([np.asarray(c.rising, np.uint8) for c in chunks])
+        zc, keep = np.unique(zc, return_index=True)
+        zc, ri = validate_zero_crossings(zc, ri[keep], source=first.source)
+        truth = {}
+        for k in first.truth:
+            parts = [c.truth.get(k) for c in chunks]
+            if all(p is not None and np.ndim(p) and len(p) == c.n_shots
+                   for p, c in zip(parts, chunks)):
+                truth[k] = np.concatenate(parts)
+        bins = np.concatenate([np.asarray(c.bins) for c in chunks])
+        return cls(first.system, t, bins, zc, ri.astype(np.uint8), truth,
+                   f"{first.source} (+{len(chunks) - 1} chunks)")
+
 
 def _need(f: h5py.File, path: str, source: str) -> h5py.Dataset:
     if path not in f:
@@ -192,8 +237,18 @@ class RecordingHeader:
     source: str
 
 
-def read_header(path: str | os.PathLike, check_codes: bool = False) -> RecordingHeader:
-    """Validate a recording and read all but ``/shots/bins`` (memory: O(K))."""
+def read_header(path: str | os.PathLike | Recording,
+                check_codes: bool = False) -> RecordingHeader:
+    """Validate a recording and read all but ``/shots/bins`` (memory: O(K)).
+
+    ``path`` may also be a :class:`Recording` in memory (its arrays are not copied).
+    """
+    if isinstance(path, Recording):
+        b = path.bins
+        return RecordingHeader(path.system, np.asarray(path.shot_time, dtype=np.float64),
+                               np.asarray(path.zero_crossings, dtype=np.float64),
+                               np.asarray(path.rising, dtype=np.uint8), tuple(b.shape),
+                               path.source)
     source = str(path)
     try:
         f = h5py.File(path, "r")
@@ -213,8 +268,12 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
     Memory is bounded by the chunk, whatever the recording's length.  Codes
     above n_bins raise :class:`FormatError` for the chunk that holds them.
     With ``truth_labels`` a fourth item, the chunk of ``/truth/label`` (or
-    None), is yielded.
+    None), is yielded.  ``path`` may also be a :class:`Recording` in memory
+    (the chunks are views of its arrays).
     """
+    if isinstance(path, Recording):
+        yield from _iter_memory_chunks(path, chunk_shots, start, stop, truth_labels)
+        return
     source = str(path)
     with h5py.File(path, "r") as f:
         system = validate_header(f, source)
@@ -233,6 +292,27 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
             if truth_labels:
                 item = item + ((lab[s0:s1] if lab is not None else None),)
             yield item
+
+
+def _iter_memory_chunks(rec: Recording, chunk_shots: int, start: int, stop: int | None,
+                        truth_labels: bool):
+    """:func:`iter_shot_chunks` over a :class:`Recording` in memory."""
+    n_bins = rec.system.tdc.n_bins
+    lab = rec.truth.get("label") if truth_labels else None
+    n = rec.bins.shape[0] if stop is None else min(stop, rec.bins.shape[0])
+    for s0 in range(start, n, chunk_shots):
+        s1 = min(n, s0 + chunk_shots)
+        blk = np.asarray(rec.bins[s0:s1])
+        if blk.dtype != np.uint16:
+            raise FormatError(f"expected dtype uint16, found {blk.dtype}", rec.source,
+                              "/shots/bins")
+        if blk.size and int(blk.max()) > n_bins:
+            raise FormatError(f"expected codes 0..{n_bins} (n_bins), found {int(blk.max())} "
+                              f"in shots {s0}..{s1 - 1}", rec.source, "/shots/bins")
+        item = (s0, np.asarray(rec.shot_time[s0:s1], dtype=np.float64), blk)
+        if truth_labels:
+            item = item + ((np.asarray(lab[s0:s1]) if lab is not None else None),)
+        yield item
 
 
 def write_recording(path: str | os.PathLike, system: System, shot_time, bins,

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from mems_stereo.errors import FormatError
 from mems_stereo.util.jsonfile import FieldChecker, parse_json, read_json_file
 
 FORMAT_NAME = "mems-stereo/system"
@@ -115,6 +116,15 @@ class System:
     tdc: TDC
     speed_of_light: float = 299704644.5
     calibration: dict | None = field(default=None, compare=False)
+
+    def __repr__(self) -> str:
+        sc, rc = self.scanner, self.receiver
+        b = np.asarray(sc.position, dtype=np.float64) * 1e3
+        cal = ", calibrated" if self.calibration else ""
+        return (f"<System {rc.width}x{rc.height} px receiver, baseline ({b[0]:.4g}, {b[1]:.4g}, "
+                f"{b[2]:.4g}) mm, theta0 {sc.theta0 * 1e3:.4g} mrad, "
+                f"f_mech {sc.f_mech:g} Hz, f_rep {self.laser.f_rep:g} Hz, "
+                f"TDC {self.tdc.n_bins} x {self.tdc.bin_width * 1e12:.4g} ps{cal}>")
 
     @property
     def baseline(self) -> np.ndarray:
@@ -385,18 +395,44 @@ def burkard2022(working_distance: float = 2.5) -> System:
 PRESETS = {"burkard2022": burkard2022}
 
 
+class UnknownPresetError(FormatError, KeyError):
+    """An unknown preset name (a ``FormatError``, hence ``ValueError``; also a
+    ``KeyError`` as in version 0.1).  The message lists the presets."""
+
+    def __str__(self) -> str:  # KeyError would print the message's repr
+        return str(self.args[0]) if self.args else ""
+
+
+def _presets_advice(name: str) -> str:
+    import difflib
+
+    close = difflib.get_close_matches(str(name), sorted(PRESETS), n=1, cutoff=0.5)
+    return ((f"did you mean {close[0]!r}? " if close else "")
+            + f"presets: {', '.join(sorted(PRESETS))}")
+
+
 def preset(name: str) -> System:
-    """A named preset system (``"burkard2022"``)."""
+    """A named preset system (``"burkard2022"``; :data:`PRESETS` lists them)."""
     try:
         return PRESETS[name]()
     except KeyError:
-        raise KeyError(f"unknown preset {name!r}; known: {sorted(PRESETS)}") from None
+        raise UnknownPresetError(f"unknown preset {name!r}\n{_presets_advice(name)}",
+                                 field="preset") from None
 
 
 def resolve_system(spec: str | os.PathLike | System) -> System:
-    """A System from an instance, a preset name or a JSON path."""
+    """A System from an instance, a preset name or a JSON path.
+
+    A string that is neither a preset nor an existing file raises
+    :class:`UnknownPresetError` listing the presets (with a suggestion for a
+    near miss).
+    """
     if isinstance(spec, System):
         return spec
     if isinstance(spec, str) and spec in PRESETS:
         return preset(spec)
+    if not Path(spec).exists():
+        raise UnknownPresetError(f"{str(spec)!r} is neither a preset nor a system file\n"
+                                 f"{_presets_advice(str(spec))}, or the path of a system JSON "
+                                 "file", field="system")
     return load_system(spec)

@@ -14,8 +14,9 @@ import importlib
 _PUBLIC = {
     "Settings": "settings", "DEFAULT_CHUNK_SHOTS": "settings",
     "process_recording": "run", "finish_processing": "run", "ProcessResult": "run",
-    "truth_scores": "run", "shot_angles": "angles",
-    "RangeAccumulation": "pass1", "accumulate_range": "pass1",
+    "truth_scores": "pass1", "shot_angles": "angles", "as_source": "run",
+    "RangeAccumulation": "pass1", "accumulate_range": "pass1", "Counts": "pass1",
+    "classify_recording": "pass1",
     "PeakCounts": "pass2", "peak_counts_range": "pass2", "points_from_counts": "fusion",
 }
 

@@ -48,6 +48,57 @@ class PointCloud:
     def __len__(self) -> int:
         return int(self.points.shape[0])
 
+    def __repr__(self) -> str:
+        n = len(self)
+        if n:
+            r = self.attributes.get("range")
+            rng = (f", range {np.nanmin(r):.3g}–{np.nanmax(r):.3g} m"
+                   if r is not None and np.any(np.isfinite(r)) else "")
+        else:
+            rng = ""
+        return (f"<PointCloud {n} points{rng}; attributes: "
+                f"{', '.join(self.attributes) or 'none'}>")
+
+    def to_structured(self) -> np.ndarray:
+        """(N,) NumPy structured array: fields ``x``, ``y``, ``z`` (float64, m) and
+        one field per attribute, each with the attribute's dtype (no dependency)."""
+        dt = [("x", np.float64), ("y", np.float64), ("z", np.float64)]
+        dt += [(k, v.dtype) for k, v in self.attributes.items() if k not in ("x", "y", "z")]
+        out = np.empty(len(self), dtype=dt)
+        out["x"], out["y"], out["z"] = self.points.T
+        for k, v in self.attributes.items():
+            if k not in ("x", "y", "z"):
+                out[k] = v
+        return out
+
+    def to_pandas(self):
+        """A ``pandas.DataFrame`` with columns x, y, z (m) and the attributes.
+
+        pandas is not a dependency of mems-stereo: this raises ImportError
+        (with the advice to install it or use :meth:`to_structured`) without it.
+        """
+        try:
+            import pandas as pd
+        except ImportError:
+            raise ImportError("PointCloud.to_pandas needs pandas, which is not installed\n"
+                              "  install it (pip install pandas) or use cloud.to_structured(), "
+                              "a NumPy structured array with the same columns") from None
+        return pd.DataFrame.from_records(self.to_structured())
+
+    def to_open3d(self, color_by: str | None = "range", cmap: str = "turbo",
+                  vmin: float | None = None, vmax: float | None = None):
+        """An ``open3d.geometry.PointCloud`` of the points (float64, m).
+
+        color_by : attribute (``range``, ``counts``, ``sigma_r``, ...) or
+            ``x``/``y``/``z`` whose values set the colours through ``cmap``
+            (``turbo`` or ``viridis``) between ``vmin`` and ``vmax`` (default:
+            the values' range); None for no colours.  Loads Open3D (viz layer).
+        """
+        import importlib
+
+        return importlib.import_module("mems_stereo.viz.convert").cloud_to_open3d(
+            self, color_by=color_by, cmap=cmap, vmin=vmin, vmax=vmax)
+
     def __getitem__(self, name: str) -> np.ndarray:
         return self.attributes[name]
 

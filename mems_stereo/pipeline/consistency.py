@@ -25,6 +25,7 @@ A code N is accepted when its bin centre's path length lies in the bound.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,7 +36,7 @@ from mems_stereo.geometry.triangulation import coplanar_ray_intersection, pixel_
 from mems_stereo.geometry.uncertainty import Spreads, spreads_for
 from mems_stereo.io.labels import LABEL_NOISE, LABEL_NONE, LABEL_SIGNAL
 from mems_stereo.model.camera import normalized_coordinates, pixel_grid
-from mems_stereo.model.scanner import scan_angles, scan_direction, scan_direction_derivative
+from mems_stereo.model.scanner import scan_direction, scan_direction_derivative
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
 
@@ -303,45 +304,42 @@ def classify_detections(system: System, shot_idx, rows, cols, codes, theta,
 
 @dataclass
 class ClassificationResult:
-    """Labels of a recording and the counts.
+    """Labels of a recording and the counts
+    (:func:`mems_stereo.pipeline.classify_recording`).
 
     labels : (K, H, W) uint8 (0 none / unknown angle, 1 signal, 2 noise);
     theta : (K,) float64 rad (NaN where unknown); valid : (K,) bool;
-    counts : dict with n_shots, n_shots_unknown_angle, n_detections (in valid
-    shots), n_signal, n_noise, n_detections_unknown_angle; confidence : float.
+    counts : :class:`~mems_stereo.pipeline.pass1.Counts` (shots,
+    shots_unknown_angle, raw, signal, noise); confidence : float;
+    truth : recall and noise rejection against ``/truth/label`` (None without truth).
     """
 
     labels: np.ndarray
     theta: np.ndarray
     valid: np.ndarray
-    counts: dict = field(default_factory=dict)
+    counts: Mapping = field(default_factory=dict)
     confidence: float = DEFAULT_CONFIDENCE
+    truth: dict | None = None
+
+    def __repr__(self) -> str:
+        c = self.counts
+        tr = ""
+        if self.truth:
+            tr = (f", recall {self.truth['recall']:.4f}, noise rejection "
+                  f"{self.truth['noise_rejection']:.4f}")
+        return (f"<ClassificationResult {c['shots']} shots, {c['raw']} detections: "
+                f"{c['signal']} signal, {c['noise']} noise{tr}>")
 
 
-def classify_recording(recording, system: System | None = None,
-                       confidence: float = DEFAULT_CONFIDENCE,
-                       spreads: Spreads | None = None,
-                       min_range: float | None = None) -> ClassificationResult:
-    """Classify every detection of a :class:`~mems_stereo.io.recording.Recording`.
+def __getattr__(name):
+    # version 0.1 had classify_recording here (exact angles, other count keys); it
+    # moved to the pass-1 stage so that it labels exactly as process_recording does
+    if name == "classify_recording":
+        import importlib
+        import warnings
 
-    The scan angle of each shot comes from the recorded zero crossings
-    (:func:`mems_stereo.model.scanner.scan_angles`); shots outside their span are
-    left out (label 0) and counted.  ``system`` defaults to the recording's;
-    ``spreads`` and ``min_range`` as :func:`accepted_code_intervals`.
-    """
-    sysm = recording.system if system is None else system
-    theta, valid = scan_angles(recording.shot_time, recording.zero_crossings,
-                               recording.rising, sysm.scanner)
-    bins = np.asarray(recording.bins)
-    labels = classify_bins(sysm, bins, theta, valid, confidence, spreads, min_range=min_range)
-    det = bins > 0
-    counts = {
-        "n_shots": int(bins.shape[0]),
-        "n_shots_unknown_angle": int(np.count_nonzero(~valid)),
-        "n_detections": int(np.count_nonzero(det[valid])),
-        "n_detections_unknown_angle": int(np.count_nonzero(det[~valid])),
-        "n_signal": int(np.count_nonzero(labels == LABEL_SIGNAL)),
-        "n_noise": int(np.count_nonzero(labels == LABEL_NOISE)),
-    }
-    return ClassificationResult(labels, np.where(valid, theta, np.nan), valid, counts,
-                                confidence)
+        warnings.warn("mems_stereo.pipeline.consistency.classify_recording moved to "
+                      "mems_stereo.pipeline.classify_recording (also ms.classify_recording)",
+                      DeprecationWarning, stacklevel=2)
+        return importlib.import_module("mems_stereo.pipeline.pass1").classify_recording
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

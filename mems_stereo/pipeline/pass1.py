@@ -7,6 +7,7 @@ kernels beside it are its reference semantics (used when numba is absent).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -202,3 +203,122 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         if progress is not None:
             progress(s1 - s0)
     return RangeAccumulation(raw, sig, angle, n_shots, n_unknown, conf, has_truth)
+
+
+# --------------------------------------------------------------------------
+# counts and the whole-recording classification
+
+#: legacy keys of ``classify_recording``'s counts (version 0.1) → the names of :class:`Counts`
+_LEGACY_KEYS = {"n_shots": "shots", "n_shots_unknown_angle": "shots_unknown_angle",
+                "n_detections": "raw", "n_signal": "signal", "n_noise": "noise"}
+
+
+@dataclass(frozen=True)
+class Counts(Mapping):
+    """The counts of one classified or processed recording (integers).
+
+    shots : shots in the recording; shots_unknown_angle : those outside the
+    zero crossings' span (left out, label 0); raw : detections in the other
+    shots; signal, noise : how they were classified (raw = signal + noise);
+    peaks, points : found by processing (None after classification alone).
+
+    Read it as a mapping too (``counts["signal"]``, ``dict(counts)``); the
+    keys are the same for :func:`classify_recording` and
+    :func:`~mems_stereo.pipeline.run.process_recording`, and on the same
+    recording and settings the numbers are the same.
+    """
+
+    shots: int
+    shots_unknown_angle: int
+    raw: int
+    signal: int
+    noise: int
+    peaks: int | None = None
+    points: int | None = None
+
+    def __getitem__(self, key):
+        name = _LEGACY_KEYS.get(key, key)
+        if name not in self.__dataclass_fields__:
+            raise KeyError(key)
+        return getattr(self, name)
+
+    def __iter__(self):
+        return iter(self.__dataclass_fields__)
+
+    def __len__(self) -> int:
+        return len(self.__dataclass_fields__)
+
+    def __repr__(self) -> str:
+        return "Counts(" + ", ".join(f"{k}={v}" for k, v in self.items()
+                                     if v is not None) + ")"
+
+    @classmethod
+    def from_accumulation(cls, acc: RangeAccumulation, peaks: int | None = None,
+                          points: int | None = None) -> Counts:
+        raw = int(acc.hist_raw[:, 1:].sum())
+        sig = int(acc.hist_signal[:, 1:].sum())
+        return cls(int(acc.n_shots), int(acc.n_unknown), raw, sig, raw - sig, peaks, points)
+
+
+def classify_recording(recording, system: System | None = None,
+                       confidence: float | None = None, min_range: float | None = None,
+                       settings: Settings | None = None):
+    """Classify every detection of a recording, as processing does.
+
+    Parameters
+    ----------
+    recording : a :class:`~mems_stereo.io.recording.Recording` or the path of
+        a FORMAT v1 file.
+    system : the system to classify with (default: the recording's ``/system``).
+    confidence, min_range : override those of ``settings`` (default
+        :class:`Settings`).
+
+    Returns
+    -------
+    :class:`~mems_stereo.pipeline.consistency.ClassificationResult`:
+    ``labels`` (K, H, W) uint8 (0 none / unknown angle, 1 signal, 2 noise),
+    ``theta`` (K,) rad (NaN where unknown), ``valid`` (K,) bool, ``counts``
+    (:class:`Counts`, the same as ``process_recording``'s), ``truth``
+    (recall and rejection against ``/truth/label``, or None).
+
+    It uses the compiled interval table of
+    :func:`~mems_stereo.pipeline.run.process_recording`, so both label every
+    detection alike.  :func:`~mems_stereo.pipeline.consistency.classify_bins`
+    is the reference on exact (not step-snapped) angles; the two differ on
+    about one detection in 10⁴ (room.h5: 1 of 19 476), at the edge of a window.
+    """
+    import dataclasses
+
+    from mems_stereo.io.recording import Recording, read_header
+    from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.consistency import ClassificationResult
+
+    st = Settings() if settings is None else settings
+    if confidence is not None:
+        st = dataclasses.replace(st, confidence=confidence)
+    if min_range is not None:
+        st = dataclasses.replace(st, min_range=min_range)
+    src = recording if isinstance(recording, Recording) else str(recording)
+    header = read_header(src)
+    sysm = header.system if system is None else system
+    theta, valid = shot_angles(header, sysm)
+    labels = np.zeros(header.shape, np.uint8)
+    acc = accumulate_range(src, sysm, theta, valid, st, labels_out=labels)
+    res = ClassificationResult(labels, np.where(valid, theta, np.nan), valid,
+                               Counts.from_accumulation(acc), st.confidence)
+    res.truth = truth_scores(acc.confusion) if acc.has_truth else None
+    return res
+
+
+def truth_scores(confusion: np.ndarray) -> dict:
+    """Recall and noise rejection from a (3, 3) truth (row) × assigned (column) confusion matrix."""
+    c = np.asarray(confusion)
+    n_sig = c[1, 1] + c[1, 2]
+    n_bg = c[2, 1] + c[2, 2]
+    return {
+        "true_signal": int(n_sig), "true_background": int(n_bg),
+        "recall": float(c[1, 1] / n_sig) if n_sig else float("nan"),
+        "noise_rejection": float(c[2, 2] / n_bg) if n_bg else float("nan"),
+        "precision": float(c[1, 1] / (c[1, 1] + c[2, 1])) if (c[1, 1] + c[2, 1]) else
+        float("nan"),
+    }

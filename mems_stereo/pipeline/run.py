@@ -31,13 +31,13 @@ from dataclasses import dataclass, field
 import h5py
 import numpy as np
 
-from mems_stereo.io.recording import read_header
+from mems_stereo.io.recording import Recording, read_header
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.fusion import points_from_counts
 from mems_stereo.pipeline.intervals import interval_table, shots_per_step
-from mems_stereo.pipeline.pass1 import RangeAccumulation, accumulate_range
+from mems_stereo.pipeline.pass1 import Counts, RangeAccumulation, accumulate_range, truth_scores
 from mems_stereo.pipeline.pass2 import peak_counts_range
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.util.atomic import atomic_output
@@ -54,7 +54,8 @@ class ProcessResult:
     peaks : dict of (Q,) arrays ``row``, ``col``, ``code`` (peak code),
         ``code_lo``, ``code_hi`` (window), ``counts``.
     cloud : :class:`~mems_stereo.pipeline.cloud.PointCloud`, one point per peak.
-    counts : dict of integers (shots, unknown angle, raw, signal, noise).
+    counts : :class:`~mems_stereo.pipeline.pass1.Counts` (shots,
+        shots_unknown_angle, raw, signal, noise, peaks, points; also a mapping).
     truth : dict with recall and noise rejection (None without truth).
     timings : dict of seconds per stage.
     """
@@ -71,19 +72,14 @@ class ProcessResult:
     valid: np.ndarray
     timings: dict = field(default_factory=dict)
 
-
-def truth_scores(confusion: np.ndarray) -> dict:
-    """Recall and noise rejection from a truth × assigned confusion matrix."""
-    c = np.asarray(confusion)
-    n_sig = c[1, 1] + c[1, 2]
-    n_bg = c[2, 1] + c[2, 2]
-    return {
-        "true_signal": int(n_sig), "true_background": int(n_bg),
-        "recall": float(c[1, 1] / n_sig) if n_sig else float("nan"),
-        "noise_rejection": float(c[2, 2] / n_bg) if n_bg else float("nan"),
-        "precision": float(c[1, 1] / (c[1, 1] + c[2, 1])) if (c[1, 1] + c[2, 1]) else
-        float("nan"),
-    }
+    def __repr__(self) -> str:
+        c = self.counts
+        tr = ""
+        if self.truth:
+            tr = (f", recall {self.truth['recall']:.4f}, noise rejection "
+                  f"{self.truth['noise_rejection']:.4f}")
+        return (f"<ProcessResult {self.source}: {c['shots']} shots, {c['raw']} raw, "
+                f"{c['signal']} signal, {c['peaks']} peaks, {c['points']} points{tr}>")
 
 
 def _labels_file(path, K: int, shape):
@@ -103,14 +99,43 @@ def _labels_file(path, K: int, shape):
     return ctx()
 
 
-def process_recording(path: str | os.PathLike, system: System | None = None,
+def as_source(recording) -> str | Recording:
+    """What the passes read shots from: a path (str) or a :class:`Recording`.
+
+    ``recording`` : a path (str or os.PathLike) of a FORMAT v1 file, a
+    :class:`Recording`, or an iterable of Recordings that are consecutive
+    chunks of shots of one acquisition (joined with :meth:`Recording.concatenate`).
+    """
+    if isinstance(recording, Recording):
+        return recording
+    if isinstance(recording, (str, os.PathLike)):
+        return os.fspath(recording)
+    if isinstance(recording, bytes):
+        return os.fsdecode(recording)
+    try:
+        chunks = list(recording)
+    except TypeError:
+        chunks = None
+    if not chunks or not all(isinstance(c, Recording) for c in chunks):
+        from mems_stereo.errors import FormatError
+
+        raise FormatError(f"expected a recording path, a Recording or chunks of shots "
+                          f"(Recordings), found {type(recording).__name__}",
+                          field="recording")
+    return Recording.concatenate(chunks)
+
+
+def process_recording(path, system: System | None = None,
                       settings: Settings | None = None, labels_path=None,
                       progress=None) -> ProcessResult:
     """Classify, histogram, find peaks and triangulate one recording (streamed).
 
     Parameters
     ----------
-    path : FORMAT v1 recording (validated on read; see docs/formats.md).
+    path : a FORMAT v1 recording file (validated on read; see docs/formats.md),
+        a :class:`~mems_stereo.io.recording.Recording` in memory
+        (``ms.read_recording(...)``), or an iterable of Recordings that are
+        consecutive chunks of shots of one acquisition.
     system : system to process with (default: the recording's ``/system``),
         e.g. a calibrated one.
     settings : :class:`Settings`.
@@ -119,6 +144,7 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
     """
     st = Settings() if settings is None else settings
     t0 = time.perf_counter()
+    path = as_source(path)
     header = read_header(path)
     sysm = header.system if system is None else system
     K, H, W = header.shape
@@ -175,12 +201,10 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
                                shots_per_step=shots_per_step(table, theta, valid))
     peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
     timings["points"] = time.perf_counter() - t4
-    counts = {
-        "shots": int(K), "shots_unknown_angle": int(acc.n_unknown),
-        "raw": int(raw.sum()), "signal": int(sig.sum()), "noise": int(noise.sum()),
-        "peaks": int(len(peaks["row"])), "points": len(cloud),
-    }
+    counts = Counts(int(K), int(acc.n_unknown), int(raw.sum()), int(sig.sum()),
+                    int(noise.sum()), int(len(peaks["row"])), len(cloud))
     truth = truth_scores(acc.confusion) if acc.has_truth else None
     theta[~valid] = np.nan  # (already NaN where the angle is unknown; no copy)
-    return ProcessResult(sysm, str(path), {"raw": raw, "signal": sig, "noise": noise},
+    source = path.source if isinstance(path, Recording) else str(path)
+    return ProcessResult(sysm, source, {"raw": raw, "signal": sig, "noise": noise},
                          background, peaks, cloud, counts, truth, theta, valid, timings)

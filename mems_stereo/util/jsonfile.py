@@ -44,6 +44,10 @@ def read_json_file(path) -> Any:
         text = p.read_text(encoding="utf-8")
     except OSError as e:
         raise FormatError(f"cannot read file ({e.strerror})", source=str(p)) from None
+    except UnicodeDecodeError:
+        kind = " (an HDF5 file)" if p.read_bytes()[:8] == b"\x89HDF\r\n\x1a\n" else ""
+        raise FormatError(f"expected a JSON text file, found binary data{kind}",
+                          source=str(p)) from None
     return parse_json(text, str(p))
 
 

@@ -1,0 +1,123 @@
+"""Command-line helpers for a newcomer: "did you mean", readable errors, progress bars.
+
+* :class:`HelpfulParser` — an ``argparse.ArgumentParser`` whose errors for an
+  unknown command, choice or option end with the closest valid one.
+* :func:`format_error` — an exception as one line (``mems-stereo CMD: error:
+  ...``) with the advice, where the message carries one after a newline, on a
+  second line; long messages are cut (``-v`` prints them whole).
+* :func:`progress_bar` — a tqdm bar on stderr, off under ``-q`` and when
+  stderr is not a terminal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import difflib
+import re
+import sys
+
+#: characters of an error's first line before it is cut (``-v``: never cut)
+MAX_ERROR_CHARS = 300
+
+
+def suggest(word: str, choices) -> str | None:
+    """The closest of ``choices`` to ``word`` (difflib, cutoff 0.6), or None."""
+    close = difflib.get_close_matches(str(word), [str(c) for c in choices], n=1, cutoff=0.6)
+    return close[0] if close else None
+
+
+class HelpfulParser(argparse.ArgumentParser):
+    """ArgumentParser that adds "did you mean ..." to invalid-choice and unknown-option errors."""
+
+    def _all_option_strings(self) -> list[str]:
+        opts = [s for s in self._option_string_actions if s.startswith("--")]
+        for a in self._actions:  # the chosen subcommand's options (parse_args reports
+            if isinstance(a, argparse._SubParsersAction):  # unknown options at the top)
+                for sub in a.choices.values():
+                    if isinstance(sub, HelpfulParser):
+                        opts += sub._all_option_strings()
+        return sorted(set(opts))
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        hint = None
+        m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
+        if m:
+            choices = re.findall(r"'([^']*)'", m.group(2)) or [
+                c.strip() for c in m.group(2).split(",")]
+            s = suggest(m.group(1), choices)
+            hint = f"did you mean '{s}'?" if s else None
+        m = re.search(r"unrecognized arguments: (.*)", message)
+        if m:
+            hints = []
+            for word in m.group(1).split():
+                if word.startswith("-"):
+                    s = suggest(word.split("=")[0], self._all_option_strings())
+                    if s:
+                        hints.append(f"did you mean {s} (not {word})?")
+            hint = " ".join(hints) or None
+        self.print_usage(sys.stderr)
+        text = f"{self.prog}: error: {message}"
+        if hint:
+            text += f"\n  {hint}"
+        self.exit(2, text + "\n")
+
+
+#: advice for errors whose message carries none, by exception class name
+ADVICE = {
+    "NotObservableError": "record the target at more distances (three or more), give the "
+                          "measured distances (--target-distances-file), or --fix the parameters "
+                          "named; --allow-unobservable holds them at their nominal values",
+}
+
+
+def format_error(command: str | None, exc: BaseException, verbose: bool = False) -> str:
+    """``mems-stereo CMD: error: <first line>`` plus the advice line(s), if any.
+
+    A message's first line is what went wrong; further lines are advice
+    (the package's convention).  The first line is cut to
+    ``MAX_ERROR_CHARS`` unless ``verbose``.
+    """
+    text = str(exc).strip() or type(exc).__name__
+    first, _, rest = text.partition("\n")
+    if not rest:
+        rest = ADVICE.get(type(exc).__name__, "")
+    if not verbose and len(first) > MAX_ERROR_CHARS:
+        first = first[:MAX_ERROR_CHARS - 1].rstrip() + "…"
+        rest = (rest + "\n" if rest else "") + "(-v prints the whole message)"
+    prog = f"mems-stereo {command}" if command else "mems-stereo"
+    lines = [f"{prog}: error: {first}"]
+    lines += ["  " + r.strip() for r in rest.splitlines() if r.strip()]
+    return "\n".join(lines)
+
+
+def progress_bar(total, desc: str, unit: str = "shot", quiet: bool = False):
+    """A tqdm progress bar on stderr; disabled under ``-q`` or when stderr is not a terminal."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False,
+                disable=quiet or not sys.stderr.isatty(), dynamic_ncols=True)
+
+
+class StatusProgress:
+    """A progress bar for a step whose length is unknown (calibration rounds).
+
+    Call it with a status line: the bar shows the line and counts the calls;
+    ``verbose`` also prints it (``-v``).  Use as a context manager.
+    """
+
+    def __init__(self, desc: str, quiet: bool = False, verbose: bool = False):
+        self.bar = progress_bar(None, desc, unit="step", quiet=quiet)
+        self.verbose = verbose and not quiet
+
+    def __call__(self, line: str) -> None:
+        if self.verbose:
+            self.bar.write(str(line), file=sys.stdout)
+        self.bar.set_postfix_str(str(line)[:60], refresh=False)
+        self.bar.update(1)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.bar.close()
+        return False

@@ -1,0 +1,190 @@
+"""Documentation that cannot drift: every code block of README.md and docs/*.md and every
+``--help`` example runs, from a temporary folder outside the repository, against the
+installed package.
+
+A small Markdown collector finds the fenced blocks (```lang ... ```).  How each runs:
+
+* ``python``: as a script by this interpreter (the installed package's), cwd a fresh
+  temporary folder; the blocks of one document run in order in the same folder.
+* ``bash``, ``sh``, ``console`` and blocks without a language: ``bash -e`` with the
+  interpreter's ``bin/`` first on PATH (so ``mems-stereo`` is the installed one).
+* ``json``: parsed (``json.loads``); nothing else.
+* Indented (4-space) blocks are read as literal text — output listings, package
+  lists — and not run; every command a reader is meant to type is in a fenced block.
+* A block right after a line ``<!-- docs-test: skip REASON -->`` does not run; the test
+  prints each with its reason.  The only such blocks are the README's two set-up
+  commands (they install Debian packages as root and build ``.venv`` in the repository).
+
+The ``--help`` examples (each command module's ``EXAMPLE`` lines and ``plot``'s per-figure
+examples) run in order in a fresh folder per command; ``view`` opens a window, so its
+last line is only parsed; ``demo``'s example is the run of ``tests/test_demo.py``.
+
+``tests/test_wheel.py`` (slow) builds a wheel and runs the README's API example against
+that non-editable install.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shlex
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+SKIP = re.compile(r"<!--\s*docs-test:\s*skip\b\s*(.*?)\s*-->")
+FENCE = re.compile(r"^(```+|~~~+)\s*([\w+-]*)\s*$")
+
+
+@dataclass
+class Block:
+    file: Path
+    line: int  # 1-based line of the opening fence
+    lang: str
+    code: str
+    skip: str | None  # reason, or None when it runs
+
+
+def collect(path: Path) -> list[Block]:
+    """The fenced code blocks of one Markdown file, in order."""
+    lines = path.read_text().splitlines()
+    blocks, i = [], 0
+    while i < len(lines):
+        m = FENCE.match(lines[i])
+        if not m:
+            i += 1
+            continue
+        fence, lang, start = m.group(1), m.group(2).lower(), i
+        j = i + 1
+        while j < len(lines) and not lines[j].startswith(fence):
+            j += 1
+        prev = next((lines[k] for k in range(start - 1, -1, -1) if lines[k].strip()), "")
+        sk = SKIP.search(prev)
+        blocks.append(Block(path, start + 1, lang, "\n".join(lines[start + 1:j]) + "\n",
+                            (sk.group(1) or "no reason given") if sk else None))
+        i = j + 1
+    return blocks
+
+
+def _env(python: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
+    env["PATH"] = str(Path(python).parent) + os.pathsep + env.get("PATH", "")
+    env.setdefault("MPLBACKEND", "Agg")
+    return env
+
+
+def run_block(block: Block, cwd: Path, python: str = sys.executable) -> None:
+    """Execute one block in ``cwd``; fail with the block's place and output."""
+    where = f"{block.file.relative_to(ROOT)}:{block.line} ({block.lang or 'no language'})"
+    if block.lang == "json":
+        try:
+            json.loads(block.code)
+        except json.JSONDecodeError as e:
+            pytest.fail(f"{where}: not valid JSON: {e}")
+        return
+    if block.lang == "python":
+        cmd = [python, "-c", block.code]
+    elif block.lang in ("", "bash", "sh", "console", "shell"):
+        cmd = ["bash", "-e", "-c", block.code]
+    else:
+        pytest.fail(f"{where}: no rule to run a {block.lang!r} block (add one or a skip marker)")
+    p = subprocess.run(cmd, cwd=cwd, env=_env(python), capture_output=True, text=True,
+                       timeout=600)
+    if p.returncode:
+        pytest.fail(f"{where} failed (exit {p.returncode}):\n{block.code}\n--- stdout\n"
+                    f"{p.stdout[-3000:]}\n--- stderr\n{p.stderr[-3000:]}")
+
+
+def _outside_repository(tmp_path: Path) -> Path:
+    assert ROOT not in tmp_path.resolve().parents, "the temporary folder is in the repository"
+    return tmp_path
+
+
+@pytest.mark.slow
+def test_every_code_block_of_the_docs_runs(tmp_path, capsys):
+    n_run, skipped = 0, []
+    for doc in DOCS:
+        cwd = _outside_repository(tmp_path / doc.stem)
+        cwd.mkdir()
+        for b in collect(doc):
+            if b.skip is not None:
+                skipped.append(f"{b.file.relative_to(ROOT)}:{b.line} ({b.skip})")
+                continue
+            run_block(b, cwd)
+            n_run += 1
+    with capsys.disabled():
+        print(f"\n[docs] {n_run} code blocks of README.md and docs/*.md executed; "
+              f"{len(skipped)} marked not to run: " + "; ".join(skipped))
+    assert n_run >= 8
+    assert len(skipped) == 2  # the README's set-up commands, nothing else
+
+
+def help_examples() -> dict[str, list[str]]:
+    """Example command lines per command (and per ``plot`` figure), as ``--help`` shows them."""
+    from mems_stereo.cli import _load_commands, examples
+    from mems_stereo.cli.plot import FIGURES
+
+    out = {mod.NAME: examples(mod) for mod in _load_commands()}
+    for fig, (_desc, lines) in FIGURES.items():
+        out[f"plot {fig}"] = lines
+    return out
+
+
+def test_help_shows_the_examples():
+    """Each command's (and each figure's) --help epilog holds its example lines verbatim."""
+    from mems_stereo.cli import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if a.choices and "process" in a.choices).choices
+    for name, lines in help_examples().items():
+        parts = name.split()
+        p = subs[parts[0]]
+        if len(parts) > 1:
+            p = next(a for a in p._actions if a.choices and parts[1] in a.choices).choices[parts[1]]
+        text = p.format_help()
+        for line in lines:
+            assert line in text, (name, line)
+        assert p.description, name
+
+
+@pytest.mark.slow
+def test_every_help_example_runs(tmp_path, capsys):
+    from mems_stereo.cli import build_parser
+
+    n_run, parsed = 0, []
+    for name, lines in help_examples().items():
+        if name == "demo":  # tests/test_demo.py runs exactly this example
+            continue
+        cwd = _outside_repository(tmp_path / name.replace(" ", "_"))
+        cwd.mkdir()
+        for line in lines:
+            argv = shlex.split(line, comments=True)
+            assert argv[0] == "mems-stereo", line
+            if argv[1] == "view":  # opens a window: parse it, do not run it
+                build_parser().parse_args(argv[1:])
+                parsed.append(line)
+                continue
+            p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
+                               capture_output=True, text=True, timeout=600)
+            assert p.returncode == 0, f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+            n_run += 1
+    with capsys.disabled():
+        print(f"\n[docs] {n_run} --help example lines executed from empty folders; "
+              f"{len(parsed)} parsed only (view needs a display); demo: tests/test_demo.py")
+    assert n_run >= 20
+
+
+def test_collector_finds_blocks_and_markers(tmp_path):
+    md = tmp_path / "x.md"
+    md.write_text("text\n\n<!-- docs-test: skip needs root -->\n```bash\nrm -rf /\n```\n\n"
+                  "```python\nprint(1)\n```\n````\nnested ``` fence\n````\n")
+    b = collect(md)
+    assert [(x.lang, x.skip, x.line) for x in b] == [("bash", "needs root", 4),
+                                                    ("python", None, 8), ("", None, 11)]
+    assert b[1].code == "print(1)\n" and b[2].code == "nested ``` fence\n"
