@@ -34,7 +34,8 @@ def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
     the slots without a detection); hist_angle : (P, S) integer (uint32),
     signal detections per pixel and angle step, added to in place.  Codes
     are cast to int64 before any arithmetic (numba would otherwise mix
-    unsigned and signed integers through float64); the loop body has a single data-dependent branch (the rare signal count).
+    unsigned and signed integers through float64); the loop body has a
+    single data-dependent branch (the rare signal count).
     """
     K, P = bins.shape
     for k in range(K):
