@@ -37,7 +37,7 @@ from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.fusion import points_from_counts
 from mems_stereo.pipeline.intervals import IntervalTable
-from mems_stereo.pipeline.pass1 import RangeAccumulation, accumulate_range
+from mems_stereo.pipeline.pass1 import RangeAccumulation, _pack, _unpack, accumulate_range
 from mems_stereo.pipeline.pass2 import peak_counts_range
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.util.atomic import atomic_output
@@ -70,6 +70,31 @@ class ProcessResult:
     theta: np.ndarray
     valid: np.ndarray
     timings: dict = field(default_factory=dict)
+
+    def __getstate__(self):
+        # compact between processes (Dask): raw and signal as uint32 where every
+        # count fits (non-zero entries only when smaller); noise = raw − signal
+        d = dict(self.__dict__)
+        h = dict(d["histograms"])
+        if set(h) == {"raw", "signal", "noise"}:
+            for k in ("raw", "signal"):
+                a = h[k]
+                if a.dtype == np.int64 and a.size and 0 <= a.min() and a.max() < 2 ** 32:
+                    a = a.astype(np.uint32)
+                h[k] = _pack(a)
+            del h["noise"]
+            h["_packed"] = True
+        d["histograms"] = h
+        return d
+
+    def __setstate__(self, d):
+        h = d["histograms"]
+        if h.pop("_packed", False):
+            raw = _unpack(h["raw"]).astype(np.int64)
+            sig = _unpack(h["signal"]).astype(np.int64)
+            h = {"raw": raw, "signal": sig, "noise": raw - sig}
+        d["histograms"] = h
+        self.__dict__.update(d)
 
 
 def truth_scores(confusion: np.ndarray) -> dict:
