@@ -109,10 +109,12 @@ def fill_table(client, table: IntervalTable, rows=None, settings: Settings | Non
                ) -> IntervalTable:
     """Fill ``rows`` (default: all) of ``table`` on the workers in parallel; returns it.
 
-    The rows are split into one contiguous block per worker; each worker
-    computes its block with the reference (:meth:`IntervalTable.compute_rows`,
-    identical to filling here) and the client stores them.
+    Rows in the disk cache are taken from it; the others are split into one
+    contiguous block per worker; each worker computes its block with the
+    reference (:meth:`IntervalTable.compute_rows`, identical to filling here),
+    the client stores them and writes them to the cache.
     """
+    table.load_cache()
     need = table.missing(np.arange(table.n_steps) if rows is None else rows)
     if need.size == 0:
         return table
@@ -123,6 +125,7 @@ def fill_table(client, table: IntervalTable, rows=None, settings: Settings | Non
                       pure=False)
     for b, (lo, hi) in zip(blocks, client.gather(futs)):
         table.put_rows(b, lo, hi)
+    table.save_cache()
     return table
 
 

@@ -18,7 +18,11 @@ angles gives labels identical to the fast path; the tests check exactly that.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 
@@ -62,6 +66,7 @@ class IntervalTable:
         self.lo = np.ones((n, P), dtype=np.uint16)
         self.hi = np.zeros((n, P), dtype=np.uint16)
         self.filled = np.zeros(n, dtype=bool)
+        self._n_saved = 0  # filled rows the disk cache holds (see save_cache)
 
     @classmethod
     def for_settings(cls, system: System, settings) -> IntervalTable:
@@ -140,6 +145,22 @@ class IntervalTable:
         self.ensure(np.arange(self.n_steps))
         return self
 
+    def load_cache(self) -> int:
+        """Take the rows the disk cache holds for this table (see the module
+        docstring); returns how many rows were added."""
+        n = _cache_load(self)
+        self._n_saved = int(np.count_nonzero(self.filled))
+        return n
+
+    def save_cache(self) -> bool:
+        """Write the filled rows to the disk cache if rows were filled since
+        :meth:`load_cache` (or ever); returns whether a file was written."""
+        if int(np.count_nonzero(self.filled)) <= self._n_saved:
+            return False
+        ok = _cache_save(self)
+        self._n_saved = int(np.count_nonzero(self.filled))
+        return ok
+
     def shots_per_step(self, theta, valid, block: int = 1 << 20) -> np.ndarray:
         """Number of valid shots classified with each angle step, (S,) int64."""
         n = np.zeros(self.n_steps, np.int64)
@@ -149,6 +170,104 @@ class IntervalTable:
             rows = self.index(th[a:a + block])
             n += np.bincount(rows[(rows >= 0) & va[a:a + block]], minlength=self.n_steps)
         return n
+
+
+# --------------------------------------------------------------------------
+# disk cache of filled rows
+
+#: sources whose text changes the rows (relative to the package folder)
+_ROW_SOURCES = ("errors.py", "model", "geometry", "physics", "pipeline/consistency.py",
+                "pipeline/intervals.py", "io/labels.py")
+_MAX_CACHED_TABLES = 16
+
+
+def cache_dir() -> Path | None:
+    """Folder of the table cache (``$MEMS_STEREO_CACHE``, default ``~/.cache/mems-stereo``);
+    None when ``MEMS_STEREO_CACHE`` is ``off``, ``0`` or empty."""
+    v = os.environ.get("MEMS_STEREO_CACHE")
+    if v is None:
+        return Path.home() / ".cache" / "mems-stereo"
+    if v.strip().lower() in ("", "0", "off", "no", "false"):
+        return None
+    return Path(v)
+
+
+_SOURCE_DIGEST: list = []
+
+
+def _source_digest() -> bytes:
+    if not _SOURCE_DIGEST:
+        import cv2
+        import scipy
+
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for rel in _ROW_SOURCES:
+            p = root / rel
+            for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+                h.update(str(f.relative_to(root)).encode())
+                h.update(f.read_bytes())
+        h.update(f"{np.__version__} {scipy.__version__} {cv2.__version__}".encode())
+        _SOURCE_DIGEST.append(h.digest())
+    return _SOURCE_DIGEST[0]
+
+
+def _cache_key(table: IntervalTable) -> str:
+    from mems_stereo.model.system import system_to_json
+
+    h = hashlib.sha256(_source_digest())
+    h.update(system_to_json(table.system).encode())
+    h.update(repr((float(table.confidence), repr(table.spreads), table.min_range,
+                   table.theta_min, table.step, table.lo.shape)).encode())
+    return h.hexdigest()[:32]
+
+
+def _load_rows(path: Path, table: IntervalTable):
+    try:
+        with np.load(path) as z:
+            lo, hi, filled = z["lo"], z["hi"], z["filled"]
+    except Exception:  # noqa: BLE001 - an unreadable cache file is ignored
+        return None
+    if lo.shape != table.lo.shape or hi.shape != lo.shape or filled.shape != table.filled.shape:
+        return None
+    return lo, hi, filled.astype(bool)
+
+
+def _cache_load(table: IntervalTable) -> int:
+    d = cache_dir()
+    if d is None:
+        return 0
+    got = _load_rows(d / f"intervals-{_cache_key(table)}.npz", table)
+    if got is None:
+        return 0
+    lo, hi, filled = got
+    new = filled & ~table.filled
+    table.put_rows(np.flatnonzero(new), lo[new], hi[new])
+    return int(np.count_nonzero(new))
+
+
+def _cache_save(table: IntervalTable) -> bool:
+    d = cache_dir()
+    if d is None:
+        return False
+    from mems_stereo.util.atomic import atomic_output
+
+    path = d / f"intervals-{_cache_key(table)}.npz"
+    try:
+        got = _load_rows(path, table) if path.exists() else None
+        if got is not None:  # another process may have added rows meanwhile
+            lo, hi, filled = got
+            new = filled & ~table.filled
+            table.put_rows(np.flatnonzero(new), lo[new], hi[new])
+        with atomic_output(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, lo=table.lo, hi=table.hi, filled=table.filled)
+        old = sorted(d.glob("intervals-*.npz"), key=lambda p: p.stat().st_mtime)
+        for p in old[:-_MAX_CACHED_TABLES]:
+            with contextlib.suppress(OSError):
+                p.unlink()
+    except OSError:
+        return False
+    return True
 
 
 def shots_per_step(table: IntervalTable, theta, valid, block: int = 1 << 20) -> np.ndarray:

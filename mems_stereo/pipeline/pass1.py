@@ -2,7 +2,8 @@
 
 The compiled kernel looks each shot's accepted code interval up in the
 :class:`~mems_stereo.pipeline.intervals.IntervalTable`; the pure-Python
-kernels beside it are its reference semantics (used when numba is absent).
+kernels beside it are its reference semantics; small recordings use the same
+semantics in vectorised NumPy, so that they never load compiled code.
 """
 
 from __future__ import annotations
@@ -69,21 +70,53 @@ def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle):
                 hist_angle[p, j] += 1
 
 
-try:  # pragma: no cover - exercised whenever numba is installed (a declared dependency)
-    import numba
+def _kernel_numpy(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
+    """The kernel's semantics in vectorised NumPy (``labels`` None: not written).
 
-    _jit = numba.njit(cache=True, nogil=True, boundscheck=False)
-    _kernel = _jit(_kernel_py)
-    _kernel_nolabels = _jit(_kernel_nolabels_py)
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    _kernel, _kernel_nolabels = _kernel_py, _kernel_nolabels_py
-    HAVE_NUMBA = False
+    For small blocks: no compiled code to load (numba's first call costs
+    about half a second); identical counts and labels (integers).
+    """
+    K, P = bins.shape
+    use = rows >= 0
+    r = rows[use]
+    c = bins[use].astype(np.int64)
+    nb1 = hist_raw.shape[1]
+    ok = (c != 0) & (lo[r] <= c) & (c <= hi[r])
+    key = np.arange(P, dtype=np.int64)[None, :] * nb1 + c
+    np.add(hist_raw, np.bincount(key.ravel(), minlength=P * nb1).reshape(P, nb1),
+           out=hist_raw, casting="unsafe")
+    np.add(hist_signal, np.bincount(key[ok], minlength=P * nb1).reshape(P, nb1),
+           out=hist_signal, casting="unsafe")
+    pk, pp = np.nonzero(ok)
+    np.add.at(hist_angle, (pp, r[pk]), 1)
+    if labels is not None:
+        labels[~use] = 0
+        labels[use] = (c != 0) * (2 - ok.astype(np.int64))
+
+
+#: blocks of fewer pixel-slots than this are classified with NumPy (no numba load)
+COMPILE_SLOTS = 1 << 21
+
+_COMPILED: dict = {}
+
+
+def _compiled():
+    """The numba kernels ``(labels, no labels)``, compiled (or loaded from numba's
+    disk cache) on first use; None when numba is absent."""
+    if "k" not in _COMPILED:
+        try:  # pragma: no cover - numba is a declared dependency
+            import numba
+
+            jit = numba.njit(cache=True, nogil=True, boundscheck=False)
+            _COMPILED["k"] = (jit(_kernel_py), jit(_kernel_nolabels_py))
+        except ImportError:  # pragma: no cover
+            _COMPILED["k"] = None
+    return _COMPILED["k"]
 
 
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
                             hist_raw=None, hist_signal=None, want_labels: bool = True,
-                            hist_angle=None, rows=None):
+                            hist_angle=None, rows=None, compiled: bool | None = None):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -102,6 +135,8 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         of ``table``, added to in place (uint32 allocated when None).
     rows : (K,) int64 table rows of the shots (:meth:`IntervalTable.rows`),
         when the caller has them already.
+    compiled : True: the numba kernel; False: the same in NumPy; None (default):
+        numba for blocks of at least :data:`COMPILE_SLOTS` pixel-slots.
 
     Returns
     -------
@@ -126,12 +161,16 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         hist_signal = np.zeros((P, n_bins + 1), dtype=np.uint32)
     if hist_angle is None:
         hist_angle = np.zeros((P, table.n_steps), dtype=np.uint32)
-    if want_labels:
-        labels = np.empty((K, P), dtype=np.uint8)
-        _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+    labels = np.empty((K, P), dtype=np.uint8) if want_labels else None
+    if compiled is None:
+        compiled = b2.size >= COMPILE_SLOTS
+    kernels = _compiled() if compiled else None
+    if kernels is None:
+        _kernel_numpy(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+    elif want_labels:
+        kernels[0](b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
     else:
-        labels = None
-        _kernel_nolabels(b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
+        kernels[1](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
 
 
@@ -242,8 +281,9 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     n_bins = system.tdc.n_bins
     if table is None:
         table = IntervalTable.for_settings(system, settings)
-    K_range = (stop if stop is not None else start + len(theta) - angle_offset) - start
-    dt = _count_dtype(max(0, K_range))
+    K_range = max(0, (stop if stop is not None else start + len(theta) - angle_offset) - start)
+    dt = _count_dtype(K_range)
+    compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
     raw = np.zeros((P, n_bins + 1), dt)
     sig = np.zeros((P, n_bins + 1), dt)
     angle = np.zeros((P, table.n_steps), dt)
@@ -259,7 +299,8 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         rows = table.rows(th, v)
         want = labels_out is not None or truth is not None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
-                                               want_labels=want, hist_angle=angle, rows=rows)
+                                               want_labels=want, hist_angle=angle, rows=rows,
+                                               compiled=compiled)
         n_per_step += np.bincount(rows[rows >= 0], minlength=table.n_steps)
         if labels_out is not None:
             labels_out[s0:s1] = labels

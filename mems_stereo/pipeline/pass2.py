@@ -8,6 +8,7 @@ import numpy as np
 from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.intervals import IntervalTable
+from mems_stereo.pipeline.pass1 import COMPILE_SLOTS
 from mems_stereo.pipeline.settings import Settings
 
 # --------------------------------------------------------------------------
@@ -32,12 +33,7 @@ def decode_peak_keys(keys, n_steps: int, n_codes: int):
     return k // (n_steps * n_codes), (k // n_codes) % n_steps, k % n_codes
 
 
-try:  # pragma: no cover - numba is a declared dependency
-    import numba
-
-    _peak_key = numba.njit(cache=True, inline="always")(_peak_key_py)
-except ImportError:  # pragma: no cover
-    _peak_key = _peak_key_py
+_peak_key = _peak_key_py  # replaced by its compiled form when the kernel is compiled
 
 
 def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb,
@@ -62,14 +58,40 @@ def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n
     return n
 
 
-try:  # pragma: no cover - numba is a declared dependency
-    _window_keys = numba.njit(cache=True, nogil=True, boundscheck=False)(_window_keys_py)
-except NameError:  # pragma: no cover (numba absent)
-    _window_keys = _window_keys_py
+def _window_keys_numpy(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb):
+    """The kernel's semantics in vectorised NumPy (small blocks: no compiled code
+    to load); returns the keys, (M,) int64, in the same (shot, peak) order."""
+    c = bins[:, pix].astype(np.int64)  # (K, Q)
+    j = rows[:, None]
+    jc = np.maximum(rows, 0)
+    m = ((j >= 0) & (j >= step_lo) & (j <= step_hi) & (c != 0) & (win_lo <= c) & (c <= win_hi)
+         & (lo[jc][:, pix] <= c) & (c <= hi[jc][:, pix]))
+    kk, qq = np.nonzero(m)
+    return encode_peak_keys(qq, rows[kk], c[kk, qq], n_steps, nb)
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_window_keys():
+    """The numba kernel, compiled (or loaded from numba's disk cache) on first use;
+    None when numba is absent."""
+    global _peak_key
+    if "k" not in _COMPILED:
+        try:  # pragma: no cover - numba is a declared dependency
+            import numba
+
+            _peak_key = numba.njit(cache=True, inline="always")(_peak_key_py)
+            _COMPILED["k"] = numba.njit(cache=True, nogil=True,
+                                        boundscheck=False)(_window_keys_py)
+        except ImportError:  # pragma: no cover
+            _COMPILED["k"] = None
+    return _COMPILED["k"]
 
 
 def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
-                     n_bins: int, step_lo=None, step_hi=None) -> np.ndarray:
+                     n_bins: int, step_lo=None, step_hi=None,
+                     compiled: bool | None = None) -> np.ndarray:
     """Keys of the signal detections inside the peak windows of a block of shots.
 
     A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
@@ -77,7 +99,9 @@ def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_
     ``[step_lo[q], step_hi[q]]`` (default: any) and the classifier accepted it
     (signal).  Its key is :func:`encode_peak_keys` of ``(q, step, code)``, with
     ``step`` the shot's angle step in ``table`` (S steps, n_bins + 1 codes).  Returns (M,) int64,
-    in shot order.  One compiled pass over the peak pixels only.
+    in shot order.  One compiled pass over the peak pixels only (``compiled``
+    None: for blocks of at least ``COMPILE_SLOTS`` pixel-slots, else the same
+    in NumPy; True/False force either).
     """
     b = np.ascontiguousarray(bins)
     K = b.shape[0]
@@ -90,10 +114,15 @@ def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_
     s_lo = np.zeros(pix.size, np.int64) if step_lo is None else np.asarray(step_lo, np.int64)
     s_hi = (np.full(pix.size, table.n_steps, np.int64) if step_hi is None
             else np.asarray(step_hi, np.int64))
+    args = (b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
+            np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps), int(n_bins) + 1)
+    if compiled is None:
+        compiled = b2.size >= COMPILE_SLOTS
+    kernel = _compiled_window_keys() if compiled else None
+    if kernel is None:
+        return _window_keys_numpy(*args)
     out = np.empty(K * max(1, pix.size), np.int64)
-    n = _window_keys(b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
-                     np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps),
-                     int(n_bins) + 1, out)
+    n = kernel(*args, out)
     return out[:n].copy()
 
 
@@ -163,12 +192,15 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
     pc = PeakCounts()
     if pix.size == 0:
         return pc
+    n_range = (stop if stop is not None else start + len(theta) - angle_offset) - start
+    compiled = n_range * system.receiver.width * system.receiver.height >= COMPILE_SLOTS
     for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
         s1 = s0 + bins.shape[0]
         a, b = s0 - angle_offset, s1 - angle_offset
         pc.add_keys(peak_window_keys(bins, theta[a:b], valid[a:b], table, pix,
                                      peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
-                                     peaks.get("step_lo"), peaks.get("step_hi")))
+                                     peaks.get("step_lo"), peaks.get("step_hi"),
+                                     compiled=compiled))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()

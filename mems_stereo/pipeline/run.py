@@ -143,7 +143,8 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
     progress : callable(n_shots_done) for progress bars.
     table : the :class:`~mems_stereo.pipeline.intervals.IntervalTable` of
         ``system`` and ``settings`` (e.g. filled once and shared by the Dask
-        runner); default: built here, once, and passed to every stage.
+        runner); default: built here, once, with the rows of its disk cache,
+        and passed to every stage (rows filled here go back to the cache).
     """
     st = Settings() if settings is None else settings
     t0 = time.perf_counter()
@@ -158,8 +159,10 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
                           "/shots/bins")
     theta, valid = shot_angles(header, sysm)
     header.shot_time = None  # only the angles are needed from here on: free O(K) memory
-    if table is None:
+    own_table = table is None
+    if own_table:
         table = IntervalTable.for_settings(sysm, st)
+        table.load_cache()
     timings = {"read_header": time.perf_counter() - t0}
 
     t1 = time.perf_counter()
@@ -170,6 +173,8 @@ def process_recording(path: str | os.PathLike, system: System | None = None,
             f.create_dataset("theta", data=np.where(valid, theta, np.nan))
     else:
         acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table)
+    if own_table:
+        table.save_cache()
     timings["classify_histogram"] = time.perf_counter() - t1
     return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                              progress=progress, table=table)
