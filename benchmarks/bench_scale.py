@@ -141,6 +141,10 @@ def main():
     print()
     print("what bounds process_split (client side, per worker count):")
     for n, *_, tm in rows:
+        if "client_serial" not in tm:  # an older pipeline without these figures
+            print(f"  {n:>2} workers: stages " + ", ".join(f"{k} {v:.2f} s"
+                                                      for k, v in tm.items()))
+            continue
         f = tm["client_serial"] / t1_split
         amdahl16 = 1.0 / (f + (1.0 - f) / 16)
         mb = tm["client_bytes"] / 1e6

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mems_stereo.io.recording import iter_shot_chunks
+from mems_stereo.io.recording import iter_shot_chunks, read_system
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.settings import Settings
@@ -116,7 +116,8 @@ def _compiled():
 
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
                             hist_raw=None, hist_signal=None, want_labels: bool = True,
-                            hist_angle=None, rows=None, compiled: bool | None = None):
+                            hist_angle=None, rows=None, compiled: bool | None = None,
+                            codes_checked: bool = False):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -137,6 +138,8 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         when the caller has them already.
     compiled : True: the numba kernel; False: the same in NumPy; None (default):
         numba for blocks of at least :data:`COMPILE_SLOTS` pixel-slots.
+    codes_checked : the caller has checked every code <= n_bins already
+        (:func:`~mems_stereo.io.recording.iter_shot_chunks` does).
 
     Returns
     -------
@@ -148,7 +151,7 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     K = b.shape[0]
     P = int(np.prod(b.shape[1:]))
     b2 = b.reshape(K, P)
-    if b2.size and int(b2.max()) > n_bins:  # the kernel indexes without bounds checks
+    if not codes_checked and b2.size and int(b2.max()) > n_bins:  # kernel: no bounds checks
         from mems_stereo.errors import FormatError
 
         raise FormatError(f"expected codes 0..{n_bins}, found {int(b2.max())}", field="bins")
@@ -284,6 +287,8 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     K_range = max(0, (stop if stop is not None else start + len(theta) - angle_offset) - start)
     dt = _count_dtype(K_range)
     compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
+    # the reader checks codes against the file's n_bins: enough when it is ours too
+    checked = read_system(path).tdc.n_bins <= n_bins
     raw = np.zeros((P, n_bins + 1), dt)
     sig = np.zeros((P, n_bins + 1), dt)
     angle = np.zeros((P, table.n_steps), dt)
@@ -300,7 +305,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         want = labels_out is not None or truth is not None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
                                                want_labels=want, hist_angle=angle, rows=rows,
-                                               compiled=compiled)
+                                               compiled=compiled, codes_checked=checked)
         n_per_step += np.bincount(rows[rows >= 0], minlength=table.n_steps)
         if labels_out is not None:
             labels_out[s0:s1] = labels
