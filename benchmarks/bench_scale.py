@@ -154,6 +154,13 @@ def main():
               f"{tm['table']:.2f} s; gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB "
               f"per part; serial fraction {f:.1%} of one process's {t1_split:.2f} s -> Amdahl "
               f"bound on 16 workers {amdahl16:.1f}x")
+        # the same without the fusion stage, whose cost grows with the background in
+        # the peak windows (issue 14, "points stage proportional to the data")
+        pts1 = one_split.timings["points"]
+        f2 = (tm["client_serial"] - tm["points"]) / max(t1_split - pts1, 1e-9)
+        print(f"      without the points stage (one process {pts1:.2f} s of it): serial "
+              f"fraction {f2:.1%} -> Amdahl bound on 16 workers "
+              f"{1.0 / (f2 + (1.0 - f2) / 16):.1f}x")
     best_s = max(t1_split / r[2] for r in rows)
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "

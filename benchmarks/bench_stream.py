@@ -15,6 +15,9 @@
    imports) with the interval-table disk cache empty (cold) and filled (warm,
    as every later recording of the same system), each with its peak RSS;
    printed against the targets (≤ 4× read + copy, ≥ 20× real time, ≤ 400 MB).
+3. Startup: the second and third run of ``mems-stereo process samples/room.h5``
+   (wall and CPU seconds, interpreter start included) and the import times of
+   NumPy, the package, the pipeline and Open3D (which writing the PLY needs).
 
 Run:  .venv/bin/python benchmarks/bench_stream.py [--gigabytes 2] [--dense-shots 200000 2000000]
       [--dir /tmp]   (--gigabytes 0 or --dense-shots with no number skip a part)
@@ -87,7 +90,7 @@ print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process
 """
 
 
-def dense(shots: int, seed: int, d: Path) -> None:
+def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
     path = d / f"dense{shots}.h5"
     t0 = time.perf_counter()
     info = make_dense_recording(path, shots, seed)
@@ -100,7 +103,14 @@ def dense(shots: int, seed: int, d: Path) -> None:
     print(f"  read + copy its bins: {t_read:.2f} s ({c_read:.2f} s CPU)")
     cache = d / f"cache{shots}"
     env = dict(os.environ, MEMS_STEREO_CACHE=str(cache))
-    for label in ("cold table cache", "warm table cache"):
+    if "cold" not in runs:  # fill the cache here (the rows every recording of the system needs)
+        from mems_stereo.model.system import burkard2022
+        from mems_stereo.pipeline.intervals import IntervalTable
+        from mems_stereo.pipeline.settings import Settings
+
+        os.environ["MEMS_STEREO_CACHE"] = str(cache)
+        IntervalTable.for_settings(burkard2022(), Settings()).fill_all().save_cache()
+    for label in (f"{r} table cache" for r in runs):
         r = measure_child(PROCESS, path, env=env)
         t = r["seconds"]
         ok = (t <= TARGET_READ_RATIO * t_read, real / t >= TARGET_REALTIME,
@@ -116,19 +126,61 @@ def dense(shots: int, seed: int, d: Path) -> None:
               + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}")
 
 
+IMPORTS = r"""
+import json, sys, time
+out = {}
+for mod in sys.argv[1:]:
+    t = time.perf_counter()
+    __import__(mod)
+    out[mod] = time.perf_counter() - t
+out["numba loaded"] = "numba" in sys.modules
+print(json.dumps(out))
+"""
+
+
+def startup(d: Path) -> None:
+    """Second run of ``mems-stereo process samples/room.h5`` (wall, CPU) and import times."""
+    cli = [sys.executable, "-c", "import sys; from mems_stereo.cli import main; "
+           "sys.exit(main(sys.argv[1:]))", "process", str(ROOT / "samples" / "room.h5"),
+           "-o", str(d / "room.ply")]
+    walls, cpus = [], []
+    for _ in range(3):  # the first fills numba's and the table's caches where empty
+        t0 = time.perf_counter()
+        c0 = os.times()
+        subprocess.run(cli, check=True, capture_output=True, cwd=ROOT)
+        c1 = os.times()
+        walls.append(time.perf_counter() - t0)
+        cpus.append((c1.children_user - c0.children_user) + (c1.children_system
+                                                             - c0.children_system))
+    r = measure_child(IMPORTS, "numpy", "mems_stereo", "mems_stereo.pipeline.run", "open3d")
+    print(f"startup: `mems-stereo process samples/room.h5 -o room.ply`, runs 2 and 3: "
+          f"{walls[1]:.2f} s, {walls[2]:.2f} s wall ({cpus[1]:.2f} s, {cpus[2]:.2f} s CPU), "
+          f"interpreter start included (target <= 1.5 s)")
+    print("  imports, one after the other in a fresh process: "
+          + ", ".join(f"{k} {v:.2f} s" for k, v in r.items() if k not in ("maxrss_mb",
+                                                                          "numba loaded"))
+          + f"; numba loaded by these: {r['numba loaded']}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gigabytes", type=float, default=2.0)
     ap.add_argument("--dense-shots", type=int, nargs="*", default=[200_000, 2_000_000])
     ap.add_argument("--seed", type=int, default=14)
+    ap.add_argument("--runs", nargs="+", choices=["cold", "warm"], default=["cold", "warm"],
+                    help="process with the interval-table cache empty and/or filled")
     ap.add_argument("--dir", default=None, help="where to write the recording (default: a "
                                                  "temporary directory, removed afterwards)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the startup figures")
     args = ap.parse_args()
+    if not args.no_startup:
+        with tempfile.TemporaryDirectory(dir=args.dir) as d:
+            startup(Path(d))
     if args.gigabytes > 0:
         stream(args)
     for i, n in enumerate(args.dense_shots):
         with tempfile.TemporaryDirectory(dir=args.dir) as d:
-            dense(n, args.seed + i, Path(d))
+            dense(n, args.seed + i, Path(d), args.runs)
 
 
 def stream(args):
