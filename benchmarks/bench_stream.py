@@ -1,13 +1,26 @@
-"""Streaming a recording larger than memory: peak resident memory and throughput (issue 7).
+"""Streaming throughput and memory on one core (issues 7 and 14).
 
-Writes a dense recording of at least --gigabytes GB (default 2.0; the bins of
-the floodlight sample repeated under a synthetic scan trajectory, written
-chunk by chunk without compression), then processes it in a fresh
-subprocess with ``mems_stereo.pipeline.run.process_recording`` and prints the
-wall time, pixel-slots per second, the real-time factor against the paper's
-3.84 M slots/s, and the peak resident memory (ru_maxrss) of that process.
+1. Streaming a recording larger than memory (issue 7): writes a dense
+   recording of at least --gigabytes GB (default 2.0; the bins of the
+   floodlight sample repeated under a synthetic scan trajectory, written chunk
+   by chunk without compression), then processes it in a fresh subprocess with
+   ``mems_stereo.pipeline.run.process_recording`` and prints the wall time,
+   pixel-slots per second, the real-time factor against the paper's 3.84 M
+   slots/s, and the peak resident memory (ru_maxrss) of that process.
+2. Dense floodlight recordings (issue 14): for each of --dense-shots (default
+   200,000 and 2,000,000 shots) a recording SIMULATED with its own seed
+   (``benchmarks/_dense.py``: 6 MHz background, the room scene, gzip chunks of
+   1024 shots, no truth), then in fresh processes: the time to read and copy
+   its bins, and ``process_recording`` end to end (header to cloud, after the
+   imports) with the interval-table disk cache empty (cold) and filled (warm,
+   as every later recording of the same system), each with its peak RSS;
+   printed against the targets (≤ 4× read + copy, ≥ 20× real time, ≤ 400 MB).
+3. Startup: the second and third run of ``mems-stereo process samples/room.h5``
+   (wall and CPU seconds, interpreter start included) and the import times of
+   NumPy, the package, the pipeline and Open3D (which writing the PLY needs).
 
-Run:  .venv/bin/python benchmarks/bench_stream.py [--gigabytes 2] [--dir /tmp]
+Run:  .venv/bin/python benchmarks/bench_stream.py [--gigabytes 2] [--dense-shots 200000 2000000]
+      [--dir /tmp]   (--gigabytes 0 or --dense-shots with no number skip a part)
 """
 
 from __future__ import annotations
@@ -15,6 +28,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -23,9 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.io.recording import RecordingWriter, read_recording
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _dense import make_dense_recording, measure_child, read_copy_seconds  # noqa: E402
+
+from mems_stereo.io.recording import RecordingWriter, read_recording  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+TARGET_READ_RATIO, TARGET_REALTIME, TARGET_RSS_MB = 4.0, 20.0, 400.0
 
 CHILD = r"""
 import json, resource, sys, time
@@ -59,12 +77,113 @@ def make_recording(path: Path, gigabytes: float) -> int:
     return n
 
 
+PROCESS = r"""
+import json, sys, time
+t0 = time.perf_counter()
+from mems_stereo.pipeline.run import process_recording
+t1 = time.perf_counter()
+c1 = time.process_time()
+res = process_recording(sys.argv[1])
+t2 = time.perf_counter()
+print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process_time() - c1,
+                  "counts": res.counts, "timings": res.timings}))
+"""
+
+
+def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
+    path = d / f"dense{shots}.h5"
+    t0 = time.perf_counter()
+    info = make_dense_recording(path, shots, seed)
+    real = shots / info["f_rep"]
+    print(f"\ndense floodlight, simulated (seed {seed}): {shots} shots x 192 pixels = "
+          f"{real:.0f} s of recording at 20 kHz, {info['bins_bytes'] / 1e6:.0f} MB of bins, "
+          f"{info['bytes_on_disk'] / 1e6:.0f} MB gzip'd on disk (made in "
+          f"{time.perf_counter() - t0:.0f} s)")
+    t_read, c_read = read_copy_seconds(path)
+    print(f"  read + copy its bins: {t_read:.2f} s ({c_read:.2f} s CPU)")
+    cache = d / f"cache{shots}"
+    env = dict(os.environ, MEMS_STEREO_CACHE=str(cache))
+    if "cold" not in runs:  # fill the cache here (the rows every recording of the system needs)
+        from mems_stereo.model.system import burkard2022
+        from mems_stereo.pipeline.intervals import IntervalTable
+        from mems_stereo.pipeline.settings import Settings
+
+        os.environ["MEMS_STEREO_CACHE"] = str(cache)
+        IntervalTable.for_settings(burkard2022(), Settings()).fill_all().save_cache()
+    for label in (f"{r} table cache" for r in runs):
+        r = measure_child(PROCESS, path, env=env)
+        t = r["seconds"]
+        ok = (t <= TARGET_READ_RATIO * t_read, real / t >= TARGET_REALTIME,
+              r["maxrss_mb"] <= TARGET_RSS_MB)
+        print(f"  process_recording, {label}: {t:.2f} s = {t / t_read:.1f}x read+copy "
+              f"(target <= {TARGET_READ_RATIO:g}x: {'met' if ok[0] else 'NOT met'}), "
+              f"{real / t:.1f}x real time (target >= {TARGET_REALTIME:g}x: "
+              f"{'met' if ok[1] else 'NOT met'}), peak RSS {r['maxrss_mb']:.0f} MB (target <= "
+              f"{TARGET_RSS_MB:g}: {'met' if ok[2] else 'NOT met'}); imports "
+              f"{r['import_s']:.2f} s before")
+        print(f"    CPU {r['cpu_s']:.2f} s = {r['cpu_s'] / c_read:.1f}x read+copy CPU; stages: "
+              + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings"].items())
+              + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}")
+
+
+IMPORTS = r"""
+import json, sys, time
+out = {}
+for mod in sys.argv[1:]:
+    t = time.perf_counter()
+    __import__(mod)
+    out[mod] = time.perf_counter() - t
+out["numba loaded"] = "numba" in sys.modules
+print(json.dumps(out))
+"""
+
+
+def startup(d: Path) -> None:
+    """Second run of ``mems-stereo process samples/room.h5`` (wall, CPU) and import times."""
+    cli = [sys.executable, "-c", "import sys; from mems_stereo.cli import main; "
+           "sys.exit(main(sys.argv[1:]))", "process", str(ROOT / "samples" / "room.h5"),
+           "-o", str(d / "room.ply")]
+    walls, cpus = [], []
+    for _ in range(3):  # the first fills numba's and the table's caches where empty
+        t0 = time.perf_counter()
+        c0 = os.times()
+        subprocess.run(cli, check=True, capture_output=True, cwd=ROOT)
+        c1 = os.times()
+        walls.append(time.perf_counter() - t0)
+        cpus.append((c1.children_user - c0.children_user) + (c1.children_system
+                                                             - c0.children_system))
+    r = measure_child(IMPORTS, "numpy", "mems_stereo", "mems_stereo.pipeline.run", "open3d")
+    print(f"startup: `mems-stereo process samples/room.h5 -o room.ply`, runs 2 and 3: "
+          f"{walls[1]:.2f} s, {walls[2]:.2f} s wall ({cpus[1]:.2f} s, {cpus[2]:.2f} s CPU), "
+          f"interpreter start included (target <= 1.5 s)")
+    print("  imports, one after the other in a fresh process: "
+          + ", ".join(f"{k} {v:.2f} s" for k, v in r.items() if k not in ("maxrss_mb",
+                                                                          "numba loaded"))
+          + f"; numba loaded by these: {r['numba loaded']}")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gigabytes", type=float, default=2.0)
+    ap.add_argument("--dense-shots", type=int, nargs="*", default=[200_000, 2_000_000])
+    ap.add_argument("--seed", type=int, default=14)
+    ap.add_argument("--runs", nargs="+", choices=["cold", "warm"], default=["cold", "warm"],
+                    help="process with the interval-table cache empty and/or filled")
     ap.add_argument("--dir", default=None, help="where to write the recording (default: a "
                                                  "temporary directory, removed afterwards)")
+    ap.add_argument("--no-startup", action="store_true", help="skip the startup figures")
     args = ap.parse_args()
+    if not args.no_startup:
+        with tempfile.TemporaryDirectory(dir=args.dir) as d:
+            startup(Path(d))
+    if args.gigabytes > 0:
+        stream(args)
+    for i, n in enumerate(args.dense_shots):
+        with tempfile.TemporaryDirectory(dir=args.dir) as d:
+            dense(n, args.seed + i, Path(d), args.runs)
+
+
+def stream(args):
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         path = Path(d) / "big.h5"
         t0 = time.perf_counter()
@@ -72,8 +191,10 @@ def main():
         size = path.stat().st_size
         print(f"recording: {n} shots x 192 pixels, {size / 1e9:.2f} GB on disk, written in "
               f"{time.perf_counter() - t0:.1f} s")
+        # a cold interval-table cache, as when this figure was first measured
+        env = dict(os.environ, MEMS_STEREO_CACHE=str(Path(d) / "cache"))
         out = subprocess.run([sys.executable, "-c", CHILD, str(path)], capture_output=True,
-                             text=True, check=True, cwd=ROOT)
+                             text=True, check=True, cwd=ROOT, env=env)
         r = json.loads(out.stdout.strip().splitlines()[-1])
     slots = n * 192
     print(f"processed in {r['seconds']:.1f} s (both passes): {slots / r['seconds'] / 1e6:.1f} M "

@@ -38,6 +38,16 @@ def test_split_recording_equals_one_process(client):
     one = process_recording(SAMPLES / "room.h5")
     split = process_split(SAMPLES / "room.h5", scheduler=client, n_parts=5)
     _same(one, split)
+    # the parts are summed on the workers: the client receives one pass-1 result
+    # (uint32 raw + signal histograms and per-angle counts) and one pass-2 result
+    P, S = 192, 9140
+    one_result = P * 4097 * 4 * 2 + P * S * 4
+    t = split.timings
+    assert t["parts"] == 5
+    assert one_result <= t["client_bytes"] < one_result + 1e6
+    assert 0 < t["client_serial"] < sum(v for k, v in t.items()
+                                        if k in ("read_header", "classify_histogram", "peaks",
+                                                 "peak_detections", "points"))
 
 
 def test_many_recordings_equal_one_process(client):

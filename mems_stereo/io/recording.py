@@ -260,6 +260,18 @@ def read_header(path: str | os.PathLike | Recording,
     return RecordingHeader(system, t, zc, rising, shape, source)
 
 
+def read_system(path: str | os.PathLike) -> System:
+    """The recorded ``/system`` of a recording (format attributes checked; O(1): the
+    shots are not read — :func:`read_header` validates them)."""
+    source = str(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as e:
+        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
+    with f:
+        return validate_header(f, source)
+
+
 def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
                      start: int = 0, stop: int | None = None,
                      truth_labels: bool = False) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:

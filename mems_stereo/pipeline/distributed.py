@@ -9,6 +9,17 @@ are integers), so the outcome is identical to one process, bit for bit.
   (classify + histograms) per range, peaks on the client, pass 2 (peak
   counts) per range, points on the client.
 
+What keeps the client's serial share small (``docs/throughput.md``):
+
+* the interval table of a run is built once: its rows are computed by the
+  workers in parallel (:func:`fill_table`), assembled on the client and
+  scattered to every worker once;
+* each part receives only its own slice of the scan angles;
+* the parts' results are summed on the workers in a tree of groups of
+  :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
+  and ONE pass-2 result whatever the number of parts; the pass-1 counts travel
+  as uint32, as their non-zero entries where that is smaller.
+
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
 address of an existing scheduler (``tcp://host:8786``), or a ready
@@ -24,14 +35,17 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from mems_stereo.io.recording import read_header
-from mems_stereo.model.system import System
+from mems_stereo.io.recording import read_header, read_system
+from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
-from mems_stereo.pipeline.intervals import install_tables, interval_table, table_key
+from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import accumulate_range
 from mems_stereo.pipeline.pass2 import peak_counts_range
 from mems_stereo.pipeline.run import ProcessResult, finish_processing, process_recording
 from mems_stereo.pipeline.settings import Settings
+
+#: parts summed per task of the reduction tree
+FAN_IN = 4
 
 
 @contextlib.contextmanager
@@ -61,20 +75,62 @@ def dask_client(scheduler="local", n_workers: int = 2):
         yield client
 
 
-def _tables_for(systems, settings: Settings) -> dict:
-    """Filled interval tables of the given systems, keyed as the workers' caches are."""
-    out = {}
-    for sysm in systems:
-        key = table_key(sysm, settings.confidence, min_range=settings.min_range)
-        if key not in out:
-            out[key] = interval_table(sysm, settings.confidence,
-                                      min_range=settings.min_range).fill_all()
-    return out
+def _n_workers(client) -> int:
+    return max(1, len(client.scheduler_info().get("workers", {})))
 
 
-def _process_task(path, system, settings, tables):
-    install_tables(tables)
-    return process_recording(path, system=system, settings=settings)
+def _sum(*parts):
+    total = parts[0]
+    for p in parts[1:]:
+        total = total + p
+    return total
+
+
+def tree_sum(client, futures: list, fan_in: int = FAN_IN):
+    """One future of the sum of ``futures``, summed on the workers in groups of ``fan_in``.
+
+    Exact for integer results (any grouping gives the same sum); the client
+    only ever receives the final sum.
+    """
+    futures = list(futures)
+    while len(futures) > 1:
+        futures = [futures[i] if len(futures[i:i + fan_in]) == 1 else
+                   client.submit(_sum, *futures[i:i + fan_in], pure=False)
+                   for i in range(0, len(futures), fan_in)]
+    return futures[0]
+
+
+def _table_rows(system: System, settings: Settings, rows):
+    table = IntervalTable.for_settings(system, settings)
+    return table.compute_rows(rows)
+
+
+def fill_table(client, table: IntervalTable, rows=None, settings: Settings | None = None
+               ) -> IntervalTable:
+    """Fill ``rows`` (default: all) of ``table`` on the workers in parallel; returns it.
+
+    Rows in the disk cache are taken from it; the others are split into one
+    contiguous block per worker; each worker computes its block with the
+    reference (:meth:`IntervalTable.compute_rows`, identical to filling here),
+    the client stores them and writes them to the cache.
+    """
+    table.load_cache()
+    need = table.missing(np.arange(table.n_steps) if rows is None else rows)
+    if need.size == 0:
+        return table
+    st = settings if settings is not None else Settings(table.confidence,
+                                                        min_range=table.min_range)
+    blocks = [b for b in np.array_split(need, _n_workers(client)) if b.size]
+    futs = client.map(_table_rows, [table.system] * len(blocks), [st] * len(blocks), blocks,
+                      pure=False)
+    for b, (lo, hi) in zip(blocks, client.gather(futs)):
+        table.put_rows(b, lo, hi)
+    table.save_cache()
+    return table
+
+
+def _process_task(path, system, settings, table):
+    return process_recording(path, system=system, settings=settings, table=table)
 
 
 def process_many(paths: Sequence, system: System | None = None,
@@ -82,16 +138,22 @@ def process_many(paths: Sequence, system: System | None = None,
                  n_workers: int = 2) -> list[ProcessResult]:
     """Process several recordings on a Dask cluster, one task each (results in order).
 
-    The interval tables of the recordings' systems are filled once here and
-    broadcast to the workers, so no worker spends time compiling them.
+    The interval table of each distinct system is filled once, on the workers
+    in parallel, and scattered to every worker, so no task computes one.
     """
     st = Settings() if settings is None else settings
-    systems = [system] if system is not None else [read_header(p).system for p in paths]
-    tables = _tables_for(systems, st)
+    systems = [system] * len(paths) if system is not None else [read_system(p) for p in paths]
     with dask_client(scheduler, n_workers) as client:
-        tables_f = client.scatter(tables, broadcast=True)
-        futures = client.map(_process_task, [str(p) for p in paths], system=system,
-                             settings=st, tables=tables_f, pure=False)
+        tables, keys = {}, []
+        for sysm in systems:
+            key = system_to_json(sysm)
+            if key not in tables:
+                tables[key] = fill_table(client, IntervalTable.for_settings(sysm, st),
+                                         settings=st)
+            keys.append(key)
+        scattered = {k: client.scatter(t, broadcast=True) for k, t in tables.items()}
+        futures = [client.submit(_process_task, str(p), system, st, scattered[k], pure=False)
+                   for p, k in zip(paths, keys)]
         return client.gather(futures)
 
 
@@ -104,37 +166,68 @@ def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
 def process_split(path, system: System | None = None, settings: Settings | None = None,
                   scheduler="local", n_workers: int = 2, n_parts: int | None = None
                   ) -> ProcessResult:
-    """Process one (large) recording split by shot ranges over Dask workers."""
+    """Process one (large) recording split by shot ranges over Dask workers.
+
+    ``n_parts`` : shot ranges (default: 4 per worker).  ``timings`` of the
+    result add the client's own serial seconds (``client_serial``) and the
+    bytes it received (``client_bytes``).
+    """
     st = Settings() if settings is None else settings
+    t_all = time.perf_counter()
     header = read_header(path)
     sysm = header.system if system is None else system
     theta, valid = shot_angles(header, sysm)
+    header.shot_time = None
     K = header.shape[0]
-    parts = shot_ranges(K, n_parts or 4 * n_workers)
-    timings = {}
-    tables = _tables_for([sysm], st)
+    timings = {"read_header": time.perf_counter() - t_all}
+    table = IntervalTable.for_settings(sysm, st)
+    serial = timings["read_header"]
     with dask_client(scheduler, n_workers) as client:
+        parts = shot_ranges(K, n_parts or 4 * _n_workers(client))
         t0 = time.perf_counter()
-        client.run(install_tables, tables)
-        th_f, va_f = client.scatter([theta, valid], broadcast=True)
-        accs = client.gather([client.submit(accumulate_range, str(path), sysm, th_f, va_f, st,
-                                            a, b, pure=False) for a, b in parts])
-        acc = accs[0]
-        for a in accs[1:]:
-            acc = acc + a
-        timings["classify_histogram"] = time.perf_counter() - t0
+        t_s = time.perf_counter()
+        rows = table.rows(theta, valid)
+        serial += time.perf_counter() - t_s
+        fill_table(client, table, rows, settings=st)
+        del rows
+        table_f = client.scatter(table, broadcast=True)
+        angle_f = [client.scatter((theta[a:b], valid[a:b])) for a, b in parts]
+        timings["table"] = time.perf_counter() - t0
+
+        t1 = time.perf_counter()
+        accs = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
+                for ang, (a, b) in zip(angle_f, parts)]
+        acc = tree_sum(client, accs).result()
+        timings["classify_histogram"] = time.perf_counter() - t1
+        nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
 
         def count_peaks(peaks):
             # pass 2 needs only the pixels, windows and bands; send them once
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
-            pk_f = client.scatter([light], broadcast=True)[0]
-            parts_pc = client.gather([
-                client.submit(peak_counts_range, str(path), sysm, th_f, va_f, st, pk_f, a, b,
-                              pure=False) for a, b in parts])
-            total = parts_pc[0]
-            for p in parts_pc[1:]:
-                total = total + p
+            pk_f = client.scatter(light, broadcast=True)
+            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, pk_f, a, b, table_f,
+                                 pure=False) for ang, (a, b) in zip(angle_f, parts)]
+            total = tree_sum(client, pcs).result()
+            count_peaks.nbytes = total.keys.nbytes + total.counts.nbytes
             return total
 
-        return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                                 count_peaks=count_peaks)
+        res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                                count_peaks=count_peaks, table=table)
+    t = res.timings
+    # the client's serial work: header and angles, rows of the table, peaks, points
+    t["client_serial"] = serial + t["peaks"] + t["points"]
+    t["client_bytes"] = float(nbytes + getattr(count_peaks, "nbytes", 0))
+    t["parts"] = float(len(parts))
+    return res
+
+
+def _pass1_part(path, system, angles, settings, start, stop, table):
+    theta, valid = angles
+    return accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
+                            angle_offset=start)
+
+
+def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
+    theta, valid = angles
+    return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
+                             table=table, angle_offset=start)

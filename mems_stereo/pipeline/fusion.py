@@ -62,12 +62,12 @@ from mems_stereo.physics.first_photon import (
 from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.pass2 import PeakCounts
+from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.settings import Settings
 
 
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
-                       shots_per_step=None):
+                       shots_per_step=None, table=None):
     """The cloud: one fused point per peak from its counted detections.
 
     Each distinct (peak, step, code) is triangulated once at the step's grid
@@ -80,12 +80,14 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     table (:func:`~mems_stereo.pipeline.intervals.shots_per_step`): with it the ToF and
     fused estimates are corrected for the first-photon delay
     (:class:`~mems_stereo.pipeline.fusion.PeakAccumulator`).
+    ``table`` : the run's interval table (default: a new one; only its grid is used).
     """
 
-    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    if table is None:
+        table = interval_table(system, settings.confidence, min_range=settings.min_range)
     S, nb = table.n_steps, system.tdc.n_bins + 1
     k = counts.keys
-    q, step, code = k // (S * nb), (k // nb) % S, k % nb
+    q, step, code = decode_peak_keys(k, S, nb)
     theta = table.theta_min + step * table.step
     weight = counts.counts.astype(np.float64)
     background = None

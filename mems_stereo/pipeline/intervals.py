@@ -18,15 +18,20 @@ angles gives labels identical to the fast path; the tests check exactly that.
 
 from __future__ import annotations
 
+import contextlib
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 
 from mems_stereo.geometry.uncertainty import Spreads
-from mems_stereo.model.system import System, system_to_json
+from mems_stereo.model.system import System
 from mems_stereo.pipeline.consistency import DEFAULT_CONFIDENCE, accepted_code_intervals
 
 DEFAULT_THETA_STEP = 5e-5  # rad
+FILL_BLOCK = 128  # rows computed per call of the reference (bounded, cache-sized temporaries)
 
 
 class IntervalTable:
@@ -61,10 +66,21 @@ class IntervalTable:
         self.lo = np.ones((n, P), dtype=np.uint16)
         self.hi = np.zeros((n, P), dtype=np.uint16)
         self.filled = np.zeros(n, dtype=bool)
+        self._n_saved = 0  # filled rows the disk cache holds (see save_cache)
+
+    @classmethod
+    def for_settings(cls, system: System, settings) -> IntervalTable:
+        """The (empty) table of a run: ``settings`` is a
+        :class:`~mems_stereo.pipeline.settings.Settings` (confidence, min_range)."""
+        return cls(system, settings.confidence, min_range=settings.min_range)
 
     @property
     def n_steps(self) -> int:
         return int(self.lo.shape[0])
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.lo.shape[1])
 
     def index(self, theta) -> np.ndarray:
         """Row index of each angle, (K,) int64; −1 for NaN or off the grid."""
@@ -74,74 +90,200 @@ class IntervalTable:
         ok = np.isfinite(j) & (j >= 0) & (j < self.n_steps)
         return np.where(ok, j, -1).astype(np.int64)
 
+    def rows(self, theta, valid) -> np.ndarray:
+        """Row of each shot, (K,) int64; −1 where the shot is left out (not
+        ``valid``, NaN or off the grid)."""
+        r = self.index(theta)
+        r[~np.asarray(valid, dtype=bool)] = -1
+        return r
+
     def snap(self, theta) -> np.ndarray:
         """The grid angle each shot is classified with, (K,) rad (NaN off the grid)."""
         j = self.index(theta)
         return np.where(j >= 0, self.theta_min + j * self.step, np.nan)
 
+    def compute_rows(self, rows) -> tuple[np.ndarray, np.ndarray]:
+        """``(lo, hi)`` (R, P) uint16 of the given rows ((R,) int, each 0..S−1), computed
+        by the reference in blocks of :data:`FILL_BLOCK` rows; the table is not changed
+        (workers compute blocks of rows for one table, see
+        :mod:`mems_stereo.pipeline.distributed`)."""
+        need = np.asarray(rows, dtype=np.int64)
+        lo_out = np.empty((need.size, self.n_pixels), np.uint16)
+        hi_out = np.empty((need.size, self.n_pixels), np.uint16)
+        for a in range(0, need.size, FILL_BLOCK):
+            grid = self.theta_min + self.step * need[a:a + FILL_BLOCK]
+            lo, hi = accepted_code_intervals(self.system, grid, self.confidence, self.spreads,
+                                             chunk_shots=FILL_BLOCK, min_range=self.min_range)
+            lo = lo.reshape(grid.size, -1)
+            hi = hi.reshape(grid.size, -1)
+            empty = lo > hi
+            lo_out[a:a + grid.size] = np.where(empty, 1, np.clip(lo, 0, 65535))
+            hi_out[a:a + grid.size] = np.where(empty, 0, np.clip(hi, 0, 65535))
+        return lo_out, hi_out
+
+    def put_rows(self, rows, lo, hi) -> None:
+        """Store rows computed by :meth:`compute_rows` (here or on a worker)."""
+        r = np.asarray(rows, dtype=np.int64)
+        self.lo[r] = lo
+        self.hi[r] = hi
+        self.filled[r] = True
+
+    def missing(self, rows) -> np.ndarray:
+        """The distinct rows among ``rows`` ((K,) int, −1 ignored) not yet filled, sorted."""
+        r = np.asarray(rows)
+        r = np.unique(r[r >= 0])
+        return r[~self.filled[r]]
+
     def ensure(self, rows) -> None:
         """Compute the rows not yet filled among ``rows`` ((K,) int, −1 ignored)."""
-        r = np.unique(np.asarray(rows)[np.asarray(rows) >= 0])
-        need = r[~self.filled[r]]
-        if need.size == 0:
-            return
-        grid = self.theta_min + self.step * need
-        lo, hi = accepted_code_intervals(self.system, grid, self.confidence, self.spreads,
-                                         chunk_shots=512, min_range=self.min_range)
-        lo = lo.reshape(need.size, -1)
-        hi = hi.reshape(need.size, -1)
-        empty = lo > hi
-        self.lo[need] = np.where(empty, 1, np.clip(lo, 0, 65535)).astype(np.uint16)
-        self.hi[need] = np.where(empty, 0, np.clip(hi, 0, 65535)).astype(np.uint16)
-        self.filled[need] = True
+        need = self.missing(rows)
+        if need.size:
+            self.put_rows(need, *self.compute_rows(need))
 
     def fill_all(self) -> IntervalTable:
         """Compute every row now (e.g. before sending the table to workers)."""
         self.ensure(np.arange(self.n_steps))
         return self
 
+    def load_cache(self) -> int:
+        """Take the rows the disk cache holds for this table (see the module
+        docstring); returns how many rows were added."""
+        n = _cache_load(self)
+        self._n_saved = int(np.count_nonzero(self.filled))
+        return n
+
+    def save_cache(self) -> bool:
+        """Write the filled rows to the disk cache if rows were filled since
+        :meth:`load_cache` (or ever); returns whether a file was written."""
+        if int(np.count_nonzero(self.filled)) <= self._n_saved:
+            return False
+        ok = _cache_save(self)
+        self._n_saved = int(np.count_nonzero(self.filled))
+        return ok
+
+    def shots_per_step(self, theta, valid, block: int = 1 << 20) -> np.ndarray:
+        """Number of valid shots classified with each angle step, (S,) int64."""
+        n = np.zeros(self.n_steps, np.int64)
+        th = np.asarray(theta)
+        va = np.asarray(valid, dtype=bool)
+        for a in range(0, th.size, block):  # blocks keep the temporaries small
+            rows = self.index(th[a:a + block])
+            n += np.bincount(rows[(rows >= 0) & va[a:a + block]], minlength=self.n_steps)
+        return n
+
+
+# --------------------------------------------------------------------------
+# disk cache of filled rows
+
+#: sources whose text changes the rows (relative to the package folder)
+_ROW_SOURCES = ("errors.py", "model", "geometry", "physics", "pipeline/consistency.py",
+                "pipeline/intervals.py", "io/labels.py")
+_MAX_CACHED_TABLES = 16
+
+
+def cache_dir() -> Path | None:
+    """Folder of the table cache (``$MEMS_STEREO_CACHE``, default ``~/.cache/mems-stereo``);
+    None when ``MEMS_STEREO_CACHE`` is ``off``, ``0`` or empty."""
+    v = os.environ.get("MEMS_STEREO_CACHE")
+    if v is None:
+        return Path.home() / ".cache" / "mems-stereo"
+    if v.strip().lower() in ("", "0", "off", "no", "false"):
+        return None
+    return Path(v)
+
+
+_SOURCE_DIGEST: list = []
+
+
+def _source_digest() -> bytes:
+    if not _SOURCE_DIGEST:
+        import cv2
+        import scipy
+
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for rel in _ROW_SOURCES:
+            p = root / rel
+            for f in sorted(p.rglob("*.py")) if p.is_dir() else [p]:
+                h.update(str(f.relative_to(root)).encode())
+                h.update(f.read_bytes())
+        h.update(f"{np.__version__} {scipy.__version__} {cv2.__version__}".encode())
+        _SOURCE_DIGEST.append(h.digest())
+    return _SOURCE_DIGEST[0]
+
+
+def _cache_key(table: IntervalTable) -> str:
+    from mems_stereo.model.system import system_to_json
+
+    h = hashlib.sha256(_source_digest())
+    h.update(system_to_json(table.system).encode())
+    h.update(repr((float(table.confidence), repr(table.spreads), table.min_range,
+                   table.theta_min, table.step, table.lo.shape)).encode())
+    return h.hexdigest()[:32]
+
+
+def _load_rows(path: Path, table: IntervalTable):
+    try:
+        with np.load(path) as z:
+            lo, hi, filled = z["lo"], z["hi"], z["filled"]
+    except Exception:  # noqa: BLE001 - an unreadable cache file is ignored
+        return None
+    if lo.shape != table.lo.shape or hi.shape != lo.shape or filled.shape != table.filled.shape:
+        return None
+    return lo, hi, filled.astype(bool)
+
+
+def _cache_load(table: IntervalTable) -> int:
+    d = cache_dir()
+    if d is None:
+        return 0
+    got = _load_rows(d / f"intervals-{_cache_key(table)}.npz", table)
+    if got is None:
+        return 0
+    lo, hi, filled = got
+    new = filled & ~table.filled
+    table.put_rows(np.flatnonzero(new), lo[new], hi[new])
+    return int(np.count_nonzero(new))
+
+
+def _cache_save(table: IntervalTable) -> bool:
+    d = cache_dir()
+    if d is None:
+        return False
+    from mems_stereo.util.atomic import atomic_output
+
+    path = d / f"intervals-{_cache_key(table)}.npz"
+    try:
+        got = _load_rows(path, table) if path.exists() else None
+        if got is not None:  # another process may have added rows meanwhile
+            lo, hi, filled = got
+            new = filled & ~table.filled
+            table.put_rows(np.flatnonzero(new), lo[new], hi[new])
+        with atomic_output(path) as tmp, open(tmp, "wb") as f:
+            np.savez(f, lo=table.lo, hi=table.hi, filled=table.filled)
+        old = sorted(d.glob("intervals-*.npz"), key=lambda p: p.stat().st_mtime)
+        for p in old[:-_MAX_CACHED_TABLES]:
+            with contextlib.suppress(OSError):
+                p.unlink()
+    except OSError:
+        return False
+    return True
+
 
 def shots_per_step(table: IntervalTable, theta, valid, block: int = 1 << 20) -> np.ndarray:
-    """Number of valid shots classified with each angle step of ``table``, (S,) int64."""
-    n = np.zeros(table.n_steps, np.int64)
-    th = np.asarray(theta)
-    va = np.asarray(valid, dtype=bool)
-    for a in range(0, th.size, block):  # blocks keep the temporaries small
-        rows = table.index(th[a:a + block])
-        n += np.bincount(rows[(rows >= 0) & va[a:a + block]], minlength=table.n_steps)
-    return n
-
-
-_TABLE_CACHE: dict = {}
-
-
-def table_key(system: System, confidence: float = DEFAULT_CONFIDENCE,
-              spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
-              margin: float = 0.1, min_range: float | None = None) -> tuple:
-    """The cache key of a table: everything its rows depend on."""
-    return (system_to_json(system), confidence, repr(spreads), step, margin, min_range)
-
-
-def install_tables(tables: dict) -> None:
-    """Put ready tables ({key: IntervalTable}) into this process's cache (Dask workers)."""
-    for key, table in tables.items():
-        _TABLE_CACHE[key] = table
+    """Number of valid shots classified with each angle step of ``table``, (S,) int64
+    (:meth:`IntervalTable.shots_per_step`)."""
+    return table.shots_per_step(theta, valid, block)
 
 
 def interval_table(system: System, confidence: float = DEFAULT_CONFIDENCE,
                    spreads: Spreads | None = None, step: float = DEFAULT_THETA_STEP,
                    margin: float = 0.1, min_range: float | None = None) -> IntervalTable:
-    """The (cached, lazily filled) :class:`IntervalTable` of a system and settings.
+    """A new, empty (lazily filled) :class:`IntervalTable` of a system and settings.
 
-    The grid covers ``θ0 ± θ_mech,max·(1 + margin)``; shots outside it are
-    left out like shots of unknown angle.  Filling all rows of the paper's
-    system (≈ 9,100 steps of 50 µrad × 192 pixels) takes a few seconds once.
+    Build one per run and pass it to the stages; nothing is cached between
+    calls.  The grid covers ``θ0 ± θ_mech,max·(1 + margin)``; shots outside it
+    are left out like shots of unknown angle.  Filling all rows of the paper's
+    system (≈ 9,100 steps of 50 µrad × 192 pixels) takes about a second.
     """
-    key = table_key(system, confidence, spreads, step, margin, min_range)
-    table = _TABLE_CACHE.get(key)
-    if table is None:
-        if len(_TABLE_CACHE) >= 8:
-            _TABLE_CACHE.clear()
-        table = _TABLE_CACHE[key] = IntervalTable(system, confidence, spreads, step, margin,
-                                                  min_range)
-    return table
+    return IntervalTable(system, confidence, spreads, step, margin, min_range)

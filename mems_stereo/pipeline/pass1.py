@@ -2,7 +2,8 @@
 
 The compiled kernel looks each shot's accepted code interval up in the
 :class:`~mems_stereo.pipeline.intervals.IntervalTable`; the pure-Python
-kernels beside it are its reference semantics (used when numba is absent).
+kernels beside it are its reference semantics; small recordings use the same
+semantics in vectorised NumPy, so that they never load compiled code.
 """
 
 from __future__ import annotations
@@ -12,10 +13,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mems_stereo.io.recording import iter_shot_chunks
+from mems_stereo.io.recording import iter_shot_chunks, read_system
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.intervals import IntervalTable, interval_table
+from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.settings import Settings
+
+#: counts of a shot range fit in uint32 while the range has fewer shots than this
+UINT32_SHOTS = 1 << 32
 
 # --------------------------------------------------------------------------
 # compiled kernel
@@ -27,12 +31,13 @@ def _kernel_py(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
     bins : (K, P) uint16, codes <= n_bins (checked by the caller: the kernel
     does no bounds checks); rows : (K,) int64 table row (−1: shot left out,
     label 0, not counted); lo, hi : (S, P) uint16; labels : (K, P) uint8 out;
-    hist_raw, hist_signal : (P, n_bins + 1) int32 added to in place (column N
-    counts code N; column 0 of ``hist_raw`` counts the slots without a
-    detection); hist_angle : (P, S) int64, signal detections per pixel and
-    angle step, added to in place.  Codes are cast to int64 before any arithmetic (numba would
-    otherwise mix unsigned and signed integers through float64); the loop
-    body has a single data-dependent branch (the rare signal count).
+    hist_raw, hist_signal : (P, n_bins + 1) integer (uint32 in the pipeline)
+    added to in place (column N counts code N; column 0 of ``hist_raw`` counts
+    the slots without a detection); hist_angle : (P, S) integer (uint32),
+    signal detections per pixel and angle step, added to in place.  Codes
+    are cast to int64 before any arithmetic (numba would otherwise mix
+    unsigned and signed integers through float64); the loop body has a
+    single data-dependent branch (the rare signal count).
     """
     K, P = bins.shape
     for k in range(K):
@@ -66,21 +71,54 @@ def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle):
                 hist_angle[p, j] += 1
 
 
-try:  # pragma: no cover - exercised whenever numba is installed (a declared dependency)
-    import numba
+def _kernel_numpy(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
+    """The kernel's semantics in vectorised NumPy (``labels`` None: not written).
 
-    _jit = numba.njit(cache=True, nogil=True, boundscheck=False)
-    _kernel = _jit(_kernel_py)
-    _kernel_nolabels = _jit(_kernel_nolabels_py)
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    _kernel, _kernel_nolabels = _kernel_py, _kernel_nolabels_py
-    HAVE_NUMBA = False
+    For small blocks: no compiled code to load (numba's first call costs
+    about half a second); identical counts and labels (integers).
+    """
+    K, P = bins.shape
+    use = rows >= 0
+    r = rows[use]
+    c = bins[use].astype(np.int64)
+    nb1 = hist_raw.shape[1]
+    ok = (c != 0) & (lo[r] <= c) & (c <= hi[r])
+    key = np.arange(P, dtype=np.int64)[None, :] * nb1 + c
+    np.add(hist_raw, np.bincount(key.ravel(), minlength=P * nb1).reshape(P, nb1),
+           out=hist_raw, casting="unsafe")
+    np.add(hist_signal, np.bincount(key[ok], minlength=P * nb1).reshape(P, nb1),
+           out=hist_signal, casting="unsafe")
+    pk, pp = np.nonzero(ok)
+    np.add.at(hist_angle, (pp, r[pk]), 1)
+    if labels is not None:
+        labels[~use] = 0
+        labels[use] = (c != 0) * (2 - ok.astype(np.int64))
+
+
+#: blocks of fewer pixel-slots than this are classified with NumPy (no numba load)
+COMPILE_SLOTS = 1 << 21
+
+_COMPILED: dict = {}
+
+
+def _compiled():
+    """The numba kernels ``(labels, no labels)``, compiled (or loaded from numba's
+    disk cache) on first use; None when numba is absent."""
+    if "k" not in _COMPILED:
+        try:  # pragma: no cover - numba is a declared dependency
+            import numba
+
+            jit = numba.njit(cache=True, nogil=True, boundscheck=False)
+            _COMPILED["k"] = (jit(_kernel_py), jit(_kernel_nolabels_py))
+        except ImportError:  # pragma: no cover
+            _COMPILED["k"] = None
+    return _COMPILED["k"]
 
 
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
                             hist_raw=None, hist_signal=None, want_labels: bool = True,
-                            hist_angle=None):
+                            hist_angle=None, rows=None, compiled: bool | None = None,
+                            codes_checked: bool = False):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -90,13 +128,19 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         not counted).
     table : :class:`IntervalTable` of the system (rows filled on demand).
     n_bins : codes above it raise :class:`~mems_stereo.errors.FormatError`.
-    hist_raw, hist_signal : (H*W, n_bins + 1) int32, added to in place
-        (allocated when None).  Column N counts code N; column 0 of
-        ``hist_raw`` counts valid pixel-slots without a detection.  The noise
-        histogram is ``hist_raw − hist_signal`` (columns 1..n_bins).
+    hist_raw, hist_signal : (H*W, n_bins + 1) integer counts, added to in
+        place (uint32 allocated when None).  Column N counts code N; column 0
+        of ``hist_raw`` counts valid pixel-slots without a detection.  The
+        noise histogram is ``hist_raw − hist_signal`` (columns 1..n_bins).
     want_labels : return the (K, H, W) uint8 labels (else None).
-    hist_angle : (H*W, S) int64, signal detections per pixel and angle step of
-        ``table``, added to in place (allocated when None).
+    hist_angle : (H*W, S) integer, signal detections per pixel and angle step
+        of ``table``, added to in place (uint32 allocated when None).
+    rows : (K,) int64 table rows of the shots (:meth:`IntervalTable.rows`),
+        when the caller has them already.
+    compiled : True: the numba kernel; False: the same in NumPy; None (default):
+        numba for blocks of at least :data:`COMPILE_SLOTS` pixel-slots.
+    codes_checked : the caller has checked every code <= n_bins already
+        (:func:`~mems_stereo.io.recording.iter_shot_chunks` does).
 
     Returns
     -------
@@ -108,89 +152,162 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     K = b.shape[0]
     P = int(np.prod(b.shape[1:]))
     b2 = b.reshape(K, P)
-    if b2.size and int(b2.max()) > n_bins:  # the kernel indexes without bounds checks
+    if not codes_checked and b2.size and int(b2.max()) > n_bins:  # kernel: no bounds checks
         from mems_stereo.errors import FormatError
 
         raise FormatError(f"expected codes 0..{n_bins}, found {int(b2.max())}", field="bins")
-    rows = table.index(theta)
-    rows[~np.asarray(valid, dtype=bool)] = -1
+    if rows is None:
+        rows = table.rows(theta, valid)
     table.ensure(rows)
     if hist_raw is None:
-        hist_raw = np.zeros((P, n_bins + 1), dtype=np.int32)
+        hist_raw = np.zeros((P, n_bins + 1), dtype=np.uint32)
     if hist_signal is None:
-        hist_signal = np.zeros((P, n_bins + 1), dtype=np.int32)
+        hist_signal = np.zeros((P, n_bins + 1), dtype=np.uint32)
     if hist_angle is None:
-        hist_angle = np.zeros((P, table.n_steps), dtype=np.int64)
-    if want_labels:
-        labels = np.empty((K, P), dtype=np.uint8)
-        _kernel(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+        hist_angle = np.zeros((P, table.n_steps), dtype=np.uint32)
+    labels = np.empty((K, P), dtype=np.uint8) if want_labels else None
+    if compiled is None:
+        compiled = b2.size >= COMPILE_SLOTS
+    kernels = _compiled() if compiled else None
+    if kernels is None:
+        _kernel_numpy(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+    elif want_labels:
+        kernels[0](b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
     else:
-        labels = None
-        _kernel_nolabels(b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
+        kernels[1](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
+
+
+def _count_dtype(n_shots: int):
+    """uint32 while every count of ``n_shots`` shots fits, else int64."""
+    return np.uint32 if n_shots < UINT32_SHOTS else np.int64
+
+
+# compact transfer of a part's counts between processes (Dask): a count array is
+# pickled as its non-zero entries when that is smaller than the dense array
+def _pack(a: np.ndarray):
+    nz = np.flatnonzero(a)
+    if nz.size * (4 + a.itemsize) < a.nbytes and a.size < (1 << 32):
+        return ("sparse", a.shape, a.dtype.str, nz.astype(np.uint32), a.ravel()[nz])
+    return ("dense", a)
+
+
+def _unpack(x) -> np.ndarray:
+    if x[0] == "dense":
+        return x[1]
+    _, shape, dtype, idx, values = x
+    a = np.zeros(int(np.prod(shape)), dtype=np.dtype(dtype))
+    a[idx] = values
+    return a.reshape(shape)
+
+
+_COUNT_FIELDS = ("hist_raw", "hist_signal", "hist_angle")
 
 
 @dataclass
 class RangeAccumulation:
     """What pass 1 returns for a shot range; sums over ranges with ``+``.
 
-    hist_raw, hist_signal : (P, n_bins + 1) int64, column N = code N (column
-        0: valid pixel-slots without detection).
-    hist_angle : (P, S) int64, signal detections per pixel and scan-angle step
-        of the interval table.
+    hist_raw, hist_signal : (P, n_bins + 1) uint32 (int64 once a sum holds
+        2³² shots or more), column N = code N (column 0: valid pixel-slots
+        without detection).
+    hist_angle : (P, S) uint32 (likewise), signal detections per pixel and
+        scan-angle step of the interval table.
+    n_per_step : (S,) int64, valid shots classified with each angle step.
     n_shots, n_unknown : shots in the range and those of unknown angle.
     confusion : (3, 3) int64, truth label (row) × assigned label (column),
         zeros when there is no truth.
     has_truth : bool.
+
+    Every field is an exact integer sum, so parts add in any order to the
+    whole; pickled (Dask), the count arrays travel as their non-zero entries
+    when that is smaller.
     """
 
     hist_raw: np.ndarray
     hist_signal: np.ndarray
     hist_angle: np.ndarray
+    n_per_step: np.ndarray
     n_shots: int
     n_unknown: int
     confusion: np.ndarray
     has_truth: bool
 
     def __add__(self, other: RangeAccumulation) -> RangeAccumulation:
-        return RangeAccumulation(self.hist_raw + other.hist_raw,
-                                 self.hist_signal + other.hist_signal,
-                                 self.hist_angle + other.hist_angle,
-                                 self.n_shots + other.n_shots, self.n_unknown + other.n_unknown,
+        n = self.n_shots + other.n_shots
+        dt = np.result_type(_count_dtype(n), self.hist_raw.dtype, other.hist_raw.dtype)
+
+        def add(a, b):
+            return np.add(a, b, dtype=dt)
+
+        return RangeAccumulation(add(self.hist_raw, other.hist_raw),
+                                 add(self.hist_signal, other.hist_signal),
+                                 add(self.hist_angle, other.hist_angle),
+                                 self.n_per_step + other.n_per_step,
+                                 n, self.n_unknown + other.n_unknown,
                                  self.confusion + other.confusion,
                                  self.has_truth and other.has_truth)
+
+    def __getstate__(self):
+        d = dict(self.__dict__)
+        for k in _COUNT_FIELDS:
+            d[k] = _pack(d[k])
+        return d
+
+    def __setstate__(self, d):
+        for k in _COUNT_FIELDS:
+            d[k] = _unpack(d[k])
+        self.__dict__.update(d)
+
+
+def sum_accumulations(parts) -> RangeAccumulation:
+    """The sum of pass-1 results (exact integers: any order, any grouping)."""
+    parts = list(parts)
+    total = parts[0]
+    for p in parts[1:]:
+        total = total + p
+    return total
 
 
 def accumulate_range(path, system: System, theta, valid, settings: Settings,
                      start: int = 0, stop: int | None = None, labels_out=None,
-                     progress=None) -> RangeAccumulation:
+                     progress=None, table: IntervalTable | None = None,
+                     angle_offset: int = 0) -> RangeAccumulation:
     """Pass 1 over shots [start, stop): labels and histograms.
 
-    ``theta``, ``valid`` : (K,) for the WHOLE recording (indexed by shot).
+    ``theta``, ``valid`` : scan angles and validity of the shots from shot
+    ``angle_offset`` on (default 0: the WHOLE recording, indexed by shot).
     ``labels_out`` : an h5py dataset (K, H, W) uint8 to write labels into, or None.
+    ``table`` : the run's :class:`IntervalTable` (rows filled here as needed;
+    default: a new one from ``settings``).
     """
     P = system.receiver.width * system.receiver.height
     n_bins = system.tdc.n_bins
-    table = interval_table(system, settings.confidence, min_range=settings.min_range)
-    raw = np.zeros((P, n_bins + 1), np.int64)
-    sig = np.zeros((P, n_bins + 1), np.int64)
-    raw32 = np.zeros((P, n_bins + 1), np.int32)
-    sig32 = np.zeros((P, n_bins + 1), np.int32)
-    angle = np.zeros((P, table.n_steps), np.int64)
+    if table is None:
+        table = IntervalTable.for_settings(system, settings)
+    K_range = max(0, (stop if stop is not None else start + len(theta) - angle_offset) - start)
+    dt = _count_dtype(K_range)
+    compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
+    # the reader checks codes against the file's n_bins: enough when it is ours too
+    checked = read_system(path).tdc.n_bins <= n_bins
+    raw = np.zeros((P, n_bins + 1), dt)
+    sig = np.zeros((P, n_bins + 1), dt)
+    angle = np.zeros((P, table.n_steps), dt)
+    n_per_step = np.zeros(table.n_steps, np.int64)
     conf = np.zeros((3, 3), np.int64)
     has_truth = True
     n_shots = n_unknown = 0
     for s0, _t, bins, truth in iter_shot_chunks(path, settings.chunk_shots, start, stop,
                                                 truth_labels=True):
         s1 = s0 + bins.shape[0]
-        th, v = theta[s0:s1], valid[s0:s1]
-        raw32[:] = 0
-        sig32[:] = 0
+        a, b = s0 - angle_offset, s1 - angle_offset
+        th, v = theta[a:b], valid[a:b]
+        rows = table.rows(th, v)
         want = labels_out is not None or truth is not None
-        labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw32, sig32,
-                                               want_labels=want, hist_angle=angle)
-        raw += raw32
-        sig += sig32
+        labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
+                                               want_labels=want, hist_angle=angle, rows=rows,
+                                               compiled=compiled, codes_checked=checked)
+        n_per_step += np.bincount(rows[rows >= 0], minlength=table.n_steps)
         if labels_out is not None:
             labels_out[s0:s1] = labels
         if truth is None:
@@ -202,7 +319,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         n_unknown += int(np.count_nonzero(~v))
         if progress is not None:
             progress(s1 - s0)
-    return RangeAccumulation(raw, sig, angle, n_shots, n_unknown, conf, has_truth)
+    return RangeAccumulation(raw, sig, angle, n_per_step, n_shots, n_unknown, conf, has_truth)
 
 
 # --------------------------------------------------------------------------

@@ -7,8 +7,33 @@ import numpy as np
 
 from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.intervals import IntervalTable, interval_table
+from mems_stereo.pipeline.intervals import IntervalTable
+from mems_stereo.pipeline.pass1 import COMPILE_SLOTS
 from mems_stereo.pipeline.settings import Settings
+
+# --------------------------------------------------------------------------
+# the key of a (peak, angle step, code) triple: written and decoded only here
+
+
+def _peak_key_py(q, step, code, n_steps, n_codes):
+    """Key of (peak q, angle step, code): ``(q · n_steps + step) · n_codes + code``
+    (``n_steps`` S of the interval table, ``n_codes`` = n_bins + 1)."""
+    return (q * n_steps + step) * n_codes + code
+
+
+def encode_peak_keys(q, step, code, n_steps: int, n_codes: int) -> np.ndarray:
+    """(M,) int64 keys of (peak, step, code) triples (the compiled kernel's layout)."""
+    return _peak_key_py(np.asarray(q, np.int64), np.asarray(step, np.int64),
+                        np.asarray(code, np.int64), np.int64(n_steps), np.int64(n_codes))
+
+
+def decode_peak_keys(keys, n_steps: int, n_codes: int):
+    """``(q, step, code)``, each (M,) int64, of keys made by :func:`encode_peak_keys`."""
+    k = np.asarray(keys, np.int64)
+    return k // (n_steps * n_codes), (k // n_codes) % n_steps, k % n_codes
+
+
+_peak_key = _peak_key_py  # replaced by its compiled form when the kernel is compiled
 
 
 def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb,
@@ -28,44 +53,76 @@ def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n
             c = np.int64(bins[k, p])
             if (c != 0 and win_lo[q] <= c and c <= win_hi[q]
                     and np.int64(lo[j, p]) <= c and c <= np.int64(hi[j, p])):
-                out[n] = (q * n_steps + j) * nb + c
+                out[n] = _peak_key(q, j, c, n_steps, nb)
                 n += 1
     return n
 
 
-try:  # pragma: no cover - numba is a declared dependency
-    _window_keys = numba.njit(cache=True, nogil=True, boundscheck=False)(_window_keys_py)
-except NameError:  # pragma: no cover
-    _window_keys = _window_keys_py
+def _window_keys_numpy(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb):
+    """The kernel's semantics in vectorised NumPy (small blocks: no compiled code
+    to load); returns the keys, (M,) int64, in the same (shot, peak) order."""
+    c = bins[:, pix].astype(np.int64)  # (K, Q)
+    j = rows[:, None]
+    jc = np.maximum(rows, 0)
+    m = ((j >= 0) & (j >= step_lo) & (j <= step_hi) & (c != 0) & (win_lo <= c) & (c <= win_hi)
+         & (lo[jc][:, pix] <= c) & (c <= hi[jc][:, pix]))
+    kk, qq = np.nonzero(m)
+    return encode_peak_keys(qq, rows[kk], c[kk, qq], n_steps, nb)
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_window_keys():
+    """The numba kernel, compiled (or loaded from numba's disk cache) on first use;
+    None when numba is absent."""
+    global _peak_key
+    if "k" not in _COMPILED:
+        try:  # pragma: no cover - numba is a declared dependency
+            import numba
+
+            _peak_key = numba.njit(cache=True, inline="always")(_peak_key_py)
+            _COMPILED["k"] = numba.njit(cache=True, nogil=True,
+                                        boundscheck=False)(_window_keys_py)
+        except ImportError:  # pragma: no cover
+            _COMPILED["k"] = None
+    return _COMPILED["k"]
 
 
 def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
-                     n_bins: int, step_lo=None, step_hi=None) -> np.ndarray:
+                     n_bins: int, step_lo=None, step_hi=None,
+                     compiled: bool | None = None) -> np.ndarray:
     """Keys of the signal detections inside the peak windows of a block of shots.
 
     A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
     peak's window ``[code_lo[q], code_hi[q]]``, its shot's angle step in
     ``[step_lo[q], step_hi[q]]`` (default: any) and the classifier accepted it
-    (signal).  Its key is ``(q · S + step) · (n_bins + 1) + code``, with
-    ``step`` the shot's angle step in ``table`` (S steps).  Returns (M,) int64,
-    in shot order.  One compiled pass over the peak pixels only.
+    (signal).  Its key is :func:`encode_peak_keys` of ``(q, step, code)``, with
+    ``step`` the shot's angle step in ``table`` (S steps, n_bins + 1 codes).  Returns (M,) int64,
+    in shot order.  One compiled pass over the peak pixels only (``compiled``
+    None: for blocks of at least ``COMPILE_SLOTS`` pixel-slots, else the same
+    in NumPy; True/False force either).
     """
     b = np.ascontiguousarray(bins)
     K = b.shape[0]
     b2 = b.reshape(K, -1)
     if b2.dtype != np.uint16:
         b2 = b2.astype(np.uint16)
-    rows = table.index(theta)
-    rows[~np.asarray(valid, dtype=bool)] = -1
+    rows = table.rows(theta, valid)
     table.ensure(rows)
     pix = np.asarray(peak_pixel, dtype=np.int64)
     s_lo = np.zeros(pix.size, np.int64) if step_lo is None else np.asarray(step_lo, np.int64)
     s_hi = (np.full(pix.size, table.n_steps, np.int64) if step_hi is None
             else np.asarray(step_hi, np.int64))
+    args = (b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
+            np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps), int(n_bins) + 1)
+    if compiled is None:
+        compiled = b2.size >= COMPILE_SLOTS
+    kernel = _compiled_window_keys() if compiled else None
+    if kernel is None:
+        return _window_keys_numpy(*args)
     out = np.empty(K * max(1, pix.size), np.int64)
-    n = _window_keys(b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
-                     np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps),
-                     int(n_bins) + 1, out)
+    n = kernel(*args, out)
     return out[:n].copy()
 
 
@@ -74,8 +131,9 @@ class PeakCounts:
     detections inside the peak windows: integers, so sums over chunks and workers
     are exact in any order.
 
-    Keys are ``(peak · S + step) · (n_bins + 1) + code`` with S the interval
-    table's number of angle steps; ``keys`` (U,) int64 sorted unique,
+    Keys are :func:`encode_peak_keys` of (peak, step, code) with S the interval
+    table's number of angle steps (:func:`decode_peak_keys` reads them back);
+    ``keys`` (U,) int64 sorted unique,
     ``counts`` (U,) int64.  New keys are buffered and merged when the buffer
     outgrows the merged set (amortised O(U log U)); memory is bounded by the
     number of distinct keys, not by the recording's length.
@@ -120,21 +178,29 @@ class PeakCounts:
 
 
 def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
-                      start: int = 0, stop: int | None = None, progress=None) -> PeakCounts:
+                      start: int = 0, stop: int | None = None, progress=None,
+                      table: IntervalTable | None = None, angle_offset: int = 0) -> PeakCounts:
     """Pass 2 over shots [start, stop): count the peak windows' signal detections by
     (peak, angle step, code) — see :class:`PeakCounts` and
-    :func:`mems_stereo.pipeline.pass2.peak_window_keys`."""
-    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    :func:`mems_stereo.pipeline.pass2.peak_window_keys`.  ``table`` : the run's
+    interval table (default: a new one); ``theta``, ``valid`` start at shot
+    ``angle_offset`` (default 0: the whole recording)."""
+    if table is None:
+        table = IntervalTable.for_settings(system, settings)
     W = system.receiver.width
     pix = peaks["row"] * W + peaks["col"]
     pc = PeakCounts()
     if pix.size == 0:
         return pc
+    n_range = (stop if stop is not None else start + len(theta) - angle_offset) - start
+    compiled = n_range * system.receiver.width * system.receiver.height >= COMPILE_SLOTS
     for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
         s1 = s0 + bins.shape[0]
-        pc.add_keys(peak_window_keys(bins, theta[s0:s1], valid[s0:s1], table, pix,
+        a, b = s0 - angle_offset, s1 - angle_offset
+        pc.add_keys(peak_window_keys(bins, theta[a:b], valid[a:b], table, pix,
                                      peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
-                                     peaks.get("step_lo"), peaks.get("step_hi")))
+                                     peaks.get("step_lo"), peaks.get("step_hi"),
+                                     compiled=compiled))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()

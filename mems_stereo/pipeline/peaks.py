@@ -29,18 +29,23 @@ from mems_stereo.physics.background import (
     poisson_isf,
 )
 from mems_stereo.pipeline.histograms import moving_average
-from mems_stereo.pipeline.intervals import interval_table, shots_per_step
+from mems_stereo.pipeline.intervals import interval_table
 
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
-                      min_range: float | None = None) -> np.ndarray:
+                      min_range: float | None = None, table=None,
+                      n_per_step=None) -> np.ndarray:
     """A[p, j]: valid shots in which code j+1 of pixel p was accepted as signal.
 
     (P, n_bins) int64, from the interval table and the shots' angle steps (a
     difference array over codes: O(steps × pixels), not O(shots × pixels)).
+    ``table`` : the run's interval table (default: a new one); ``n_per_step``
+    : (S,) valid shots per step (default: counted from ``theta``, ``valid``).
     """
-    table = interval_table(system, confidence, min_range=min_range)
-    n_per_row = shots_per_step(table, theta, valid)
+    if table is None:
+        table = interval_table(system, confidence, min_range=min_range)
+    n_per_row = (table.shots_per_step(theta, valid) if n_per_step is None
+                 else np.asarray(n_per_step))
     used = np.flatnonzero(n_per_row)
     n_row = n_per_row[used]
     table.ensure(used)
@@ -143,7 +148,8 @@ def footprint_steps(system: System, table) -> int:
     return max(3, n + 1 - n % 2)
 
 
-def find_peaks(system: System, signal, noise, theta, valid, settings, signal_angle=None):
+def find_peaks(system: System, signal, noise, theta, valid, settings, signal_angle=None,
+               table=None, n_per_step=None):
     """One peak per pixel where its signal detections cluster in scan angle.
 
     A pixel sees the laser spot only while the beam sweeps across the surface
@@ -164,19 +170,24 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
     when ``signal_angle`` is None.  Returns the same dict as
     :func:`find_code_peaks` plus ``step_lo``, ``step_hi`` (the angle band)
     and ``background_by_step`` (Q, S), the expected background detections of
-    each peak's pixel per angle step.
+    each peak's pixel per angle step.  ``table`` : the run's interval table
+    (default: a new one); ``n_per_step`` : (S,) valid shots per angle step
+    (default: counted from ``theta``, ``valid``).
     """
     if signal_angle is None:
         return find_code_peaks(system, signal, noise, theta, valid, settings)
     H, W, n_bins = signal.shape
     P = H * W
     bw = system.tdc.bin_width
-    table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    if table is None:
+        table = interval_table(system, settings.confidence, min_range=settings.min_range)
     S = np.asarray(signal).reshape(P, n_bins)
     N = np.asarray(noise).reshape(P, n_bins)
-    n_per_step = shots_per_step(table, theta, valid)
+    if n_per_step is None:
+        n_per_step = table.shots_per_step(theta, valid)
     n_valid = int(n_per_step.sum())
-    A = acceptance_counts(system, theta, valid, settings.confidence, settings.min_range)
+    A = acceptance_counts(system, theta, valid, settings.confidence, settings.min_range,
+                          table=table, n_per_step=n_per_step)
     rate = background_rate_from_noise(N, S + N, A, n_valid, bw)
     width = footprint_steps(system, table)
     B = expected_background_by_angle(table, n_per_step, rate)

@@ -36,8 +36,15 @@ from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.fusion import points_from_counts
-from mems_stereo.pipeline.intervals import interval_table, shots_per_step
-from mems_stereo.pipeline.pass1 import Counts, RangeAccumulation, accumulate_range, truth_scores
+from mems_stereo.pipeline.intervals import IntervalTable
+from mems_stereo.pipeline.pass1 import (
+    Counts,
+    RangeAccumulation,
+    _pack,
+    _unpack,
+    accumulate_range,
+    truth_scores,
+)
 from mems_stereo.pipeline.pass2 import peak_counts_range
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.util.atomic import atomic_output
@@ -80,6 +87,31 @@ class ProcessResult:
                   f"{self.truth['noise_rejection']:.4f}")
         return (f"<ProcessResult {self.source}: {c['shots']} shots, {c['raw']} raw, "
                 f"{c['signal']} signal, {c['peaks']} peaks, {c['points']} points{tr}>")
+
+    def __getstate__(self):
+        # compact between processes (Dask): raw and signal as uint32 where every
+        # count fits (non-zero entries only when smaller); noise = raw − signal
+        d = dict(self.__dict__)
+        h = dict(d["histograms"])
+        if set(h) == {"raw", "signal", "noise"}:
+            for k in ("raw", "signal"):
+                a = h[k]
+                if a.dtype == np.int64 and a.size and 0 <= a.min() and a.max() < 2 ** 32:
+                    a = a.astype(np.uint32)
+                h[k] = _pack(a)
+            del h["noise"]
+            h["_packed"] = True
+        d["histograms"] = h
+        return d
+
+    def __setstate__(self, d):
+        h = d["histograms"]
+        if h.pop("_packed", False):
+            raw = _unpack(h["raw"]).astype(np.int64)
+            sig = _unpack(h["signal"]).astype(np.int64)
+            h = {"raw": raw, "signal": sig, "noise": raw - sig}
+        d["histograms"] = h
+        self.__dict__.update(d)
 
 
 def _labels_file(path, K: int, shape):
@@ -127,7 +159,7 @@ def as_source(recording) -> str | Recording:
 
 def process_recording(path, system: System | None = None,
                       settings: Settings | None = None, labels_path=None,
-                      progress=None) -> ProcessResult:
+                      progress=None, table: IntervalTable | None = None) -> ProcessResult:
     """Classify, histogram, find peaks and triangulate one recording (streamed).
 
     Parameters
@@ -141,6 +173,10 @@ def process_recording(path, system: System | None = None,
     settings : :class:`Settings`.
     labels_path : write the event labels (FORMAT v1 outputs) there.
     progress : callable(n_shots_done) for progress bars.
+    table : the :class:`~mems_stereo.pipeline.intervals.IntervalTable` of
+        ``system`` and ``settings`` (e.g. filled once and shared by the Dask
+        runner); default: built here, once, with the rows of its disk cache,
+        and passed to every stage (rows filled here go back to the cache).
     """
     st = Settings() if settings is None else settings
     t0 = time.perf_counter()
@@ -156,49 +192,60 @@ def process_recording(path, system: System | None = None,
                           "/shots/bins")
     theta, valid = shot_angles(header, sysm)
     header.shot_time = None  # only the angles are needed from here on: free O(K) memory
+    own_table = table is None
+    if own_table:
+        table = IntervalTable.for_settings(sysm, st)
+        table.load_cache()
     timings = {"read_header": time.perf_counter() - t0}
 
     t1 = time.perf_counter()
     if labels_path is not None:
         with _labels_file(labels_path, K, (H, W)) as (f, ds):
             acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
-                                   progress=progress)
+                                   progress=progress, table=table)
             f.create_dataset("theta", data=np.where(valid, theta, np.nan))
     else:
-        acc = accumulate_range(path, sysm, theta, valid, st, progress=progress)
+        acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table)
+    if own_table:
+        table.save_cache()
     timings["classify_histogram"] = time.perf_counter() - t1
     return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                             progress=progress)
+                             progress=progress, table=table)
 
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
-                      timings: dict, count_peaks=None, progress=None) -> ProcessResult:
+                      timings: dict, count_peaks=None, progress=None,
+                      table: IntervalTable | None = None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
-    (default: here, in chunks; the Dask runner passes its own).
+    (default: here, in chunks; the Dask runner passes its own).  ``table`` :
+    the run's interval table (the one pass 1 filled).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
     K, H, W = header.shape
     n_bins = sysm.tdc.n_bins
+    if table is None:
+        table = IntervalTable.for_settings(sysm, st)
     t2 = time.perf_counter()
-    raw = acc.hist_raw[:, 1:].reshape(H, W, n_bins)
-    sig = acc.hist_signal[:, 1:].reshape(H, W, n_bins)
+    raw = acc.hist_raw[:, 1:].astype(np.int64).reshape(H, W, n_bins)
+    sig = acc.hist_signal[:, 1:].astype(np.int64).reshape(H, W, n_bins)
     noise = raw - sig
     peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
-                                   signal_angle=acc.hist_angle)
+                                   signal_angle=acc.hist_angle, table=table,
+                                   n_per_step=acc.n_per_step)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
-        counts = peak_counts_range(path, sysm, theta, valid, st, peaks, progress=progress)
+        counts = peak_counts_range(path, sysm, theta, valid, st, peaks, progress=progress,
+                                   table=table)
     else:
         counts = count_peaks(peaks)
     timings["peak_detections"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    table = interval_table(sysm, st.confidence, min_range=st.min_range)
-    cloud = points_from_counts(sysm, peaks, counts, st,
-                               shots_per_step=shots_per_step(table, theta, valid))
+    cloud = points_from_counts(sysm, peaks, counts, st, shots_per_step=acc.n_per_step,
+                               table=table)
     peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
     timings["points"] = time.perf_counter() - t4
     counts = Counts(int(K), int(acc.n_unknown), int(raw.sum()), int(sig.sum()),

@@ -1,0 +1,171 @@
+"""Scale-out: process_split and process_many over 1, 2, 4, … workers against one process (issue 14).
+
+Simulates (``benchmarks/_dense.py``, never the samples) one dense floodlight
+recording of ``--shots`` shots for ``process_split`` and ``--recordings``
+recordings of ``--many-shots`` shots each for ``process_many`` (6 MHz
+background, the room scene, own seeds), processes them in this process
+(``process_recording``, the reference and the 1-core time T1), then on a
+``LocalCluster`` of each worker count in ``--workers`` (single-threaded
+worker processes; default 1, 2, 4, … up to the machine's cores), and prints
+per count the wall time, speed-up T1/Tn, efficiency speed-up/n, and whether
+every result is identical to one process (histograms, cloud, counts).
+
+What bounds the speed-up on any machine is printed too: the client's serial
+seconds in ``process_split`` (header and angles, table rows, peaks, points)
+and the bytes the client gathers, per part, against T1; the serial fraction
+f = serial / T1 gives Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.
+
+Every worker is warmed up first (compiled kernels loaded from numba's disk
+cache), as on a long-lived cluster; cluster start-up is printed apart.
+Open3D is not needed (the core never imports it).
+
+Run:  .venv/bin/python benchmarks/bench_scale.py [--workers 1 2 4 8 16] [--shots 400000]
+      [--recordings 8] [--many-shots 50000] [--dir /tmp]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _dense import make_dense_recording  # noqa: E402
+
+from mems_stereo.pipeline.distributed import dask_client, process_many, process_split  # noqa: E402
+from mems_stereo.pipeline.run import process_recording  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def machine() -> str:
+    cpu = platform.processor() or "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{platform.node()}: {os.cpu_count()} logical cores, {cpu}, {platform.system()}"
+
+
+def same(a, b) -> bool:
+    ok = a.counts == b.counts and a.truth == b.truth
+    for k in a.histograms:
+        ok &= np.array_equal(a.histograms[k], b.histograms[k])
+    ok &= np.array_equal(a.cloud.points, b.cloud.points, equal_nan=True)
+    for k in a.cloud.attributes:
+        ok &= np.array_equal(a.cloud[k], b.cloud[k], equal_nan=True)
+    return bool(ok)
+
+
+def default_workers() -> list[int]:
+    n, out = os.cpu_count() or 1, [1]
+    while out[-1] * 2 <= n:
+        out.append(out[-1] * 2)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workers", type=int, nargs="+", default=None,
+                    help="worker counts (default: 1, 2, 4, ... up to the cores)")
+    ap.add_argument("--shots", type=int, default=400_000,
+                    help="shots of the recording split by process_split (default 400000)")
+    ap.add_argument("--recordings", type=int, default=None,
+                    help="recordings for process_many (default: 2 x the most workers, >= 4)")
+    ap.add_argument("--many-shots", type=int, default=50_000,
+                    help="shots per recording for process_many (default 50000)")
+    ap.add_argument("--seed", type=int, default=20261123)
+    ap.add_argument("--dir", default=None, help="where to write the recordings")
+    args = ap.parse_args()
+    workers = args.workers or default_workers()
+    n_rec = args.recordings or max(4, 2 * max(workers))
+    print(f"machine: {machine()}")
+    with tempfile.TemporaryDirectory(dir=args.dir) as d:
+        t0 = time.perf_counter()
+        big = Path(d) / "split.h5"
+        make_dense_recording(big, args.shots, args.seed)
+        paths = []
+        for i in range(n_rec):
+            p = Path(d) / f"many{i}.h5"
+            make_dense_recording(p, args.many_shots, args.seed + 1 + i)
+            paths.append(p)
+        print(f"simulated: 1 x {args.shots} shots (split) and {n_rec} x {args.many_shots} shots "
+              f"(many), 6 MHz floodlight, in {time.perf_counter() - t0:.0f} s")
+
+        process_recording(paths[0])  # warm up: compiled kernels from the disk cache
+        t0 = time.perf_counter()
+        one_split = process_recording(big)
+        t1_split = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        one_many = [process_recording(p) for p in paths]
+        t1_many = time.perf_counter() - t0
+        rt_split = args.shots / 20e3
+        print(f"one process: split recording {t1_split:.2f} s ({rt_split / t1_split:.1f}x real "
+              f"time), {n_rec} recordings {t1_many:.2f} s")
+
+        rows = []
+        for n in workers:
+            t0 = time.perf_counter()
+            with dask_client("local", n_workers=n) as client:
+                t_start = time.perf_counter() - t0
+                client.run(process_recording, str(ROOT / "samples" / "room.h5"))  # warm up
+                t0 = time.perf_counter()
+                sp = process_split(big, scheduler=client)
+                t_split = time.perf_counter() - t0
+                t0 = time.perf_counter()
+                many = process_many(paths, scheduler=client)
+                t_many = time.perf_counter() - t0
+            ok_split = same(one_split, sp)
+            ok_many = all(same(a, b) for a, b in zip(one_many, many))
+            rows.append((n, t_start, t_split, ok_split, t_many, ok_many, sp.timings))
+
+    print()
+    print("| workers | process_split s | speed-up | efficiency | identical | process_many s | "
+          "speed-up | efficiency | identical | cluster start s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for n, t_start, t_split, ok_s, t_many, ok_m, _ in rows:
+        print(f"| {n} | {t_split:.2f} | {t1_split / t_split:.2f}x | {t1_split / t_split / n:.0%} | "
+              f"{ok_s} | {t_many:.2f} | {t1_many / t_many:.2f}x | {t1_many / t_many / n:.0%} | "
+              f"{ok_m} | {t_start:.1f} |")
+    print()
+    print("what bounds process_split (client side, per worker count):")
+    for n, *_, tm in rows:
+        if "client_serial" not in tm:  # an older pipeline without these figures
+            print(f"  {n:>2} workers: stages " + ", ".join(f"{k} {v:.2f} s"
+                                                      for k, v in tm.items()))
+            continue
+        f = tm["client_serial"] / t1_split
+        amdahl16 = 1.0 / (f + (1.0 - f) / 16)
+        mb = tm["client_bytes"] / 1e6
+        print(f"  {n:>2} workers: {int(tm['parts'])} parts; client serial "
+              f"{tm['client_serial']:.2f} s (header+angles {tm['read_header']:.2f}, peaks "
+              f"{tm['peaks']:.2f}, points {tm['points']:.2f}); table rows on the workers "
+              f"{tm['table']:.2f} s; gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB "
+              f"per part; serial fraction {f:.1%} of one process's {t1_split:.2f} s -> Amdahl "
+              f"bound on 16 workers {amdahl16:.1f}x")
+        # the same without the fusion stage, whose cost grows with the background in
+        # the peak windows (issue 14, "points stage proportional to the data")
+        pts1 = one_split.timings["points"]
+        f2 = (tm["client_serial"] - tm["points"]) / max(t1_split - pts1, 1e-9)
+        print(f"      without the points stage (one process {pts1:.2f} s of it): serial "
+              f"fraction {f2:.1%} -> Amdahl bound on 16 workers "
+              f"{1.0 / (f2 + (1.0 - f2) / 16):.1f}x")
+    best_s = max(t1_split / r[2] for r in rows)
+    best_m = max(t1_many / r[4] for r in rows)
+    print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "
+          f"{max(workers)} workers max; all identical: {all(r[3] and r[5] for r in rows)}")
+
+
+if __name__ == "__main__":
+    main()

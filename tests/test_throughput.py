@@ -1,0 +1,266 @@
+"""Throughput machinery: the kernels' three forms agree, compact results add and travel
+exactly, the interval table is built once per run and cached on disk bit for bit."""
+
+from __future__ import annotations
+
+import pickle
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.intervals import IntervalTable, interval_table
+from mems_stereo.pipeline.pass1 import (
+    RangeAccumulation,
+    _kernel_nolabels_py,
+    _kernel_py,
+    accumulate_range,
+    classify_and_accumulate,
+    sum_accumulations,
+)
+from mems_stereo.pipeline.pass2 import (
+    _window_keys_py,
+    decode_peak_keys,
+    encode_peak_keys,
+    peak_window_keys,
+)
+from mems_stereo.pipeline.settings import Settings
+
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+
+
+@pytest.fixture(scope="module")
+def table():
+    return interval_table(burkard2022())
+
+
+def _block(rng, k, p_zero=0.3):
+    s = burkard2022()
+    sc = s.scanner
+    theta = sc.theta0 + sc.theta_mech_max * np.cos(rng.uniform(0, 2 * np.pi, k))
+    theta[rng.random(k) < 0.05] = np.nan
+    bins = rng.integers(0, s.tdc.n_bins + 1, size=(k, 1, 192)).astype(np.uint16)
+    bins[rng.random(bins.shape) < p_zero] = 0
+    return bins, theta, rng.random(k) > 0.1
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+@pytest.mark.parametrize("want_labels", [True, False])
+def test_pass1_numpy_compiled_and_python_kernels_agree(table, seed, want_labels):
+    rng = np.random.default_rng(seed)
+    bins, theta, valid = _block(rng, 97)
+    out = []
+    for compiled in (True, False):
+        angle = np.zeros((192, table.n_steps), np.uint32)
+        lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096,
+                                                want_labels=want_labels, hist_angle=angle,
+                                                compiled=compiled)
+        out.append((lab, raw, sig, angle))
+    rows = table.rows(theta, valid)
+    raw = np.zeros((192, 4097), np.int64)
+    sig = np.zeros_like(raw)
+    angle = np.zeros((192, table.n_steps), np.int64)
+    lab = np.empty((97, 192), np.uint8)
+    if want_labels:
+        _kernel_py(bins.reshape(97, 192), rows, table.lo, table.hi, lab, raw, sig, angle)
+    else:
+        _kernel_nolabels_py(bins.reshape(97, 192), rows, table.lo, table.hi, raw, sig, angle)
+    for a, b in zip(out[0], out[1]):
+        if a is None:
+            assert b is None
+        else:
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(out[0][1], raw)
+    np.testing.assert_array_equal(out[0][2], sig)
+    np.testing.assert_array_equal(out[0][3], angle)
+    assert sig.sum() > 0 and raw[:, 1:].sum() > sig.sum()  # both outcomes exercised
+    if want_labels:
+        np.testing.assert_array_equal(out[0][0].reshape(97, 192), lab)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_pass2_numpy_compiled_and_python_kernels_agree(table, seed):
+    rng = np.random.default_rng(seed)
+    bins, theta, valid = _block(rng, 600, p_zero=0.1)
+    pix = np.array([60, 95, 96, 130])
+    lo, hi = np.array([1, 100, 1, 200]), np.array([4096, 3000, 800, 4096])
+    s_lo = np.array([0, 1000, 0, 3000])
+    s_hi = np.array([table.n_steps, 8000, 5000, 9000])
+    a = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096, s_lo, s_hi, compiled=True)
+    b = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096, s_lo, s_hi,
+                         compiled=False)
+    out = np.empty(600 * 4, np.int64)
+    n = _window_keys_py(bins.reshape(600, -1), table.rows(theta, valid), table.lo, table.hi,
+                        pix, lo, hi, s_lo, s_hi, table.n_steps, 4097, out)
+    assert a.size > 10
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(a, out[:n])
+
+
+def test_peak_keys_round_trip():
+    rng = np.random.default_rng(6)
+    q, step, code = rng.integers(0, 192, 50), rng.integers(0, 9140, 50), rng.integers(0, 4097, 50)
+    k = encode_peak_keys(q, step, code, 9140, 4097)
+    for x, y in zip(decode_peak_keys(k, 9140, 4097), (q, step, code)):
+        np.testing.assert_array_equal(x, y)
+
+
+def _acc(rng, n_shots, density=0.01, shape=((4, 9), (4, 7))):
+    def counts(sh):
+        a = rng.integers(0, 1000, sh).astype(np.uint32)
+        a[rng.random(sh) > density] = 0
+        return a
+
+    return RangeAccumulation(counts(shape[0]), counts(shape[0]), counts(shape[1]),
+                             rng.integers(0, 9, shape[1][1]), n_shots, 1,
+                             rng.integers(0, 5, (3, 3)), True)
+
+
+@pytest.mark.parametrize("density", [0.01, 0.9])
+def test_range_accumulation_travels_and_adds_exactly(density):
+    rng = np.random.default_rng(7)
+    parts = [_acc(rng, 10, density) for _ in range(5)]
+    for p in parts:
+        q = pickle.loads(pickle.dumps(p))
+        for k in ("hist_raw", "hist_signal", "hist_angle", "n_per_step", "confusion"):
+            x, y = getattr(p, k), getattr(q, k)
+            assert x.dtype == y.dtype
+            np.testing.assert_array_equal(x, y)
+    total = sum_accumulations(parts)
+    grouped = sum_accumulations([sum_accumulations(parts[:2]), sum_accumulations(parts[2:])])
+    expect = np.sum([p.hist_raw.astype(np.int64) for p in parts], axis=0)
+    np.testing.assert_array_equal(total.hist_raw, expect)
+    np.testing.assert_array_equal(grouped.hist_raw, expect)
+    assert total.hist_raw.dtype == np.uint32 and total.n_shots == 50
+
+
+def test_counts_widen_before_uint32_could_overflow():
+    rng = np.random.default_rng(8)
+    a, b = _acc(rng, 2 ** 31), _acc(rng, 2 ** 31)
+    a.hist_raw[0, 0] = b.hist_raw[0, 0] = 2 ** 31
+    s = a + b
+    assert s.hist_raw.dtype == np.int64 and s.hist_raw[0, 0] == 2 ** 32
+
+
+class _NowClient:
+    """Stands in for a Dask client: submit runs at once."""
+
+    class _F:
+        def __init__(self, v):
+            self.v = v
+
+        def result(self):
+            return self.v
+
+    def submit(self, fn, *args, pure=False):
+        return self._F(fn(*[a.v for a in args]))
+
+
+def test_tree_sum_equals_the_serial_sum():
+    from mems_stereo.pipeline.distributed import tree_sum
+
+    rng = np.random.default_rng(9)
+    parts = [_acc(rng, 10, 0.5) for _ in range(11)]
+    c = _NowClient()
+    t = tree_sum(c, [c._F(p) for p in parts], fan_in=3).result()
+    np.testing.assert_array_equal(t.hist_angle, sum_accumulations(parts).hist_angle)
+    assert t.n_shots == 110
+
+
+def test_interval_tables_are_not_shared_between_calls():
+    s = burkard2022()
+    a, b = interval_table(s), interval_table(s)
+    assert a is not b
+    a.ensure([10, 11])
+    assert not b.filled.any()
+
+
+def test_rows_computed_in_blocks_equal_rows_filled_one_by_one():
+    s = burkard2022()
+    t1, t2 = IntervalTable(s), IntervalTable(s)
+    rows = np.array([0, 5, 300, 301, 4570, 9000, 9139])
+    t1.ensure(rows)
+    for r in rows[::-1]:
+        t2.ensure([r])
+    np.testing.assert_array_equal(t1.lo[rows], t2.lo[rows])
+    np.testing.assert_array_equal(t1.hi[rows], t2.hi[rows])
+    lo, hi = t1.compute_rows(rows)
+    np.testing.assert_array_equal(lo, t1.lo[rows])
+    np.testing.assert_array_equal(hi, t1.hi[rows])
+
+
+def test_disk_cache_gives_the_rows_back_bit_for_bit(tmp_path, monkeypatch):
+    monkeypatch.setenv("MEMS_STEREO_CACHE", str(tmp_path))
+    s = burkard2022()
+    t = IntervalTable.for_settings(s, Settings())
+    assert t.load_cache() == 0
+    rows = np.arange(4000, 4300)
+    t.ensure(rows)
+    assert t.save_cache() and not t.save_cache()  # nothing new the second time
+    u = IntervalTable.for_settings(s, Settings())
+    assert u.load_cache() == rows.size
+    np.testing.assert_array_equal(u.filled, t.filled)
+    np.testing.assert_array_equal(u.lo, t.lo)
+    np.testing.assert_array_equal(u.hi, t.hi)
+    # other settings: another table, nothing from the cache
+    assert IntervalTable.for_settings(s, Settings(confidence=0.99)).load_cache() == 0
+    assert IntervalTable.for_settings(s, Settings(min_range=1.0)).load_cache() == 0
+    # an unreadable file is ignored
+    for f in tmp_path.glob("intervals-*.npz"):
+        f.write_bytes(b"not a table")
+    assert IntervalTable.for_settings(s, Settings()).load_cache() == 0
+
+
+def test_disk_cache_can_be_switched_off(tmp_path, monkeypatch):
+    monkeypatch.setenv("MEMS_STEREO_CACHE", "off")
+    t = IntervalTable.for_settings(burkard2022(), Settings())
+    t.ensure([100])
+    assert not t.save_cache() and t.load_cache() == 0
+
+
+def test_a_run_computes_each_table_row_once(tmp_path, monkeypatch):
+    monkeypatch.setenv("MEMS_STEREO_CACHE", "off")
+    from mems_stereo.pipeline.run import process_recording
+
+    seen = []
+    orig = IntervalTable.compute_rows
+
+    def counting(self, rows):
+        seen.extend(np.asarray(rows).tolist())
+        return orig(self, rows)
+
+    monkeypatch.setattr(IntervalTable, "compute_rows", counting)
+    res = process_recording(SAMPLES / "room.h5")
+    assert len(seen) == len(set(seen)) > 0
+    assert res.counts["points"] > 0
+
+
+def test_process_result_travels_compactly_and_exactly():
+    from mems_stereo.pipeline.run import process_recording
+
+    r = process_recording(SAMPLES / "room.h5")
+    blob = pickle.dumps(r)
+    q = pickle.loads(blob)
+    assert list(q.histograms) == list(r.histograms)
+    for k in r.histograms:
+        assert q.histograms[k].dtype == r.histograms[k].dtype
+        np.testing.assert_array_equal(q.histograms[k], r.histograms[k])
+    assert len(blob) < sum(h.nbytes for h in r.histograms.values()) / 4
+
+
+def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.pipeline.angles import shot_angles
+
+    h = read_header(SAMPLES / "room.h5")
+    th, va = shot_angles(h, h.system)
+    st = Settings(chunk_shots=97)
+    t = IntervalTable.for_settings(h.system, st)
+    whole = accumulate_range(SAMPLES / "room.h5", h.system, th, va, st, table=t)
+    parts = [accumulate_range(SAMPLES / "room.h5", h.system, th[a:b], va[a:b], st, a, b,
+                              table=t, angle_offset=a) for a, b in ((0, 300), (300, 800))]
+    s = sum_accumulations(parts)
+    for k in ("hist_raw", "hist_signal", "hist_angle", "n_per_step"):
+        np.testing.assert_array_equal(getattr(s, k), getattr(whole, k))
+    np.testing.assert_array_equal(whole.n_per_step, t.shots_per_step(th, va))
