@@ -260,9 +260,12 @@ def read_header(path: str | os.PathLike | Recording,
     return RecordingHeader(system, t, zc, rising, shape, source)
 
 
-def read_system(path: str | os.PathLike) -> System:
+def read_system(path: str | os.PathLike | Recording) -> System:
     """The recorded ``/system`` of a recording (format attributes checked; O(1): the
-    shots are not read — :func:`read_header` validates them)."""
+    shots are not read — :func:`read_header` validates them).  A
+    :class:`Recording` in memory gives its own ``system``."""
+    if isinstance(path, Recording):
+        return path.system
     source = str(path)
     try:
         f = h5py.File(path, "r")
