@@ -66,6 +66,76 @@ from mems_stereo.pipeline.pass2 import PeakCounts
 from mems_stereo.pipeline.settings import Settings
 
 
+#: segments of each (peak, step)'s accepted code interval over which its expected
+#: background is spread (as negative-weight entries at the segments' centroids)
+BACKGROUND_SEGMENTS = 8
+
+
+def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
+                      segments: int = BACKGROUND_SEGMENTS):
+    """Expected background detections among the counted codes of each (peak, angle step).
+
+    A SPAD pixel records one photon per shot, so background can only be
+    recorded by shots that have not fired yet: with the hazard
+    ``h = 1 − exp(−λ·Δt)`` per bin, the expected background in code c is
+    ``h·S(c)``, S(c) the shots of the step still unfired at c — the shots that
+    reach the accepted interval unfired (``n·(1 − h)^(lo−1)``) less the
+    detections counted at the codes before c (a martingale: exact in
+    expectation whatever the signal).  Where the laser fires the pixel in
+    most shots this is far below the free-running expectation, and it is not
+    uniform in code: background before the return is recorded, after it
+    mostly not — subtracting it as a uniform share would bias both the signal
+    level (hence the first-photon correction) and the time of flight early.
+
+    Parameters (one entry per distinct (group, code), sorted by group, then code)
+    ----------
+    group : (M,) int, the (peak, step) group; code : (M,) int TDC code;
+    count : (M,) detections; a, b : (M,) the group's counted codes (its
+    accepted interval ∩ the peak's code window); n_shots : (M,) valid shots of
+    the step; lo : (M,) start of the accepted interval; rate_hz : (M,) λ.
+
+    Returns
+    -------
+    first : (G,) index of each group's first entry;
+    bg : (G, J) expected background of each of the J segments of [a, b];
+    centroid : (G, J) its mean code (float64).
+    """
+    group = np.asarray(group, np.int64)
+    code = np.asarray(code, np.float64)
+    cnt = np.asarray(count, np.float64)
+    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
+    G = first.size
+    h = -np.expm1(-np.nan_to_num(np.asarray(rate_hz, np.float64)[first]) * bin_width)
+    s0 = np.asarray(n_shots, np.float64)[first] * np.exp(
+        (np.asarray(lo, np.float64)[first] - 1.0) * np.log1p(-np.minimum(h, 1 - 1e-15)))
+    ag = np.asarray(a, np.float64)[first]
+    bg_ = np.asarray(b, np.float64)[first]
+    n_codes = np.maximum(bg_ - ag + 1.0, 0.0)
+    J = int(segments)
+    edges = ag[:, None] + np.floor(n_codes[:, None] * np.arange(J + 1)[None, :] / J)
+    s_lo, s_hi = edges[:, :-1], edges[:, 1:] - 1.0  # (G, J) inclusive
+    length = np.maximum(s_hi - s_lo + 1.0, 0.0)
+
+    def csum(m, n):  # Σ c for c = m..n (0 when n < m)
+        return np.where(n >= m, (m + n) * (n - m + 1.0) / 2.0, 0.0)
+
+    tot = s0[:, None] * length
+    tot_c = s0[:, None] * csum(s_lo, s_hi)
+    ce = code[:, None]
+    start = np.maximum(s_lo[inv], ce + 1.0)  # codes of the segment after the detection
+    closed = np.zeros((G, J))
+    closed_c = np.zeros((G, J))
+    for j in range(J):
+        m = np.maximum(s_hi[inv, j] - start[:, j] + 1.0, 0.0)
+        closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
+        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start[:, j], s_hi[inv, j]),
+                                     minlength=G)
+    S_sum = np.maximum(tot - closed, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
+    return first, h[:, None] * S_sum, centroid
+
+
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
                        shots_per_step=None):
     """The cloud: one fused point per peak from its counted detections.
@@ -89,23 +159,38 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     theta = table.theta_min + step * table.step
     weight = counts.counts.astype(np.float64)
     background = None
-    bg = peaks.get("background_by_step")
-    if bg is not None and k.size:
-        # background subtraction in scan angle: the detections at a step are
-        # signal with probability (n − expected background) / n; each entry
-        # carries its share of the step's expected background (for the σ)
-        qs = q * S + step
-        n = np.bincount(qs, weights=weight)[qs]
-        background = np.minimum(bg[q, step], n) * weight / n
-        weight = weight * np.clip((n - bg[q, step]) / n, 0.0, 1.0)
+    rate = peaks.get("rate_hz")
+    q_all, code_all, theta_all = q, code.astype(np.float64), theta
+    if rate is not None and shots_per_step is not None and k.size:
+        # background subtraction: each (peak, step)'s expected background enters
+        # as negative-weight entries spread over its code interval
+        # (:func:`window_background`); their magnitude is the Poisson variance
+        # of the subtraction (for the σ)
+        W = system.receiver.width
+        pix = peaks["row"][q] * W + peaks["col"][q]
+        lo = table.lo[step, pix].astype(np.int64)
+        hi = table.hi[step, pix].astype(np.int64)
+        a = np.maximum(lo, peaks["code_lo"][q])
+        b = np.minimum(hi, peaks["code_hi"][q])
+        first, bgs, cen = window_background(q * S + step, code, weight, a, b,
+                                            np.asarray(shots_per_step)[step], lo, rate[q],
+                                            system.tdc.bin_width)
+        J = bgs.shape[1]
+        keep = bgs.ravel() > 0
+        q_all = np.concatenate([q, np.repeat(q[first], J)[keep]])
+        code_all = np.concatenate([code_all, cen.ravel()[keep]])
+        theta_all = np.concatenate([theta, np.repeat(theta[first], J)[keep]])
+        background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
+        weight = np.concatenate([weight, -bgs.ravel()[keep]])
 
-    cloud = points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
+    cloud = points_from_peak_detections(system, np.arange(q_all.size), q_all, code_all, theta_all,
+                                        peaks["row"],
                                         peaks["col"], peaks["code"],
                                         min_counts=settings.min_counts,
                                         confidence=settings.confidence, weight=weight,
                                         background=background,
                                         shots_per_step=shots_per_step,
-                                        step_grid=(table.theta_min, table.step))
+                                        step_grid=(table.theta_min, table.step), rate_hz=rate)
     return consistent_points(cloud, settings.confidence)
 
 
@@ -386,7 +471,7 @@ class PeakAccumulator:
                  spreads: Spreads | None = None, confidence: float = 0.997,
                  r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
                  shots_per_step=None, step_grid=None, first_photon: bool = True,
-                 spot_sigma: float = DEFAULT_SPOT_SIGMA):
+                 spot_sigma: float = DEFAULT_SPOT_SIGMA, rate_hz=None):
         from mems_stereo.pipeline.consistency import k_from_confidence
 
         self.system = system
@@ -404,6 +489,8 @@ class PeakAccumulator:
             raise GeometryError("rows, cols: expected equal lengths")
         self.peak_code = None if peak_code is None else np.asarray(peak_code, np.float64)
         self.Q = self.rows.size
+        self.rate_hz = (np.zeros(self.Q) if rate_hz is None
+                        else np.nan_to_num(np.asarray(rate_hz, np.float64).ravel()))
         self.log_min = float(np.log(r_min))
         self.dlog = float(np.log1p(rel_step))
         self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
@@ -445,7 +532,7 @@ class PeakAccumulator:
     def _points(self, shot, peak, code, theta, weight):
         shot = np.asarray(shot, dtype=np.int64).ravel()
         peak = np.asarray(peak, dtype=np.int64).ravel()
-        code = np.asarray(code, dtype=np.int64).ravel()
+        code = np.asarray(code, dtype=np.float64).ravel()
         w = (np.ones(shot.shape) if weight is None
              else np.asarray(weight, dtype=np.float64).ravel())
         if not (shot.shape == peak.shape == code.shape == w.shape):
@@ -515,14 +602,15 @@ class PeakAccumulator:
             w = np.ones(q.size)
             s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
             np.add.at(s["X_" + name], q, x * (m * w)[:, None])
-            np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
+            # |m|: a subtracted background entry adds its variance, as a detection does
+            np.add.at(s["C_" + name], q, C * (np.abs(m) * w * w)[:, None, None])
             if name != "stereo":  # ∂x/∂L: the ToF point's, the fused point's share of it
                 share = (np.ones(q.size) if name == "tof"
                          else 1.0 - dp.weight_stereo[inl])
                 g = dp.dtof_dL[inl] * share[:, None]
                 np.add.at(s["D_" + name], q, g * (m * w)[:, None])
                 np.add.at(s["G_" + name], q, g[:, :, None] * g[:, None, :]
-                          * (m * w * w)[:, None, None])
+                          * (np.abs(m) * w * w)[:, None, None])
         if self.shots_per_step is not None and self.first_photon and peak.size:
             # band: the inliers' steps; likelihood: every detection of the window (the
             # in-peak test drops true returns at the band's edges, where the spot is
@@ -656,8 +744,15 @@ class PeakAccumulator:
         c = s.speed_of_light
         dL = np.zeros(self.Q)
         dvar = np.zeros(self.Q)
+        # background that fires the pixel first removes the late part of the
+        # pulse: the recorded returns' density is the pulse's times exp(−λt),
+        # a further shift of −λσ² (exact for a Gaussian pulse)
+        d = d - self.rate_hz[idx] * sigma * sigma
         dL[ok] = -c * d  # path length to add: the arrivals were early by d
         dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
+        # the model's own systematic uncertainty (pulse shape, spot profile, the
+        # signal level's posterior): a share of the correction it applies
+        sd = np.hypot(sd, MODEL_DELAY_FRACTION * d)
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
         for name in ("fused", "tof"):
             W = self.sums["W_" + name]
@@ -668,6 +763,10 @@ class PeakAccumulator:
         return out
 
 
+#: relative systematic uncertainty of the first-photon delay the correction removes
+MODEL_DELAY_FRACTION = 0.15
+
+
 def _empty_band(Q: int):
     return (np.full(Q, np.iinfo(np.int64).max, np.int64), np.full(Q, -1, np.int64))
 
@@ -676,7 +775,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
                                 weight=None, background=None, shots_per_step=None, step_grid=None,
-                                first_photon: bool = True) -> PointCloud:
+                                first_photon: bool = True, rate_hz=None) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -705,7 +804,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     """
     acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence,
                           shots_per_step=shots_per_step, step_grid=step_grid,
-                          first_photon=first_photon)
+                          first_photon=first_photon, rate_hz=rate_hz)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
     acc.add_inliers(shot, peak, code, theta, weight, background)

@@ -120,6 +120,7 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
         "code_lo": np.maximum(1, code[q] - half).astype(np.int64),
         "code_hi": np.minimum(n_bins, code[q] + half).astype(np.int64),
         "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
+        "rate_hz": rate.reshape(-1)[q],
     }
     return peaks, rate.reshape(H, W)
 
@@ -200,6 +201,7 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
         "step_lo": np.maximum(0, j[q] - half).astype(np.int64),
         "step_hi": np.minimum(table.n_steps - 1, j[q] + half).astype(np.int64),
         "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
+        "rate_hz": rate.reshape(-1)[q],
         # expected background detections per angle step of each peak's pixel
         "background_by_step": B[q],
     }
