@@ -8,6 +8,7 @@ import numpy as np
 from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.intervals import IntervalTable, interval_table
+from mems_stereo.pipeline.peaks import Peaks
 from mems_stereo.pipeline.settings import Settings
 
 
@@ -34,8 +35,10 @@ def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n
 
 
 try:  # pragma: no cover - numba is a declared dependency
+    import numba
+
     _window_keys = numba.njit(cache=True, nogil=True, boundscheck=False)(_window_keys_py)
-except NameError:  # pragma: no cover
+except ImportError:  # pragma: no cover
     _window_keys = _window_keys_py
 
 
@@ -119,22 +122,23 @@ class PeakCounts:
         return self
 
 
-def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
+def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: Peaks,
                       start: int = 0, stop: int | None = None, progress=None) -> PeakCounts:
     """Pass 2 over shots [start, stop): count the peak windows' signal detections by
     (peak, angle step, code) — see :class:`PeakCounts` and
     :func:`mems_stereo.pipeline.pass2.peak_window_keys`."""
     table = interval_table(system, settings.confidence, min_range=settings.min_range)
     W = system.receiver.width
-    pix = peaks["row"] * W + peaks["col"]
+    peaks = Peaks.coerce(peaks)
+    pix = peaks.pixel(W)
     pc = PeakCounts()
     if pix.size == 0:
         return pc
     for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
         s1 = s0 + bins.shape[0]
         pc.add_keys(peak_window_keys(bins, theta[s0:s1], valid[s0:s1], table, pix,
-                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
-                                     peaks.get("step_lo"), peaks.get("step_hi")))
+                                     peaks.code_lo, peaks.code_hi, system.tdc.n_bins,
+                                     peaks.step_lo, peaks.step_hi))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()
