@@ -52,14 +52,14 @@ from mems_stereo.geometry.uncertainty import (
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
-from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
 from mems_stereo.physics.first_photon import (
     MU_GRID,
     _detection_log_odds,
     _firing_probability,
     first_photon_delay,
 )
-from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
+from mems_stereo.physics.spot import spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts
@@ -189,8 +189,37 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
                                         confidence=settings.confidence, weight=weight,
                                         background=background,
                                         shots_per_step=shots_per_step,
-                                        step_grid=(table.theta_min, table.step), rate_hz=rate)
+                                        step_grid=(table.theta_min, table.step), rate_hz=rate,
+                                        step_window=(peaks["step_lo"], peaks["step_hi"])
+                                        if peaks.get("step_lo") is not None else None,
+                                        accept=_acceptance(system, table, peaks))
     return consistent_points(cloud, settings.confidence)
+
+
+def _acceptance(system: System, table, peaks):
+    """accept(steps (Q, B), centre (Q,) m) -> (Q, B) bool: whether the code of a return
+    from the peak's centre range, at each step's grid angle, lies in the pixel's
+    accepted interval (else the classifier labels it noise: such shots are
+    neither hits nor misses of the first-photon likelihood)."""
+    W = system.receiver.width
+    pix = (peaks["row"] * W + peaks["col"]).astype(np.int64)
+
+    def accept(steps, centre):
+        th = table.theta_min + steps * table.step
+        d = scan_direction(th.ravel(), system.scanner)
+        p = np.asarray(system.scanner.position, dtype=np.float64)
+        pd = d @ p
+        r = np.broadcast_to(np.asarray(centre, np.float64)[:, None], steps.shape).ravel()
+        with np.errstate(invalid="ignore"):
+            s = -pd + np.sqrt(pd * pd - p @ p + r ** 2)
+        code = np.floor(codes_from_path_length(s + r, system.tdc, system.speed_of_light))
+        code = code.reshape(steps.shape)
+        table.ensure(np.unique(steps))
+        lo = table.lo[steps, pix[:, None]]
+        hi = table.hi[steps, pix[:, None]]
+        return (code >= lo) & (code <= hi)
+
+    return accept
 
 
 @dataclass
@@ -325,8 +354,9 @@ class PeakAccumulator:
     moves by its ToF share), a detection's timing variance becomes the
     first-photon one, and the posterior spread of the delay is added in
     quadrature (after the Birge scaling).  Assumptions: the spot model
-    (Gaussian, ``spot_sigma``), background inside the peak window small
-    (:data:`OUTLIER_PROBABILITY`; under a 6 MHz floodlight it is not), the
+    (Gaussian, ``spot_sigma``; default the simulator's
+    :class:`~mems_stereo.physics.spot.SpotModel` at the peak's range), the
+    background inside the window subtracted (:func:`window_background`), the
     target's range constant across the band, a Gaussian pulse of the
     system's ``pulse_fwhm`` ⊕ the spreads' jitter.
     """
@@ -335,7 +365,8 @@ class PeakAccumulator:
                  spreads: Spreads | None = None, confidence: float = 0.997,
                  r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
                  shots_per_step=None, step_grid=None, first_photon: bool = True,
-                 spot_sigma: float = DEFAULT_SPOT_SIGMA, rate_hz=None):
+                 spot_sigma: float | None = None, rate_hz=None, step_window=None,
+                 accept=None):
         from mems_stereo.pipeline.consistency import k_from_confidence
 
         self.system = system
@@ -344,7 +375,7 @@ class PeakAccumulator:
         self.step_grid = None if step_grid is None else (float(step_grid[0]),
                                                          float(step_grid[1]))
         self.first_photon = bool(first_photon)
-        self.spot_sigma = float(spot_sigma)
+        self.spot_sigma = None if spot_sigma is None else float(spot_sigma)
         self.spreads = spreads
         self.k = k_from_confidence(confidence)
         self.rows = np.asarray(rows, dtype=np.int64).ravel()
@@ -353,6 +384,10 @@ class PeakAccumulator:
             raise GeometryError("rows, cols: expected equal lengths")
         self.peak_code = None if peak_code is None else np.asarray(peak_code, np.float64)
         self.Q = self.rows.size
+        # (step_lo, step_hi) (Q,) each: the steps pass 2 counted; accept(steps (Q, B),
+        # centre (Q,)) -> (Q, B) bool: steps where the return's code is classified signal
+        self.step_window = step_window
+        self.accept = accept
         self.rate_hz = (np.zeros(self.Q) if rate_hz is None
                         else np.nan_to_num(np.asarray(rate_hz, np.float64).ravel()))
         self.log_min = float(np.log(r_min))
@@ -427,11 +462,27 @@ class PeakAccumulator:
         np.add.at(self.cover, (peak[ok], hi + 1), -w[ok])
 
     def finish_mode(self) -> np.ndarray:
-        """Fix each peak's centre range (Q,) m (NaN without detections)."""
+        """Fix each peak's centre range (Q,) m (NaN without detections).
+
+        The centre is the middle of the contiguous range where the coverage
+        stays above half its maximum, and ``halfwidth`` (Q,) m half that
+        range's width: a strong return fires the pixel while the spot's tails
+        are still on it, its detections' stereo ranges then cover a plateau
+        (several σ of one detection wide) whose first maximum is anywhere on
+        it; its middle is where the spot was centred on the pixel.
+        """
         density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
         j = np.argmax(density, axis=1)
-        centre = np.exp(self.log_min + (j + 0.5) * self.dlog)
-        self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
+        top = density[np.arange(self.Q), j]
+        below = density < 0.5 * top[:, None]
+        idx = np.arange(self.n_grid)[None, :]
+        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
+        r_lo = np.exp(self.log_min + lo * self.dlog)
+        r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
+        ok = top > 0
+        self.centre = np.where(ok, 0.5 * (r_lo + r_hi), np.nan)
+        self.halfwidth = np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
         return self.centre
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
@@ -450,7 +501,7 @@ class PeakAccumulator:
         Q = self.Q
         self.sums["window"] += np.bincount(peak, weights=m, minlength=Q)
         with np.errstate(invalid="ignore"):
-            inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
+            inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr + self.halfwidth[peak])
         q = peak[inl]
         m_all, m = m, m[inl]
         s = self.sums
@@ -576,6 +627,11 @@ class PeakAccumulator:
         steps = a[:, None] + np.arange(B)[None, :]
         S = self.shots_per_step.size
         inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
+        if self.step_window is not None:  # only where pass 2 counted detections
+            inside &= ((steps >= self.step_window[0][:, None])
+                       & (steps <= self.step_window[1][:, None]))
+        if self.accept is not None:  # only where the classifier accepts the return's code
+            inside &= self.accept(np.clip(steps, 0, S - 1), np.nan_to_num(self.centre, nan=1.0))
         n = np.where(inside, self.shots_per_step[np.clip(steps, 0, S - 1)], 0)
         t0, dt = self.step_grid
         f = spot_fraction(self.system, self.rows[:, None], self.cols[:, None], t0 + steps * dt,
@@ -616,7 +672,12 @@ class PeakAccumulator:
         dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
         # the model's own systematic uncertainty (pulse shape, spot profile, the
         # signal level's posterior): a share of the correction it applies
-        sd = np.hypot(sd, MODEL_DELAY_FRACTION * d)
+        # and, as the return saturates (nearly every shot fires with the spot on the
+        # pixel), the arrival is the pulse's leading edge, whose shape the Gaussian
+        # model does not know: up to SATURATED_EDGE_SIGMA pulse σ
+        sat = -np.expm1(-mu)
+        sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
+                                   SATURATED_EDGE_SIGMA * sigma * sat ** 2))
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
         for name in ("fused", "tof"):
             W = self.sums["W_" + name]
@@ -629,6 +690,9 @@ class PeakAccumulator:
 
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
+#: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
+#: pulse σ, scaled by the square of the detection probability with the spot centred
+SATURATED_EDGE_SIGMA = 0.3
 
 
 def _empty_band(Q: int):
@@ -639,7 +703,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
                                 weight=None, background=None, shots_per_step=None, step_grid=None,
-                                first_photon: bool = True, rate_hz=None) -> PointCloud:
+                                first_photon: bool = True, rate_hz=None, step_window=None,
+                                accept=None, spot_sigma: float | None = None) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -668,7 +733,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     """
     acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence,
                           shots_per_step=shots_per_step, step_grid=step_grid,
-                          first_photon=first_photon, rate_hz=rate_hz)
+                          first_photon=first_photon, rate_hz=rate_hz,
+                          step_window=step_window, accept=accept, spot_sigma=spot_sigma)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
     acc.add_inliers(shot, peak, code, theta, weight, background)

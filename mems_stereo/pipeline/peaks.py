@@ -81,6 +81,26 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     return j, cnt, mu, (cnt > thr) & (cnt >= settings.min_counts)
 
 
+def excess_band(counts, background, width: int, j, level: float = 0.5):
+    """Per row, the contiguous steps around ``j`` where the moving excess stays
+    at or above ``level`` times its value at ``j``.
+
+    ``counts``, ``background`` : (Q, S); ``j`` : (Q,) int.  Returns ``(lo, hi)``,
+    each (Q,) int64 (inclusive).
+    """
+    E = (moving_average(np.asarray(counts, np.float64), width)
+         - moving_average(np.asarray(background, np.float64), width))
+    Q, S = E.shape
+    if Q == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    j = np.asarray(j, np.int64)
+    below = E < level * E[np.arange(Q), j][:, None]
+    idx = np.arange(S)[None, :]
+    lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+    hi = np.where(below & (idx > j[:, None]), idx, S).min(axis=1) - 1
+    return lo.astype(np.int64), hi.astype(np.int64)
+
+
 def footprint_steps(system: System, table) -> int:
     """Angle steps over which the beam crosses one pixel (odd, >= 3).
 
@@ -216,14 +236,18 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
         keep &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     q = np.flatnonzero(keep)
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
+    # the band: where the excess stays above half its peak (a strong return fires
+    # the pixel while the spot's tails are still on it: a plateau much wider than
+    # the footprint, whose first maximum j need not be its centre), plus ``half``
+    b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
     peaks = Peaks(
         row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
-        step_lo=np.maximum(0, j[q] - half).astype(np.int64),
-        step_hi=np.minimum(table.n_steps - 1, j[q] + half).astype(np.int64),
+        step_lo=np.maximum(0, b_lo - half).astype(np.int64),
+        step_hi=np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64),
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
         rate_hz=rate.reshape(-1)[q], background_by_step=B[q])
     return peaks, rate.reshape(H, W)
