@@ -397,6 +397,7 @@ class PeakAccumulator:
         self.centre = None
         Q = self.Q
         self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
+                     "theta": np.zeros(Q),
                      "w": np.zeros(Q), "wr": np.zeros(Q), "wrr": np.zeros(Q),
                      "window": np.zeros(Q),
                      # background-subtraction variance: Σ b w², Σ b w² r, Σ b w² r²
@@ -539,6 +540,8 @@ class PeakAccumulator:
                               self.centre[peak], self.spot_sigma)
             np.add.at(s["loglik"], peak, _detection_log_odds(f) * m_all[:, None])
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
+        th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
+        s["theta"] += np.bincount(q, weights=m * th_e, minlength=Q)
         s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
         s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
         s["w"] += np.bincount(q, weights=m * w, minlength=Q)
@@ -566,9 +569,12 @@ class PeakAccumulator:
             chi2 = (s["wrr"] - 2 * rbar_w * s["wr"] + rbar_w ** 2 * s["w"]) / np.maximum(n - 1, 1)
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+        c_pix = self._stereo_at_mean_angle(mean, n)
         fp = self._first_photon(mean) if self._correcting() else None
         for name in mean:
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+        for name, C in (c_pix or {}).items():  # systematic: not scaled
+            mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
             var_bg = np.maximum(s["b2"] - 2 * rbar * s["b1"] + rbar ** 2 * s["b0"], 0.0) / W ** 2
         for name in ("fused", "stereo"):  # along the viewing direction of the point
@@ -609,6 +615,49 @@ class PeakAccumulator:
         with np.errstate(invalid="ignore", divide="ignore"):
             attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
         return PointCloud(xf, attrs).select(keep)
+
+    def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
+        """Stereo point of each peak at its detections' mean scan angle (in place).
+
+        A detection's stereo range is a convex function of its angle (range ∝ 1 /
+        disparity): the mean of the ranges over a band of angles lies behind the
+        surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
+        strong return that fires the pixel over several pixel footprints), the
+        range at the mean angle does not.  The fused point moves by its stereo
+        share of the difference.  Returns the systematic covariance of the
+        pixel location (:data:`STEREO_PIXEL_SIGMA`) per estimate, to add unscaled.
+        """
+        with np.errstate(invalid="ignore", divide="ignore"):
+            th = self.sums["theta"] / n
+            w = self.sums["weight"] / n
+        ok = np.isfinite(th) & (n > 0)
+        if not np.any(ok):
+            return None
+        x_old = mean["stereo"][0]
+        x_new = x_old.copy()
+        x_new[ok] = stereo_point_est(self.system, self.cols[ok].astype(np.float64),
+                                     self.rows[ok].astype(np.float64), np.zeros(ok.sum()),
+                                     th[ok])
+        good = ok & np.all(np.isfinite(x_new), axis=1)
+        x_new[~good] = x_old[~good]
+        shift = np.where(good[:, None], x_new - x_old, 0.0)
+        # the band locates the spot's centre on the pixel to a fraction of a pixel
+        # (spot profile, band edges, a surface inclined across the footprint):
+        # STEREO_PIXEL_SIGMA px along the row, propagated at the mean angle
+        J = np.zeros_like(x_new)
+        if np.any(good):
+            u = self.cols[good].astype(np.float64)
+            v = self.rows[good].astype(np.float64)
+            z = np.zeros(u.size)
+            J[good] = (stereo_point_est(self.system, u + 0.5, v, z, th[good])
+                       - stereo_point_est(self.system, u - 0.5, v, z, th[good]))
+        J = np.nan_to_num(J)
+        C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+        mean["stereo"] = (x_new, mean["stereo"][1])
+        xf, Cf = mean["fused"]
+        wn = np.nan_to_num(w)
+        mean["fused"] = (xf + wn[:, None] * shift, Cf)
+        return {"stereo": C_sys, "fused": (wn ** 2)[:, None, None] * C_sys}
 
     def _correcting(self) -> bool:
         return (self.first_photon and self.shots_per_step is not None
@@ -688,6 +737,8 @@ class PeakAccumulator:
         return out
 
 
+#: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
+STEREO_PIXEL_SIGMA = 0.15
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
