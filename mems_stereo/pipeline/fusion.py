@@ -308,6 +308,103 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                            x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok, dxdL)
 
 
+@dataclass
+class EstimateSums:
+    """Per-peak sums of one estimate (fused, stereo or time of flight), Q peaks.
+
+    W : (Q,) Σ m·w; X : (Q, 3) Σ m·w·x; C : (Q, 3, 3) Σ |m|·w²·C_i (a
+    subtracted background entry, m < 0, adds its variance as a detection
+    does); D : (Q, 3) Σ m·w·∂x/∂L and G : (Q, 3, 3) Σ |m|·w²·(∂x/∂L)(∂x/∂L)ᵀ
+    for the first-photon correction (None for the stereo estimate, which has
+    no time).  Sums of disjoint chunks add (``a + b``).
+    """
+
+    W: np.ndarray
+    X: np.ndarray
+    C: np.ndarray
+    D: np.ndarray | None = None
+    G: np.ndarray | None = None
+
+    @classmethod
+    def zeros(cls, Q: int, timed: bool) -> EstimateSums:
+        return cls(np.zeros(Q), np.zeros((Q, 3)), np.zeros((Q, 3, 3)),
+                   np.zeros((Q, 3)) if timed else None,
+                   np.zeros((Q, 3, 3)) if timed else None)
+
+    def __add__(self, other: EstimateSums) -> EstimateSums:
+        def add(a, b):
+            return None if a is None else a + b
+
+        return EstimateSums(self.W + other.W, self.X + other.X, self.C + other.C,
+                            add(self.D, other.D), add(self.G, other.G))
+
+    def add(self, q, x, C, m, g=None) -> None:
+        """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
+        multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
+        self.W += np.bincount(q, weights=m, minlength=self.W.size)
+        np.add.at(self.X, q, x * m[:, None])
+        np.add.at(self.C, q, C * np.abs(m)[:, None, None])
+        if self.D is not None and g is not None:
+            np.add.at(self.D, q, g * m[:, None])
+            np.add.at(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
+
+    def mean(self):
+        """(x̄ (Q, 3), covariance (Q, 3, 3)) = (X / W, C / W²)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.X / self.W[:, None], self.C / (self.W ** 2)[:, None, None]
+
+    def dL(self):
+        """(Q, 3) mean ∂x/∂L and (Q, 3, 3) its second moment, each / W (resp. W²)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.D / self.W[:, None], self.G / (self.W ** 2)[:, None, None]
+
+
+#: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
+_SCALARS = ("n", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0", "b1", "b2")
+
+
+@dataclass
+class PeakSums:
+    """Everything the inliers of Q peaks add up to (sums of chunks add: ``a + b``).
+
+    n : Σ m (inliers); code, weight, theta : Σ m·code, Σ m·stereo weight,
+    Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ², Σ m·r²/σ² (the scatter test);
+    window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
+    subtracted background (its variance); loglik : (Q, J) the detections'
+    log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
+    """
+
+    n: np.ndarray
+    code: np.ndarray
+    weight: np.ndarray
+    theta: np.ndarray
+    w: np.ndarray
+    wr: np.ndarray
+    wrr: np.ndarray
+    window: np.ndarray
+    b0: np.ndarray
+    b1: np.ndarray
+    b2: np.ndarray
+    loglik: np.ndarray
+    fused: EstimateSums
+    stereo: EstimateSums
+    tof: EstimateSums
+
+    @classmethod
+    def zeros(cls, Q: int) -> PeakSums:
+        return cls(*(np.zeros(Q) for _ in _SCALARS), np.zeros((Q, MU_GRID.size)),
+                   EstimateSums.zeros(Q, True), EstimateSums.zeros(Q, False),
+                   EstimateSums.zeros(Q, True))
+
+    def __add__(self, other: PeakSums) -> PeakSums:
+        return PeakSums(*(getattr(self, k) + getattr(other, k) for k in _SCALARS),
+                        self.loglik + other.loglik, self.fused + other.fused,
+                        self.stereo + other.stereo, self.tof + other.tof)
+
+    def estimate(self, name: str) -> EstimateSums:
+        return getattr(self, name)
+
+
 class PeakAccumulator:
     """Streaming fusion of each peak's signal detections into one point.
 
@@ -396,20 +493,7 @@ class PeakAccumulator:
         self.cover = np.zeros((self.Q, self.n_grid + 1), np.float64)
         self.centre = None
         Q = self.Q
-        self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
-                     "theta": np.zeros(Q),
-                     "w": np.zeros(Q), "wr": np.zeros(Q), "wrr": np.zeros(Q),
-                     "window": np.zeros(Q),
-                     # background-subtraction variance: Σ b w², Σ b w² r, Σ b w² r²
-                     "b0": np.zeros(Q), "b1": np.zeros(Q), "b2": np.zeros(Q)}
-        for name in ("fused", "stereo", "tof"):  # inverse-variance weighted sums
-            self.sums["W_" + name] = np.zeros(Q)
-            self.sums["X_" + name] = np.zeros((Q, 3))
-            self.sums["C_" + name] = np.zeros((Q, 3, 3))
-        for name in ("fused", "tof"):  # ∂x/∂L sums for the first-photon correction
-            self.sums["D_" + name] = np.zeros((Q, 3))
-            self.sums["G_" + name] = np.zeros((Q, 3, 3))
-        self.sums["loglik"] = np.zeros((Q, MU_GRID.size))  # inliers' log-odds on the μ0 grid
+        self.sums = PeakSums.zeros(Q)
         self.band = _empty_band(Q)  # inliers' angle steps: min, max (merged, not summed)
 
     def empty_copy(self) -> PeakAccumulator:
@@ -417,14 +501,14 @@ class PeakAccumulator:
         new = object.__new__(PeakAccumulator)
         new.__dict__.update(self.__dict__)
         new.cover = np.zeros_like(self.cover)
-        new.sums = {k: np.zeros_like(v) for k, v in self.sums.items()}
+        new.sums = PeakSums.zeros(self.Q)
         new.band = _empty_band(self.Q)
         return new
 
     def __add__(self, other: PeakAccumulator) -> PeakAccumulator:
         new = self.empty_copy()
         new.cover = self.cover + other.cover
-        new.sums = {k: self.sums[k] + other.sums[k] for k in self.sums}
+        new.sums = self.sums + other.sums
         new.band = (np.minimum(self.band[0], other.band[0]),
                     np.maximum(self.band[1], other.band[1]))
         return new
@@ -500,33 +584,24 @@ class PeakAccumulator:
             raise RuntimeError("add_inliers before finish_mode")
         peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
         Q = self.Q
-        self.sums["window"] += np.bincount(peak, weights=m, minlength=Q)
+        s = self.sums
+        s.window += np.bincount(peak, weights=m, minlength=Q)
         with np.errstate(invalid="ignore"):
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr + self.halfwidth[peak])
         q = peak[inl]
         m_all, m = m, m[inl]
-        s = self.sums
-        s["n"] += np.bincount(q, weights=m, minlength=Q)
-        for name in ("fused", "stereo", "tof"):
-            x = getattr(dp, name)[inl]
-            C = getattr(dp, "cov_" + name)[inl]
-            # equal weights: inside one peak the spread of the estimates is the
-            # pixel's footprint swept by the beam (stereo) or the pulse (ToF), and
-            # their σ grows with the value itself (stereo σ ∝ r²; a ToF point near
-            # the mirror has a tiny range variance): inverse-variance weights would
-            # pull every peak towards its nearest detections
-            w = np.ones(q.size)
-            s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
-            np.add.at(s["X_" + name], q, x * (m * w)[:, None])
-            # |m|: a subtracted background entry adds its variance, as a detection does
-            np.add.at(s["C_" + name], q, C * (np.abs(m) * w * w)[:, None, None])
-            if name != "stereo":  # ∂x/∂L: the ToF point's, the fused point's share of it
-                share = (np.ones(q.size) if name == "tof"
-                         else 1.0 - dp.weight_stereo[inl])
-                g = dp.dtof_dL[inl] * share[:, None]
-                np.add.at(s["D_" + name], q, g * (m * w)[:, None])
-                np.add.at(s["G_" + name], q, g[:, :, None] * g[:, None, :]
-                          * (np.abs(m) * w * w)[:, None, None])
+        s.n += np.bincount(q, weights=m, minlength=Q)
+        # equal weights: inside one peak the spread of the estimates is the pixel's
+        # footprint swept by the beam (stereo) or the pulse (ToF), and their σ grows
+        # with the value itself (stereo σ ∝ r²; a ToF point near the mirror has a
+        # tiny range variance): inverse-variance weights would pull every peak
+        # towards its nearest detections.  ∂x/∂L: the ToF point's, the fused
+        # point's share of it.
+        g = dp.dtof_dL[inl]
+        s.fused.add(q, dp.fused[inl], dp.cov_fused[inl], m,
+                    g * (1.0 - dp.weight_stereo[inl])[:, None])
+        s.stereo.add(q, dp.stereo[inl], dp.cov_stereo[inl], m)
+        s.tof.add(q, dp.tof[inl], dp.cov_tof[inl], m, g)
         if self.shots_per_step is not None and self.first_photon and peak.size:
             # band: the inliers' steps; likelihood: every detection of the window (the
             # in-peak test drops true returns at the band's edges, where the spot is
@@ -538,35 +613,33 @@ class PeakAccumulator:
             np.maximum.at(self.band[1], q, st)
             f = spot_fraction(self.system, self.rows[peak], self.cols[peak], th,
                               self.centre[peak], self.spot_sigma)
-            np.add.at(s["loglik"], peak, _detection_log_odds(f) * m_all[:, None])
+            np.add.at(s.loglik, peak, _detection_log_odds(f) * m_all[:, None])
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
-        s["theta"] += np.bincount(q, weights=m * th_e, minlength=Q)
-        s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
-        s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
-        s["w"] += np.bincount(q, weights=m * w, minlength=Q)
-        s["wr"] += np.bincount(q, weights=m * w * r[inl], minlength=Q)
-        s["wrr"] += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
+        s.theta += np.bincount(q, weights=m * th_e, minlength=Q)
+        s.code += np.bincount(q, weights=m * code[inl], minlength=Q)
+        s.weight += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
+        s.w += np.bincount(q, weights=m * w, minlength=Q)
+        s.wr += np.bincount(q, weights=m * w * r[inl], minlength=Q)
+        s.wrr += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
         if background is not None:  # (the means have equal weights)
             b = np.asarray(background, dtype=np.float64).ravel()[inl]
-            s["b0"] += np.bincount(q, weights=b, minlength=Q)
-            s["b1"] += np.bincount(q, weights=b * r[inl], minlength=Q)
-            s["b2"] += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
+            s.b0 += np.bincount(q, weights=b, minlength=Q)
+            s.b1 += np.bincount(q, weights=b * r[inl], minlength=Q)
+            s.b2 += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
 
     def cloud(self, min_counts: int = 1) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
         s = self.sums
-        n = s["n"]
+        n = s.n
         with np.errstate(invalid="ignore", divide="ignore"):
             # means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)² (w: multiplicities)
-            mean = {name: (s["X_" + name] / s["W_" + name][:, None],
-                           s["C_" + name] / (s["W_" + name] ** 2)[:, None, None])
-                    for name in ("fused", "stereo", "tof")}
-            W = s["W_fused"]
+            mean = {name: s.estimate(name).mean() for name in ("fused", "stereo", "tof")}
+            W = s.fused.W
             # reduced χ² of the fused ranges about their σ-weighted mean:
             # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w, w = 1/σ_i²
-            rbar_w = s["wr"] / s["w"]
-            chi2 = (s["wrr"] - 2 * rbar_w * s["wr"] + rbar_w ** 2 * s["w"]) / np.maximum(n - 1, 1)
+            rbar_w = s.wr / s.w
+            chi2 = (s.wrr - 2 * rbar_w * s.wr + rbar_w ** 2 * s.w) / np.maximum(n - 1, 1)
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         c_pix = self._stereo_at_mean_angle(mean, n)
@@ -576,7 +649,7 @@ class PeakAccumulator:
         for name, C in (c_pix or {}).items():  # systematic: not scaled
             mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
-            var_bg = np.maximum(s["b2"] - 2 * rbar * s["b1"] + rbar ** 2 * s["b0"], 0.0) / W ** 2
+            var_bg = np.maximum(s.b2 - 2 * rbar * s.b1 + rbar ** 2 * s.b0, 0.0) / W ** 2
         for name in ("fused", "stereo"):  # along the viewing direction of the point
             x0 = mean[name][0]
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -585,7 +658,7 @@ class PeakAccumulator:
             mean[name] = (x0, mean[name][1] + np.nan_to_num(add))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
             for name in ("fused", "tof"):
-                D = s["D_" + name] / s["W_" + name][:, None]
+                D = s.estimate(name).dL()[0]
                 mean[name] = (mean[name][0], mean[name][1] + D[:, :, None] * D[:, None, :]
                               * (fp["sigma_L"] ** 2)[:, None, None])
         xf, Cf = mean["fused"]
@@ -594,8 +667,8 @@ class PeakAccumulator:
         r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
         sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
-            code_mean = s["code"] / n
-            w_mean = s["weight"] / n
+            code_mean = s.code / n
+            w_mean = s.weight / n
         attrs = {
             "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
             "row": self.rows.astype(np.int32),
@@ -604,7 +677,7 @@ class PeakAccumulator:
             "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
             "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
             "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": np.rint(s["window"]).astype(np.int32),
+            "counts_window": np.rint(s.window).astype(np.int32),
         }
         if fp is not None:
             attrs["tof_delay"] = fp["delay"]
@@ -628,8 +701,8 @@ class PeakAccumulator:
         pixel location (:data:`STEREO_PIXEL_SIGMA`) per estimate, to add unscaled.
         """
         with np.errstate(invalid="ignore", divide="ignore"):
-            th = self.sums["theta"] / n
-            w = self.sums["weight"] / n
+            th = self.sums.theta / n
+            w = self.sums.weight / n
         ok = np.isfinite(th) & (n > 0)
         if not np.any(ok):
             return None
@@ -706,7 +779,7 @@ class PeakAccumulator:
         d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
         for a in range(0, idx.size, 16):  # blocks of peaks: (16, J, B) temporaries
             q = idx[a:a + 16]
-            ll = self.sums["loglik"][q] + np.einsum(
+            ll = self.sums.loglik[q] + np.einsum(
                 "qb,qbj->qj", n_band[q], np.log1p(-_firing_probability(f_band[q])))
             d[a:a + 16], sd[a:a + 16], var[a:a + 16], mu[a:a + 16] = first_photon_delay(
                 ll, f_band[q], n_band[q], tau[q], sigma)
@@ -729,10 +802,8 @@ class PeakAccumulator:
                                    SATURATED_EDGE_SIGMA * sigma * sat ** 2))
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
         for name in ("fused", "tof"):
-            W = self.sums["W_" + name]
-            D = self.sums["D_" + name] / W[:, None]
+            D, G = self.sums.estimate(name).dL()
             x, C = mean[name]
-            G = self.sums["G_" + name] / (W * W)[:, None, None]
             mean[name] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
 
