@@ -242,7 +242,7 @@ def test_streamed_halves_equal_one_pass(system):
     parts = [acc.empty_copy(), acc.empty_copy()]
     for part, sel in zip(parts, (half, ~half)):
         part.add_mode(shot[sel], peak[sel], code[sel], th)
-    acc.cover = (parts[0] + parts[1]).cover
+    acc.mode = (parts[0] + parts[1]).mode
     acc.finish_mode()
     parts = [acc.empty_copy(), acc.empty_copy()]
     for part, sel in zip(parts, (half, ~half)):

@@ -308,6 +308,69 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                            x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok, dxdL)
 
 
+class RangeMode:
+    """The centre range of each of Q peaks: the mode of its detections' range intervals.
+
+    Each detection adds its interval ``[r_i − σ_i, r_i + σ_i]`` (weight m_i) to
+    a coverage count on a logarithmic range grid (relative step ``rel_step``,
+    from ``r_min`` to ``r_max`` m); coverages of chunks add (``a + b``).
+    :meth:`finish` gives the middle of the contiguous range where the coverage
+    stays above half its maximum, and half that range's width: a strong
+    return fires the pixel while the spot's tails are still on it, its
+    detections' stereo ranges then cover a plateau (several σ of one
+    detection wide) whose first maximum is anywhere on it; its middle is
+    where the spot was centred on the pixel.  A sharp cluster of a few
+    near-range background detections cannot outvote a broad cluster of many
+    true returns.
+    """
+
+    def __init__(self, Q: int, r_min: float = 0.01, r_max: float = 1000.0,
+                 rel_step: float = 2e-3):
+        self.log_min = float(np.log(r_min))
+        self.dlog = float(np.log1p(rel_step))
+        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
+        self.cover = np.zeros((int(Q), self.n_grid + 1), np.float64)
+
+    def __add__(self, other: RangeMode) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = self.cover + other.cover
+        return new
+
+    def zeroed(self) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = np.zeros_like(self.cover)
+        return new
+
+    def _bin(self, r):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
+        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
+
+    def add(self, peak, r, sr, m) -> None:
+        """Intervals r ± sr (N,) m of peaks ``peak`` (N,) with weights m (N,)."""
+        lo = self._bin(r - sr)
+        hi = self._bin(r + sr)
+        np.add.at(self.cover, (peak, lo), m)
+        np.add.at(self.cover, (peak, hi + 1), -m)
+
+    def finish(self):
+        """(centre (Q,) m, NaN without detections; halfwidth (Q,) m)."""
+        Q = self.cover.shape[0]
+        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
+        j = np.argmax(density, axis=1)
+        top = density[np.arange(Q), j]
+        below = density < 0.5 * top[:, None]
+        idx = np.arange(self.n_grid)[None, :]
+        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
+        r_lo = np.exp(self.log_min + lo * self.dlog)
+        r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
+        ok = top > 0
+        return np.where(ok, 0.5 * (r_lo + r_hi), np.nan), np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
+
+
 @dataclass
 class EstimateSums:
     """Per-peak sums of one estimate (fused, stereo or time of flight), Q peaks.
@@ -487,10 +550,7 @@ class PeakAccumulator:
         self.accept = accept
         self.rate_hz = (np.zeros(self.Q) if rate_hz is None
                         else np.nan_to_num(np.asarray(rate_hz, np.float64).ravel()))
-        self.log_min = float(np.log(r_min))
-        self.dlog = float(np.log1p(rel_step))
-        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
-        self.cover = np.zeros((self.Q, self.n_grid + 1), np.float64)
+        self.mode = RangeMode(self.Q, r_min, r_max, rel_step)
         self.centre = None
         Q = self.Q
         self.sums = PeakSums.zeros(Q)
@@ -500,14 +560,14 @@ class PeakAccumulator:
         """A zeroed accumulator of the same peaks and grid (keeps the centres)."""
         new = object.__new__(PeakAccumulator)
         new.__dict__.update(self.__dict__)
-        new.cover = np.zeros_like(self.cover)
+        new.mode = self.mode.zeroed()
         new.sums = PeakSums.zeros(self.Q)
         new.band = _empty_band(self.Q)
         return new
 
     def __add__(self, other: PeakAccumulator) -> PeakAccumulator:
         new = self.empty_copy()
-        new.cover = self.cover + other.cover
+        new.mode = self.mode + other.mode
         new.sums = self.sums + other.sums
         new.band = (np.minimum(self.band[0], other.band[0]),
                     np.maximum(self.band[1], other.band[1]))
@@ -527,11 +587,6 @@ class PeakAccumulator:
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
         return peak, code, dp, r, sr, ok, w
 
-    def _bin(self, r):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
-        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
-
     def add_mode(self, shot, peak, code, theta, weight=None) -> None:
         """Sub-pass 1: coverage of each detection's ±σ range interval.
 
@@ -541,33 +596,12 @@ class PeakAccumulator:
         of being signal.
         """
         peak, _, _, r, sr, ok, w = self._points(shot, peak, code, theta, weight)
-        lo = self._bin(r[ok] - sr[ok])
-        hi = self._bin(r[ok] + sr[ok])
-        np.add.at(self.cover, (peak[ok], lo), w[ok])
-        np.add.at(self.cover, (peak[ok], hi + 1), -w[ok])
+        self.mode.add(peak[ok], r[ok], sr[ok], w[ok])
 
     def finish_mode(self) -> np.ndarray:
-        """Fix each peak's centre range (Q,) m (NaN without detections).
-
-        The centre is the middle of the contiguous range where the coverage
-        stays above half its maximum, and ``halfwidth`` (Q,) m half that
-        range's width: a strong return fires the pixel while the spot's tails
-        are still on it, its detections' stereo ranges then cover a plateau
-        (several σ of one detection wide) whose first maximum is anywhere on
-        it; its middle is where the spot was centred on the pixel.
-        """
-        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
-        j = np.argmax(density, axis=1)
-        top = density[np.arange(self.Q), j]
-        below = density < 0.5 * top[:, None]
-        idx = np.arange(self.n_grid)[None, :]
-        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
-        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
-        r_lo = np.exp(self.log_min + lo * self.dlog)
-        r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
-        ok = top > 0
-        self.centre = np.where(ok, 0.5 * (r_lo + r_hi), np.nan)
-        self.halfwidth = np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
+        """Fix each peak's centre range (Q,) m (NaN without detections) and the
+        inliers' half-width (:class:`RangeMode`)."""
+        self.centre, self.halfwidth = self.mode.finish()
         return self.centre
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
