@@ -843,12 +843,12 @@ class PeakAccumulator:
 
 
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
-STEREO_PIXEL_SIGMA = 0.15
+STEREO_PIXEL_SIGMA = 0.1
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
-SATURATED_EDGE_SIGMA = 0.3
+SATURATED_EDGE_SIGMA = 0.2
 
 
 def _empty_band(Q: int):
