@@ -240,9 +240,6 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # the pixel while the spot's tails are still on it: a plateau much wider than
     # the footprint, whose first maximum j need not be its centre), plus ``half``
     b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
-    if scanned.size:  # the whole band, not only its strongest window, must be swept
-        whole = (b_lo - width // 2 >= scanned[0]) & (b_hi + width // 2 <= scanned[-1])
-        q, b_lo, b_hi = q[whole], b_lo[whole], b_hi[whole]
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
