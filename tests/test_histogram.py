@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from oracles import detect_peaks, peak_centroid
 from scipy.optimize import minimize_scalar
 
 from mems_stereo.errors import FormatError
@@ -22,9 +23,7 @@ from mems_stereo.physics.background import (
 from mems_stereo.pipeline.histograms import (
     Histograms,
     accumulate_histograms,
-    detect_peaks,
     moving_average,
-    peak_centroid,
 )
 
 DT = 312.5e-12

@@ -5,11 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from oracles import find_code_peaks
 
 from mems_stereo.model.system import burkard2022
 from mems_stereo.physics.background import expected_background_by_angle
 from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.peaks import find_code_peaks, strongest_window
+from mems_stereo.pipeline.peaks import strongest_window
 from mems_stereo.pipeline.run import process_recording
 from mems_stereo.pipeline.settings import Settings
 

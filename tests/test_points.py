@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from oracles import peak_points
 
 from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import polar_from_cartesian, spreads_for
@@ -13,7 +14,7 @@ from mems_stereo.model.camera import project_points
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.tdc import codes_from_path_length
 from mems_stereo.pipeline.cloud import REQUIRED_ATTRIBUTES
-from mems_stereo.pipeline.fusion import detection_points, peak_points
+from mems_stereo.pipeline.fusion import detection_points
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 

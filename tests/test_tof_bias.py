@@ -133,9 +133,14 @@ def test_spot_fraction_matches_simulator(system):
     x = p + s[:, None] * d
     np.testing.assert_allclose(np.linalg.norm(x, axis=1), r)
     uv = project_points(x, system.receiver.camera_matrix)
-    sig = DEFAULT_SPOT_SIGMA / np.asarray(system.receiver.pixel_pitch)
-    rows, cols, frac = spot_fractions(uv, np.broadcast_to(sig, (3, 2)),
-                                      system.receiver.image_size, radius=2)
+    # the simulator's spot size at each point (beam, defocus, lens blur)
+    from mems_stereo.physics.link_budget import LinkBudget
+    from mems_stereo.physics.spot import SpotModel
+
+    sig_m = SpotModel().sigma(s, x[:, 2], LinkBudget())
+    sig = sig_m[:, None] / np.asarray(system.receiver.pixel_pitch)[None, :]
+    assert sig_m.min() < 0.95 * sig_m.max()  # the size does vary with range
+    rows, cols, frac = spot_fractions(uv, sig, system.receiver.image_size, radius=2)
     for k in range(3):
         for i, rr in enumerate(rows[k]):
             for j, cc in enumerate(cols[k]):
@@ -188,11 +193,11 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     sps = np.bincount(steps, minlength=steps.max() + 2)
     rows = np.zeros_like(cols)
     args = (system, shot, peak, code, th_snap, rows, cols)
-    plain = points_from_peak_detections(*args, min_counts=5)
-    off = points_from_peak_detections(*args, min_counts=5, shots_per_step=sps,
+    kw = {"min_counts": 5, "spot_sigma": DEFAULT_SPOT_SIGMA}  # the spot the data were made with
+    plain = points_from_peak_detections(*args, **kw)
+    off = points_from_peak_detections(*args, **kw, shots_per_step=sps,
                                       step_grid=(t0, dtheta), first_photon=False)
-    on = points_from_peak_detections(*args, min_counts=5, shots_per_step=sps,
-                                     step_grid=(t0, dtheta))
+    on = points_from_peak_detections(*args, **kw, shots_per_step=sps, step_grid=(t0, dtheta))
     # without the shot counts (or switched off) the result is the uncorrected one
     assert set(plain.attributes) == set(off.attributes)
     for k in plain.attributes:
@@ -209,7 +214,9 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     z1 = e1 / on["sigma_r_tof"]
     assert np.mean(e0) < -0.3  # first photons of μ0 = 4: about -0.8 m of range
     assert abs(np.mean(z1)) < 4 / math.sqrt(z1.size), (np.mean(e1), np.mean(z1))
-    assert 1 / 1.5 < np.sqrt(np.mean(z1 ** 2)) < 1.5
+    # σ carries the model's systematic allowance (fusion.MODEL_DELAY_FRACTION,
+    # SATURATED_EDGE_SIGMA): on data that follow the model exactly it over-covers
+    assert 0.4 < np.sqrt(np.mean(z1 ** 2)) < 1.5
     assert abs(np.median(on["signal_photons"]) / 4.0 - 1) < 0.35
     # the fused point moves by the ToF share only, and not away from the truth
     # (by more than a millimetre: the stereo share dominates at 2 m)
@@ -235,7 +242,7 @@ def test_streamed_halves_equal_one_pass(system):
     parts = [acc.empty_copy(), acc.empty_copy()]
     for part, sel in zip(parts, (half, ~half)):
         part.add_mode(shot[sel], peak[sel], code[sel], th)
-    acc.cover = (parts[0] + parts[1]).cover
+    acc.mode = (parts[0] + parts[1]).mode
     acc.finish_mode()
     parts = [acc.empty_copy(), acc.empty_copy()]
     for part, sel in zip(parts, (half, ~half)):

@@ -16,19 +16,20 @@ from mems_stereo.physics.link_budget import LinkBudget
 DEFAULT_SPOT_SIGMA = 10e-6
 
 
-def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float = DEFAULT_SPOT_SIGMA):
+def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | None = None,
+                  model: SpotModel | None = None, link: LinkBudget | None = None):
     """Share of the imaged laser spot on a pixel when the beam lights a target at range ``rng``.
 
     The target point is on the scanner ray at angle ``theta`` (rad) at distance
     ``rng`` (m) from the projection centre; its image (``project_points``)
-    is the centre of a Gaussian spot of σ ``spot_sigma`` (m on the sensor,
-    as :func:`~mems_stereo.geometry.uncertainty.spreads_for`); the share on pixel
-    (row, col) is the product of the per-axis Gaussian integrals over the
-    pixel (as the simulator's ``spot_fractions``).  Arguments broadcast;
-    returns float64 of the broadcast shape (0 where the ray misses that range).
+    is the centre of a Gaussian spot whose σ (m on the sensor) is
+    ``spot_sigma`` or, by default, the simulator's :class:`SpotModel` at that
+    point (beam size, defocus and lens blur: wider near the sensor than at
+    the focus distance); the share on pixel (row, col) is the product of the
+    per-axis Gaussian integrals over the pixel (as :func:`spot_fractions`).
+    Arguments broadcast; returns float64 of the broadcast shape (0 where the
+    ray misses that range).
     """
-    from scipy.special import ndtr
-
     from mems_stereo.model.camera import project_points
 
     rows, cols, th, r = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
@@ -38,10 +39,18 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float = DE
     pd = d @ p
     with np.errstate(invalid="ignore"):
         s = -pd + np.sqrt(pd * pd - p @ p + r.ravel() ** 2)
-    uv = project_points(p + s[:, None] * d, system.receiver.camera_matrix,
-                        system.receiver.dist_coeffs)
+    x = p + s[:, None] * d
+    uv = project_points(x, system.receiver.camera_matrix, system.receiver.dist_coeffs)
     pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
-    sc, sr = spot_sigma / pitch[0], spot_sigma / pitch[1]
+    if spot_sigma is None:
+        sm = SpotModel() if model is None else model
+        lb = LinkBudget() if link is None else link
+        with np.errstate(invalid="ignore"):
+            sig = sm.sigma(np.nan_to_num(s, nan=1.0), np.nan_to_num(x[:, 2], nan=1.0), lb)
+        sig = sig.reshape(th.shape)
+    else:
+        sig = float(spot_sigma)
+    sc, sr = sig / pitch[0], sig / pitch[1]
     u, v = uv[:, 0].reshape(th.shape), uv[:, 1].reshape(th.shape)
     fc = ndtr((cols + 0.5 - u) / sc) - ndtr((cols - 0.5 - u) / sc)
     fr = ndtr((rows + 0.5 - v) / sr) - ndtr((rows - 0.5 - v) / sr)

@@ -52,18 +52,87 @@ from mems_stereo.geometry.uncertainty import (
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
-from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
 from mems_stereo.physics.first_photon import (
     MU_GRID,
     _detection_log_odds,
     _firing_probability,
     first_photon_delay,
 )
-from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
+from mems_stereo.physics.spot import spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.settings import Settings
+
+#: segments of each (peak, step)'s accepted code interval over which its expected
+#: background is spread (as negative-weight entries at the segments' centroids)
+BACKGROUND_SEGMENTS = 8
+
+
+def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
+                      segments: int = BACKGROUND_SEGMENTS):
+    """Expected background detections among the counted codes of each (peak, angle step).
+
+    A SPAD pixel records one photon per shot, so background can only be
+    recorded by shots that have not fired yet: with the hazard
+    ``h = 1 − exp(−λ·Δt)`` per bin, the expected background in code c is
+    ``h·S(c)``, S(c) the shots of the step still unfired at c — the shots that
+    reach the accepted interval unfired (``n·(1 − h)^(lo−1)``) less the
+    detections counted at the codes before c (a martingale: exact in
+    expectation whatever the signal).  Where the laser fires the pixel in
+    most shots this is far below the free-running expectation, and it is not
+    uniform in code: background before the return is recorded, after it
+    mostly not — subtracting it as a uniform share would bias both the signal
+    level (hence the first-photon correction) and the time of flight early.
+
+    Parameters (one entry per distinct (group, code), sorted by group, then code)
+    ----------
+    group : (M,) int, the (peak, step) group; code : (M,) int TDC code;
+    count : (M,) detections; a, b : (M,) the group's counted codes (its
+    accepted interval ∩ the peak's code window); n_shots : (M,) valid shots of
+    the step; lo : (M,) start of the accepted interval; rate_hz : (M,) λ.
+
+    Returns
+    -------
+    first : (G,) index of each group's first entry;
+    bg : (G, J) expected background of each of the J segments of [a, b];
+    centroid : (G, J) its mean code (float64).
+    """
+    group = np.asarray(group, np.int64)
+    code = np.asarray(code, np.float64)
+    cnt = np.asarray(count, np.float64)
+    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
+    G = first.size
+    h = -np.expm1(-np.nan_to_num(np.asarray(rate_hz, np.float64)[first]) * bin_width)
+    s0 = np.asarray(n_shots, np.float64)[first] * np.exp(
+        (np.asarray(lo, np.float64)[first] - 1.0) * np.log1p(-np.minimum(h, 1 - 1e-15)))
+    ag = np.asarray(a, np.float64)[first]
+    bg_ = np.asarray(b, np.float64)[first]
+    n_codes = np.maximum(bg_ - ag + 1.0, 0.0)
+    J = int(segments)
+    edges = ag[:, None] + np.floor(n_codes[:, None] * np.arange(J + 1)[None, :] / J)
+    s_lo, s_hi = edges[:, :-1], edges[:, 1:] - 1.0  # (G, J) inclusive
+    length = np.maximum(s_hi - s_lo + 1.0, 0.0)
+
+    def csum(m, n):  # Σ c for c = m..n (0 when n < m)
+        return np.where(n >= m, (m + n) * (n - m + 1.0) / 2.0, 0.0)
+
+    tot = s0[:, None] * length
+    tot_c = s0[:, None] * csum(s_lo, s_hi)
+    ce = code[:, None]
+    start = np.maximum(s_lo[inv], ce + 1.0)  # codes of the segment after the detection
+    closed = np.zeros((G, J))
+    closed_c = np.zeros((G, J))
+    for j in range(J):
+        m = np.maximum(s_hi[inv, j] - start[:, j] + 1.0, 0.0)
+        closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
+        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start[:, j], s_hi[inv, j]),
+                                     minlength=G)
+    S_sum = np.maximum(tot - closed, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
+    return first, h[:, None] * S_sum, centroid
 
 
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
@@ -91,24 +160,68 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     theta = table.theta_min + step * table.step
     weight = counts.counts.astype(np.float64)
     background = None
-    bg = peaks.get("background_by_step")
-    if bg is not None and k.size:
-        # background subtraction in scan angle: the detections at a step are
-        # signal with probability (n − expected background) / n; each entry
-        # carries its share of the step's expected background (for the σ)
-        qs = q * S + step
-        n = np.bincount(qs, weights=weight)[qs]
-        background = np.minimum(bg[q, step], n) * weight / n
-        weight = weight * np.clip((n - bg[q, step]) / n, 0.0, 1.0)
+    rate = peaks.get("rate_hz")
+    q_all, code_all, theta_all = q, code.astype(np.float64), theta
+    if rate is not None and shots_per_step is not None and k.size:
+        # background subtraction: each (peak, step)'s expected background enters
+        # as negative-weight entries spread over its code interval
+        # (:func:`window_background`); their magnitude is the Poisson variance
+        # of the subtraction (for the σ)
+        W = system.receiver.width
+        pix = peaks["row"][q] * W + peaks["col"][q]
+        lo = table.lo[step, pix].astype(np.int64)
+        hi = table.hi[step, pix].astype(np.int64)
+        a = np.maximum(lo, peaks["code_lo"][q])
+        b = np.minimum(hi, peaks["code_hi"][q])
+        first, bgs, cen = window_background(q * S + step, code, weight, a, b,
+                                            np.asarray(shots_per_step)[step], lo, rate[q],
+                                            system.tdc.bin_width)
+        J = bgs.shape[1]
+        keep = bgs.ravel() > 0
+        q_all = np.concatenate([q, np.repeat(q[first], J)[keep]])
+        code_all = np.concatenate([code_all, cen.ravel()[keep]])
+        theta_all = np.concatenate([theta, np.repeat(theta[first], J)[keep]])
+        background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
+        weight = np.concatenate([weight, -bgs.ravel()[keep]])
 
-    cloud = points_from_peak_detections(system, np.arange(k.size), q, code, theta, peaks["row"],
+    cloud = points_from_peak_detections(system, np.arange(q_all.size), q_all, code_all, theta_all,
+                                        peaks["row"],
                                         peaks["col"], peaks["code"],
                                         min_counts=settings.min_counts,
                                         confidence=settings.confidence, weight=weight,
                                         background=background,
                                         shots_per_step=shots_per_step,
-                                        step_grid=(table.theta_min, table.step))
+                                        step_grid=(table.theta_min, table.step), rate_hz=rate,
+                                        step_window=(peaks["step_lo"], peaks["step_hi"])
+                                        if peaks.get("step_lo") is not None else None,
+                                        accept=_acceptance(system, table, peaks))
     return consistent_points(cloud, settings.confidence)
+
+
+def _acceptance(system: System, table, peaks):
+    """accept(steps (Q, B), centre (Q,) m) -> (Q, B) bool: whether the code of a return
+    from the peak's centre range, at each step's grid angle, lies in the pixel's
+    accepted interval (else the classifier labels it noise: such shots are
+    neither hits nor misses of the first-photon likelihood)."""
+    W = system.receiver.width
+    pix = (peaks["row"] * W + peaks["col"]).astype(np.int64)
+
+    def accept(steps, centre):
+        th = table.theta_min + steps * table.step
+        d = scan_direction(th.ravel(), system.scanner)
+        p = np.asarray(system.scanner.position, dtype=np.float64)
+        pd = d @ p
+        r = np.broadcast_to(np.asarray(centre, np.float64)[:, None], steps.shape).ravel()
+        with np.errstate(invalid="ignore"):
+            s = -pd + np.sqrt(pd * pd - p @ p + r ** 2)
+        code = np.floor(codes_from_path_length(s + r, system.tdc, system.speed_of_light))
+        code = code.reshape(steps.shape)
+        table.ensure(np.unique(steps))
+        lo = table.lo[steps, pix[:, None]]
+        hi = table.hi[steps, pix[:, None]]
+        return (code >= lo) & (code <= hi)
+
+    return accept
 
 
 @dataclass
@@ -197,139 +310,164 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                            x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok, dxdL)
 
 
-def _group_mean(idx, n, values):
-    """Mean of values (M, ...) per group idx (M,) in 0..n-1 -> (n, ...)."""
-    cnt = np.bincount(idx, minlength=n).astype(np.float64)
-    out = np.zeros((n,) + values.shape[1:])
-    np.add.at(out, idx, values)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return out / cnt.reshape((-1,) + (1,) * (values.ndim - 1)), cnt
+class RangeMode:
+    """The centre range of each of Q peaks: the mode of its detections' range intervals.
 
-
-def _group_median(idx, n, values):
-    """Median of values (M,) per group idx (M,) in 0..n-1 -> (n,) (NaN for empty groups)."""
-    order = np.lexsort((values, idx))
-    gi, vs = idx[order], values[order]
-    cnt = np.bincount(gi, minlength=n)
-    start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-    out = np.full(n, np.nan)
-    has = cnt > 0
-    a = start[has] + (cnt[has] - 1) // 2
-    b = start[has] + cnt[has] // 2
-    out[has] = 0.5 * (vs[a] + vs[b])
-    return out
-
-
-def peak_points(system: System, bins, labels, theta, rows, cols, code_lo, code_hi,
-                spreads: Spreads | None = None, min_counts: int = 1,
-                confidence: float = 0.997) -> PointCloud:
-    """One point per peak from its signal detections, with propagated uncertainty.
-
-    Parameters
-    ----------
-    bins : (K, H, W) uint16 TDC codes; labels : (K, H, W) uint8 (1 = signal).
-    theta : (K,) float64 scan angles, rad.
-    rows, cols : (P,) int pixel of each peak; code_lo, code_hi : (P,) int, the
-        peak's code window (inclusive), e.g. from the peak detector.
-    min_counts : peaks with fewer signal detections are dropped.
-    confidence : of the in-peak consistency test: a detection whose fused
-        range differs from the peak's median fused range by more than
-        ``k·sqrt(σ_i² + (σ_tof/√n)²)`` (background that passed the
-        classifier inside the window) is left out of the average.
-
-    Returns
-    -------
-    :class:`~mems_stereo.pipeline.cloud.PointCloud` of the fused points with attributes
-    ``counts`` int32, ``pixel`` int32 (column), ``row`` int32, ``code`` (mean
-    code), ``range``, ``sigma_r``, ``sigma_phi``, ``sigma_x/y/z`` (fused), and
-    per estimate ``range_stereo``, ``sigma_r_stereo``, ``range_tof``,
-    ``sigma_r_tof``, ``weight_stereo`` (float64), and ``counts_window``
-    int32 (signal-labelled detections in the window before the in-peak test).
+    Each detection adds its interval ``[r_i − σ_i, r_i + σ_i]`` (weight m_i) to
+    a coverage count on a logarithmic range grid (relative step ``rel_step``,
+    from ``r_min`` to ``r_max`` m); coverages of chunks add (``a + b``).
+    :meth:`finish` gives the middle of the contiguous range where the coverage
+    stays above half its maximum, and half that range's width: a strong
+    return fires the pixel while the spot's tails are still on it, its
+    detections' stereo ranges then cover a plateau (several σ of one
+    detection wide) whose first maximum is anywhere on it; its middle is
+    where the spot was centred on the pixel.  A sharp cluster of a few
+    near-range background detections cannot outvote a broad cluster of many
+    true returns.
     """
-    b = np.asarray(bins)
-    lab = np.asarray(labels)
-    if b.shape != lab.shape or b.ndim != 3:
-        raise GeometryError(f"bins, labels: expected equal (K, H, W) shapes, found "
-                            f"{b.shape}, {lab.shape}")
-    rows = np.asarray(rows, dtype=np.int64).ravel()
-    cols = np.asarray(cols, dtype=np.int64).ravel()
-    lo = np.asarray(code_lo, dtype=np.int64).ravel()
-    hi = np.asarray(code_hi, dtype=np.int64).ravel()
-    P = rows.size
-    if not (cols.size == lo.size == hi.size == P):
-        raise GeometryError("rows, cols, code_lo, code_hi: expected equal lengths")
-    # signal detections of each peak's pixel inside its window
-    det_k, det_p, det_code = [], [], []
-    col_bins = b[:, rows, cols].astype(np.int64)  # (K, P)
-    col_lab = lab[:, rows, cols]
-    m = (col_lab == 1) & (col_bins >= lo) & (col_bins <= hi) & (col_bins > 0)
-    det_k, det_p = np.nonzero(m)
-    det_code = col_bins[det_k, det_p]
-    dp = detection_points(system, det_k, rows[det_p], cols[det_p], det_code, theta, spreads)
-    good = dp.ok.copy()
-    from mems_stereo.pipeline.consistency import k_from_confidence
 
-    k = k_from_confidence(confidence)
-    r_i, _, sr_i, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
-    _, _, srt_i, _ = polar_from_cartesian(dp.tof, dp.cov_tof)
-    idx_all = np.where(good, det_p, P)  # bad detections go to a dummy group
-    med = _group_median(idx_all, P + 1, np.where(good, r_i, 0.0))[det_p]
-    n_in = np.bincount(idx_all, minlength=P + 1)[det_p].astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        bound = k * np.sqrt(sr_i ** 2 + srt_i ** 2 / np.maximum(n_in, 1.0))
-        good &= np.abs(r_i - med) <= bound
-    window_counts = np.bincount(det_p, minlength=P)
-    gi = det_p[good]
-    mean = {}
-    for name in ("stereo", "tof", "fused"):
-        x, cnt = _group_mean(gi, P, getattr(dp, name)[good])
-        C, _ = _group_mean(gi, P, getattr(dp, "cov_" + name)[good])
+    def __init__(self, Q: int, r_min: float = 0.01, r_max: float = 1000.0,
+                 rel_step: float = 2e-3):
+        self.log_min = float(np.log(r_min))
+        self.dlog = float(np.log1p(rel_step))
+        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
+        self.cover = np.zeros((int(Q), self.n_grid + 1), np.float64)
+
+    def __add__(self, other: RangeMode) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = self.cover + other.cover
+        return new
+
+    def zeroed(self) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = np.zeros_like(self.cover)
+        return new
+
+    def _bin(self, r):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
+        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
+
+    def add(self, peak, r, sr, m) -> None:
+        """Intervals r ± sr (N,) m of peaks ``peak`` (N,) with weights m (N,)."""
+        lo = self._bin(r - sr)
+        hi = self._bin(r + sr)
+        np.add.at(self.cover, (peak, lo), m)
+        np.add.at(self.cover, (peak, hi + 1), -m)
+
+    def finish(self):
+        """(centre (Q,) m, NaN without detections; halfwidth (Q,) m)."""
+        Q = self.cover.shape[0]
+        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
+        j = np.argmax(density, axis=1)
+        top = density[np.arange(Q), j]
+        below = density < 0.5 * top[:, None]
+        idx = np.arange(self.n_grid)[None, :]
+        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
+        r_lo = np.exp(self.log_min + lo * self.dlog)
+        r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
+        ok = top > 0
+        return np.where(ok, 0.5 * (r_lo + r_hi), np.nan), np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
+
+
+@dataclass
+class EstimateSums:
+    """Per-peak sums of one estimate (fused, stereo or time of flight), Q peaks.
+
+    W : (Q,) Σ m·w; X : (Q, 3) Σ m·w·x; C : (Q, 3, 3) Σ |m|·w²·C_i (a
+    subtracted background entry, m < 0, adds its variance as a detection
+    does); D : (Q, 3) Σ m·w·∂x/∂L and G : (Q, 3, 3) Σ |m|·w²·(∂x/∂L)(∂x/∂L)ᵀ
+    for the first-photon correction (None for the stereo estimate, which has
+    no time).  Sums of disjoint chunks add (``a + b``).
+    """
+
+    W: np.ndarray
+    X: np.ndarray
+    C: np.ndarray
+    D: np.ndarray | None = None
+    G: np.ndarray | None = None
+
+    @classmethod
+    def zeros(cls, Q: int, timed: bool) -> EstimateSums:
+        return cls(np.zeros(Q), np.zeros((Q, 3)), np.zeros((Q, 3, 3)),
+                   np.zeros((Q, 3)) if timed else None,
+                   np.zeros((Q, 3, 3)) if timed else None)
+
+    def __add__(self, other: EstimateSums) -> EstimateSums:
+        def add(a, b):
+            return None if a is None else a + b
+
+        return EstimateSums(self.W + other.W, self.X + other.X, self.C + other.C,
+                            add(self.D, other.D), add(self.G, other.G))
+
+    def add(self, q, x, C, m, g=None) -> None:
+        """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
+        multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
+        self.W += np.bincount(q, weights=m, minlength=self.W.size)
+        np.add.at(self.X, q, x * m[:, None])
+        np.add.at(self.C, q, C * np.abs(m)[:, None, None])
+        if self.D is not None and g is not None:
+            np.add.at(self.D, q, g * m[:, None])
+            np.add.at(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
+
+    def mean(self):
+        """(x̄ (Q, 3), covariance (Q, 3, 3)) = (X / W, C / W²)."""
         with np.errstate(invalid="ignore", divide="ignore"):
-            C = C / cnt[:, None, None]
-        mean[name] = (x, C)
-    code_mean, cnt = _group_mean(gi, P, det_code[good].astype(np.float64))
-    w_mean, _ = _group_mean(gi, P, dp.weight_stereo[good])
-    keep = cnt >= max(1, int(min_counts))
-    xf, Cf = mean["fused"]
-    r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-    r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-    r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
-    sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
-    attrs = {
-        "counts": cnt.astype(np.int32), "pixel": cols.astype(np.int32),
-        "row": rows.astype(np.int32), "code": code_mean, "range": r, "sigma_r": sr,
-        "sigma_phi": sphi, "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
-        "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
-        "sigma_r_tof": sr_tf, "weight_stereo": w_mean,
-        "counts_window": window_counts.astype(np.int32),
-    }
-    return PointCloud(xf, attrs).select(keep)
+            return self.X / self.W[:, None], self.C / (self.W ** 2)[:, None, None]
+
+    def dL(self):
+        """(Q, 3) mean ∂x/∂L and (Q, 3, 3) its second moment, each / W (resp. W²)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.D / self.W[:, None], self.G / (self.W ** 2)[:, None, None]
 
 
-def detection_cloud(system: System, bins, labels, theta, spreads: Spreads | None = None,
-                    label: int = 1) -> PointCloud:
-    """Every detection with the given label as a fused point (counts = 1).
+#: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
+_SCALARS = ("n", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0", "b1", "b2")
 
-    Same attributes as :func:`peak_points` (``code`` the detection's code).
+
+@dataclass
+class PeakSums:
+    """Everything the inliers of Q peaks add up to (sums of chunks add: ``a + b``).
+
+    n : Σ m (inliers); code, weight, theta : Σ m·code, Σ m·stereo weight,
+    Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ², Σ m·r²/σ² (the scatter test);
+    window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
+    subtracted background (its variance); loglik : (Q, J) the detections'
+    log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
     """
-    lab = np.asarray(labels)
-    k, r, c = np.nonzero(lab == label)
-    codes = np.asarray(bins)[k, r, c]
-    dp = detection_points(system, k, r, c, codes, theta, spreads)
-    g = dp.ok
-    rr, _, sr, sphi = polar_from_cartesian(dp.fused[g], dp.cov_fused[g])
-    r_st, _, sr_st, _ = polar_from_cartesian(dp.stereo[g], dp.cov_stereo[g])
-    r_tf, _, sr_tf, _ = polar_from_cartesian(dp.tof[g], dp.cov_tof[g])
-    sx = np.sqrt(np.maximum(np.diagonal(dp.cov_fused[g], axis1=1, axis2=2), 0.0))
-    attrs = {
-        "counts": np.ones(int(g.sum()), np.int32), "pixel": c[g].astype(np.int32),
-        "row": r[g].astype(np.int32), "code": codes[g].astype(np.float64), "range": rr,
-        "sigma_r": sr, "sigma_phi": sphi, "sigma_x": sx[:, 0], "sigma_y": sx[:, 1],
-        "sigma_z": sx[:, 2], "range_stereo": r_st, "sigma_r_stereo": sr_st,
-        "range_tof": r_tf, "sigma_r_tof": sr_tf, "weight_stereo": dp.weight_stereo[g],
-        "shot": k[g].astype(np.int32),
-    }
-    return PointCloud(dp.fused[g], attrs)
+
+    n: np.ndarray
+    code: np.ndarray
+    weight: np.ndarray
+    theta: np.ndarray
+    w: np.ndarray
+    wr: np.ndarray
+    wrr: np.ndarray
+    window: np.ndarray
+    b0: np.ndarray
+    b1: np.ndarray
+    b2: np.ndarray
+    loglik: np.ndarray
+    fused: EstimateSums
+    stereo: EstimateSums
+    tof: EstimateSums
+
+    @classmethod
+    def zeros(cls, Q: int) -> PeakSums:
+        return cls(*(np.zeros(Q) for _ in _SCALARS), np.zeros((Q, MU_GRID.size)),
+                   EstimateSums.zeros(Q, True), EstimateSums.zeros(Q, False),
+                   EstimateSums.zeros(Q, True))
+
+    def __add__(self, other: PeakSums) -> PeakSums:
+        return PeakSums(*(getattr(self, k) + getattr(other, k) for k in _SCALARS),
+                        self.loglik + other.loglik, self.fused + other.fused,
+                        self.stereo + other.stereo, self.tof + other.tof)
+
+    def estimate(self, name: str) -> EstimateSums:
+        return getattr(self, name)
 
 
 class PeakAccumulator:
@@ -378,8 +516,9 @@ class PeakAccumulator:
     moves by its ToF share), a detection's timing variance becomes the
     first-photon one, and the posterior spread of the delay is added in
     quadrature (after the Birge scaling).  Assumptions: the spot model
-    (Gaussian, ``spot_sigma``), background inside the peak window small
-    (:data:`OUTLIER_PROBABILITY`; under a 6 MHz floodlight it is not), the
+    (Gaussian, ``spot_sigma``; default the simulator's
+    :class:`~mems_stereo.physics.spot.SpotModel` at the peak's range), the
+    background inside the window subtracted (:func:`window_background`), the
     target's range constant across the band, a Gaussian pulse of the
     system's ``pulse_fwhm`` ⊕ the spreads' jitter.
     """
@@ -388,7 +527,8 @@ class PeakAccumulator:
                  spreads: Spreads | None = None, confidence: float = 0.997,
                  r_min: float = 0.01, r_max: float = 1000.0, rel_step: float = 2e-3,
                  shots_per_step=None, step_grid=None, first_photon: bool = True,
-                 spot_sigma: float = DEFAULT_SPOT_SIGMA):
+                 spot_sigma: float | None = None, rate_hz=None, step_window=None,
+                 accept=None):
         from mems_stereo.pipeline.consistency import k_from_confidence
 
         self.system = system
@@ -397,7 +537,7 @@ class PeakAccumulator:
         self.step_grid = None if step_grid is None else (float(step_grid[0]),
                                                          float(step_grid[1]))
         self.first_photon = bool(first_photon)
-        self.spot_sigma = float(spot_sigma)
+        self.spot_sigma = None if spot_sigma is None else float(spot_sigma)
         self.spreads = spreads
         self.k = k_from_confidence(confidence)
         self.rows = np.asarray(rows, dtype=np.int64).ravel()
@@ -406,40 +546,31 @@ class PeakAccumulator:
             raise GeometryError("rows, cols: expected equal lengths")
         self.peak_code = None if peak_code is None else np.asarray(peak_code, np.float64)
         self.Q = self.rows.size
-        self.log_min = float(np.log(r_min))
-        self.dlog = float(np.log1p(rel_step))
-        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
-        self.cover = np.zeros((self.Q, self.n_grid + 1), np.float64)
+        # (step_lo, step_hi) (Q,) each: the steps pass 2 counted; accept(steps (Q, B),
+        # centre (Q,)) -> (Q, B) bool: steps where the return's code is classified signal
+        self.step_window = step_window
+        self.accept = accept
+        self.rate_hz = (np.zeros(self.Q) if rate_hz is None
+                        else np.nan_to_num(np.asarray(rate_hz, np.float64).ravel()))
+        self.mode = RangeMode(self.Q, r_min, r_max, rel_step)
         self.centre = None
         Q = self.Q
-        self.sums = {"n": np.zeros(Q), "code": np.zeros(Q), "weight": np.zeros(Q),
-                     "w": np.zeros(Q), "wr": np.zeros(Q), "wrr": np.zeros(Q),
-                     "window": np.zeros(Q),
-                     # background-subtraction variance: Σ b w², Σ b w² r, Σ b w² r²
-                     "b0": np.zeros(Q), "b1": np.zeros(Q), "b2": np.zeros(Q)}
-        for name in ("fused", "stereo", "tof"):  # inverse-variance weighted sums
-            self.sums["W_" + name] = np.zeros(Q)
-            self.sums["X_" + name] = np.zeros((Q, 3))
-            self.sums["C_" + name] = np.zeros((Q, 3, 3))
-        for name in ("fused", "tof"):  # ∂x/∂L sums for the first-photon correction
-            self.sums["D_" + name] = np.zeros((Q, 3))
-            self.sums["G_" + name] = np.zeros((Q, 3, 3))
-        self.sums["loglik"] = np.zeros((Q, MU_GRID.size))  # inliers' log-odds on the μ0 grid
+        self.sums = PeakSums.zeros(Q)
         self.band = _empty_band(Q)  # inliers' angle steps: min, max (merged, not summed)
 
     def empty_copy(self) -> PeakAccumulator:
         """A zeroed accumulator of the same peaks and grid (keeps the centres)."""
         new = object.__new__(PeakAccumulator)
         new.__dict__.update(self.__dict__)
-        new.cover = np.zeros_like(self.cover)
-        new.sums = {k: np.zeros_like(v) for k, v in self.sums.items()}
+        new.mode = self.mode.zeroed()
+        new.sums = PeakSums.zeros(self.Q)
         new.band = _empty_band(self.Q)
         return new
 
     def __add__(self, other: PeakAccumulator) -> PeakAccumulator:
         new = self.empty_copy()
-        new.cover = self.cover + other.cover
-        new.sums = {k: self.sums[k] + other.sums[k] for k in self.sums}
+        new.mode = self.mode + other.mode
+        new.sums = self.sums + other.sums
         new.band = (np.minimum(self.band[0], other.band[0]),
                     np.maximum(self.band[1], other.band[1]))
         return new
@@ -447,7 +578,7 @@ class PeakAccumulator:
     def _points(self, shot, peak, code, theta, weight):
         shot = np.asarray(shot, dtype=np.int64).ravel()
         peak = np.asarray(peak, dtype=np.int64).ravel()
-        code = np.asarray(code, dtype=np.int64).ravel()
+        code = np.asarray(code, dtype=np.float64).ravel()
         w = (np.ones(shot.shape) if weight is None
              else np.asarray(weight, dtype=np.float64).ravel())
         if not (shot.shape == peak.shape == code.shape == w.shape):
@@ -458,11 +589,6 @@ class PeakAccumulator:
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
         return peak, code, dp, r, sr, ok, w
 
-    def _bin(self, r):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
-        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
-
     def add_mode(self, shot, peak, code, theta, weight=None) -> None:
         """Sub-pass 1: coverage of each detection's ±σ range interval.
 
@@ -472,17 +598,12 @@ class PeakAccumulator:
         of being signal.
         """
         peak, _, _, r, sr, ok, w = self._points(shot, peak, code, theta, weight)
-        lo = self._bin(r[ok] - sr[ok])
-        hi = self._bin(r[ok] + sr[ok])
-        np.add.at(self.cover, (peak[ok], lo), w[ok])
-        np.add.at(self.cover, (peak[ok], hi + 1), -w[ok])
+        self.mode.add(peak[ok], r[ok], sr[ok], w[ok])
 
     def finish_mode(self) -> np.ndarray:
-        """Fix each peak's centre range (Q,) m (NaN without detections)."""
-        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
-        j = np.argmax(density, axis=1)
-        centre = np.exp(self.log_min + (j + 0.5) * self.dlog)
-        self.centre = np.where(density.max(axis=1) > 0, centre, np.nan)
+        """Fix each peak's centre range (Q,) m (NaN without detections) and the
+        inliers' half-width (:class:`RangeMode`)."""
+        self.centre, self.halfwidth = self.mode.finish()
         return self.centre
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
@@ -499,32 +620,24 @@ class PeakAccumulator:
             raise RuntimeError("add_inliers before finish_mode")
         peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
         Q = self.Q
-        self.sums["window"] += np.bincount(peak, weights=m, minlength=Q)
+        s = self.sums
+        s.window += np.bincount(peak, weights=m, minlength=Q)
         with np.errstate(invalid="ignore"):
-            inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr)
+            inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr + self.halfwidth[peak])
         q = peak[inl]
         m_all, m = m, m[inl]
-        s = self.sums
-        s["n"] += np.bincount(q, weights=m, minlength=Q)
-        for name in ("fused", "stereo", "tof"):
-            x = getattr(dp, name)[inl]
-            C = getattr(dp, "cov_" + name)[inl]
-            # equal weights: inside one peak the spread of the estimates is the
-            # pixel's footprint swept by the beam (stereo) or the pulse (ToF), and
-            # their σ grows with the value itself (stereo σ ∝ r²; a ToF point near
-            # the mirror has a tiny range variance): inverse-variance weights would
-            # pull every peak towards its nearest detections
-            w = np.ones(q.size)
-            s["W_" + name] += np.bincount(q, weights=m * w, minlength=Q)
-            np.add.at(s["X_" + name], q, x * (m * w)[:, None])
-            np.add.at(s["C_" + name], q, C * (m * w * w)[:, None, None])
-            if name != "stereo":  # ∂x/∂L: the ToF point's, the fused point's share of it
-                share = (np.ones(q.size) if name == "tof"
-                         else 1.0 - dp.weight_stereo[inl])
-                g = dp.dtof_dL[inl] * share[:, None]
-                np.add.at(s["D_" + name], q, g * (m * w)[:, None])
-                np.add.at(s["G_" + name], q, g[:, :, None] * g[:, None, :]
-                          * (m * w * w)[:, None, None])
+        s.n += np.bincount(q, weights=m, minlength=Q)
+        # equal weights: inside one peak the spread of the estimates is the pixel's
+        # footprint swept by the beam (stereo) or the pulse (ToF), and their σ grows
+        # with the value itself (stereo σ ∝ r²; a ToF point near the mirror has a
+        # tiny range variance): inverse-variance weights would pull every peak
+        # towards its nearest detections.  ∂x/∂L: the ToF point's, the fused
+        # point's share of it.
+        g = dp.dtof_dL[inl]
+        s.fused.add(q, dp.fused[inl], dp.cov_fused[inl], m,
+                    g * (1.0 - dp.weight_stereo[inl])[:, None])
+        s.stereo.add(q, dp.stereo[inl], dp.cov_stereo[inl], m)
+        s.tof.add(q, dp.tof[inl], dp.cov_tof[inl], m, g)
         if self.shots_per_step is not None and self.first_photon and peak.size:
             # band: the inliers' steps; likelihood: every detection of the window (the
             # in-peak test drops true returns at the band's edges, where the spot is
@@ -536,40 +649,43 @@ class PeakAccumulator:
             np.maximum.at(self.band[1], q, st)
             f = spot_fraction(self.system, self.rows[peak], self.cols[peak], th,
                               self.centre[peak], self.spot_sigma)
-            np.add.at(s["loglik"], peak, _detection_log_odds(f) * m_all[:, None])
+            np.add.at(s.loglik, peak, _detection_log_odds(f) * m_all[:, None])
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
-        s["code"] += np.bincount(q, weights=m * code[inl], minlength=Q)
-        s["weight"] += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
-        s["w"] += np.bincount(q, weights=m * w, minlength=Q)
-        s["wr"] += np.bincount(q, weights=m * w * r[inl], minlength=Q)
-        s["wrr"] += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
+        th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
+        s.theta += np.bincount(q, weights=m * th_e, minlength=Q)
+        s.code += np.bincount(q, weights=m * code[inl], minlength=Q)
+        s.weight += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
+        s.w += np.bincount(q, weights=m * w, minlength=Q)
+        s.wr += np.bincount(q, weights=m * w * r[inl], minlength=Q)
+        s.wrr += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
         if background is not None:  # (the means have equal weights)
             b = np.asarray(background, dtype=np.float64).ravel()[inl]
-            s["b0"] += np.bincount(q, weights=b, minlength=Q)
-            s["b1"] += np.bincount(q, weights=b * r[inl], minlength=Q)
-            s["b2"] += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
+            s.b0 += np.bincount(q, weights=b, minlength=Q)
+            s.b1 += np.bincount(q, weights=b * r[inl], minlength=Q)
+            s.b2 += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
 
     def cloud(self, min_counts: int = 1) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
         s = self.sums
-        n = s["n"]
+        n = s.n
         with np.errstate(invalid="ignore", divide="ignore"):
             # means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)² (w: multiplicities)
-            mean = {name: (s["X_" + name] / s["W_" + name][:, None],
-                           s["C_" + name] / (s["W_" + name] ** 2)[:, None, None])
-                    for name in ("fused", "stereo", "tof")}
-            W = s["W_fused"]
+            mean = {name: s.estimate(name).mean() for name in ("fused", "stereo", "tof")}
+            W = s.fused.W
             # reduced χ² of the fused ranges about their σ-weighted mean:
             # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w, w = 1/σ_i²
-            rbar_w = s["wr"] / s["w"]
-            chi2 = (s["wrr"] - 2 * rbar_w * s["wr"] + rbar_w ** 2 * s["w"]) / np.maximum(n - 1, 1)
+            rbar_w = s.wr / s.w
+            chi2 = (s.wrr - 2 * rbar_w * s.wr + rbar_w ** 2 * s.w) / np.maximum(n - 1, 1)
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+        c_pix = self._stereo_at_mean_angle(mean, n)
         fp = self._first_photon(mean) if self._correcting() else None
         for name in mean:
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+        for name, C in (c_pix or {}).items():  # systematic: not scaled
+            mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
-            var_bg = np.maximum(s["b2"] - 2 * rbar * s["b1"] + rbar ** 2 * s["b0"], 0.0) / W ** 2
+            var_bg = np.maximum(s.b2 - 2 * rbar * s.b1 + rbar ** 2 * s.b0, 0.0) / W ** 2
         for name in ("fused", "stereo"):  # along the viewing direction of the point
             x0 = mean[name][0]
             with np.errstate(invalid="ignore", divide="ignore"):
@@ -578,7 +694,7 @@ class PeakAccumulator:
             mean[name] = (x0, mean[name][1] + np.nan_to_num(add))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
             for name in ("fused", "tof"):
-                D = s["D_" + name] / s["W_" + name][:, None]
+                D = s.estimate(name).dL()[0]
                 mean[name] = (mean[name][0], mean[name][1] + D[:, :, None] * D[:, None, :]
                               * (fp["sigma_L"] ** 2)[:, None, None])
         xf, Cf = mean["fused"]
@@ -587,8 +703,8 @@ class PeakAccumulator:
         r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
         sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
-            code_mean = s["code"] / n
-            w_mean = s["weight"] / n
+            code_mean = s.code / n
+            w_mean = s.weight / n
         attrs = {
             "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
             "row": self.rows.astype(np.int32),
@@ -597,7 +713,7 @@ class PeakAccumulator:
             "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
             "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
             "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": np.rint(s["window"]).astype(np.int32),
+            "counts_window": np.rint(s.window).astype(np.int32),
         }
         if fp is not None:
             attrs["tof_delay"] = fp["delay"]
@@ -608,6 +724,49 @@ class PeakAccumulator:
         with np.errstate(invalid="ignore", divide="ignore"):
             attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
         return PointCloud(xf, attrs).select(keep)
+
+    def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
+        """Stereo point of each peak at its detections' mean scan angle (in place).
+
+        A detection's stereo range is a convex function of its angle (range ∝ 1 /
+        disparity): the mean of the ranges over a band of angles lies behind the
+        surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
+        strong return that fires the pixel over several pixel footprints), the
+        range at the mean angle does not.  The fused point moves by its stereo
+        share of the difference.  Returns the systematic covariance of the
+        pixel location (:data:`STEREO_PIXEL_SIGMA`) per estimate, to add unscaled.
+        """
+        with np.errstate(invalid="ignore", divide="ignore"):
+            th = self.sums.theta / n
+            w = self.sums.weight / n
+        ok = np.isfinite(th) & (n > 0)
+        if not np.any(ok):
+            return None
+        x_old = mean["stereo"][0]
+        x_new = x_old.copy()
+        x_new[ok] = stereo_point_est(self.system, self.cols[ok].astype(np.float64),
+                                     self.rows[ok].astype(np.float64), np.zeros(ok.sum()),
+                                     th[ok])
+        good = ok & np.all(np.isfinite(x_new), axis=1)
+        x_new[~good] = x_old[~good]
+        shift = np.where(good[:, None], x_new - x_old, 0.0)
+        # the band locates the spot's centre on the pixel to a fraction of a pixel
+        # (spot profile, band edges, a surface inclined across the footprint):
+        # STEREO_PIXEL_SIGMA px along the row, propagated at the mean angle
+        J = np.zeros_like(x_new)
+        if np.any(good):
+            u = self.cols[good].astype(np.float64)
+            v = self.rows[good].astype(np.float64)
+            z = np.zeros(u.size)
+            J[good] = (stereo_point_est(self.system, u + 0.5, v, z, th[good])
+                       - stereo_point_est(self.system, u - 0.5, v, z, th[good]))
+        J = np.nan_to_num(J)
+        C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+        mean["stereo"] = (x_new, mean["stereo"][1])
+        xf, Cf = mean["fused"]
+        wn = np.nan_to_num(w)
+        mean["fused"] = (xf + wn[:, None] * shift, Cf)
+        return {"stereo": C_sys, "fused": (wn ** 2)[:, None, None] * C_sys}
 
     def _correcting(self) -> bool:
         return (self.first_photon and self.shots_per_step is not None
@@ -626,6 +785,11 @@ class PeakAccumulator:
         steps = a[:, None] + np.arange(B)[None, :]
         S = self.shots_per_step.size
         inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
+        if self.step_window is not None:  # only where pass 2 counted detections
+            inside &= ((steps >= self.step_window[0][:, None])
+                       & (steps <= self.step_window[1][:, None]))
+        if self.accept is not None:  # only where the classifier accepts the return's code
+            inside &= self.accept(np.clip(steps, 0, S - 1), np.nan_to_num(self.centre, nan=1.0))
         n = np.where(inside, self.shots_per_step[np.clip(steps, 0, S - 1)], 0)
         t0, dt = self.step_grid
         f = spot_fraction(self.system, self.rows[:, None], self.cols[:, None], t0 + steps * dt,
@@ -651,23 +815,42 @@ class PeakAccumulator:
         d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
         for a in range(0, idx.size, 16):  # blocks of peaks: (16, J, B) temporaries
             q = idx[a:a + 16]
-            ll = self.sums["loglik"][q] + np.einsum(
+            ll = self.sums.loglik[q] + np.einsum(
                 "qb,qbj->qj", n_band[q], np.log1p(-_firing_probability(f_band[q])))
             d[a:a + 16], sd[a:a + 16], var[a:a + 16], mu[a:a + 16] = first_photon_delay(
                 ll, f_band[q], n_band[q], tau[q], sigma)
         c = s.speed_of_light
         dL = np.zeros(self.Q)
         dvar = np.zeros(self.Q)
+        # background that fires the pixel first removes the late part of the
+        # pulse: the recorded returns' density is the pulse's times exp(−λt),
+        # a further shift of −λσ² (exact for a Gaussian pulse)
+        d = d - self.rate_hz[idx] * sigma * sigma
         dL[ok] = -c * d  # path length to add: the arrivals were early by d
         dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
+        # the model's own systematic uncertainty (pulse shape, spot profile, the
+        # signal level's posterior): a share of the correction it applies
+        # and, as the return saturates (nearly every shot fires with the spot on the
+        # pixel), the arrival is the pulse's leading edge, whose shape the Gaussian
+        # model does not know: up to SATURATED_EDGE_SIGMA pulse σ
+        sat = -np.expm1(-mu)
+        sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
+                                   SATURATED_EDGE_SIGMA * sigma * sat ** 2))
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
         for name in ("fused", "tof"):
-            W = self.sums["W_" + name]
-            D = self.sums["D_" + name] / W[:, None]
+            D, G = self.sums.estimate(name).dL()
             x, C = mean[name]
-            G = self.sums["G_" + name] / (W * W)[:, None, None]
             mean[name] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
+
+
+#: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
+STEREO_PIXEL_SIGMA = 0.1
+#: relative systematic uncertainty of the first-photon delay the correction removes
+MODEL_DELAY_FRACTION = 0.15
+#: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
+#: pulse σ, scaled by the square of the detection probability with the spot centred
+SATURATED_EDGE_SIGMA = 0.2
 
 
 def _empty_band(Q: int):
@@ -678,7 +861,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                                 peak_code=None, spreads: Spreads | None = None,
                                 min_counts: int = 1, confidence: float = 0.997,
                                 weight=None, background=None, shots_per_step=None, step_grid=None,
-                                first_photon: bool = True) -> PointCloud:
+                                first_photon: bool = True, rate_hz=None, step_window=None,
+                                accept=None, spot_sigma: float | None = None) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -707,7 +891,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
     """
     acc = PeakAccumulator(system, rows, cols, peak_code, spreads, confidence,
                           shots_per_step=shots_per_step, step_grid=step_grid,
-                          first_photon=first_photon)
+                          first_photon=first_photon, rate_hz=rate_hz,
+                          step_window=step_window, accept=accept, spot_sigma=spot_sigma)
     acc.add_mode(shot, peak, code, theta, weight)
     acc.finish_mode()
     acc.add_inliers(shot, peak, code, theta, weight, background)

@@ -9,6 +9,7 @@ from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS
+from mems_stereo.pipeline.peaks import Peaks
 from mems_stereo.pipeline.settings import Settings
 
 # --------------------------------------------------------------------------
@@ -177,7 +178,7 @@ class PeakCounts:
         return self
 
 
-def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: dict,
+def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: Peaks,
                       start: int = 0, stop: int | None = None, progress=None,
                       table: IntervalTable | None = None, angle_offset: int = 0) -> PeakCounts:
     """Pass 2 over shots [start, stop): count the peak windows' signal detections by
@@ -188,7 +189,8 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
     if table is None:
         table = IntervalTable.for_settings(system, settings)
     W = system.receiver.width
-    pix = peaks["row"] * W + peaks["col"]
+    peaks = Peaks.coerce(peaks)
+    pix = peaks.pixel(W)
     pc = PeakCounts()
     if pix.size == 0:
         return pc
@@ -198,9 +200,8 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
         s1 = s0 + bins.shape[0]
         a, b = s0 - angle_offset, s1 - angle_offset
         pc.add_keys(peak_window_keys(bins, theta[a:b], valid[a:b], table, pix,
-                                     peaks["code_lo"], peaks["code_hi"], system.tdc.n_bins,
-                                     peaks.get("step_lo"), peaks.get("step_hi"),
-                                     compiled=compiled))
+                                     peaks.code_lo, peaks.code_hi, system.tdc.n_bins,
+                                     peaks.step_lo, peaks.step_hi, compiled=compiled))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()

@@ -1,23 +1,26 @@
-"""Peaks of the signal histograms, with a threshold grounded in the background.
+"""The peak detector: per pixel, where its signal detections cluster in scan angle.
 
-After classification each pixel has a signal histogram S and a noise
-histogram N (:mod:`mems_stereo.pipeline.run`).  S still holds the background
-photons that happened to fall inside a shot's accepted code interval.  How
-many is known exactly from the interval table: the number of valid shots for
-which code j of pixel p was accepted, ``A[p, j]``, times the probability that
-background alone produced a first photon in bin j,
-``q·(1 − q)^(j−1)`` with ``q = λ·Δt`` and λ the pile-up-aware maximum-
-likelihood background rate estimated from N
-(:func:`mems_stereo.physics.background.background_rate_mle`).
-
-The peak detector is the paper's: a moving-average filter (width = the laser
-pulse's FWHM in bins), a threshold, and the maximum — here one peak per
-pixel, where the excess of the filtered S over its expected background is
-largest and the window count exceeds the Poisson quantile of the background
-at the chosen false-alarm probability.
+After classification each pixel has, from pass 1, its signal detections per
+scan-angle step of the interval table (``hist_angle``) and its noise
+histogram N.  The background that passed the classifier is known exactly
+per step: the valid shots of the step times the probability that
+background alone produced a first photon inside the step's accepted code
+interval, ``(1 − q)^(lo−1) − (1 − q)^hi`` with ``q = λ·Δt`` and λ the
+pile-up-aware maximum-likelihood background rate of N
+(:func:`mems_stereo.physics.background.background_rate_from_noise`).
+:func:`find_peaks` slides a window of one pixel footprint over the steps,
+takes the largest excess over that expectation and keeps it when the
+window count exceeds the Poisson quantile of the background at
+``Settings.false_alarm`` per pixel (spread over the independent window
+positions): a likelihood-ratio test of "return here" against "background
+only" with the background known per (step, code interval).  Result: a
+typed :class:`Peaks`.  (The paper's detector on the code histogram is kept
+as a test oracle, tests/oracles.py.)
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -25,11 +28,11 @@ from mems_stereo.model.system import System
 from mems_stereo.physics.background import (
     background_rate_from_noise,
     expected_background_by_angle,
-    expected_background_in_signal,
     poisson_isf,
 )
 from mems_stereo.pipeline.histograms import moving_average
 from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.settings import Settings
 
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
@@ -62,7 +65,7 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
-def strongest_window(counts, background, width: int, support, settings):
+def strongest_window(counts, background, width: int, support, settings: Settings):
     """Per row, the window of ``width`` bins with the largest excess over the background.
 
     ``counts``, ``background`` : (P, B) observed and expected counts;
@@ -83,50 +86,24 @@ def strongest_window(counts, background, width: int, support, settings):
     return j, cnt, mu, (cnt > thr) & (cnt >= settings.min_counts)
 
 
-def find_code_peaks(system: System, signal, noise, theta, valid, settings):
-    """The paper's detector: one peak per pixel of the signal histogram over codes.
+def excess_band(counts, background, width: int, j, level: float = 0.5):
+    """Per row, the contiguous steps around ``j`` where the moving excess stays
+    at or above ``level`` times its value at ``j``.
 
-    Parameters
-    ----------
-    signal, noise : (H, W, n_bins) counts (index j = code j+1).
-    theta, valid : (K,) scan angles and validity of the shots.
-    settings : :class:`mems_stereo.pipeline.settings.Settings` (confidence, min_range,
-        smoothing_bins, false_alarm, min_counts).
-
-    Returns
-    -------
-    peaks : dict of (Q,) int64 ``row``, ``col``, ``code``, ``code_lo``,
-        ``code_hi``, ``counts`` (signal counts in the window) and float64
-        ``background`` (expected background counts in the window).
-    background_hz : (H, W) float64 ML background rate per pixel.
+    ``counts``, ``background`` : (Q, S); ``j`` : (Q,) int.  Returns ``(lo, hi)``,
+    each (Q,) int64 (inclusive).
     """
-    H, W, n_bins = signal.shape
-    P = H * W
-    bw = system.tdc.bin_width
-    S = np.asarray(signal, dtype=np.float64).reshape(P, n_bins)
-    N = np.asarray(noise).reshape(P, n_bins)
-    n_valid = int(np.count_nonzero(valid))
-    raw = S + N
-    A = acceptance_counts(system, theta, valid, settings.confidence, settings.min_range)
-    rate = background_rate_from_noise(N, raw, A, n_valid, bw)
-    width = settings.smoothing_bins
-    if width is None:
-        width = max(1, int(round(system.laser.pulse_fwhm / bw)))
-    width += 1 - width % 2  # odd
-    B = expected_background_in_signal(A, np.nan_to_num(rate), bw)
-    j, cnt, mu, keep = strongest_window(S, B, width, A > 0, settings)
-    keep &= np.isfinite(rate)
-    code = j + 1
-    half = max(1, width)
-    q = np.flatnonzero(keep)
-    peaks = {
-        "row": (q // W).astype(np.int64), "col": (q % W).astype(np.int64),
-        "code": code[q].astype(np.int64),
-        "code_lo": np.maximum(1, code[q] - half).astype(np.int64),
-        "code_hi": np.minimum(n_bins, code[q] + half).astype(np.int64),
-        "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
-    }
-    return peaks, rate.reshape(H, W)
+    E = (moving_average(np.asarray(counts, np.float64), width)
+         - moving_average(np.asarray(background, np.float64), width))
+    Q, S = E.shape
+    if Q == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    j = np.asarray(j, np.int64)
+    below = E < level * E[np.arange(Q), j][:, None]
+    idx = np.arange(S)[None, :]
+    lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+    hi = np.where(below & (idx > j[:, None]), idx, S).min(axis=1) - 1
+    return lo.astype(np.int64), hi.astype(np.int64)
 
 
 def footprint_steps(system: System, table) -> int:
@@ -148,8 +125,77 @@ def footprint_steps(system: System, table) -> int:
     return max(3, n + 1 - n % 2)
 
 
-def find_peaks(system: System, signal, noise, theta, valid, settings, signal_angle=None,
-               table=None, n_per_step=None):
+@dataclass
+class Peaks:
+    """The peaks of a recording, one per pixel at most (Q peaks).
+
+    row, col : (Q,) int64 pixel; code : (Q,) int64, strongest code of the
+    pixel's signal histogram; code_lo, code_hi : (Q,) int64, the code window
+    counted in pass 2; step_lo, step_hi : (Q,) int64, the scan-angle steps
+    of the interval table counted in pass 2; counts : (Q,) int64, signal
+    detections in the peak's angle band; background : (Q,) float64, their
+    expected background; rate_hz : (Q,) float64, the pixel's ML background
+    rate; background_by_step : (Q, S) float64 expected background detections
+    per angle step (None once used up).
+
+    ``peaks["row"]`` and ``peaks.get("row")`` read a field (mapping-style
+    callers of version 0.1).
+    """
+
+    row: np.ndarray
+    col: np.ndarray
+    code: np.ndarray
+    code_lo: np.ndarray
+    code_hi: np.ndarray
+    step_lo: np.ndarray
+    step_hi: np.ndarray
+    counts: np.ndarray
+    background: np.ndarray
+    rate_hz: np.ndarray
+    background_by_step: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.row.size)
+
+    def pixel(self, width: int) -> np.ndarray:
+        """(Q,) int64 flat pixel index ``row·width + col``."""
+        return self.row * int(width) + self.col
+
+    def __getitem__(self, name: str):
+        if name not in self.__dataclass_fields__:
+            raise KeyError(name)
+        return getattr(self, name)
+
+    def __contains__(self, name: str) -> bool:
+        return name in self.__dataclass_fields__ and getattr(self, name) is not None
+
+    def get(self, name: str, default=None):
+        return getattr(self, name) if name in self.__dataclass_fields__ else default
+
+    def keys(self):
+        return [k for k in self.__dataclass_fields__ if getattr(self, k) is not None]
+
+    def items(self):
+        return [(k, getattr(self, k)) for k in self.keys()]
+
+    @classmethod
+    def coerce(cls, peaks) -> Peaks:
+        """A :class:`Peaks` from itself or a mapping of its fields (e.g. a light copy
+        sent to workers without ``background_by_step``)."""
+        if isinstance(peaks, cls):
+            return peaks
+        return cls(**{k: peaks.get(k) for k in cls.__dataclass_fields__})
+
+    def pop(self, name: str, default=None):
+        """Drop an optional field (``background_by_step``); returns its value."""
+        value = self.get(name, default)
+        if name == "background_by_step":
+            self.background_by_step = None
+        return value
+
+
+def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
+               signal_angle=None, table=None, n_per_step=None) -> tuple[Peaks, np.ndarray]:
     """One peak per pixel where its signal detections cluster in scan angle.
 
     A pixel sees the laser spot only while the beam sweeps across the surface
@@ -166,16 +212,16 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
     sensitive than the code histogram under strong background (the
     background spreads over thousands of steps but only tens of codes).
 
-    Falls back to :func:`find_code_peaks` (the paper's detector on the codes)
-    when ``signal_angle`` is None.  Returns the same dict as
-    :func:`find_code_peaks` plus ``step_lo``, ``step_hi`` (the angle band)
-    and ``background_by_step`` (Q, S), the expected background detections of
-    each peak's pixel per angle step.  ``table`` : the run's interval table
-    (default: a new one); ``n_per_step`` : (S,) valid shots per angle step
-    (default: counted from ``theta``, ``valid``).
+    Returns :class:`Peaks` and the (H, W) float64 ML background rate per
+    pixel, Hz.  (The paper's detector on the codes alone,
+    ``find_code_peaks``, is kept as a test oracle in tests/oracles.py.)
+    ``table`` : the run's interval table (default: a new one); ``n_per_step``
+    : (S,) valid shots per angle step (default: counted from ``theta``,
+    ``valid``).
     """
     if signal_angle is None:
-        return find_code_peaks(system, signal, noise, theta, valid, settings)
+        raise ValueError("signal_angle: expected the (H*W, S) signal detections per pixel and "
+                         "angle step of pass 1, found None")
     H, W, n_bins = signal.shape
     P = H * W
     bw = system.tdc.bin_width
@@ -201,17 +247,18 @@ def find_peaks(system: System, signal, noise, theta, valid, settings, signal_ang
         keep &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     q = np.flatnonzero(keep)
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
+    # the band: where the excess stays above half its peak (a strong return fires
+    # the pixel while the spot's tails are still on it: a plateau much wider than
+    # the footprint, whose first maximum j need not be its centre), plus ``half``
+    b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
-    peaks = {
-        "row": (q // W).astype(np.int64), "col": (q % W).astype(np.int64),
-        "code": code.astype(np.int64),
-        "code_lo": np.ones(q.size, np.int64), "code_hi": np.full(q.size, n_bins, np.int64),
-        "step_lo": np.maximum(0, j[q] - half).astype(np.int64),
-        "step_hi": np.minimum(table.n_steps - 1, j[q] + half).astype(np.int64),
-        "counts": np.rint(cnt[q]).astype(np.int64), "background": mu[q],
-        # expected background detections per angle step of each peak's pixel
-        "background_by_step": B[q],
-    }
+    peaks = Peaks(
+        row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
+        code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
+        step_lo=np.maximum(0, b_lo - half).astype(np.int64),
+        step_hi=np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64),
+        counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
+        rate_hz=rate.reshape(-1)[q], background_by_step=B[q])
     return peaks, rate.reshape(H, W)
