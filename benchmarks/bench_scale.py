@@ -75,6 +75,39 @@ def default_workers() -> list[int]:
     return out
 
 
+def tile_recording(src, dst, n_copies: int, compression: str | None = "gzip") -> int:
+    """Write ``n_copies`` of recording ``src`` end to end into ``dst``; returns the shots.
+
+    Where Open3D (the simulator's ray caster) is missing, e.g. on a compute
+    node, a simulated recording travels and is tiled there.  The tiles are a
+    consistent recording only when ``src`` lasts a whole number of mirror
+    periods (the trajectory repeats): that is checked.  Shot times and zero
+    crossings move by the duration of ``src`` per copy; the bins repeat.
+    """
+    from mems_stereo.io.recording import RecordingWriter, read_recording
+
+    rec = read_recording(src, truth=False)
+    s = rec.system
+    K = rec.bins.shape[0]
+    duration = K / s.laser.f_rep
+    periods = duration * s.scanner.f_mech
+    if abs(periods - round(periods)) > 1e-6:
+        raise SystemExit(f"{src}: {K} shots last {periods:.6f} mirror periods; tiling needs a "
+                         "whole number")
+    # one period's worth of crossings per copy: those in [0, T); the source's
+    # crossings before 0 and from T on stay at the two ends
+    z, r = rec.zero_crossings, np.asarray(rec.rising)
+    mid = (z >= 0.0) & (z < duration)
+    zc = np.concatenate([z[z < 0.0]] + [z[mid] + k * duration for k in range(n_copies)]
+                        + [z[z >= duration] + (n_copies - 1) * duration])
+    rising = np.concatenate([r[z < 0.0]] + [r[mid]] * n_copies + [r[z >= duration]])
+    with RecordingWriter(dst, s, K * n_copies, zc, rising, compression=compression,
+                         chunk_shots=1024) as w:
+        for k in range(n_copies):
+            w.append(rec.shot_time + k * duration, rec.bins)
+    return K * n_copies
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", type=int, nargs="+", default=None,
@@ -87,6 +120,10 @@ def main():
                     help="shots per recording for process_many (default 50000)")
     ap.add_argument("--seed", type=int, default=20261123)
     ap.add_argument("--dir", default=None, help="where to write the recordings")
+    ap.add_argument("--source", default=None,
+                    help="tile this recording (a whole number of mirror periods long) instead "
+                         "of simulating: --shots and --many-shots are rounded to whole copies "
+                         "(for machines without Open3D)")
     args = ap.parse_args()
     workers = args.workers or default_workers()
     n_rec = args.recordings or max(4, 2 * max(workers))
@@ -94,13 +131,22 @@ def main():
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         t0 = time.perf_counter()
         big = Path(d) / "split.h5"
-        make_dense_recording(big, args.shots, args.seed)
-        paths = []
-        for i in range(n_rec):
-            p = Path(d) / f"many{i}.h5"
-            make_dense_recording(p, args.many_shots, args.seed + 1 + i)
-            paths.append(p)
-        print(f"simulated: 1 x {args.shots} shots (split) and {n_rec} x {args.many_shots} shots "
+        paths = [Path(d) / f"many{i}.h5" for i in range(n_rec)]
+        if args.source is None:
+            make_dense_recording(big, args.shots, args.seed)
+            for i, p in enumerate(paths):
+                make_dense_recording(p, args.many_shots, args.seed + 1 + i)
+            how = "simulated"
+        else:
+            from mems_stereo.io.recording import read_header
+
+            k_src = read_header(args.source).shape[0]
+            args.shots = tile_recording(args.source, big, max(1, round(args.shots / k_src)))
+            n_many = max(1, round(args.many_shots / k_src))
+            for p in paths:
+                args.many_shots = tile_recording(args.source, p, n_many)
+            how = f"tiled from {args.source}"
+        print(f"{how}: 1 x {args.shots} shots (split) and {n_rec} x {args.many_shots} shots "
               f"(many), 6 MHz floodlight, in {time.perf_counter() - t0:.0f} s")
 
         process_recording(paths[0])  # warm up: compiled kernels from the disk cache
