@@ -2,8 +2,11 @@
 
 Each command lives in its own module exposing ``NAME``, ``HELP``,
 ``EXAMPLE``, ``add_arguments(parser)`` and ``run(args) -> int``.  User
-mistakes (:class:`~mems_stereo.errors.MemsStereoError`, missing files) are
-printed on stderr as one line, with exit code 2 and no traceback.
+mistakes (:class:`~mems_stereo.errors.MemsStereoError`, missing files, bad
+options) are printed on stderr as one line, with exit code 2 and no
+traceback; :func:`mems_stereo.cli._common.run_command` checks options, inputs
+and outputs before any work and commits all outputs together
+(docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import argparse
 import importlib
 import sys
 
-from mems_stereo.errors import MemsStereoError
+from mems_stereo.cli._common import OneLineParser, add_safety_arguments, run_command
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
@@ -33,7 +36,7 @@ def _load_commands():
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="mems-stereo",
         description="Calibrate a MEMS-scanner / SPAD-receiver pair, turn raw TDC frames "
                     "into classified detections and point clouds, and look at them.",
@@ -52,6 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="print only errors")
         p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                        help="print more detail")
+        add_safety_arguments(p)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
@@ -59,23 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(argv)  # usage errors: one line, SystemExit(2)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    try:
-        return int(args._run(args) or 0)
-    except MemsStereoError as e:
-        print(f"mems-stereo {args.command}: error: {e}", file=sys.stderr)
-        return 2
-    except FileNotFoundError as e:
-        print(f"mems-stereo {args.command}: error: {e.filename}: file not found",
-              file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"mems-stereo {args.command}: interrupted; no partial output was kept",
-              file=sys.stderr)
-        return 130
+    return run_command(args)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,8 +1,22 @@
-"""Shared helpers of the CLI commands: output verbosity and progress bars."""
+"""Shared helpers of the CLI commands: output verbosity, progress bars and the run guard."""
 
 from __future__ import annotations
 
+import argparse
 import sys
+
+
+def _emit(msg: str) -> None:
+    from mems_stereo.cli._outputs import emit
+
+    emit(msg)
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with its usage errors on one line (``mems-stereo process: error: ...``)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
 
 
 class Reporter:
@@ -14,11 +28,11 @@ class Reporter:
 
     def info(self, msg: str = "") -> None:
         if not self.quiet:
-            print(msg)
+            _emit(msg)
 
     def detail(self, msg: str) -> None:
         if self.verbose and not self.quiet:
-            print(msg)
+            _emit(msg)
 
     def progress(self, total: int, desc: str, unit: str = "shot"):
         """A tqdm progress bar on stderr (disabled when quiet or not a terminal)."""
@@ -26,3 +40,130 @@ class Reporter:
 
         return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr,
                     disable=self.quiet or not sys.stderr.isatty(), leave=False)
+
+
+# ------------------------------------------------------------------ the run guard
+
+def add_safety_arguments(p) -> None:
+    """``--max-memory`` and ``--allow-external``, on every command."""
+    p.add_argument("--max-memory", default=argparse.SUPPRESS, metavar="SIZE",
+                   help="memory budget: inputs whose sizes would need more are refused before "
+                        "any allocation (e.g. 4G; default: half the physical memory)")
+    p.add_argument("--allow-external", action="store_true", default=argparse.SUPPRESS,
+                   help="follow HDF5 external storage/links and virtual datasets, and scene "
+                        "meshes outside the scene's folder (refused by default)")
+
+
+def command_key(args) -> str:
+    """``process``, or ``plot histograms`` for commands with sub-figures."""
+    fig = getattr(args, "figure", None)
+    return f"{args.command} {fig}" if args.command == "plot" and fig else args.command
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split("\n")).strip()
+
+
+def error_line(command: str, message: str) -> None:
+    """The one line on stderr of a refused run."""
+    from mems_stereo.cli._outputs import translate
+
+    print(f"mems-stereo {command}: error: {_one_line(translate(message))}", file=sys.stderr)
+
+
+def _file_error(e: OSError) -> str:
+    name = e.filename if e.filename is not None else ""
+    what = "file not found" if isinstance(e, FileNotFoundError) else (e.strerror or str(e))
+    return f"{name}: {what}" if name else what
+
+
+def run_command(args) -> int:
+    """Run one parsed command under the validation layer; returns the exit code.
+
+    Options are checked (:mod:`mems_stereo.cli._options`), inputs and outputs
+    planned (:class:`mems_stereo.cli._outputs.OutputPlan`) before any work;
+    the command writes to staged paths, committed together when it returns 0.
+    Refused input: one line on stderr, exit 2.  SIGINT/SIGTERM/SIGHUP: the
+    staged and temporary files are removed, one line says what was kept,
+    exit 128 + signal.
+    """
+    import os
+
+    from mems_stereo.cli import _signals
+    from mems_stereo.cli._options import check_options
+    from mems_stereo.cli._outputs import OutputPlan
+    from mems_stereo.errors import MemsStereoError
+    from mems_stereo.util.limits import limits, parse_size
+
+    cmd = args.command
+    plan = None
+    with _signals.signal_guard():
+        try:
+            mm = getattr(args, "max_memory", None)
+            budget = parse_size(mm) if mm is not None else None
+            with limits(max_memory=budget, allow_external=getattr(args, "allow_external", None)):
+                key = command_key(args)
+                check_options(key, args)
+                plan = OutputPlan(key, args).check()
+                check_input_consistency(key, args)
+                with plan:
+                    plan.stage()
+                    rc = int(args._run(args) or 0)
+                    sig = _signals.received()
+                    if sig is not None:  # a library swallowed the interrupt
+                        raise _signals.Interrupted(sig)
+                    if rc == 0:
+                        plan.commit()
+                return rc
+        except _signals.Interrupted as e:
+            if _signals.nested():
+                raise
+            kept = plan.committed if plan is not None else []
+            if kept:
+                what = "after every output was written: " + ", ".join(map(str, kept))
+            elif plan is not None and plan.outputs:
+                what = "no output was written (temporary files removed)"
+            else:
+                what = "nothing was written"
+            print(f"mems-stereo {cmd}: interrupted by {e.name}; {what}", file=sys.stderr)
+            return e.exit_code
+        except MemsStereoError as e:
+            error_line(cmd, str(e))
+            return 2
+        except OSError as e:
+            error_line(cmd, _file_error(e))
+            return 2
+        except MemoryError:
+            error_line(cmd, "out of memory; lower --chunk-shots or --max-memory")
+            return 2
+        except Exception as e:  # a bug: one line, and the traceback on request
+            if os.environ.get("MEMS_STEREO_DEBUG"):
+                raise
+            error_line(cmd, f"internal error: {type(e).__name__}: {e} (set MEMS_STEREO_DEBUG=1 "
+                            "for the traceback; please report it)")
+            return 1
+
+
+def check_input_consistency(command: str, args) -> None:
+    """Cross-checks between inputs: every calibration recording's /system must agree."""
+    if command != "calibrate" or len(args.recordings) < 2:
+        return
+    from mems_stereo.errors import FormatError
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.model.system import system_to_dict
+
+    def flat(d, pre=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{pre}{k}.")
+            else:
+                yield f"{pre}{k}", v
+
+    ref = dict(flat(system_to_dict(read_header(args.recordings[0]).system)))
+    for r in args.recordings[1:]:
+        other = dict(flat(system_to_dict(read_header(r).system)))
+        diff = sorted(k for k in set(ref) | set(other) if ref.get(k) != other.get(k))
+        if diff:
+            raise FormatError(f"differs from {args.recordings[0]}'s in {', '.join(diff[:4])}; "
+                              "expected the recordings of one system", source=str(r),
+                              field="/system")

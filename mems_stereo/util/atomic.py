@@ -11,9 +11,31 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+
+#: signals held back while a temporary file is renamed or removed
+_HELD = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+@contextlib.contextmanager
+def signals_blocked() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM/SIGHUP back inside the block; they arrive when it ends.
+
+    Used around renames and clean-ups, so that an interrupt cannot leave a
+    half-committed set of outputs or a temporary file behind.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 @contextlib.contextmanager
@@ -35,12 +57,13 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterato
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
-        os.umask(um)
-        os.chmod(tmp_path, 0o666 & ~um)
-        os.replace(tmp_path, target)
+        with signals_blocked():
+            um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
+            os.umask(um)
+            os.chmod(tmp_path, 0o666 & ~um)
+            os.replace(tmp_path, target)
     except BaseException:
-        with contextlib.suppress(OSError):
+        with signals_blocked(), contextlib.suppress(OSError):
             tmp_path.unlink()
         raise
 
