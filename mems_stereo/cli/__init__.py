@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
 from mems_stereo.cli._common import OneLineParser, add_safety_arguments, run_command
@@ -62,12 +63,28 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)  # usage errors: one line, SystemExit(2)
-    if not getattr(args, "command", None):
-        parser.print_help()
-        return 2
-    return run_command(args)
+    from mems_stereo.cli import _signals
+
+    # first: an interrupt while loading the commands is handled too
+    with _signals.signal_guard(final=argv is None):
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)  # usage errors: one line, SystemExit(2)
+            if not getattr(args, "command", None):
+                parser.print_help()
+                return 2
+            return run_command(args)
+        except BaseException as e:  # noqa: BLE001
+            sig = e.signum if isinstance(e, _signals.Interrupted) else _signals.received()
+            if sig is None or isinstance(e, SystemExit):
+                raise
+            if _signals.nested():
+                if isinstance(e, _signals.Interrupted):
+                    raise
+                raise _signals.Interrupted(sig) from None
+            print(f"mems-stereo: interrupted by {signal.Signals(sig).name} "
+                  f"{_signals.late_state()}", file=sys.stderr)
+            return 128 + sig
 
 
 if __name__ == "__main__":  # pragma: no cover

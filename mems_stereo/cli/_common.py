@@ -97,7 +97,7 @@ def run_command(args) -> int:
 
     cmd = args.command
     plan = None
-    with _signals.signal_guard():
+    with _signals.signal_guard():  # nests inside main()'s
         try:
             mm = getattr(args, "max_memory", None)
             budget = parse_size(mm) if mm is not None else None
@@ -114,34 +114,54 @@ def run_command(args) -> int:
                         raise _signals.Interrupted(sig)
                     if rc == 0:
                         plan.commit()
+                _signals.finished(rc)
                 return rc
-        except _signals.Interrupted as e:
-            if _signals.nested():
-                raise
-            kept = plan.committed if plan is not None else []
-            if kept:
-                what = "after every output was written: " + ", ".join(map(str, kept))
-            elif plan is not None and plan.outputs:
-                what = "no output was written (temporary files removed)"
+        except BaseException as e:  # noqa: BLE001 - every outcome becomes one line
+            sig = e.signum if isinstance(e, _signals.Interrupted) else _signals.received()
+            if sig is not None and not isinstance(e, SystemExit):
+                # an interrupt, also when a library turned it into another error
+                # (an ImportError from a lazy import, a swallowed KeyboardInterrupt)
+                if _signals.nested(2 if _signals.depth() > 1 else 1):
+                    if isinstance(e, _signals.Interrupted):
+                        raise
+                    raise _signals.Interrupted(sig) from None
+                return _report_interrupt(cmd, plan, sig)
+            if isinstance(e, MemsStereoError):
+                error_line(cmd, str(e))
+            elif isinstance(e, OSError):
+                error_line(cmd, _file_error(e))
+            elif isinstance(e, MemoryError):
+                error_line(cmd, "out of memory; lower --chunk-shots or --max-memory")
+            elif isinstance(e, Exception) and not os.environ.get("MEMS_STEREO_DEBUG"):
+                # a bug: one line, and the traceback on request
+                error_line(cmd, f"internal error: {type(e).__name__}: {e} (set "
+                                "MEMS_STEREO_DEBUG=1 for the traceback; please report it)")
+                _signals.finished(1)
+                return 1
             else:
-                what = "nothing was written"
-            print(f"mems-stereo {cmd}: interrupted by {e.name}; {what}", file=sys.stderr)
-            return e.exit_code
-        except MemsStereoError as e:
-            error_line(cmd, str(e))
-            return 2
-        except OSError as e:
-            error_line(cmd, _file_error(e))
-            return 2
-        except MemoryError:
-            error_line(cmd, "out of memory; lower --chunk-shots or --max-memory")
-            return 2
-        except Exception as e:  # a bug: one line, and the traceback on request
-            if os.environ.get("MEMS_STEREO_DEBUG"):
                 raise
-            error_line(cmd, f"internal error: {type(e).__name__}: {e} (set MEMS_STEREO_DEBUG=1 "
-                            "for the traceback; please report it)")
-            return 1
+            _signals.finished(2)
+            return 2
+
+
+def _report_interrupt(cmd: str, plan, sig: int) -> int:
+    """The one line of an interrupted run (what was kept, truthfully); 128 + signal."""
+    import signal
+
+    kept = plan.committed if plan is not None else []
+    in_place = [p for _n, p, k in (plan.outputs if plan else []) if k == "dir"]
+    if in_place:
+        what = (f"the outputs of the finished steps were kept in {in_place[0]}; the "
+                "interrupted step wrote nothing")
+    elif kept:
+        what = "after every output was written: " + ", ".join(map(str, kept))
+    elif plan is not None and plan.outputs:
+        what = "no output was written (temporary files removed)"
+    else:
+        what = "nothing was written"
+    print(f"mems-stereo {cmd}: interrupted by {signal.Signals(sig).name}; {what}",
+          file=sys.stderr)
+    return 128 + sig
 
 
 def check_input_consistency(command: str, args) -> None:

@@ -93,6 +93,13 @@ def calib_names(which: str) -> Callable:
     return rule
 
 
+def sample_folder(v, o):
+    """A folder holding the bundled sample recordings (``demo --samples``)."""
+    from mems_stereo.cli.demo import samples_dir
+
+    samples_dir(v)
+
+
 _DIST = each(between(0.0, 1e4, lo_open=True), allow_nan=True)
 _ACQ = {"shots": count(1, 10**8), "distance": between(0.0, 1e4, lo_open=True),
         "ratio": between(0.0, 1e3, lo_open=True)}
@@ -116,6 +123,7 @@ RULES: dict[str, dict[str, Callable]] = {
     "view": {"point_size": between(0.0, 1000.0, lo_open=True)},
     "render": dict(_RENDER),
     "plot histograms": {"max_code": count(1, 65535), "row": count(0, 1 << 20)},
+    "demo": {"samples": sample_folder},
 }
 
 

@@ -75,6 +75,8 @@ IO: dict[str, Spec] = {
 }
 
 _STACK: list[OutputPlan] = []
+#: inputs given by an option (their errors name the option as well as the file)
+_NAMED_INPUTS = ("system", "true_system", "target_distances_file")
 
 
 def opt(name: str) -> str:
@@ -136,7 +138,14 @@ class OutputPlan:
                                       source=str(p), field=opt(name))
                 self.inputs.append((name, p))
             else:
-                self.inputs.append((name, require_input_file(v, opt(name))))
+                try:
+                    self.inputs.append((name, require_input_file(v, None)))
+                except FileNotFoundError:
+                    if name not in _NAMED_INPUTS:
+                        raise
+                    presets = " a preset or" if kind == "system" else ""
+                    raise OptionError(f"expected{presets} an existing file, found {v!r} (file "
+                                      "not found)", field=opt(name)) from None
         if self.command == "simulate":
             self.inputs += [("scene", m) for m in _scene_meshes(getattr(a, "scene", None))]
         if self.command == "demo" and getattr(a, "samples", None) is None:
@@ -283,6 +292,9 @@ class OutputPlan:
                     os.replace(s, p)
                     self.committed.append(p)
             self.state = "committed"
+            from mems_stereo.cli._signals import committed
+
+            committed(self.committed)
         return self.committed
 
     def abort(self) -> None:
