@@ -85,6 +85,8 @@ def _rec_cases():
     out = []
     for name, build in recording_cases(RNG):
         out.append((f"process-{name}", build, ["process", "{d}/m.h5", "-o", "{d}/o.ply"], "m.h5"))
+        if "corrupt-truth" in name:  # found only after a whole calibration: too slow here
+            continue
         out.append((f"calibrate-{name}", build,
                     ["calibrate", "{s}/calib_1.5m.h5", "{d}/m.h5", "-o", "{d}/c.json"], "m.h5"))
     for name, build in truncations("room.h5", "m.h5", RNG, 12):

@@ -63,6 +63,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    rc = _main(argv)
+    if argv is None and rc > 128:
+        # the program was interrupted and has cleaned up: exit now with 128 + signal
+        # (interpreter shutdown could otherwise replace the status)
+        import os
+
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(rc)
+    return rc
+
+
+def _main(argv: list[str] | None) -> int:
     from mems_stereo.cli import _signals
 
     # first: an interrupt while loading the commands is handled too
