@@ -45,3 +45,34 @@ class GeometryError(MemsStereoError, ValueError):
 
 class NotObservableError(MemsStereoError):
     """A calibration parameter the data cannot determine."""
+
+
+class ShapeError(FormatError, GeometryError):
+    """An array of the wrong shape or dtype (in memory or in a file).
+
+    The one exception of this kind of fault wherever it is detected; it
+    subclasses both :class:`FormatError` and :class:`GeometryError` so that
+    code catching either (the classes used for it before version 0.2) keeps
+    working.
+    """
+
+
+class OptionError(FormatError):
+    """A command-line option or API argument out of its range; ``field`` names it."""
+
+
+class UnsafeFileError(FormatError):
+    """A file that would make the package read outside it: HDF5 external storage,
+    external links, virtual datasets, mesh paths outside the scene's folder."""
+
+
+class ResourceError(MemsStereoError, ValueError):
+    """An input whose claimed sizes exceed the file's real size or the memory budget
+    (``--max-memory``, :func:`mems_stereo.util.limits.max_memory`)."""
+
+
+class UnknownNameError(MemsStereoError, KeyError):
+    """An unknown name (system parameter, preset); also a :class:`KeyError`."""
+
+    def __str__(self) -> str:  # KeyError would quote the message
+        return str(self.args[0]) if self.args else ""

@@ -185,18 +185,27 @@ def read_cloud(path: str | os.PathLike) -> PointCloud:
     of foreign files (colours, normals) are left out.  Raises FormatError for
     an unknown extension or an unreadable file, FileNotFoundError when missing.
     """
+    from mems_stereo.util.paths import require_input_file
+
     path = Path(path)
     sfx = _suffix(path)
     if sfx in (".mcap", ".db3"):
         return read_ros2_bag(path)
-    if not path.is_file():
-        raise FileNotFoundError(2, "file not found", str(path))
+    require_input_file(path)
     if sfx in (".las", ".laz"):
         return _read_las(path)
+    if sfx == ".ply":
+        _check_ply_header(path)
+    else:
+        _check_pcd_header(path)
     import open3d as o3d
 
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        pc = o3d.t.io.read_point_cloud(str(path))
+    try:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            pc = o3d.t.io.read_point_cloud(str(path))
+    except (RuntimeError, ValueError, OSError) as e:
+        raise FormatError(f"not a readable {sfx[1:].upper()} point cloud ({str(e)[:120]})",
+                          source=str(path)) from None
     if "positions" not in pc.point:
         if sfx == ".pcd":
             empty = _empty_pcd(path)
@@ -213,6 +222,127 @@ def read_cloud(path: str | os.PathLike) -> PointCloud:
         if a.ndim == 2 and a.shape[1] == 1:
             attrs[k] = a[:, 0].copy()
     return PointCloud(points, _ordered(attrs))
+
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+              "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+              "float": 4, "float32": 4, "double": 8, "float64": 8}
+_MAX_HEADER = 1 << 16
+
+
+def _read_header_lines(path: Path, end: str, limit: int = 4096) -> tuple[list[str], int]:
+    """ASCII header lines up to and including ``end`` and the header's byte length."""
+    lines, n = [], 0
+    with open(path, "rb") as f:
+        for _ in range(limit):
+            raw = f.readline(_MAX_HEADER)
+            if not raw:
+                break
+            n += len(raw)
+            line = raw.decode("ascii", "replace").strip()
+            lines.append(line)
+            if line.split(" ", 1)[0] == end:
+                return lines, n
+    raise FormatError(f"no '{end}' line in the header: not a point cloud or truncated",
+                      source=str(path))
+
+
+def _check_ply_header(path: Path) -> None:
+    """Refuse a PLY whose header lacks x, y, z or whose data are shorter than declared."""
+    lines, head = _read_header_lines(path, "end_header")
+    if not lines or lines[0] != "ply":
+        raise FormatError("expected a PLY file (first line 'ply')", source=str(path))
+    fmt, elements, cur = None, [], None
+    for ln in lines[1:]:
+        w = ln.split()
+        if not w:
+            continue
+        if w[0] == "format" and len(w) >= 2:
+            fmt = w[1]
+        elif w[0] == "element" and len(w) == 3:
+            try:
+                n = int(w[2])
+            except ValueError:
+                raise FormatError(f"element {w[1]}: expected a count, found {w[2]!r}",
+                                  source=str(path)) from None
+            if n < 0:
+                raise FormatError(f"element {w[1]}: negative count {n}", source=str(path))
+            cur = {"name": w[1], "n": n, "props": [], "size": 0, "list": False}
+            elements.append(cur)
+        elif w[0] == "property" and cur is not None:
+            if len(w) >= 2 and w[1] == "list":
+                cur["list"] = True
+                cur["props"].append(w[-1])
+            elif len(w) == 3 and w[1] in _PLY_SIZES:
+                cur["props"].append(w[2])
+                cur["size"] += _PLY_SIZES[w[1]]
+            else:
+                raise FormatError(f"unknown property line {ln!r}", source=str(path))
+    vert = next((e for e in elements if e["name"] == "vertex"), None)
+    if vert is None:
+        raise FormatError("no 'element vertex' in the header", source=str(path))
+    missing = [c for c in ("x", "y", "z") if c not in vert["props"]]
+    if missing:
+        raise FormatError(f"the vertices lack the coordinate(s) {', '.join(missing)}",
+                          source=str(path), field="vertex")
+    real = path.stat().st_size - head
+    if fmt in ("binary_little_endian", "binary_big_endian"):
+        need, exact = 0, True
+        for e in elements:
+            if e["list"]:
+                exact = False
+                break
+            need += e["n"] * e["size"]
+        if exact and real < need:
+            raise FormatError(f"truncated: the header declares {vert['n']} vertices "
+                              f"({need} bytes of data), the file holds {real}",
+                              source=str(path))
+    elif fmt == "ascii":
+        with open(path, "rb") as f:
+            f.seek(head)
+            rows = sum(1 for line in f if line.strip())
+        if rows < sum(e["n"] for e in elements):
+            raise FormatError(f"truncated: the header declares {vert['n']} vertices, the file "
+                              f"holds {rows} data lines", source=str(path))
+    else:
+        raise FormatError(f"unknown PLY format {fmt!r}", source=str(path))
+    from mems_stereo.util.limits import check_allocation
+
+    check_allocation(vert["n"] * (24 + 8 * len(vert["props"])), f"{vert['n']} points",
+                     str(path))
+
+
+def _check_pcd_header(path: Path) -> None:
+    """Refuse a PCD without x, y, z or whose binary data are shorter than declared."""
+    lines, head = _read_header_lines(path, "DATA")
+    h = {}
+    for ln in lines:
+        if ln and not ln.startswith("#"):
+            k, _, rest = ln.partition(" ")
+            h[k] = rest.split()
+    fields = h.get("FIELDS", [])
+    missing = [c for c in ("x", "y", "z") if c not in fields]
+    if missing:
+        raise FormatError(f"the points lack the field(s) {', '.join(missing)}",
+                          source=str(path), field="FIELDS")
+    try:
+        n = int(h.get("POINTS", ["-1"])[0])
+        sizes = [int(x) for x in h.get("SIZE", [])]
+        counts = [int(x) for x in h.get("COUNT", ["1"] * len(sizes))]
+    except ValueError:
+        raise FormatError("expected integer POINTS, SIZE and COUNT", source=str(path)) from None
+    if n < 0 or len(sizes) != len(fields) or len(counts) != len(fields):
+        raise FormatError("expected POINTS >= 0 and one SIZE and COUNT per field",
+                          source=str(path))
+    if h.get("DATA", [""])[0] == "binary":
+        need = n * sum(s * c for s, c in zip(sizes, counts))
+        real = path.stat().st_size - head
+        if real < need:
+            raise FormatError(f"truncated: the header declares {n} points ({need} bytes of "
+                              f"data), the file holds {real}", source=str(path))
+    from mems_stereo.util.limits import check_allocation
+
+    check_allocation(n * (24 + 8 * len(fields)), f"{n} points", str(path))
 
 
 # ---------------------------------------------------------------- LAS / LAZ
@@ -276,9 +406,34 @@ def _write_las(path: Path, cloud: PointCloud) -> None:
 def _read_las(path: Path) -> PointCloud:
     laspy = _laspy()
     try:
-        las = laspy.read(str(path))
-    except laspy.errors.LaspyException as e:
-        raise FormatError(f"not a readable LAS/LAZ file: {e}", source=str(path)) from None
+        with laspy.open(str(path)) as rd:
+            hdr = rd.header
+            scales = np.asarray(hdr.scales, dtype=np.float64)
+            if scales.shape != (3,) or not np.all(np.isfinite(scales)) or np.any(scales <= 0):
+                raise FormatError(f"expected positive finite coordinate scales, found "
+                                  f"{scales.tolist()}", source=str(path), field="header.scales")
+            offs = np.asarray(hdr.offsets, dtype=np.float64)
+            if not np.all(np.isfinite(offs)):
+                raise FormatError(f"expected finite offsets, found {offs.tolist()}",
+                                  source=str(path), field="header.offsets")
+            n = int(hdr.point_count)
+            size = hdr.point_format.size
+            if path.suffix.lower() == ".las":
+                real = path.stat().st_size - int(hdr.offset_to_point_data)
+                if real < n * size:
+                    raise FormatError(f"truncated: the header declares {n} points "
+                                      f"({n * size} bytes), the file holds {max(real, 0)}",
+                                      source=str(path))
+            from mems_stereo.util.limits import check_allocation
+
+            check_allocation(n * (size + 48), f"{n} points", str(path))
+            las = rd.read()
+    except FormatError:
+        raise
+    except (laspy.errors.LaspyException, ValueError, OSError, EOFError, KeyError,
+            IndexError, TypeError) as e:
+        raise FormatError(f"not a readable LAS/LAZ file: {str(e)[:120]}", source=str(path)) \
+            from None
     points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
     attrs = {}
     for name in las.point_format.extra_dimension_names:

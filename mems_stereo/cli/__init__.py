@@ -4,18 +4,22 @@ Each command lives in its own module exposing ``NAME``, ``HELP``,
 ``EXAMPLE`` (one command line or a list of them, run in order from an empty
 folder: tests/test_docs.py executes them), ``add_arguments(parser)`` and
 ``run(args) -> int``.  User mistakes (:class:`~mems_stereo.errors.MemsStereoError`,
-missing files) are printed on stderr as one line, with the advice on a
-second, exit code 2 and no traceback.
+missing files, bad options) are printed on stderr as one line (with an
+indented advice line where there is advice), exit code 2 and no traceback;
+:func:`mems_stereo.cli._common.run_command` checks options, inputs and
+outputs before any work and commits all outputs together
+(docs/reliability.md).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
 
-from mems_stereo.cli._ux import HelpfulParser, format_error
-from mems_stereo.errors import MemsStereoError
+from mems_stereo.cli._common import add_safety_arguments, run_command
+from mems_stereo.cli._ux import HelpfulParser
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
@@ -72,31 +76,51 @@ def build_parser() -> argparse.ArgumentParser:
                        help="print only errors")
         p.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,
                        help="print more detail")
+        add_safety_arguments(p)
         mod.add_arguments(p)
         p.set_defaults(_run=mod.run)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if not getattr(args, "command", None):
-        parser.print_help()
-        return 2
-    try:
-        return int(args._run(args) or 0)
-    except MemsStereoError as e:
-        print(format_error(args.command, e, bool(getattr(args, "verbose", False))),
-              file=sys.stderr)
-        return 2
-    except FileNotFoundError as e:
-        print(f"mems-stereo {args.command}: error: {e.filename}: file not found",
-              file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print(f"mems-stereo {args.command}: interrupted; no partial output was kept",
-              file=sys.stderr)
-        return 130
+    rc = _main(argv)
+    if argv is None and rc > 128:
+        # the program was interrupted and has cleaned up: exit now with 128 + signal
+        # (interpreter shutdown could otherwise replace the status)
+        import os
+
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(rc)
+    return rc
+
+
+def _main(argv: list[str] | None) -> int:
+    from mems_stereo.cli import _signals
+
+    # first: an interrupt while loading the commands is handled too
+    with _signals.signal_guard(final=argv is None):
+        try:
+            parser = build_parser()
+            args = parser.parse_args(argv)  # usage errors: one line, SystemExit(2)
+            if not getattr(args, "command", None):
+                parser.print_help()
+                return 2
+            return run_command(args)
+        except BaseException as e:  # noqa: BLE001
+            sig = e.signum if isinstance(e, _signals.Interrupted) else _signals.received()
+            if sig is None or isinstance(e, SystemExit):
+                raise
+            if _signals.nested():
+                if isinstance(e, _signals.Interrupted):
+                    raise
+                raise _signals.Interrupted(sig) from None
+            print(f"mems-stereo: interrupted by {signal.Signals(sig).name} "
+                  f"{_signals.late_state()}", file=sys.stderr)
+            return 128 + sig
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,6 +1,16 @@
-"""Shared helpers of the CLI commands: output verbosity and progress bars."""
+"""Shared helpers of the CLI commands: output verbosity, progress bars and the run guard."""
 
 from __future__ import annotations
+
+import argparse
+import sys
+
+
+def _emit(msg: str) -> None:
+    from mems_stereo.cli._outputs import emit
+
+    emit(msg)
+
 
 
 class Reporter:
@@ -12,14 +22,164 @@ class Reporter:
 
     def info(self, msg: str = "") -> None:
         if not self.quiet:
-            print(msg)
+            _emit(msg)
 
     def detail(self, msg: str) -> None:
         if self.verbose and not self.quiet:
-            print(msg)
+            _emit(msg)
 
     def progress(self, total: int, desc: str, unit: str = "shot"):
         """A tqdm progress bar on stderr (disabled when quiet or not a terminal)."""
         from mems_stereo.cli._ux import progress_bar
 
         return progress_bar(total, desc, unit, quiet=self.quiet)
+
+
+# ------------------------------------------------------------------ the run guard
+
+def add_safety_arguments(p) -> None:
+    """``--max-memory`` and ``--allow-external``, on every command."""
+    p.add_argument("--max-memory", default=argparse.SUPPRESS, metavar="SIZE",
+                   help="memory budget: inputs whose sizes would need more are refused before "
+                        "any allocation (e.g. 4G; default: half the physical memory)")
+    p.add_argument("--allow-external", action="store_true", default=argparse.SUPPRESS,
+                   help="follow HDF5 external storage/links and virtual datasets, and scene "
+                        "meshes outside the scene's folder (refused by default)")
+
+
+def command_key(args) -> str:
+    """``process``, or ``plot histograms`` for commands with sub-figures."""
+    fig = getattr(args, "figure", None)
+    return f"{args.command} {fig}" if args.command == "plot" and fig else args.command
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split("\n")).strip()
+
+
+def error_line(command: str, message: str) -> None:
+    """The one line on stderr of a refused run."""
+    from mems_stereo.cli._outputs import translate
+
+    print(f"mems-stereo {command}: error: {_one_line(translate(message))}", file=sys.stderr)
+
+
+def _file_error(e: OSError) -> str:
+    name = e.filename if e.filename is not None else ""
+    what = "file not found" if isinstance(e, FileNotFoundError) else (e.strerror or str(e))
+    return f"{name}: {what}" if name else what
+
+
+def run_command(args) -> int:
+    """Run one parsed command under the validation layer; returns the exit code.
+
+    Options are checked (:mod:`mems_stereo.cli._options`), inputs and outputs
+    planned (:class:`mems_stereo.cli._outputs.OutputPlan`) before any work;
+    the command writes to staged paths, committed together when it returns 0.
+    Refused input: one line on stderr, exit 2.  SIGINT/SIGTERM/SIGHUP: the
+    staged and temporary files are removed, one line says what was kept,
+    exit 128 + signal.
+    """
+    import os
+
+    from mems_stereo.cli import _signals
+    from mems_stereo.cli._options import check_options
+    from mems_stereo.cli._outputs import OutputPlan
+    from mems_stereo.errors import MemsStereoError
+    from mems_stereo.util.limits import limits, parse_size
+
+    cmd = args.command
+    plan = None
+    with _signals.signal_guard():  # nests inside main()'s
+        try:
+            mm = getattr(args, "max_memory", None)
+            budget = parse_size(mm) if mm is not None else None
+            with limits(max_memory=budget, allow_external=getattr(args, "allow_external", None)):
+                key = command_key(args)
+                check_options(key, args)
+                plan = OutputPlan(key, args).check()
+                check_input_consistency(key, args)
+                with plan:
+                    plan.stage()
+                    rc = int(args._run(args) or 0)
+                    sig = _signals.received()
+                    if sig is not None:  # a library swallowed the interrupt
+                        raise _signals.Interrupted(sig)
+                    if rc == 0:
+                        plan.commit()
+                _signals.finished(rc)
+                return rc
+        except BaseException as e:  # noqa: BLE001 - every outcome becomes one line
+            sig = e.signum if isinstance(e, _signals.Interrupted) else _signals.received()
+            if sig is not None and not isinstance(e, SystemExit):
+                # an interrupt, also when a library turned it into another error
+                # (an ImportError from a lazy import, a swallowed KeyboardInterrupt)
+                if _signals.nested(2 if _signals.depth() > 1 else 1):
+                    if isinstance(e, _signals.Interrupted):
+                        raise
+                    raise _signals.Interrupted(sig) from None
+                return _report_interrupt(cmd, plan, sig)
+            if isinstance(e, MemsStereoError):
+                from mems_stereo.cli._ux import format_error
+
+                print(format_error(cmd, e, bool(getattr(args, "verbose", False))),
+                      file=sys.stderr)
+            elif isinstance(e, OSError):
+                error_line(cmd, _file_error(e))
+            elif isinstance(e, MemoryError):
+                error_line(cmd, "out of memory; lower --chunk-shots or --max-memory")
+            elif isinstance(e, Exception) and not os.environ.get("MEMS_STEREO_DEBUG"):
+                # a bug: one line, and the traceback on request
+                error_line(cmd, f"internal error: {type(e).__name__}: {e} (set "
+                                "MEMS_STEREO_DEBUG=1 for the traceback; please report it)")
+                _signals.finished(1)
+                return 1
+            else:
+                raise
+            _signals.finished(2)
+            return 2
+
+
+def _report_interrupt(cmd: str, plan, sig: int) -> int:
+    """The one line of an interrupted run (what was kept, truthfully); 128 + signal."""
+    import signal
+
+    kept = plan.committed if plan is not None else []
+    in_place = [p for _n, p, k in (plan.outputs if plan else []) if k == "dir"]
+    if in_place:
+        what = (f"the outputs of the finished steps were kept in {in_place[0]}; the "
+                "interrupted step wrote nothing")
+    elif kept:
+        what = "after every output was written: " + ", ".join(map(str, kept))
+    elif plan is not None and plan.outputs:
+        what = "no output was written (temporary files removed)"
+    else:
+        what = "nothing was written"
+    print(f"mems-stereo {cmd}: interrupted by {signal.Signals(sig).name}; {what}",
+          file=sys.stderr)
+    return 128 + sig
+
+
+def check_input_consistency(command: str, args) -> None:
+    """Cross-checks between inputs: every calibration recording's /system must agree."""
+    if command != "calibrate" or len(args.recordings) < 2:
+        return
+    from mems_stereo.errors import FormatError
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.model.system import system_to_dict
+
+    def flat(d, pre=""):
+        for k, v in d.items():
+            if isinstance(v, dict):
+                yield from flat(v, f"{pre}{k}.")
+            else:
+                yield f"{pre}{k}", v
+
+    ref = dict(flat(system_to_dict(read_header(args.recordings[0]).system)))
+    for r in args.recordings[1:]:
+        other = dict(flat(system_to_dict(read_header(r).system)))
+        diff = sorted(k for k in set(ref) | set(other) if ref.get(k) != other.get(k))
+        if diff:
+            raise FormatError(f"differs from {args.recordings[0]}'s in {', '.join(diff[:4])}; "
+                              "expected the recordings of one system", source=str(r),
+                              field="/system")

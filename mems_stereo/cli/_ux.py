@@ -55,8 +55,8 @@ class HelpfulParser(argparse.ArgumentParser):
                     if s:
                         hints.append(f"did you mean {s} (not {word})?")
             hint = " ".join(hints) or None
-        self.print_usage(sys.stderr)
-        text = f"{self.prog}: error: {message}"
+        # one line (no usage block): what is wrong, and where to look
+        text = f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)"
         if hint:
             text += f"\n  {hint}"
         self.exit(2, text + "\n")

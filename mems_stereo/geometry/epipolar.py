@@ -13,6 +13,7 @@ import numpy as np
 from mems_stereo.errors import GeometryError
 from mems_stereo.model.camera import pixels_to_rays, project_points
 from mems_stereo.model.system import System
+from mems_stereo.util.checks import check_shape
 
 
 def epipolar_residual(d_scan, baseline, rays) -> np.ndarray:
@@ -22,9 +23,9 @@ def epipolar_residual(d_scan, baseline, rays) -> np.ndarray:
     in metres: |b| times the sine of the angle between the ray and the plane
     spanned by ``b`` and ``d_scan``.  Zero for a consistent pair.
     """
-    d = np.asarray(d_scan, dtype=np.float64)
-    b = np.asarray(baseline, dtype=np.float64)
-    l = np.asarray(rays, dtype=np.float64)
+    d = check_shape(d_scan, ("...", 3), "d_scan")
+    b = check_shape(baseline, ("...", 3), "baseline")
+    l = check_shape(rays, ("...", 3), "rays")
     return np.sum(d * np.cross(b, l), axis=-1)
 
 
@@ -33,7 +34,8 @@ def epipolar_plane_normal(d_scan, baseline) -> np.ndarray:
 
     (..., 3) float64; NaN where ``d_scan`` is parallel to ``baseline``.
     """
-    n = np.cross(np.asarray(baseline, dtype=np.float64), np.asarray(d_scan, dtype=np.float64))
+    n = np.cross(check_shape(baseline, ("...", 3), "baseline"),
+                 check_shape(d_scan, ("...", 3), "d_scan"))
     norm = np.linalg.norm(n, axis=-1, keepdims=True)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(norm > 1e-15, n / norm, np.nan)
@@ -46,8 +48,8 @@ def path_for_range(scanner_position, d_scan, ranges) -> np.ndarray:
     ``ranges`` : (M,) metres.  Returns (M,) metres (NaN where r < distance of the
     ray from the origin, i.e. no such point).
     """
-    p = np.asarray(scanner_position, dtype=np.float64)
-    d = np.asarray(d_scan, dtype=np.float64)
+    p = check_shape(scanner_position, (3,), "scanner_position")
+    d = check_shape(d_scan, (3,), "d_scan")
     r = np.asarray(ranges, dtype=np.float64)
     pd = float(p @ d)
     disc = pd * pd - float(p @ p) + r * r
@@ -140,8 +142,7 @@ def triangulate_midpoint(origin1, direction1, origin2, direction2):
     o1, d1, o2, d2 = (np.atleast_2d(np.asarray(a, dtype=np.float64))
                       for a in (origin1, direction1, origin2, direction2))
     for name, a in (("origin1", o1), ("direction1", d1), ("origin2", o2), ("direction2", d2)):
-        if a.shape[-1] != 3:
-            raise GeometryError(f"{name}: expected shape (N, 3), found {a.shape}")
+        check_shape(a, ("N", 3), name)
     w0 = o1 - o2
     a = np.sum(d1 * d1, -1)
     b = np.sum(d1 * d2, -1)

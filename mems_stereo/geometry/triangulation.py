@@ -23,9 +23,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mems_stereo.errors import GeometryError
 from mems_stereo.geometry.epipolar import triangulate_midpoint
 from mems_stereo.model.system import System
+from mems_stereo.util.checks import check_shape
 
 FLAG_OK = 0
 FLAG_NO_SOLUTION = 1  # L not finite or L <= |b|: no point on the ellipsoid
@@ -37,10 +37,8 @@ MIN_STEREO_ANGLE = 1e-5
 
 
 def _vec3(a, name: str) -> np.ndarray:
-    a = np.asarray(a, dtype=np.float64)
-    if a.shape[-1:] != (3,):
-        raise GeometryError(f"{name}: expected shape (..., 3), found {a.shape}")
-    return a
+    """(..., 3) float64 (declarative check: :func:`mems_stereo.util.checks.check_shape`)."""
+    return check_shape(a, ("...", 3), name)
 
 
 def path_length_of_point(points, scanner_position) -> np.ndarray:
@@ -69,7 +67,7 @@ def scanner_ray_point(scanner_position, d_scan, L):
     s : (...) float64, distance mirror → point, metres; NaN where flagged.
     flags : (...) uint8, FLAG_* bit mask (0 = ok).
     """
-    p = _vec3(scanner_position, "scanner_position")
+    p = check_shape(scanner_position, (3,), "scanner_position")
     d = _vec3(d_scan, "d_scan")
     L = np.asarray(L, dtype=np.float64)
     bb = float(p @ p)
@@ -84,7 +82,7 @@ def pixel_ray_point(scanner_position, rays, L):
     ``(points (..., 3), rho (...), flags (...) uint8)`` as
     :func:`scanner_ray_point` (ρ = |x|, the range from the projection centre).
     """
-    p = _vec3(scanner_position, "scanner_position")
+    p = check_shape(scanner_position, (3,), "scanner_position")
     l = _vec3(rays, "rays")
     L = np.asarray(L, dtype=np.float64)
     bb = float(p @ p)

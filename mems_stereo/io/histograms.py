@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.errors import FormatError
+from mems_stereo.errors import FormatError, ShapeError
 from mems_stereo.util.atomic import atomic_output
 
 FORMAT_NAME = "mems-stereo/histograms"
@@ -38,8 +38,8 @@ def _as_hwb(name: str, a, source: str) -> np.ndarray:
     if a.ndim == 2:
         a = a[None]
     if a.ndim != 3:
-        raise FormatError(f"expected shape (H, W, n_bins) or (W, n_bins), found {a.shape}",
-                          source=source, field=f"/{name}")
+        raise ShapeError(f"expected shape (H, W, n_bins) or (W, n_bins), found {a.shape}",
+                         source=source, field=f"/{name}")
     if not (np.issubdtype(a.dtype, np.integer) or a.dtype == np.bool_):
         raise FormatError(f"expected integer counts, found dtype {a.dtype}",
                           source=source, field=f"/{name}")
@@ -61,7 +61,7 @@ def write_histograms(path: str | os.PathLike, raw, signal, noise,
     arrays = {n: _as_hwb(n, a, str(path)) for n, a in zip(DATASETS, (raw, signal, noise))}
     shapes = {a.shape for a in arrays.values()}
     if len(shapes) != 1:
-        raise FormatError(f"raw, signal and noise must have one shape, found "
+        raise ShapeError(f"raw, signal and noise must have one shape, found "
                           f"{[a.shape for a in arrays.values()]}", source=str(path))
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT_NAME
@@ -81,34 +81,36 @@ def read_histograms(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np
     Raises FileNotFoundError when missing and FormatError naming the dataset
     when the file does not follow the format.
     """
-    import h5py
+    from mems_stereo.io import hdf5 as h5
 
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(2, "file not found", str(path))
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise FormatError(f"not an HDF5 file ({e})", source=str(path)) from None
-    with f:
-        fmt = f.attrs.get("format")
-        if isinstance(fmt, bytes):
-            fmt = fmt.decode()
+    source = str(path)
+    with h5.open_h5(path) as f:
+        fmt = h5.attr_str(f, "format", source)
         if fmt != FORMAT_NAME:
             raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
-                              source=str(path), field="format")
-        version = int(f.attrs.get("version", -1))
+                              source=source, field="format")
+        try:
+            version = h5.attr_int(f, "version", source)
+        except FormatError:
+            version = None
         if version != FORMAT_VERSION:
-            raise FormatError(f"expected version {FORMAT_VERSION}, found {version}",
-                              source=str(path), field="version")
+            raise FormatError(f"expected version {FORMAT_VERSION}, found "
+                              f"{f.attrs.get('version')!r}"[:120], source=source, field="version")
         out = []
         for n in DATASETS:
-            if n not in f:
-                raise FormatError("dataset missing", source=str(path), field=f"/{n}")
-            out.append(_as_hwb(n, f[n][()], str(path)))
-        attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()
-                 if k not in ("format", "version")}
+            ds = h5.dataset(f, f"/{n}", source, whole=True)
+            if ds.ndim not in (2, 3):
+                raise ShapeError(f"expected shape (H, W, n_bins) or (W, n_bins), found "
+                                 f"{ds.shape}", source, f"/{n}")
+            out.append(_as_hwb(n, h5.read(ds, source), source))
+        attrs = {}
+        for k in f.attrs:
+            if k in ("format", "version"):
+                continue
+            v = h5.attr_str(f, k, source)
+            attrs[k] = v if v is not None else f.attrs[k]
     if len({a.shape for a in out}) != 1:
-        raise FormatError(f"raw, signal and noise must have one shape, found "
-                          f"{[a.shape for a in out]}", source=str(path))
+        raise ShapeError(f"raw, signal and noise must have one shape, found "
+                         f"{[a.shape for a in out]}", source=source)
     return out[0], out[1], out[2], attrs

@@ -21,9 +21,15 @@ import h5py
 import numpy as np
 
 from mems_stereo.errors import FormatError
-from mems_stereo.model.scanner import validate_zero_crossings
+from mems_stereo.io import hdf5 as h5
+from mems_stereo.model.scanner import crossing_phases, validate_zero_crossings
 from mems_stereo.model.system import System, system_from_json, system_to_json
 from mems_stereo.util.atomic import atomic_output
+from mems_stereo.util.limits import check_allocation
+
+#: Accepted deviation of the mirror frequency implied by the zero crossings
+#: (median over the recording) from the system's ``scanner.f_mech``.
+CROSSING_FREQUENCY_TOLERANCE = 0.25
 
 FORMAT_NAME = "mems-stereo/recording"
 FORMAT_VERSION = 1
@@ -108,13 +114,8 @@ class Recording:
                    f"{first.source} (+{len(chunks) - 1} chunks)")
 
 
-def _need(f: h5py.File, path: str, source: str) -> h5py.Dataset:
-    if path not in f:
-        raise FormatError("required dataset is missing", source, path)
-    obj = f[path]
-    if not isinstance(obj, h5py.Dataset):
-        raise FormatError("expected a dataset, found a group", source, path)
-    return obj
+def _need(f: h5py.File, path: str, source: str, whole: bool = False) -> h5py.Dataset:
+    return h5.dataset(f, path, source, whole=whole)
 
 
 def _check_dtype(ds, kinds: str, expected: str, source: str, path: str):
@@ -124,27 +125,70 @@ def _check_dtype(ds, kinds: str, expected: str, source: str, path: str):
 
 def validate_header(f: h5py.File, source: str) -> System:
     """Check the file attributes and ``/system``; return the recorded System."""
-    fmt = f.attrs.get("format")
-    if isinstance(fmt, bytes):
-        fmt = fmt.decode()
+    fmt = h5.attr_str(f, "format", source)
     if fmt != FORMAT_NAME:
-        raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
-                          source, "attrs/format")
-    ver = f.attrs.get("version")
-    if ver is None or int(np.asarray(ver)) != FORMAT_VERSION:
-        raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found {ver!r}",
-                          source, "attrs/version")
-    if int(np.asarray(f.attrs.get("scan_axes", 1))) != 1:  # two-axis extension
-        raise FormatError("a two-axis recording (scan_axes = 2): read it with "
-                          "mems_stereo.io.recording2d.read_recording_2d", source, "attrs/scan_axes")
+        raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found "
+                          f"{_shown_attr(f, 'format')}", source, "attrs/format")
+    try:
+        ver = h5.attr_int(f, "version", source)
+    except FormatError:
+        ver = None
+    if ver != FORMAT_VERSION:
+        raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found "
+                          f"{_shown_attr(f, 'version')}", source, "attrs/version")
+    if "scan_axes" in f.attrs:  # the two-axis extension (docs/formats.md §5)
+        try:
+            axes = h5.attr_int(f, "scan_axes", source)
+        except FormatError:
+            axes = None
+        if axes != 1:
+            raise FormatError("a two-axis recording (scan_axes = 2): read it with "
+                              "mems_stereo.io.recording2d.read_recording_2d", source,
+                              "attrs/scan_axes")
     ds = _need(f, "/system", source)
-    raw = ds[()]
+    if ds.shape != () or ds.dtype.kind not in "OSU":
+        raise FormatError(f"expected a scalar JSON string, found {ds.dtype} {ds.shape}", source,
+                          "/system")
+    raw = h5.read(ds, source)
     if isinstance(raw, bytes):
-        raw = raw.decode("utf-8")
+        try:
+            raw = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise FormatError("expected UTF-8 JSON text, found undecodable bytes", source,
+                              "/system") from None
     if not isinstance(raw, str):
         raise FormatError(f"expected a JSON string, found {type(raw).__name__}", source,
                           "/system")
     return system_from_json(raw, source=f"{source}:/system")
+
+
+def _shown_attr(f: h5py.File, key: str) -> str:
+    try:
+        v = f.attrs[key] if key in f.attrs else None
+    except Exception:  # noqa: BLE001 - only for the message
+        return "an unreadable value"
+    return repr(v)[:60]
+
+
+def check_crossing_frequency(zc: np.ndarray, rising: np.ndarray, f_mech: float,
+                             source: str = "", tol: float = CROSSING_FREQUENCY_TOLERANCE):
+    """Cross-check the zero crossings against ``f_mech`` (Hz).
+
+    Between crossings the phase advances by π (alternating kinds) or 2π (same
+    kind: one was missed); the median frequency this implies must lie within
+    ``tol`` of ``f_mech``.  Crossings spaced for another frequency, or all of
+    one kind (which doubles the implied frequency), raise FormatError.
+    """
+    if zc.size < 3:
+        return
+    f_implied = np.diff(crossing_phases(zc, rising)) / (2 * np.pi * np.diff(zc))
+    med = float(np.median(f_implied))
+    if not abs(med / f_mech - 1.0) <= tol:
+        kinds = "all rising" if rising.all() else ("all falling" if not rising.any() else "")
+        raise FormatError(f"the crossings imply a mirror frequency of {med:.6g} Hz, but "
+                          f"scanner.f_mech = {f_mech:g} Hz (/system)"
+                          + (f"; the crossings are {kinds}" if kinds else ""),
+                          source, "/scanner/zero_crossings")
 
 
 def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
@@ -156,11 +200,16 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     that every code is <= n_bins (memory bounded by ``chunk_shots``).
     """
     system = validate_header(f, source)
-    t_ds = _need(f, "/shots/time", source)
-    _check_dtype(t_ds, "f", "float64 seconds", source, "/shots/time")
+    t_ds = _need(f, "/shots/time", source, whole=True)
+    if t_ds.dtype != np.float64:
+        raise FormatError(f"expected float64 seconds, found dtype {t_ds.dtype}", source,
+                          "/shots/time")
     if t_ds.ndim != 1:
         raise FormatError(f"expected shape (K,), found {t_ds.shape}", source, "/shots/time")
-    t = np.asarray(t_ds[()], dtype=np.float64)  # no copy when stored as float64
+    # O(K) arrays of the run (angles, steps, indices): a few float64 per shot
+    check_allocation(16 * t_ds.size * 8, f"per-shot arrays of {t_ds.size} shots", source,
+                     "/shots/time")
+    t = np.asarray(h5.read(t_ds, source), dtype=np.float64)
     block = 1 << 20  # checked in blocks: small temporaries for long recordings
     for a in range(0, t.size, block):
         tb = t[a:a + block + 1]
@@ -182,25 +231,44 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     if check_codes:
         n_bins = system.tdc.n_bins
         for s0 in range(0, t.size, chunk_shots):
-            blk = b_ds[s0:s0 + chunk_shots]
+            blk = h5.read(b_ds, source, np.s_[s0:s0 + chunk_shots])
             if blk.size and int(blk.max()) > n_bins:
                 k = s0 + int(np.argmax(blk.reshape(blk.shape[0], -1).max(axis=1) > n_bins))
                 raise FormatError(f"expected codes 0..{n_bins} (n_bins), found "
                                   f"{int(blk.max())} in shot {k}", source, "/shots/bins")
-    zc_ds = _need(f, "/scanner/zero_crossings", source)
-    _check_dtype(zc_ds, "f", "float64 seconds", source, "/scanner/zero_crossings")
-    r_ds = _need(f, "/scanner/rising", source)
+    zc_ds = _need(f, "/scanner/zero_crossings", source, whole=True)
+    if zc_ds.dtype != np.float64:
+        raise FormatError(f"expected float64 seconds, found dtype {zc_ds.dtype}", source,
+                          "/scanner/zero_crossings")
+    r_ds = _need(f, "/scanner/rising", source, whole=True)
     _check_dtype(r_ds, "iub", "uint8 0/1", source, "/scanner/rising")
-    zc, rising = validate_zero_crossings(zc_ds[()], r_ds[()], source=source)
+    zc, rising = validate_zero_crossings(h5.read(zc_ds, source), h5.read(r_ds, source),
+                                         source=source)
+    check_crossing_frequency(zc, rising, system.scanner.f_mech, source)
+    _check_truth(f, b_ds, source)
     return system, t, zc, rising.astype(np.uint8)
 
 
-def _read_truth(f: h5py.File) -> dict:
+def _check_truth(f: h5py.File, b_ds: h5py.Dataset, source: str) -> None:
+    """``/truth`` is optional, but where ``/truth/label`` exists it must fit the bins."""
+    if "truth" not in f:
+        return
+    if not isinstance(f["truth"], h5py.Group):
+        raise FormatError("expected a group, found a dataset", source, "/truth")
+    if "label" in f["truth"]:
+        lab = _need(f, "/truth/label", source)
+        if lab.shape != b_ds.shape or lab.dtype.kind not in "iu":
+            raise FormatError(f"expected integer labels of shape {b_ds.shape} like /shots/bins,"
+                              f" found {lab.dtype} {lab.shape}", source, "/truth/label")
+
+
+def _read_truth(f: h5py.File, source: str = "") -> dict:
     truth = {}
     if "truth" in f and isinstance(f["truth"], h5py.Group):
         for k, v in f["truth"].items():
             if isinstance(v, h5py.Dataset):
-                truth[k] = v[()]
+                ds = h5.dataset(f, f"/truth/{k}", source, whole=True)
+                truth[k] = h5.read(ds, source)
     return truth
 
 
@@ -210,18 +278,14 @@ def read_recording(path: str | os.PathLike, *, truth: bool = True) -> Recording:
     For recordings larger than memory use :func:`iter_shot_chunks`.
     """
     source = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except (OSError, FileNotFoundError) as e:
-        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
-    with f:
+    with h5.open_h5(path) as f:
         system, t, zc, rising = validate_recording_file(f, source, check_codes=False)
-        bins = f["/shots/bins"][()]
+        bins = h5.read(_need(f, "/shots/bins", source, whole=True), source)
         if bins.size and int(bins.max()) > system.tdc.n_bins:
             k = int(np.argmax(bins.reshape(bins.shape[0], -1).max(axis=1) > system.tdc.n_bins))
             raise FormatError(f"expected codes 0..{system.tdc.n_bins} (n_bins), found "
                               f"{int(bins.max())} in shot {k}", source, "/shots/bins")
-        tr = _read_truth(f) if truth else {}
+        tr = _read_truth(f, source) if truth else {}
     return Recording(system, t, bins, zc, rising, tr, source)
 
 
@@ -250,13 +314,14 @@ def read_header(path: str | os.PathLike | Recording,
                                np.asarray(path.rising, dtype=np.uint8), tuple(b.shape),
                                path.source)
     source = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
-    with f:
+    with h5.open_h5(path) as f:
         system, t, zc, rising = validate_recording_file(f, source, check_codes=check_codes)
         shape = tuple(f["/shots/bins"].shape)
+    # what processing allocates per pixel: raw, signal and noise histograms (int64)
+    H, W = shape[1:]
+    check_allocation(3 * 8 * H * W * system.tdc.n_bins,
+                     f"the histograms ({H}, {W}, {system.tdc.n_bins}) of the recording",
+                     source, "/system")
     return RecordingHeader(system, t, zc, rising, shape, source)
 
 
@@ -290,22 +355,36 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
         yield from _iter_memory_chunks(path, chunk_shots, start, stop, truth_labels)
         return
     source = str(path)
-    with h5py.File(path, "r") as f:
+    if isinstance(chunk_shots, bool) or not isinstance(chunk_shots, (int, np.integer)) \
+            or chunk_shots < 1:
+        raise FormatError(f"expected a positive number of shots, found {chunk_shots!r}",
+                          field="chunk_shots")
+    with h5.open_h5(path) as f:
         system = validate_header(f, source)
-        t_all = f["/shots/time"]
-        b_ds = f["/shots/bins"]
-        lab = f["/truth/label"] if truth_labels and "/truth/label" in f else None
+        t_all = _need(f, "/shots/time", source)
+        b_ds = _need(f, "/shots/bins", source)
+        w, h = system.receiver.image_size
+        h5.require_shape(t_all, (None,), source, "(K,)")
+        h5.require_shape(b_ds, (t_all.shape[0], h, w), source,
+                         f"(K, H, W) = ({t_all.shape[0]}, {h}, {w})")
+        check_allocation(4 * min(chunk_shots, max(b_ds.shape[0], 1)) * h * w * 8,
+                         f"chunks of {chunk_shots} shots", source, "--chunk-shots")
+        lab = None
+        if truth_labels and "truth" in f:
+            _check_truth(f, b_ds, source)
+            lab = f["/truth/label"] if "label" in f["truth"] else None
         n = b_ds.shape[0] if stop is None else min(stop, b_ds.shape[0])
         for s0 in range(start, n, chunk_shots):
             s1 = min(n, s0 + chunk_shots)
-            blk = b_ds[s0:s1]
+            blk = h5.read(b_ds, source, np.s_[s0:s1])
             if blk.size and int(blk.max()) > system.tdc.n_bins:
                 raise FormatError(f"expected codes 0..{system.tdc.n_bins} (n_bins), found "
                                   f"{int(blk.max())} in shots {s0}..{s1 - 1}", source,
                                   "/shots/bins")
-            item = (s0, t_all[s0:s1].astype(np.float64), blk)
+            item = (s0, h5.read(t_all, source, np.s_[s0:s1]).astype(np.float64), blk)
             if truth_labels:
-                item = item + ((lab[s0:s1] if lab is not None else None),)
+                item = item + ((h5.read(lab, source, np.s_[s0:s1]) if lab is not None
+                                else None),)
             yield item
 
 

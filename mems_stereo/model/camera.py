@@ -11,7 +11,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from mems_stereo.errors import GeometryError
+from mems_stereo.errors import ShapeError
 from mems_stereo.model.system import ALLOWED_DIST_LENGTHS, Receiver, validate_camera_matrix
 
 
@@ -27,7 +27,7 @@ def check_intrinsics(camera_matrix, dist_coeffs=None) -> tuple[np.ndarray, np.nd
     else:
         dist = np.asarray(dist_coeffs, dtype=np.float64).ravel()
         if dist.size not in ALLOWED_DIST_LENGTHS:
-            raise GeometryError(
+            raise ShapeError(
                 f"dist_coeffs: expected 4, 5, 8, 12 or 14 coefficients, found {dist.size}")
     return K, dist
 
@@ -37,7 +37,7 @@ def _as_points2(pixels) -> np.ndarray:
     if p.ndim == 1 and p.shape[0] == 2:
         p = p[None]
     if p.ndim != 2 or p.shape[1] != 2:
-        raise GeometryError(f"pixels: expected shape (N, 2), found {p.shape}")
+        raise ShapeError(f"pixels: expected shape (N, 2), found {p.shape}")
     return p
 
 
@@ -78,7 +78,7 @@ def project_points(points, camera_matrix, dist_coeffs=None) -> np.ndarray:
     if P.ndim == 1 and P.shape[0] == 3:
         P = P[None]
     if P.ndim != 2 or P.shape[1] != 3:
-        raise GeometryError(f"points: expected shape (N, 3), found {P.shape}")
+        raise ShapeError(f"points: expected shape (N, 3), found {P.shape}")
     out = np.full((P.shape[0], 2), np.nan)
     front = P[:, 2] > 0
     if np.any(front):

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from mems_stereo.errors import FormatError
+from mems_stereo.errors import FormatError, UnknownNameError
 from mems_stereo.util.jsonfile import FieldChecker, parse_json, read_json_file
 
 FORMAT_NAME = "mems-stereo/system"
@@ -159,7 +159,7 @@ class System:
             elif name == "cx":
                 K[0, 2] = value
             else:
-                raise KeyError(f"unknown system parameter {name!r}")
+                raise UnknownNameError(f"unknown system parameter {name!r}")
         sc = replace(sc, position=pos, **sc_kw)
         rc = replace(rc, camera_matrix=K)
         return replace(self, scanner=sc, tdc=tdc, receiver=rc)
@@ -176,7 +176,7 @@ class System:
             return float(self.receiver.camera_matrix[0, 0])
         if name == "cx":
             return float(self.receiver.camera_matrix[0, 2])
-        raise KeyError(f"unknown system parameter {name!r}")
+        raise UnknownNameError(f"unknown system parameter {name!r}")
 
 
 # --------------------------------------------------------------------------
@@ -222,7 +222,7 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     if fmt != FORMAT_NAME:
         raise ctx.fail("format", f"expected {FORMAT_NAME!r}, found {fmt!r}")
     ver = ctx.req(d, "version", "")
-    if ver != FORMAT_VERSION:
+    if isinstance(ver, bool) or not isinstance(ver, int) or ver != FORMAT_VERSION:
         raise ctx.fail("version", f"expected {FORMAT_VERSION}, found {ver!r}")
 
     r = ctx.req(d, "receiver", "")
@@ -289,7 +289,74 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     calib = d.get("calibration")
     if calib is not None and not isinstance(calib, dict):
         raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
-    return System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
+    system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
+    check_plausible(system, source)
+    return system
+
+
+#: Physical plausibility bounds (inclusive) of the system description, in SI
+#: units: a value outside is refused on read (docs/reliability.md).  They are
+#: wide (orders of magnitude around the paper's system) and exist so that a
+#: typo cannot make the package allocate gigabytes (``theta_mech_max`` = 1e3,
+#: ``pulse_fwhm`` = 1 s) or return an empty cloud with exit 0 (c = 1 m/s).
+PLAUSIBLE: dict[str, tuple[float, float]] = {
+    "receiver.image_size.width": (1, 4096),
+    "receiver.image_size.height": (1, 4096),
+    "receiver.pixels": (1, 1 << 20),
+    "receiver.camera_matrix.fx": (1.0, 1e6),
+    "receiver.camera_matrix.fy": (1.0, 1e6),
+    "receiver.pixel_pitch": (1e-7, 1e-2),
+    "receiver.spad_diameter": (1e-7, 1e-2),
+    "scanner.position": (-100.0, 100.0),
+    "scanner.theta0": (-math.pi / 2, math.pi / 2),
+    "scanner.f_mech": (1e-3, 1e6),
+    "scanner.theta_mech_max": (1e-6, math.pi / 4),
+    "laser.f_rep": (1.0, 1e9),
+    "laser.pulse_fwhm": (0.0, 1e-6),
+    "laser.wavelength": (1e-7, 1e-4),
+    "tdc.bin_width": (1e-13, 1e-6),
+    "tdc.offset": (-1e-3, 1e-3),
+    "tdc.range": (1e-10, 1e-2),
+    "speed_of_light": (2.9e8, 3.0e8),
+}
+
+
+def check_plausible(system: System, source: str = "<dict>") -> None:
+    """Refuse physically implausible values (bounds: :data:`PLAUSIBLE`).
+
+    Raises :class:`~mems_stereo.errors.FormatError` naming the field, the value
+    and the bounds.
+    """
+    r, s, la, t = system.receiver, system.scanner, system.laser, system.tdc
+    K = np.asarray(r.camera_matrix, float)
+    values = {
+        "receiver.image_size.width": r.image_size[0],
+        "receiver.image_size.height": r.image_size[1],
+        "receiver.pixels": r.image_size[0] * r.image_size[1],
+        "receiver.camera_matrix.fx": K[0, 0],
+        "receiver.camera_matrix.fy": K[1, 1],
+        "receiver.pixel_pitch": np.asarray(r.pixel_pitch, float),
+        "receiver.spad_diameter": r.spad_diameter,
+        "scanner.position": np.asarray(s.position, float),
+        "scanner.theta0": s.theta0,
+        "scanner.f_mech": s.f_mech,
+        "scanner.theta_mech_max": s.theta_mech_max,
+        "laser.f_rep": la.f_rep,
+        "laser.pulse_fwhm": la.pulse_fwhm,
+        "laser.wavelength": la.wavelength,
+        "tdc.bin_width": t.bin_width,
+        "tdc.offset": t.offset,
+        "tdc.range": t.n_bins * t.bin_width,
+        "speed_of_light": system.speed_of_light,
+    }
+    ctx = FieldChecker(source)
+    for name, v in values.items():
+        lo, hi = PLAUSIBLE[name]
+        a = np.atleast_1d(np.asarray(v, dtype=float))
+        if not (np.all(a >= lo) and np.all(a <= hi)):
+            shown = a.tolist() if a.size > 1 else float(a[0])
+            raise ctx.fail(name, f"expected a physically plausible value in [{lo:g}, {hi:g}], "
+                                 f"found {shown!r}")
 
 
 def system_to_dict(system: System) -> dict:
@@ -395,9 +462,10 @@ def burkard2022(working_distance: float = 2.5) -> System:
 PRESETS = {"burkard2022": burkard2022}
 
 
-class UnknownPresetError(FormatError, KeyError):
-    """An unknown preset name (a ``FormatError``, hence ``ValueError``; also a
-    ``KeyError`` as in version 0.1).  The message lists the presets."""
+class UnknownPresetError(FormatError, UnknownNameError):
+    """An unknown preset name (a ``FormatError``, hence ``ValueError``; also an
+    :class:`~mems_stereo.errors.UnknownNameError`, hence ``KeyError`` as in
+    version 0.1).  The message lists the presets."""
 
     def __str__(self) -> str:  # KeyError would print the message's repr
         return str(self.args[0]) if self.args else ""

@@ -32,7 +32,9 @@ from typing import Any
 
 import numpy as np
 
+from mems_stereo.errors import FormatError
 from mems_stereo.util.jsonfile import FieldChecker, read_json_file
+from mems_stereo.util.paths import require_input_file
 
 SCENE_FORMAT = "mems-stereo/scene"
 SCENE_VERSION = 1
@@ -327,16 +329,23 @@ def _object_from_dict(o: Any, i: int, ck: _Checker, base_dir: Path) -> SceneObje
         fname = ck.req(o, "file", pre)
         if not isinstance(fname, str) or not fname:
             raise ck.fail(f"{pre}.file", f"expected a file name, found {json.dumps(fname)}")
-        path = Path(fname) if os.path.isabs(fname) else base_dir / fname
+        path = _confined_mesh_path(fname, base_dir, ck, f"{pre}.file")
         scale = ck.number(o.get("scale", 1.0), f"{pre}.scale", positive=True)
         trans = ck.vec(o.get("translation", [0, 0, 0]), f"{pre}.translation", 3)
         R = rotation_from_euler_deg(ck.vec(o.get("rotation_deg", [0, 0, 0]),
                                            f"{pre}.rotation_deg", 3))
-        if not path.is_file():
-            raise ck.fail(f"{pre}.file", f"expected a readable mesh file, found no file {path}")
+        try:
+            require_input_file(path)
+        except (FileNotFoundError, FormatError):
+            raise ck.fail(f"{pre}.file", f"expected a readable mesh file, found no regular "
+                                         f"file {fname}") from None
         import open3d as o3d
 
-        mesh = o3d.io.read_triangle_mesh(str(path))
+        try:
+            mesh = o3d.io.read_triangle_mesh(str(path))
+        except (RuntimeError, ValueError, OSError):
+            raise ck.fail(f"{pre}.file", f"expected a triangle mesh Open3D can read: {fname}") \
+                from None
         v0 = np.asarray(mesh.vertices, dtype=np.float64)
         t = np.asarray(mesh.triangles, dtype=np.int64)
         if t.shape[0] == 0:
@@ -345,6 +354,28 @@ def _object_from_dict(o: Any, i: int, ck: _Checker, base_dir: Path) -> SceneObje
         v = (scale * v0) @ R.T + trans
         p.update(file=str(path), scale=scale, translation=trans, rotation=R)
     return SceneObject(kind, name, refl, np.asarray(v, float), np.asarray(t, np.int64), p)
+
+
+def _confined_mesh_path(fname: str, base_dir: Path, ck, fld: str) -> Path:
+    """``fname`` resolved against the scene's folder and confined to it.
+
+    Absolute paths and paths that leave the folder (``../``, symbolic links
+    pointing out) are refused with :class:`~mems_stereo.errors.UnsafeFileError`
+    unless ``--allow-external`` (:func:`mems_stereo.util.limits.allow_external`);
+    the refusal does not tell whether such a file exists.
+    """
+    from mems_stereo.errors import UnsafeFileError
+    from mems_stereo.util.limits import allow_external
+
+    path = Path(fname) if os.path.isabs(fname) else Path(base_dir) / fname
+    if allow_external():
+        return path
+    root = os.path.realpath(base_dir)
+    real = os.path.realpath(path)
+    if os.path.isabs(fname) or os.path.commonpath([root, real]) != root:
+        raise UnsafeFileError("expected a mesh path inside the scene's folder, found "
+                              f"{fname!r} (--allow-external to read it)", ck.source, fld)
+    return path
 
 
 def scene_from_dict(d: Any, source: str = "<dict>", base_dir: str | os.PathLike = ".") -> Scene:

@@ -11,9 +11,57 @@ from __future__ import annotations
 
 import contextlib
 import os
+import signal
 import tempfile
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+
+#: signals held back while a temporary file is renamed or removed
+_HELD = tuple(getattr(signal, n) for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n))
+
+
+_defer = {"depth": 0, "pending": None}
+
+
+def deferring() -> bool:
+    """True inside :func:`signals_blocked`: a signal handler should only record the
+    signal (:func:`defer_signal`) and let the block finish."""
+    return _defer["depth"] > 0
+
+
+def defer_signal(signum: int) -> None:
+    """Record a signal that arrived inside :func:`signals_blocked`; it is raised again
+    (``signal.raise_signal``) when the outermost block ends."""
+    if _defer["pending"] is None:
+        _defer["pending"] = signum
+
+
+@contextlib.contextmanager
+def signals_blocked() -> Iterator[None]:
+    """Hold SIGINT/SIGTERM/SIGHUP back inside the block; they arrive when it ends.
+
+    Used around renames and clean-ups, so that an interrupt cannot leave a
+    half-committed set of outputs or a temporary file behind.  The signals are
+    blocked for the main thread (``pthread_sigmask``) and, because another
+    thread may still receive them, a handler that honours :func:`deferring`
+    records them instead of raising; they are re-raised at the end.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    _defer["depth"] += 1
+    try:
+        yield
+    finally:
+        _defer["depth"] -= 1
+        pending = _defer["pending"] if _defer["depth"] == 0 else None
+        if pending is not None:
+            _defer["pending"] = None
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        if pending is not None:
+            signal.raise_signal(pending)
 
 
 @contextlib.contextmanager
@@ -35,12 +83,13 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterato
     tmp_path = Path(tmp)
     try:
         yield tmp_path
-        um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
-        os.umask(um)
-        os.chmod(tmp_path, 0o666 & ~um)
-        os.replace(tmp_path, target)
+        with signals_blocked():
+            um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
+            os.umask(um)
+            os.chmod(tmp_path, 0o666 & ~um)
+            os.replace(tmp_path, target)
     except BaseException:
-        with contextlib.suppress(OSError):
+        with signals_blocked(), contextlib.suppress(OSError):
             tmp_path.unlink()
         raise
 
