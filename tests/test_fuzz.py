@@ -547,7 +547,7 @@ def test_bit_flips_refused_or_processed(seed, tmp_path):
     _flip_case(tmp_path, seed)
 
 
-@pytest.mark.slow
+@pytest.mark.stress
 def test_bit_flips_many(tmp_path):
     codes = []
     for seed in range(4, 64):

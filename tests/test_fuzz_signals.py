@@ -93,7 +93,7 @@ def test_signal_leaves_nothing(sig, tmp_path):
     assert _interrupt(tmp_path, sig, after=0.3 + random.Random(int(sig)).random())
 
 
-@pytest.mark.slow
+@pytest.mark.stress
 def test_signals_at_20_random_moments(tmp_path):
     p = _start(tmp_path)
     _wait_for_handlers(p)
