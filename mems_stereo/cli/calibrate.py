@@ -1,8 +1,19 @@
-"""``mems-stereo calibrate``: estimate the system from flat-target recordings."""
+"""``mems-stereo calibrate``: estimate the system from flat-wall recordings.
+
+Exit codes: 0 — calibrated, the system written to ``-o``; 1 — the estimate
+failed (the fit did not converge, or its result failed a plausibility check:
+wall poses, signal explained, flat-wall consistency, a contradicting measured
+distance); 2 — bad input (unreadable files or options, recordings without a
+usable wall return, parameters the data cannot determine).  On 1 and 2 no
+file is written at ``-o``; one line on stderr says why, and ``--report``
+(JSON) holds what the fit learnt.
+"""
 
 from __future__ import annotations
 
-import warnings
+import sys
+import time
+from pathlib import Path
 
 from mems_stereo.cli._common import Reporter
 from mems_stereo.model.system import save_system
@@ -36,10 +47,11 @@ def add_arguments(p):
                         "(format: samples/calib_distances.json, docs/calibration.md)")
     p.add_argument("--distance-std", type=float, default=None, metavar="M",
                    help="σ of a measured distance, m (default: the file's, else 0.001)")
-    p.add_argument("--confidence", type=float, default=0.997,
-                   help="confidence of the classifier's consistency test (default 0.997)")
     p.add_argument("--allow-unobservable", action="store_true",
                    help="warn instead of failing when a parameter is not observable")
+    p.add_argument("--report", default=None, metavar="PATH",
+                   help="write a JSON diagnostic report (estimates, σ, covariance, per-wall "
+                        "values, checks; also for a failed calibration)")
 
 
 def run(args) -> int:
@@ -71,16 +83,27 @@ def run(args) -> int:
         rep.info(f"measured target distances ({'optical axis' if kind == 'axis' else kind}):"
                  f" {known}")
     free = list(DEFAULT_FREE) + [n for n in args.free if n not in DEFAULT_FREE]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
-                               target_distances=dists, distance_std=stds, distance_kind=kind,
-                               confidence=args.confidence,
-                               on_unobservable="warn" if args.allow_unobservable else "raise",
-                               progress=rep.detail)
-    for w in caught:
-        rep.info(f"warning: {w.message}")
+    t0 = time.perf_counter()
+    res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
+                           target_distances=dists, distance_std=stds, distance_kind=kind,
+                           on_unobservable="warn" if args.allow_unobservable else "raise",
+                           progress=rep.detail)
+    elapsed = time.perf_counter() - t0
+    for w in res.warnings:
+        rep.info(f"warning: {w}")
+    if args.report:
+        import json
+
+        from mems_stereo.util.atomic import atomic_output
+
+        with atomic_output(args.report) as tmp:
+            Path(tmp).write_text(json.dumps(res.to_dict(), indent=1))
+        rep.info(f"wrote report {args.report}")
+    if not res:
+        print(f"mems-stereo calibrate: error: calibration failed: {res.reason}",
+              file=sys.stderr)
+        return 2 if res.kind == "input" else 1
     out = save_system(res.system, args.output)
     rep.info(res.report)
-    rep.info(f"wrote {out}")
-    return 0 if res.converged else 1
+    rep.info(f"calibrated in {elapsed:.1f} s; wrote {out}")
+    return 0
