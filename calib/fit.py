@@ -207,6 +207,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             x = _build_cells(prob, x, radius=3 if rnd == 0 else 2)
             state.converged = False
             x, ll, g, H = _newton(prob, x, state)
+            if not state.converged:  # no point re-centring a fit that went nowhere
+                break
             if progress:
                 v, _ = lay.unpack(x)
                 progress(f"round {rnd + 1}: log-likelihood {ll:.1f}, "

@@ -179,7 +179,8 @@ def format_report(r: CalibrationResult) -> str:
     if r.fixed:
         lines.append("  fixed: " + ", ".join(r.fixed))
     if r.unobservable:
-        lines.append("  not observable from these data (held): " + ", ".join(r.unobservable))
+        lines.append("  not observable from these data: " + ", ".join(r.unobservable)
+                     + " (held at the nominal value)")
     for a, b, c in r.tradeoffs:
         lines.append(f"  {a} and {b} trade off: correlation {c:+.4f}")
     for w in r.warnings:
