@@ -26,7 +26,13 @@ from mems_stereo.calib import observability as obs
 from mems_stereo.calib.association import cells_near_track
 from mems_stereo.calib.initialisation import initialise
 from mems_stereo.calib.model import DEFAULT_FREE, SYSTEM_PARAMS, plane_normal
-from mems_stereo.calib.problem import Layout, Problem, cell_terms, distance_model
+from mems_stereo.calib.problem import (
+    Layout,
+    Problem,
+    cell_terms,
+    distance_model,
+    shot_model,
+)
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult, format_report
 
 from mems_stereo.errors import NotObservableError
@@ -40,6 +46,9 @@ MIN_SIGNAL_SHARE = 0.5
 #: a measured distance farther than this many σ from the data is named
 DISTANCE_PULL = 5.0
 N_ROUNDS = 2
+#: the fitted track must pass within this many pixels of this share of the track points
+TRACK_GATE = 2.0
+MIN_ON_TRACK = 0.6
 MAX_ITER = 100
 
 
@@ -185,8 +194,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
     # 1. start values
     if initial is None:
         try:
-            values, wall_p, used, skipped = initialise(walls, system, names, sigma, priors,
-                                                       progress)
+            values, wall_p, used, skipped, tracks = initialise(walls, system, names, sigma,
+                                                               priors, progress)
         except NotObservableError as e:
             return fail(str(e), "input")
         for msg in skipped:
@@ -195,6 +204,7 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         walls = [walls[j] for j in used]
     else:
         values, wall_p = dict(initial[0]), np.array(initial[1], dtype=np.float64)
+        tracks = None
     lay = Layout(names, len(walls), two_d)
     sys0 = system.with_params(**{n: values[n] for n in names})
     prob = Problem(walls, sys0, lay, sigma, priors)
@@ -297,6 +307,17 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
              "signal_excess": excess, "signal_share": share_expl, "cells": int(c.t.size),
              "fired": n_fired, "background_expected": exp_bg}
         targets.append(t)
+        if tracks is not None:  # the fitted beam must follow the returns the search found
+            tr = tracks[j]
+            u_fit = shot_model(system.with_params(**values), values, wall, tr.phase)[0][:, 1]
+            on_track = float(np.mean(np.abs(u_fit - tr.u) < TRACK_GATE))
+            t["on_track"] = on_track
+            checks[f"wall {j} track points followed"] = (on_track, MIN_ON_TRACK,
+                                                         on_track >= MIN_ON_TRACK)
+            if on_track < MIN_ON_TRACK:
+                bad.append(f"wall {j} ({w.source}): the fitted beam follows only "
+                           f"{on_track:.0%} of the returns found on the sensor (need "
+                           f"{MIN_ON_TRACK:.0%}): the fit converged to a wrong geometry")
         checks[f"wall {j} tilt"] = (tilt, MAX_TILT, tilt <= MAX_TILT)
         checks[f"wall {j} signal explained"] = (share_expl, MIN_SIGNAL_SHARE,
                                                 share_expl >= MIN_SIGNAL_SHARE)

@@ -220,7 +220,7 @@ def _fit_line(P):
 
 def initialise(walls, system: System, names, sigma: float, priors=(), progress=None):
     """Start values: (values dict of ``names``, walls (T_used, 5): α, β, D, log μ, log s,
-    used wall indices, messages on the walls left out).
+    used wall indices, messages on the walls left out, the used walls' :class:`Track`).
 
     A wall whose recording shows no return, or too few track points, is left
     out (its message says why).  Raises :class:`NotObservableError` when no
@@ -327,4 +327,4 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
         out_walls[j] = [pl[j, 0], 0.0, pl[j, 1], math.log(max(tr.mu, 1e-3)), math.log(0.4)]
     values = {n: system.get_param(n) for n in names}
     values.update({n: v[n] for n in free})
-    return values, out_walls, used, skipped
+    return values, out_walls, used, skipped, tracks
