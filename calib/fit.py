@@ -24,7 +24,7 @@ import time
 import numpy as np
 from mems_stereo.calib import observability as obs
 from mems_stereo.calib.association import cells_near_track
-from mems_stereo.calib.initialisation import initialise
+from mems_stereo.calib.initialisation import find_wall, initialise
 from mems_stereo.calib.model import DEFAULT_FREE, SYSTEM_PARAMS, plane_normal
 from mems_stereo.calib.problem import (
     Layout,
@@ -41,6 +41,8 @@ from mems_stereo.physics.pulse import pulse_sigma
 
 #: wall plausibility: incidence of the beam on a wall beyond this is not a calibration target
 MAX_TILT = math.radians(60.0)
+#: a wall closer than this (m) along the optical axis is a degenerate fit
+MIN_DISTANCE = 0.2
 #: share of the sensor's analysed cells the fitted signal must explain: at least
 MIN_SIGNAL_SHARE = 0.5
 #: a measured distance farther than this many σ from the data is named
@@ -145,6 +147,25 @@ def _leave_one_out(prob: Problem, x, lay: Layout):
     return out
 
 
+def _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state, progress):
+    """Likelihood fit rounds from start values: (problem, x, information)."""
+    lay = Layout(names, len(walls), two_d)
+    prob = Problem(walls, system, lay, sigma, priors)
+    x = lay.pack({n: values[n] for n in names}, wall_p)
+    H = None
+    for rnd in range(N_ROUNDS):
+        x = _build_cells(prob, x, radius=3 if rnd == 0 else 2)
+        state.converged = False
+        x, ll, g, H = _newton(prob, x, state)
+        if progress:
+            v, _ = lay.unpack(x)
+            progress(f"round {rnd + 1}: log-likelihood {ll:.1f}, "
+                     + ", ".join(f"{n} {obs.fmt(n, v[n])}" for n in names))
+        if not state.converged:  # no point re-centring a fit that went nowhere
+            break
+    return prob, x, H
+
+
 def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: float = 50e-12,
               max_std: dict | None = None, on_unobservable: str = "raise",
               initial=None, progress=None, sources=None):
@@ -192,6 +213,9 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
                                   time.perf_counter() - t_start)
 
     # 1. start values
+    walls_in, priors_in = walls, list(priors)
+    used = list(range(len(walls)))
+    tracks = None
     if initial is None:
         try:
             values, wall_p, used, skipped, tracks = initialise(walls, system, names, sigma,
@@ -202,29 +226,53 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             warns.append(f"left out: {msg}")
         priors = [(used.index(j), kind, d, sd) for j, kind, d, sd in priors if j in used]
         walls = [walls[j] for j in used]
+        tracks = list(tracks)
     else:
         values, wall_p = dict(initial[0]), np.array(initial[1], dtype=np.float64)
         tracks = None
-    lay = Layout(names, len(walls), two_d)
-    sys0 = system.with_params(**{n: values[n] for n in names})
-    prob = Problem(walls, sys0, lay, sigma, priors)
-    x = lay.pack({n: values[n] for n in names}, wall_p)
-
-    # 2. likelihood fit
+    all_walls, all_priors = walls_in, list(priors_in)
     state = FitState()
     try:
-        for rnd in range(N_ROUNDS):
-            x = _build_cells(prob, x, radius=3 if rnd == 0 else 2)
-            state.converged = False
-            x, ll, g, H = _newton(prob, x, state)
-            if not state.converged:  # no point re-centring a fit that went nowhere
-                break
-            if progress:
-                v, _ = lay.unpack(x)
-                progress(f"round {rnd + 1}: log-likelihood {ll:.1f}, "
-                         + ", ".join(f"{n} {obs.fmt(n, v[n])}" for n in names))
+        prob, x, H = _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state,
+                            progress)
+        left = [j for j in range(len(all_walls)) if j not in used]
+        if state.converged and left:  # walls the track search missed: search them
+            values, wall_p = prob.layout.unpack(x)
+            found, new_p = [], {}
+            for j in left:
+                f = find_wall(all_walls[j], system.with_params(**values), values, sigma)
+                if f is not None:
+                    found.append(j)
+                    new_p[j] = np.array([[f[0], 0.0, f[1], math.log(f[2]), math.log(0.3)]])
+            state2, sol2 = FitState(), None
+            while found and not state2.converged:
+                used2 = used + found
+                walls2 = [all_walls[j] for j in used2]
+                priors2 = [(used2.index(j), kind, d, sd) for j, kind, d, sd in all_priors
+                           if j in used2]
+                wp2 = np.vstack([wall_p[:len(used)]] + [new_p[j] for j in found])
+                if progress:
+                    progress(f"found {len(found)} more wall(s) with the fitted system")
+                state2 = FitState()
+                try:
+                    sol2 = _solve(walls2, system, names, two_d, sigma, priors2, values,
+                                  wp2, state2, progress)
+                except NotObservableError as e:  # a found wall lost: without it
+                    state2.converged = False
+                    lost = [j for j in found if all_walls[j].source in str(e)]
+                    found = [j for j in found if j not in lost] if lost else []
+                    continue
+                if not state2.converged:
+                    break
+            if found and state2.converged:
+                tracks.extend([None] * len(found))
+                prob, x, H = sol2
+                used, walls, priors, state = used2, walls2, priors2, state2
+                warns[:] = [m for m in warns
+                            if not any(all_walls[j].source in m for j in found)]
     except NotObservableError as e:
         return fail(str(e))
+    lay = prob.layout
     values, wall_p = lay.unpack(x)
     partial = {"values": values, "walls": wall_p.tolist(), "iterations": state.iterations}
     if not state.converged:
@@ -251,6 +299,7 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
     targets = []
     rms_u, rms_t, wsum, n_sig = 0.0, 0.0, 0.0, 0.0
     bad = []
+    bad_walls = set()
     for j, w in enumerate(walls):
         ws = lay.wall_slice(j)
         wall = wall_p[j]
@@ -307,7 +356,7 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
              "signal_excess": excess, "signal_share": share_expl, "cells": int(c.t.size),
              "fired": n_fired, "background_expected": exp_bg}
         targets.append(t)
-        if tracks is not None:  # the fitted beam must follow the returns the search found
+        if tracks is not None and tracks[j] is not None:  # beam must follow the track
             tr = tracks[j]
             u_fit = shot_model(system.with_params(**values), values, wall, tr.phase)[0][:, 1]
             on_track = float(np.mean(np.abs(u_fit - tr.u) < TRACK_GATE))
@@ -315,25 +364,41 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             checks[f"wall {j} track points followed"] = (on_track, MIN_ON_TRACK,
                                                          on_track >= MIN_ON_TRACK)
             if on_track < MIN_ON_TRACK:
+                bad_walls.add(j)
                 bad.append(f"wall {j} ({w.source}): the fitted beam follows only "
                            f"{on_track:.0%} of the returns found on the sensor (need "
                            f"{MIN_ON_TRACK:.0%}): the fit converged to a wrong geometry")
+        checks[f"wall {j} distance"] = (z_axis, MIN_DISTANCE, z_axis >= MIN_DISTANCE)
+        if z_axis < MIN_DISTANCE:
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}) fitted at {z_axis:.3f} m (closer than "
+                       f"{MIN_DISTANCE} m): a degenerate geometry")
         checks[f"wall {j} tilt"] = (tilt, MAX_TILT, tilt <= MAX_TILT)
         checks[f"wall {j} signal explained"] = (share_expl, MIN_SIGNAL_SHARE,
                                                 share_expl >= MIN_SIGNAL_SHARE)
         checks[f"wall {j} flat-wall consistency p"] = (
             p_cons, obs.P_INCONSISTENT, not (p_cons < obs.P_INCONSISTENT and big_shift))
         if tilt > MAX_TILT:
+            bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}) fitted at {math.degrees(tilt):.0f}° to the "
                        f"optical axis (limit {math.degrees(MAX_TILT):.0f}°)")
         elif share_expl < MIN_SIGNAL_SHARE:
+            bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}): the fit explains {share_expl:.0%} of the "
                        f"returns above the background (need {MIN_SIGNAL_SHARE:.0%})")
         elif p_cons < obs.P_INCONSISTENT and big_shift:
+            bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}) is not a flat wall seen by this model: returns "
                        f"shifted by up to {np.max(np.abs(dt_q)) * 1e9:.2f} ns / "
                        f"{np.max(np.abs(du_q)):.2f} px across the sensor "
                        f"({obs.sigma_of_p(p_cons):.0f}σ)")
+    b_fit = np.array([values.get(n, system.get_param(n))
+                      for n in ("baseline_x", "baseline_y", "baseline_z")])
+    ratio = float(np.linalg.norm(b_fit) / max(np.linalg.norm(system.baseline), 1e-9))
+    checks["baseline length / nominal"] = (ratio, (0.5, 2.0), 0.5 <= ratio <= 2.0)
+    if not 0.5 <= ratio <= 2.0:
+        bad.append(f"fitted baseline {np.linalg.norm(b_fit) * 1e3:.1f} mm, nominal "
+                   f"{np.linalg.norm(system.baseline) * 1e3:.1f} mm: a degenerate geometry")
     # measured distances against the data: each against a fit without it
     quick = []
     for j, kind, d, sd in priors:  # linear pull first: the refits only when needed
@@ -362,6 +427,17 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             warns.append(w_text)
             bad.insert(0, w_text)
     details = dict(partial, std=std, checks=checks, targets=targets)
+    guided = [j for j in bad_walls if tracks is not None and tracks[j] is None]
+    if bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls:
+        # only walls found by the pose search with the fitted system fail: without them
+        keep = [j for j in range(len(walls)) if j not in bad_walls]
+        pri = [(keep.index(j), kind, d, sd) for j, kind, d, sd in priors if j in keep]
+        again = fit_walls([walls[j] for j in keep], system, free=free, fix=fix, priors=pri,
+                          jitter=jitter, max_std=max_std, on_unobservable=on_unobservable,
+                          initial=(values, wall_p[keep]), progress=progress)
+        again.warnings[:0] = warns + [f"left out: {walls[j].source}: found with the fitted "
+                                      f"system but not consistent with it" for j in guided]
+        return again
     if bad:
         return fail("implausible result: " + "; ".join(bad), **details)
 

@@ -328,3 +328,60 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     values = {n: system.get_param(n) for n in names}
     values.update({n: v[n] for n in free})
     return values, out_walls, used, skipped, tracks
+
+
+Z_GUIDED = 7.0  # significance of a wall found with a known system (best of ~10,000 poses)
+
+
+def find_wall(w: WallData, system: System, values: dict, sigma: float,
+              max_shots: int = 3000):
+    """A wall's plane given the system: a grid search over its pose.
+
+    For a wall the track search could not follow, with the system already
+    estimated from the other walls: over tilts α (±40°, 2° steps) and inverse
+    distances (0.4–15 m, steps of 0.01/m ~ 0.25 px of parallax), count the
+    shots whose predicted pixel fired within ±2σ of the predicted return time,
+    against the background its measured rate predicts.  Uses the whole
+    recording coherently, so it finds walls far weaker than one phase bin can
+    show.  Returns (α, D, μ, z) or None when the best pose is not significant
+    (z ≤ ``Z_GUIDED``).
+    """
+    K, H, W = w.bins.shape
+    idx = np.linspace(0, K - 1, min(K, max_shots)).astype(np.int64)
+    ph = w.phase[idx]
+    q = np.arange(1.0 / 15.0, 1.0 / 0.4, 0.01)
+    dists = 1.0 / q
+    alphas = np.radians(np.arange(-40.0, 40.1, 2.0))
+    lam = w.background.sum(axis=0)
+    off = values.get("tdc_offset", system.tdc.offset)
+    c_light = system.speed_of_light
+    best = (-np.inf, None)
+    n_d = dists.size
+    ph_rep = np.tile(ph, n_d)
+    d_rep = np.repeat(dists, ph.size)
+    k_rep = np.tile(idx, n_d)
+    for a in alphas:
+        h = beam_hits(system, values, ph_rep, plane_normal(a), d_rep)
+        u = np.rint(h.pixel[:, 0])
+        ok = h.ok & (u >= 0) & (u < W)
+        ui = np.where(ok, u, 0).astype(np.int64)
+        tau = h.path / c_light + off
+        code = w.bins[k_rep, 0, ui]
+        t = (code.astype(np.float64) - 0.5) * w.bin_width
+        hit = ok & (code > 0) & (np.abs(t - tau) < 2.0 * sigma)
+        lo = np.maximum(tau - 2.0 * sigma, 0.0)
+        lu = lam[ui]
+        pb = np.where(ok, np.exp(-lu * lo) * -np.expm1(-lu * (tau + 2.0 * sigma - lo)), 0.0)
+        hs = hit.reshape(n_d, -1).sum(axis=1)
+        es = pb.reshape(n_d, -1).sum(axis=1)
+        vs = (pb * (1 - pb)).reshape(n_d, -1).sum(axis=1)
+        z = (hs - es) / np.sqrt(vs + 1.0)
+        i = int(np.argmax(z))
+        if z[i] > best[0]:
+            n_on = max(int(ok.reshape(n_d, -1)[i].sum()), 1)
+            best = (float(z[i]), (float(a), float(dists[i]), float((hs[i] - es[i]) / n_on)))
+    if best[1] is None or not best[0] > Z_GUIDED:
+        return None
+    a, d, frac = best[1]
+    mu = -math.log(max(1.0 - min(max(frac, 1e-3) / 0.8, 0.95), 1e-3))
+    return a, d, mu, best[0]
