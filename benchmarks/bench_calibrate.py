@@ -61,6 +61,41 @@ def _calibrate(recs, **kw):
     return res, time.perf_counter() - t0
 
 
+def speed_case() -> None:
+    """Issue 12's speed target: ``mems-stereo calibrate`` of four walls × 12,800 shots
+    at 1 MHz background (simulated, written as HDF5), on one core."""
+    import math
+    import tempfile
+
+    from mems_stereo.calib.family import Case, Wall, simulate_case
+
+    from mems_stereo.cli import main as cli
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.sim import write_simulation
+
+    nom = burkard2022()
+    spec = [(1.0, 8, 0.5), (1.8, -10, 0.5), (2.8, 6, 0.5), (4.2, -5, 0.5)]
+    case = Case([Wall(d, math.radians(y), 0.0, 0.5, f, 12800, 1e6) for d, y, f in spec],
+                {"theta0": 4e-3, "baseline_x": 5e-3, "tdc_offset": 1e-9}, 77,
+                [d for d, _, _ in spec])
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = []
+        for i, r in enumerate(simulate_case(case, nom)):
+            paths.append(str(write_simulation(Path(tmp) / f"wall{i}.h5", r)))
+        for extra in ([], ["--target-distance", *map(str, case.measured)]):
+            t0, c0 = time.perf_counter(), time.process_time()
+            import contextlib
+            import io
+
+            with contextlib.redirect_stdout(io.StringIO()):
+                rc = cli(["calibrate", *paths, "-o", str(Path(tmp) / "cal.json"), *extra])
+            print(f"mems-stereo calibrate, 4 walls x 12,800 shots at 1 MHz"
+                  f"{' with distances' if extra else ''}: exit {rc}, "
+                  f"{time.perf_counter() - t0:.1f} s wall, "
+                  f"{time.process_time() - c0:.1f} s CPU (OMP_NUM_THREADS="
+                  f"{__import__('os').environ.get('OMP_NUM_THREADS', 'unset')})")
+
+
 def main() -> int:
     paths = sorted(SAMPLES.glob("calib_*m.h5"), key=lambda p: float(p.stem[6:-1]))
     if not paths:
@@ -74,8 +109,8 @@ def main() -> int:
     known, dt_known = _calibrate(recs, target_distances=dists, distance_std=stds,
                                  distance_kind=kind)
     print(f"calibrate_system on {len(paths)} recordings ({n_shots} shots): "
-          f"{dt_free:.1f} s without distances, {dt_known:.1f} s with "
-          f"({free.extra['rounds']} / {known.extra['rounds']} classify/fit rounds)")
+          f"{dt_free:.1f} s without distances, {dt_known:.1f} s with")
+    speed_case()
     print()
     print("with the measured distances (" + ", ".join(f"{d:.3f}" for d in dists)
           + f" m along the optical axis, σ {stds[0] * 1e3:.1f} mm):")

@@ -1,22 +1,27 @@
-"""Calibration of the scanner–receiver pair from flat-target recordings.
+"""Calibration of the scanner–receiver pair from flat-wall recordings.
 
-* :func:`calibrate_system` — classify → fit → reclassify → refit (the user's call);
-* :func:`read_target_distances` — measured target distances from a JSON file;
-* :func:`fit_detections` — the robust joint fit on signal detections;
-* :class:`CalibrationResult` — estimates, σ, covariance, RMS, observability;
-* :mod:`mems_stereo.calib.model` — forward model (beam → plane → pixel, path length);
-* :mod:`mems_stereo.physics.first_photon_timing` — first-photon bias of a wide pulse
-  behind a late TDC;
-* :mod:`mems_stereo.calib.intrinsics` — receiver intrinsics from ChArUco images (2-D arrays);
-* :mod:`mems_stereo.calib.synth` — synthetic detections for tests.
+* :func:`calibrate_system` — recordings → :class:`CalibrationResult`, or a
+  :class:`CalibrationFailure` (falsy, no system) saying why;
+* :func:`calibrate_scanner_camera` — the same in calib3d's shape
+  ``(rms, system, std, per_target)``;
+* :func:`read_target_distances` — measured wall distances from a JSON file;
+* modules in data-flow order: :mod:`.association` (recordings → cells, background),
+  :mod:`.initialisation` (global start values), :mod:`.problem` (parameters and
+  the first-photon likelihood), :mod:`.fit` (the solver and checks),
+  :mod:`.observability` (covariance, verdict, consistency), :mod:`.result`;
+  :mod:`.model` (beam → plane → pixel), :mod:`.family` (the family of
+  recordings the calibration is proven on), :mod:`.intrinsics` (ChArUco).
 
 See ``docs/calibration.md``.
 """
 
-from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
-from mems_stereo.calib.detections import TargetDetections, detections_from_labels
-from mems_stereo.calib.fit import CalibrationResult, ObservabilityWarning, fit_detections
+from mems_stereo.calib.calibrate import (
+    calibrate_scanner_camera,
+    calibrate_system,
+    read_target_distances,
+)
+from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
-__all__ = ["CalibrationResult", "ObservabilityWarning", "TargetDetections",
-           "calibrate_system", "detections_from_labels", "fit_detections",
-           "read_target_distances"]
+__all__ = ["CalibrationFailure", "CalibrationResult", "calibrate_scanner_camera",
+           "calibrate_system", "fit_walls", "read_target_distances"]

@@ -1,28 +1,27 @@
-"""Calibrate a system from flat-target recordings: classify → fit → reclassify → refit.
+"""Calibrate a system from flat-wall recordings (the user's entry points).
 
-The classifier (:mod:`mems_stereo.pipeline.intervals`, the pipeline's) needs a system to
-tell signal from noise; a miscalibrated one rejects true returns at the edges
-of its bounds.  So the detections are classified with the nominal system,
-the fit (:func:`mems_stereo.calib.fit.fit_detections`) estimates a better one, and the
-recordings are classified again with it, until the estimates stop moving
-(change < 0.1 σ) or ``n_iter`` rounds are done.
+* :func:`calibrate_system` — recordings (paths or Recordings) + nominal system →
+  :class:`~mems_stereo.calib.result.CalibrationResult`, or a
+  :class:`~mems_stereo.calib.result.CalibrationFailure` that tests false and
+  has no system;
+* :func:`calibrate_scanner_camera` — the same in OpenCV calib3d's shape:
+  ``(rms, system, std, per_target)``, raising on failure;
+* :func:`read_target_distances` — measured wall distances from a JSON file.
 """
 
 from __future__ import annotations
 
 import math
 import os
-import warnings
+import time
 
-import numpy as np
-from mems_stereo.calib.detections import detections_from_labels
-from mems_stereo.calib.fit import CalibrationResult, fit_detections, format_report
+from mems_stereo.calib.association import wall_data
+from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
+from mems_stereo.errors import FormatError, MemsStereoError, NotObservableError
 from mems_stereo.io.recording import Recording, read_recording
-from mems_stereo.model.scanner import phase_from_zero_crossings, scan_angle_from_phase
 from mems_stereo.model.system import System, resolve_system
-from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.pass1 import classify_and_accumulate
 
 
 def _as_recording(r) -> Recording:
@@ -33,81 +32,98 @@ def _as_recording(r) -> Recording:
 
 def calibrate_system(recordings, system: System | str | os.PathLike | None = None, *,
                      fix=(), free=None, target_distances=None, distance_std=1e-3,
-                     distance_kind: str = "axis", confidence: float = 0.997, n_iter: int = 3,
-                     on_unobservable: str = "raise", progress=None,
-                     **fit_kwargs) -> CalibrationResult:
-    """Estimate the system from recordings of a flat target at several poses.
+                     distance_kind: str = "axis", on_unobservable: str = "raise",
+                     progress=None, **fit_kwargs) -> CalibrationResult | CalibrationFailure:
+    """Estimate the system from recordings of flat walls, one wall per recording.
 
     Parameters
     ----------
-    recordings : Recordings or paths of FORMAT v1 HDF5 files, one per target pose.
+    recordings : Recordings or paths of FORMAT v1 HDF5 files, one per wall pose.
     system : nominal System, preset name or JSON path (default: the first
-        recording's ``/system``).
-    fix, free : see :func:`mems_stereo.calib.fit.fit_detections` (names of
-        :data:`mems_stereo.calib.model.SYSTEM_PARAMS`).
-    target_distances : per recording, the measured distance (m) of its target
-        from the receiver's projection centre along the optical axis
-        (``distance_kind="axis"``, see :func:`read_target_distances`), or
-        None where unknown.
+        recording's ``/system``).  Only its fixed parts and the report's
+        "nominal" column come from it: the start values are searched globally.
+    fix, free : names of :data:`mems_stereo.calib.model.SYSTEM_PARAMS`.
+    target_distances : per recording, the measured distance (m) of its wall
+        (``distance_kind``: "axis" from the receiver's projection centre along
+        the optical axis, "normal" perpendicular), or None where unknown.
     distance_std : σ of a measured distance, m (scalar or one per recording).
-    distance_kind : "axis" or "normal" (:func:`mems_stereo.calib.fit.known_distance_model`).
-    confidence : of the classifier's consistency test.
-    n_iter : classify/fit rounds (at least 1).
-    on_unobservable : "raise" or "warn".
+    on_unobservable : "raise" (a failure naming the parameter) or "warn".
     progress : optional callable(str) for status lines.
-    fit_kwargs : passed to :func:`mems_stereo.calib.fit.fit_detections`.
+    fit_kwargs : passed to :func:`mems_stereo.calib.fit.fit_walls` (``jitter``,
+        ``max_std``).
 
     Returns
     -------
-    :class:`~mems_stereo.calib.fit.CalibrationResult`; ``result.system`` carries the
-    ``calibration`` block, ``result.extra["classification"]`` the signal
-    counts of each round.
+    CalibrationResult (truthy; ``result.system`` carries the ``calibration``
+    block) or CalibrationFailure (falsy; ``failure.reason`` says why, ``kind``
+    is "input" or "estimate").
+
+    Raises
+    ------
+    FormatError, ValueError : unreadable recordings or bad arguments.
     """
+    t0 = time.perf_counter()
     recs = [_as_recording(r) for r in recordings]
     if not recs:
         raise ValueError("recordings: expected at least one recording")
     nominal = recs[0].system if system is None else resolve_system(system)
-    phases = [phase_from_zero_crossings(r.shot_time, r.zero_crossings, r.rising) for r in recs]
-    current = nominal
-    result = None
-    history = []
-    for it in range(max(1, int(n_iter))):
-        targets = []
-        counts = []
-        # the compiled interval-table classifier of the pipeline (labels identical
-        # to mems_stereo.pipeline.consistency.classify_bins on angles snapped to 50 µrad)
-        table = interval_table(current, confidence)
-        for r, (ph, ok) in zip(recs, phases):
-            theta = scan_angle_from_phase(ph, current.scanner)
-            labels = classify_and_accumulate(r.bins, np.where(ok, theta, 0.0), ok, table,
-                                             current.tdc.n_bins)[0]
-            targets.append(detections_from_labels(ph, ok, r.bins, labels, source=r.source))
-            counts.append(targets[-1].n_detections)
-        history.append(counts)
-        if progress:
-            progress(f"round {it + 1}: signal detections per recording {counts}")
-        start = {n: current.get_param(n) for n in (result.names if result else [])}
-        with warnings.catch_warnings():
-            if it > 0:  # said once, in the first round
-                warnings.simplefilter("ignore")
-            new = fit_detections(targets, nominal, fix=fix, free=free,
-                                 known_distances=target_distances, distance_std=distance_std,
-                                 distance_kind=distance_kind,
-                                 on_unobservable=on_unobservable, initial_values=start,
-                                 **fit_kwargs)
-        # report against the nominal start, not this round's start
-        new.initial = {n: nominal.get_param(n) for n in new.names}
-        moved = (max(abs(new.values[n] - result.values[n]) / max(new.std[n], 1e-300)
-                     for n in new.names) if result is not None else np.inf)
-        result = new
-        current = new.system
-        if moved < 0.1:
-            break
-    result.system = result.system.replace(calibration=result.calibration_dict())
-    result.extra["classification"] = history
-    result.extra["rounds"] = len(history)
-    result.report = format_report(result)
-    return result
+    if distance_kind not in ("axis", "normal"):
+        raise ValueError(f"distance_kind: expected 'axis' or 'normal', found {distance_kind!r}")
+    priors = []
+    if target_distances is not None:
+        if len(target_distances) != len(recs):
+            raise ValueError(f"target_distances: expected {len(recs)} entries (one per "
+                             f"recording), found {len(target_distances)}")
+        stds = (list(distance_std) if isinstance(distance_std, (list, tuple))
+                else [distance_std] * len(recs))
+        for j, (d, sd) in enumerate(zip(target_distances, stds)):
+            if d is None or not math.isfinite(d):
+                continue
+            if not (sd is not None and sd > 0):
+                raise ValueError(f"distance_std: expected a positive σ (m), found {sd!r}")
+            priors.append((j, distance_kind, float(d), float(sd)))
+    walls = []
+    for r in recs:
+        if tuple(r.system.receiver.image_size) != tuple(nominal.receiver.image_size):
+            raise FormatError(f"expected image_size {nominal.receiver.image_size} like the "
+                              f"nominal system, found {r.system.receiver.image_size}", r.source)
+        walls.append(wall_data(r))
+    if progress:
+        progress(f"read {len(walls)} recording(s), "
+                 f"{sum(w.n_shots for w in walls)} shots with a known phase")
+    out = fit_walls(walls, nominal, free=free, fix=fix, priors=priors,
+                    on_unobservable=on_unobservable, progress=progress, **fit_kwargs)
+    out.elapsed = time.perf_counter() - t0
+    if out:
+        from mems_stereo.calib.result import format_report
+
+        out.report = format_report(out)
+    return out
+
+
+def calibrate_scanner_camera(recordings, system=None, *, target_distances=None,
+                             distance_std=1e-3, fix=(), free=None, **kwargs):
+    """Calibrate in OpenCV calib3d's shape (as ``cv2.stereoCalibrate`` returns RMS first).
+
+    Returns
+    -------
+    (rms, system, std, per_target): rms — dict {"pixel": px, "time": s};
+    system — the calibrated System; std — dict name → σ (SI);
+    per_target — list of dicts (source, distance along the optical axis and its σ,
+    tilt, signal photons per shot, consistency p-value, ...).
+
+    Raises
+    ------
+    NotObservableError : the recordings cannot determine the parameters (the
+        failure's reason); MemsStereoError : any other failed estimate.
+    """
+    out = calibrate_system(recordings, system, target_distances=target_distances,
+                           distance_std=distance_std, fix=fix, free=free, **kwargs)
+    if not out:
+        if out.kind == "input":
+            raise NotObservableError(out.reason)
+        raise MemsStereoError(out.reason)
+    return out.rms, out.system, dict(out.std), list(out.targets)
 
 
 DISTANCES_FORMAT = "mems-stereo/target-distances"

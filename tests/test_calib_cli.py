@@ -42,3 +42,33 @@ def test_distance_std_must_be_positive(tmp_path, capsys):
                "--distance-std", "0"])
     assert rc == 2
     assert "--distance-std" in capsys.readouterr().err
+
+
+SAMPLES = __import__("pathlib").Path(__file__).resolve().parents[1] / "samples"
+
+
+def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys):
+    """Issue 12: the room and floodlight recordings are no calibration walls: exit 1,
+    one line saying why, no system file; the report says why too."""
+    out, rep = tmp_path / "s.json", tmp_path / "r.json"
+    rc = main(["calibrate", str(SAMPLES / "room.h5"), str(SAMPLES / "floodlight.h5"),
+               "-o", str(out), "--report", str(rep)])
+    err = capsys.readouterr().err
+    assert rc in (1, 2)
+    assert "calibration failed" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    import json
+
+    doc = json.loads(rep.read_text())
+    assert doc["ok"] is False and doc["reason"] in err
+
+
+def test_contradicting_distance_named_no_file(tmp_path, capsys):
+    out = tmp_path / "s.json"
+    walls = [str(SAMPLES / f"calib_{d}m.h5") for d in ("1.5", "2.5", "4.0")]
+    rc = main(["calibrate", *walls, "-o", str(out), "--target-distance", "1.494", "2.307",
+               "3.992", "--distance-std", "0.002"])
+    cap = capsys.readouterr()
+    assert rc == 1 and not out.exists()
+    assert "measured distance of wall 1" in cap.err and "calib_2.5m.h5" in cap.err
+    assert "warning: the measured distance of wall 1" in cap.out

@@ -107,6 +107,8 @@ def run_command(args) -> int:
                         raise _signals.Interrupted(sig)
                     if rc == 0:
                         plan.commit()
+                    elif plan.spec.on_failure:  # diagnostics of a failed run are kept
+                        plan.commit(plan.spec.on_failure)
                 _signals.finished(rc)
                 return rc
         except BaseException as e:  # noqa: BLE001 - every outcome becomes one line

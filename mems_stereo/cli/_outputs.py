@@ -54,6 +54,8 @@ class Spec:
 
     inputs: dict = field(default_factory=dict)
     outputs: dict = field(default_factory=dict)
+    #: outputs committed even when the command fails (diagnostics such as a report)
+    on_failure: tuple = ()
 
 
 #: commands (``plot`` by figure) → their inputs and outputs
@@ -64,7 +66,10 @@ IO: dict[str, Spec] = {
     "process": Spec({"recordings": "files", "system": "file"},
                     {"output": "cloud-or-dir", "labels": "h5", "histograms": "h5"}),
     "calibrate": Spec({"target_distances_file": "file", "recordings": "files",
-                       "system": "system"}, {"output": "json"}),
+                       "system": "system"}, {"output": "json", "report": "report"},
+                      on_failure=("report",)),
+    "import": Spec({"input": "file", "map": "file", "system": "system"}, {"output": "file"}),
+    "samples": Spec({}, {"output": "dir"}),
     "export": Spec({"cloud": "file"}, {"output": "cloud"}),
     "view": Spec({"cloud": "file"}, {}),
     "render": Spec({"cloud": "file"}, {"output": "png"}),
@@ -274,10 +279,13 @@ class OutputPlan:
             m.mkdir()
             self.created.append(m)
 
-    def commit(self) -> list[Path]:
-        """Move every staged output onto its target (signals held back meanwhile)."""
+    def commit(self, names=None) -> list[Path]:
+        """Move every staged output (or those of the arguments ``names``) onto its
+        target (signals held back meanwhile)."""
         with signals_blocked():
             for _name, p, kind in self.outputs:
+                if names is not None and _name not in names:
+                    continue
                 s = self.staged.get(str(p))
                 if s is None:
                     continue
@@ -291,7 +299,8 @@ class OutputPlan:
                 elif s.exists():
                     os.replace(s, p)
                     self.committed.append(p)
-            self.state = "committed"
+            # a partial commit (a failed run's diagnostics): the rest is aborted on exit
+            self.state = "committed" if names is None else "partial"
             from mems_stereo.cli._signals import committed
 
             committed(self.committed)

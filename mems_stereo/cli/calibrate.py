@@ -1,8 +1,19 @@
-"""``mems-stereo calibrate``: estimate the system from flat-target recordings."""
+"""``mems-stereo calibrate``: estimate the system from flat-wall recordings.
+
+Exit codes: 0 — calibrated, the system written to ``-o``; 1 — the estimate
+failed (the fit did not converge, or its result failed a plausibility check:
+wall poses, signal explained, flat-wall consistency, a contradicting measured
+distance); 2 — bad input (unreadable files or options, recordings without a
+usable wall return, parameters the data cannot determine).  On 1 and 2 no
+file is written at ``-o``; one line on stderr says why, and ``--report``
+(JSON) holds what the fit learnt.
+"""
 
 from __future__ import annotations
 
-import warnings
+import sys
+import time
+from pathlib import Path
 
 from mems_stereo.cli._common import Reporter
 from mems_stereo.model.system import save_system
@@ -38,10 +49,24 @@ def add_arguments(p):
                         "(format: samples/calib_distances.json, docs/calibration.md)")
     p.add_argument("--distance-std", type=float, default=None, metavar="M",
                    help="σ of a measured distance, m (default: the file's, else 0.001)")
-    p.add_argument("--confidence", type=float, default=0.997,
-                   help="confidence of the classifier's consistency test (default 0.997)")
     p.add_argument("--allow-unobservable", action="store_true",
                    help="warn instead of failing when a parameter is not observable")
+    p.add_argument("--report", default=None, metavar="PATH",
+                   help="write a JSON diagnostic report (estimates, σ, covariance, per-wall "
+                        "values, checks; also for a failed calibration)")
+
+
+def _write_report(res, args, rep) -> None:
+    """``--report``: JSON (``res.to_dict()``) or, for ``.pdf``, the calibration report."""
+    if str(args.report).lower().endswith(".pdf"):
+        from mems_stereo.viz.calib_report import write_calibration_report
+
+        write_calibration_report(res, args.report, recordings=args.recordings)
+    else:
+        import json
+
+        Path(args.report).write_text(json.dumps(res.to_dict(), indent=1))
+    rep.info(f"wrote report {args.report}")
 
 
 def run(args) -> int:
@@ -81,17 +106,22 @@ def run(args) -> int:
     free = list(DEFAULT_FREE) + [n for n in args.free if n not in DEFAULT_FREE]
     from mems_stereo.cli._ux import StatusProgress
 
-    with warnings.catch_warnings(record=True) as caught, \
-            StatusProgress("calibrating", rep.quiet, rep.verbose) as status:
-        warnings.simplefilter("always")
+    t0 = time.perf_counter()
+    with StatusProgress("calibrating", rep.quiet, rep.verbose) as status:
         res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
                                target_distances=dists, distance_std=stds, distance_kind=kind,
-                               confidence=args.confidence,
                                on_unobservable="warn" if args.allow_unobservable else "raise",
                                progress=status)
-    for w in caught:
-        rep.info(f"warning: {w.message}")
+    elapsed = time.perf_counter() - t0
+    for w in res.warnings:
+        rep.info(f"warning: {w}")
+    if args.report:
+        _write_report(res, args, rep)
+    if not res:
+        print(f"mems-stereo calibrate: error: calibration failed: {res.reason}",
+              file=sys.stderr)
+        return 2 if res.kind == "input" else 1
     out = save_system(res.system, args.output)
     rep.info(res.report)
-    rep.info(f"wrote {out}")
-    return 0 if res.converged else 1
+    rep.info(f"calibrated in {elapsed:.1f} s; wrote {out}")
+    return 0

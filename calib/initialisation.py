@@ -1,0 +1,387 @@
+"""Robust start values that do not depend on the nominal system being close.
+
+1. Per wall, the beam's track on the sensor: shots binned by the monitor phase
+   (cos φ, each sweep direction apart), in each bin the (column, TDC time)
+   histogram of the detections against the background that each pixel's
+   measured rate predicts; the box of 3 columns × 2σ of the pulse with the
+   largest significant excess (Poisson z > ``Z_TRACK``) is a track point
+   (φ, column, median time).  Points off a smooth track are dropped
+   (:func:`find_track`).  A wall without a track is left out, with a message.
+2. A rough signal rate per wall (excess per shot) and the first-photon bias
+   of the track times it implies.
+3. Over all walls, a coarse grid of θ0 (±``THETA0_SPAN`` around the nominal
+   value, step ``THETA0_STEP``): each start triangulates the track points,
+   fits each wall's plane (robust line fit) and the TDC offset (median), then a
+   robust least-squares refinement of the system and the planes on the track
+   points; the start with the lowest cost wins.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from mems_stereo.calib.model import beam_hits, plane_normal
+from mems_stereo.calib.problem import WallData, distance_model
+from scipy.optimize import least_squares
+
+from mems_stereo.errors import NotObservableError
+from mems_stereo.model.system import System
+from mems_stereo.physics.first_photon_timing import first_photon_moments
+
+T_SEARCH = 200e-9  # s: returns are looked for before this TDC time (walls up to ~28 m)
+Z_TRACK = 5.5  # significance of a track point (one phase bin, best of ~15,000 boxes)
+THETA0_SPAN = 40e-3  # rad
+THETA0_STEP = 5e-3  # rad
+MIN_TRACK_POINTS = 4
+N_REFINE = 4  # starts refined by least squares (the lowest start costs)
+
+
+@dataclass
+class Track:
+    """Track points of one wall: phase (N,) rad, u (N,) px, t (N,) s, n (N,)
+    excess counts; window (t0, t1) s; mu: mean signal photons per shot (rough);
+    bias: first-photon bias of the median time, s."""
+
+    phase: np.ndarray
+    u: np.ndarray
+    t: np.ndarray
+    n: np.ndarray
+    window: tuple
+    mu: float
+    bias: float
+    z: float
+
+
+def _early(w: WallData, t_search: float):
+    k, r, c = np.nonzero((w.bins > 0) & (w.bins <= int(t_search / w.bin_width) + 1))
+    t = (w.bins[k, r, c].astype(np.float64) - 0.5) * w.bin_width
+    return k, r, c, t
+
+
+def _box(a, axis, width):
+    """Sum over a centred window of ``width`` cells along ``axis`` (zeros beyond)."""
+    c = np.cumsum(a, axis=axis)
+    pad = [(0, 0)] * a.ndim
+    pad[axis] = (1, 0)
+    c = np.pad(c, pad)
+    n = a.shape[axis]
+    hi = np.minimum(np.arange(n) + width // 2 + 1, n)
+    lo = np.maximum(np.arange(n) - width // 2, 0)
+    return np.take(c, hi, axis=axis) - np.take(c, lo, axis=axis)
+
+
+def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
+    """Track points with ``n_half`` phase bins per sweep (see :func:`find_track`)."""
+    K, H, W = w.bins.shape
+    dt = 2.5e-9
+    ntb = int(T_SEARCH / dt)
+    ph = w.phase
+    sweep = (np.sin(ph) >= 0).astype(np.int64)
+    b_shot = (np.minimum(((np.cos(ph) + 1.0) / 2.0 * n_half).astype(np.int64), n_half - 1)
+              + n_half * sweep)
+    nbin = 2 * n_half
+    n_shots_bin = np.bincount(b_shot, minlength=nbin).astype(np.float64)
+    tb = np.minimum((t / dt).astype(np.int64), ntb - 1)
+    bk = b_shot[k]
+    hist = np.bincount((bk * W + c) * ntb + tb, minlength=nbin * W * ntb).astype(
+        np.float64).reshape(nbin, W, ntb)
+    edges = np.arange(ntb + 1) * dt
+    lam_c = w.background.sum(axis=0)  # rows of a column together
+    pcell = np.exp(-lam_c[:, None] * edges[None, :-1]) * -np.expm1(-lam_c[:, None] * dt)
+    expc = n_shots_bin[:, None, None] * pcell[None, :, :]
+    nt = max(3, int(round(2.0 * sigma / dt)) | 1)
+    ho = _box(_box(hist, 1, 3), 2, nt)
+    he = _box(_box(expc, 1, 3), 2, nt)
+    z = (ho - he) / np.sqrt(he + 1.0)
+    flat = z.reshape(nbin, -1)
+    best = np.argmax(flat, axis=1)
+    zmax = flat[np.arange(nbin), best]
+    pc, pt = np.divmod(best, ntb)
+    P_phase, P_u, P_t, P_n, shots_used = [], [], [], [], 0.0
+    for b in np.flatnonzero(zmax > Z_TRACK):
+        cc, t_pk = pc[b], (pt[b] + 0.5) * dt
+        m = (bk == b) & (np.abs(c - cc) <= 1) & (np.abs(t - t_pk) < 2.0 * sigma)
+        if np.count_nonzero(m) < 3:
+            continue
+        lo, hi = max(0, cc - 1), min(W, cc + 2)
+        cols = np.arange(lo, hi)
+        ex = np.maximum(hist[b, lo:hi].sum(axis=1) - expc[b, lo:hi].sum(axis=1), 0.0)
+        if ex.sum() <= 0:
+            continue
+        P_u.append(float(np.sum(cols * ex) / ex.sum()))
+        P_t.append(float(np.median(t[m])))
+        P_phase.append(float(np.angle(np.mean(np.exp(1j * ph[k[m]])))))
+        P_n.append(float(ex.sum()))
+        shots_used += n_shots_bin[b]
+    return (np.array(P_phase), np.array(P_u), np.array(P_t), np.array(P_n),
+            shots_used, float(zmax.max()) if zmax.size else 0.0)
+
+
+def find_track(w: WallData, sigma: float) -> Track:
+    """Track points of one wall.
+
+    Shots are binned by the monitor phase (cos φ, each sweep direction apart;
+    64, 32, ... 4 bins per sweep, the binning that yields the most points
+    wins); in each bin the detections' (column, TDC time) histogram is
+    compared with the background that each pixel's measured rate predicts
+    (first-photon pile-up included), in boxes of 3 columns × 2σ of the pulse.
+    The box of largest excess, when significant (z > ``Z_TRACK``), gives a
+    track point: (mean phase, column centroid, median time of its detections).
+
+    Raises :class:`NotObservableError` when the recording shows no wall return.
+    """
+    k, r, c, t = _early(w, T_SEARCH)
+    lam_mean = float(np.mean(w.background))
+    best = None
+    for n_half in (64, 32, 16, 8, 4):
+        res = _track_at(w, k, c, t, sigma, n_half)
+        tr = _clean_track(Track(res[0], res[1], res[2], res[3], (0.0, T_SEARCH), 0.0, 0.0,
+                                res[5]))
+        if best is None or tr.u.size > best[0].u.size * 1.2:
+            best = (tr, res[4])
+    tr, shots_used = best
+    if tr.u.size == 0:
+        raise NotObservableError(
+            f"{w.source}: no wall return found (largest excess over the background "
+            f"{tr.z:.1f}σ in any phase bin, need {Z_TRACK:g}σ): record more shots or "
+            f"check the recording")
+    mu = max(float(tr.n.sum()) / max(shots_used, 1.0) / 0.8, 1e-3)
+    mu = -math.log(max(1.0 - min(mu, 0.95), 1e-3))
+    t_pk = float(np.median(tr.t))
+    _, mean, _ = first_photon_moments(np.array([-t_pk]), mu, sigma, lam_mean)
+    tr.mu = mu
+    tr.bias = float(mean[0]) if np.isfinite(mean[0]) else 0.0
+    return tr
+
+
+def _clean_track(tr: Track) -> Track:
+    """Drop track points off a smooth curve u(cos φ) of their sweep (robust quadratic)."""
+    if tr.u.size < 4:
+        return tr
+    keep = np.ones(tr.u.size, dtype=bool)
+    x = np.cos(tr.phase)
+    sw = np.sin(tr.phase) >= 0
+    for s in (True, False):
+        m = np.flatnonzero(sw == s)
+        if m.size < 5:
+            continue
+        k = np.ones(m.size, dtype=bool)
+        for _ in range(4):
+            A = np.column_stack([np.ones(m.size), x[m], x[m] ** 2])
+            coef, *_ = np.linalg.lstsq(A[k], tr.u[m][k], rcond=None)
+            res = tr.u[m] - A @ coef
+            mad = 1.4826 * np.median(np.abs(res[k])) + 0.3
+            k = np.abs(res) < max(3.0 * mad, 1.5)
+        keep[m] = k
+    return Track(tr.phase[keep], tr.u[keep], tr.t[keep], tr.n[keep], tr.window, tr.mu,
+                 tr.bias, tr.z)
+
+
+def _triangulate(system: System, values: dict, phase, u):
+    """Points (N, 3) where the beam of each shot meets the camera ray of column u (x–z)."""
+    hits0 = beam_hits(system, values, phase, np.array([0.0, 0.0, 1.0]), 1.0)
+    p = np.array([values.get("baseline_x", system.get_param("baseline_x")), 0.0,
+                  values.get("baseline_z", system.get_param("baseline_z"))])
+    d = hits0.point - p  # direction scaled
+    K = system.receiver.camera_matrix
+    fx = values.get("fx", K[0, 0])
+    cx = values.get("cx", K[0, 2])
+    rx = (np.asarray(u) - cx) / fx
+    # p + s d = ρ (rx, ·, 1) in x and z:  p_x + s d_x = ρ rx ; p_z + s d_z = ρ
+    den = d[:, 0] - rx * d[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (rx * p[2] - p[0]) / den
+    P = p + s[:, None] * d
+    return P
+
+
+def _fit_line(P):
+    """Plane (α, D) of points (N, 3) in x–z: z = a + b x by clipped least squares."""
+    ok = np.all(np.isfinite(P), axis=1) & (P[:, 2] > 0.05)
+    P = P[ok]
+    if P.shape[0] < 2:
+        return 0.0, 1.0
+    keep = np.ones(P.shape[0], dtype=bool)
+    coef = np.array([np.median(P[:, 2]), 0.0])
+    for _ in range(5):
+        A = np.column_stack([np.ones(P.shape[0]), P[:, 0]])
+        if keep.sum() >= 2:
+            coef, *_ = np.linalg.lstsq(A[keep], P[keep, 2], rcond=None)
+        res = P[:, 2] - A @ coef
+        mad = 1.4826 * np.median(np.abs(res[keep])) + 1e-3
+        keep = np.abs(res) < 3.0 * mad
+    n = np.array([-coef[1], 1.0])
+    n /= np.linalg.norm(n)
+    alpha = math.atan2(n[0], n[1])
+    return alpha, float(coef[0] * n[1])
+
+
+def initialise(walls, system: System, names, sigma: float, priors=(), progress=None):
+    """Start values: (values dict of ``names``, walls (T_used, 5): α, β, D, log μ, log s,
+    used wall indices, messages on the walls left out, the used walls' :class:`Track`).
+
+    A wall whose recording shows no return, or too few track points, is left
+    out (its message says why).  Raises :class:`NotObservableError` when no
+    wall is left.
+    """
+    tracks, used, skipped = [], [], []
+    for j, w in enumerate(walls):
+        try:
+            tr = find_track(w, sigma)
+        except NotObservableError as e:
+            skipped.append(str(e))
+            continue
+        if tr.u.size < MIN_TRACK_POINTS:
+            skipped.append(
+                f"{w.source}: the beam's track on the sensor could not be followed "
+                f"({tr.u.size} phase bins with a significant return, need "
+                f"{MIN_TRACK_POINTS}): record more shots, or use a brighter wall")
+            continue
+        tracks.append(tr)
+        used.append(j)
+    if not used:
+        raise NotObservableError("no recording shows a usable wall return: "
+                                 + "; ".join(skipped))
+    T = len(used)
+    priors = [(used.index(j), kind, d, sd) for j, kind, d, sd in priors if j in used]
+    # stacked track points
+    wj = np.concatenate([np.full(tr.u.size, j) for j, tr in enumerate(tracks)])
+    ph = np.concatenate([tr.phase for tr in tracks])
+    uu = np.concatenate([tr.u for tr in tracks])
+    tt = np.concatenate([tr.t - tr.bias for tr in tracks])
+    nn = np.concatenate([tr.n for tr in tracks])
+    s_t = np.maximum(sigma / np.sqrt(np.maximum(nn, 1.0)) * 1.5, 0.3e-9)
+    s_u = 0.5
+    free = [n for n in ("theta0", "theta_mech_max", "phase_offset", "tdc_offset",
+                        "baseline_x", "baseline_z", "fx", "cx") if n in names]
+    from mems_stereo.calib.model import PARAM_SCALE
+
+    sc = np.array([PARAM_SCALE[n] for n in free] + [1e-3, 1e-3] * T)
+    base = {n: system.get_param(n) for n in free}
+    c_light = system.speed_of_light
+
+    def unpack(z):
+        v = dict(base)
+        for i, n in enumerate(free):
+            v[n] = base[n] + z[i] * sc[i]
+        pl = (z[len(free):] * sc[len(free):]).reshape(T, 2)
+        return v, pl
+
+    def resid(z, pl0):
+        v, dpl = unpack(z)
+        pl = pl0 + dpl
+        h = beam_hits(system, v, ph, plane_normal(pl[wj, 0]), pl[wj, 1])
+        off = v.get("tdc_offset", system.tdc.offset)
+        out_u = np.nan_to_num((uu - h.pixel[:, 0]) / s_u, nan=50.0)
+        out_t = np.nan_to_num((tt - h.path / c_light - off) / s_t, nan=50.0)
+        pr = [(distance_model([pl[j, 0], 0.0, pl[j, 1]], kind) - d) / max(sd, 3e-3)
+              for j, kind, d, sd in priors]
+        return np.concatenate([out_u, out_t, np.asarray(pr, dtype=np.float64)])
+
+    def robust_cost(r):
+        return float(np.sum(2.0 * 9.0 * (np.sqrt(1.0 + (r / 3.0) ** 2) - 1.0)))
+
+    starts = []
+    th_nom = system.get_param("theta0")
+    grid = np.arange(-THETA0_SPAN, THETA0_SPAN + 1e-12, THETA0_STEP) if "theta0" in free \
+        else np.array([0.0])
+    for d_th in grid:
+        v = dict(base)
+        if "theta0" in free:
+            v["theta0"] = th_nom + d_th
+        P = _triangulate(system, v, ph, uu)
+        pl0 = np.zeros((T, 2))
+        for j in range(T):
+            pl0[j] = _fit_line(P[wj == j])
+        h = beam_hits(system, v, ph, plane_normal(pl0[wj, 0]), pl0[wj, 1])
+        if "tdc_offset" in free:
+            v["tdc_offset"] = float(np.nanmedian(tt - h.path / c_light))
+        for j, kind, d, _ in priors:  # start on the measured distance
+            pl0[j, 1] = d if kind == "normal" else d * math.cos(pl0[j, 0])
+        z0 = np.array([(v[n] - base[n]) / sc[i] for i, n in enumerate(free)]
+                      + [0.0] * (2 * T))
+        if not np.all(np.isfinite(z0)) or not np.all(np.isfinite(pl0)):
+            continue
+        starts.append((robust_cost(resid(z0, pl0)), d_th, z0, pl0))
+    starts.sort(key=lambda s_: s_[0])
+    best = None
+    for c0, d_th, z0, pl0 in starts[:N_REFINE]:
+        try:
+            sol = least_squares(resid, z0, args=(pl0,), loss="soft_l1", f_scale=3.0,
+                                max_nfev=100, x_scale=1.0)
+        except ValueError:
+            continue
+        if best is None or sol.cost < best[0]:
+            best = (sol.cost, sol.x, pl0)
+        if progress:
+            progress(f"  start θ0 {d_th * 1e3:+.0f} mrad: cost {c0:.1f} → {sol.cost:.1f}")
+    if best is None:
+        raise NotObservableError("no start value of θ0 gave a consistent geometry")
+    cost, z, pl0 = best
+    v, dpl = unpack(z)
+    pl = pl0 + dpl
+    out_walls = np.zeros((T, 5))
+    for j, tr in enumerate(tracks):
+        out_walls[j] = [pl[j, 0], 0.0, pl[j, 1], math.log(max(tr.mu, 1e-3)), math.log(0.4)]
+    values = {n: system.get_param(n) for n in names}
+    values.update({n: v[n] for n in free})
+    return values, out_walls, used, skipped, tracks
+
+
+Z_GUIDED = 7.0  # significance of a wall found with a known system (best of ~10,000 poses)
+
+
+def find_wall(w: WallData, system: System, values: dict, sigma: float,
+              max_shots: int = 3000):
+    """A wall's plane given the system: a grid search over its pose.
+
+    For a wall the track search could not follow, with the system already
+    estimated from the other walls: over tilts α (±40°, 2° steps) and inverse
+    distances (0.4–15 m, steps of 0.01/m ~ 0.25 px of parallax), count the
+    shots whose predicted pixel fired within ±2σ of the predicted return time,
+    against the background its measured rate predicts.  Uses the whole
+    recording coherently, so it finds walls far weaker than one phase bin can
+    show.  Returns (α, D, μ, z) or None when the best pose is not significant
+    (z ≤ ``Z_GUIDED``).
+    """
+    K, H, W = w.bins.shape
+    idx = np.linspace(0, K - 1, min(K, max_shots)).astype(np.int64)
+    ph = w.phase[idx]
+    q = np.arange(1.0 / 15.0, 1.0 / 0.4, 0.01)
+    dists = 1.0 / q
+    alphas = np.radians(np.arange(-40.0, 40.1, 2.0))
+    lam = w.background.sum(axis=0)
+    off = values.get("tdc_offset", system.tdc.offset)
+    c_light = system.speed_of_light
+    best = (-np.inf, None)
+    n_d = dists.size
+    ph_rep = np.tile(ph, n_d)
+    d_rep = np.repeat(dists, ph.size)
+    k_rep = np.tile(idx, n_d)
+    for a in alphas:
+        h = beam_hits(system, values, ph_rep, plane_normal(a), d_rep)
+        u = np.rint(h.pixel[:, 0])
+        ok = h.ok & (u >= 0) & (u < W)
+        ui = np.where(ok, u, 0).astype(np.int64)
+        tau = h.path / c_light + off
+        code = w.bins[k_rep, 0, ui]
+        t = (code.astype(np.float64) - 0.5) * w.bin_width
+        hit = ok & (code > 0) & (np.abs(t - tau) < 2.0 * sigma)
+        lo = np.maximum(tau - 2.0 * sigma, 0.0)
+        lu = lam[ui]
+        pb = np.where(ok, np.exp(-lu * lo) * -np.expm1(-lu * (tau + 2.0 * sigma - lo)), 0.0)
+        hs = hit.reshape(n_d, -1).sum(axis=1)
+        es = pb.reshape(n_d, -1).sum(axis=1)
+        vs = (pb * (1 - pb)).reshape(n_d, -1).sum(axis=1)
+        z = (hs - es) / np.sqrt(vs + 1.0)
+        i = int(np.argmax(z))
+        if z[i] > best[0]:
+            n_on = max(int(ok.reshape(n_d, -1)[i].sum()), 1)
+            best = (float(z[i]), (float(a), float(dists[i]), float((hs[i] - es[i]) / n_on)))
+    if best[1] is None or not best[0] > Z_GUIDED:
+        return None
+    a, d, frac = best[1]
+    mu = -math.log(max(1.0 - min(max(frac, 1e-3) / 0.8, 0.95), 1e-3))
+    return a, d, mu, best[0]

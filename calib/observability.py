@@ -1,0 +1,135 @@
+"""What the data determine: covariance from the information matrix, the
+observability verdict, and the consistency checks of a fitted calibration.
+
+* :func:`covariance` — pseudo-inverse of the information (scaled), with the
+  relative singular values (exact null directions show as ~0);
+* :func:`weak_parameters` — free system parameters whose σ exceeds the limit
+  (:data:`DEFAULT_MAX_STD`), with the parameters they trade off with;
+* :func:`consistency_scores` — Rao score tests of a flat wall: per wall and per
+  quarter of the sensor, a TDC-time shift and a column shift the model does not
+  have.  Under the model each statistic is χ² with 8 degrees of freedom; a
+  recording that is not a flat wall, or a fit that locked onto the wrong
+  geometry, fails it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from mems_stereo.calib.model import PARAM_UNIT
+from scipy.stats import chi2, norm
+
+#: a free parameter with a σ above this is "not observable" (SI units)
+#: (a σ this large means the data add nothing to a mechanical tolerance of that size)
+DEFAULT_MAX_STD = {"theta0": 10e-3, "theta_mech_max": 10e-3, "phase_offset": 20e-3,
+                   "tdc_offset": 1e-9, "baseline_x": 20e-3, "baseline_y": 20e-3,
+                   "baseline_z": 20e-3, "fx": 5.0, "cx": 2.0}
+CORRELATION_REPORT = 0.9
+#: consistency: a wall fails when its score statistic's one-sided p-value is
+#: below this AND the implied shift is larger than the sizes below
+P_INCONSISTENT = 1e-12
+SHIFT_TIME = 1e-9
+SHIFT_PIXEL = 0.3
+
+
+def covariance(H: np.ndarray, scales: np.ndarray):
+    """(cov SI (P, P), relative singular values (P,), Vt) from the information ``H`` (SI)."""
+    Hs = H * scales[:, None] * scales[None, :]
+    d = np.sqrt(np.maximum(np.diag(Hs), 1e-200))
+    Hn = Hs / d[:, None] / d[None, :]
+    U, s, Vt = np.linalg.svd(Hn)
+    tol = max(s[0] * 1e-12, 1e-300)
+    inv = (Vt.T * (1.0 / np.maximum(s, tol)) * (s > tol)) @ U.T
+    cov_s = inv / d[:, None] / d[None, :]
+    # directions the data cannot see get an infinite σ
+    null = s <= tol
+    if null.any():
+        bad = np.any(np.abs(Vt[null]) > 0.3, axis=0)
+        cov_s[bad, :] = np.where(np.eye(len(s), dtype=bool)[bad, :], np.inf, 0.0)
+        cov_s[:, bad] = np.where(np.eye(len(s), dtype=bool)[:, bad], np.inf, 0.0)
+    return cov_s * scales[:, None] * scales[None, :], s / s[0], Vt
+
+
+def fmt(name: str, v: float) -> str:
+    f, unit = PARAM_UNIT[name.split("[")[0]]
+    return f"{v * f:.3g} {unit}"
+
+
+def tradeoffs(cov: np.ndarray, labels: list, n_sys: int):
+    sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / sd[:, None] / sd[None, :]
+    out = []
+    for i in range(n_sys):
+        for k in range(i + 1, len(labels)):
+            if abs(corr[i, k]) > CORRELATION_REPORT:
+                out.append((labels[i], labels[k], float(corr[i, k])))
+    return corr, out
+
+
+def weak_parameters(std: dict, limits: dict, trade: list) -> tuple[list, str]:
+    """(names, message) of free system parameters with σ above their limit."""
+    weak = [n for n, s in std.items() if not s <= limits.get(n, math.inf)]
+    if not weak:
+        return [], ""
+    parts = []
+    for n in weak:
+        partners = [(b if a == n else a, r) for a, b, r in trade if n in (a, b)]
+        parts.append(f"{n} σ = {fmt(n, std[n])} > {fmt(n, limits[n])}"
+                     + (" (trades off with " + ", ".join(f"{p} ρ={r:+.3f}" for p, r in
+                                                         partners[:3]) + ")"
+                        if partners else ""))
+    return weak, "; ".join(parts)
+
+
+def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray,
+                       H_inv_block: np.ndarray | None = None, width: int = 192):
+    """Score test of per-quarter time and column shifts of one wall.
+
+    d_cells : (N, 2) ∂ℓ/∂τ and ∂ℓ/∂u of each cell at the fit.
+    S_cells : (N, P) the cells' scores of the fitted parameters (the nuisance).
+    col : (N,) column of each cell (the quarter of the sensor it belongs to).
+
+    Returns (p_value, time shifts (4,) s, column shifts (4,) px): the shifts
+    the data ask for, each beyond the fitted model.
+    """
+    q = np.clip((col / width * 4).astype(np.int64), 0, 3)
+    E = np.zeros((col.size, 8))
+    for i in range(4):
+        m = q == i
+        E[m, i] = d_cells[m, 0]
+        E[m, 4 + i] = d_cells[m, 1]
+    used = np.any(E != 0, axis=0)
+    E = E[:, used]
+    if E.shape[1] == 0:
+        return 1.0, np.zeros(4), np.zeros(4)
+    unit = np.sqrt(np.maximum(np.einsum("ij,ij->j", E, E), 1e-300))
+    E = E / unit  # columns in units of their own σ
+    S_cells = S_cells / np.sqrt(np.maximum(np.einsum("ij,ij->j", S_cells, S_cells), 1e-300))
+    g = E.sum(axis=0)
+    Iee = E.T @ E
+    Ies = E.T @ S_cells
+    Iss = S_cells.T @ S_cells
+    try:
+        adj = Iee - Ies @ np.linalg.pinv(Iss, rcond=1e-10, hermitian=True) @ Ies.T
+        ev, V = np.linalg.eigh(0.5 * (adj + adj.T))
+    except np.linalg.LinAlgError:
+        return 1.0, np.zeros(4), np.zeros(4)
+    # directions the fitted parameters already span (e.g. the sum of the quarter
+    # time shifts is the TDC offset) carry no test: keep the well-conditioned rest
+    keep = ev > 1e-6
+    if not keep.any():
+        return 1.0, np.zeros(4), np.zeros(4)
+    proj = V[:, keep].T @ g
+    stat = float(np.sum(proj * proj / ev[keep]))
+    p = float(chi2.sf(stat, int(keep.sum())))
+    shift = V[:, keep] @ (proj / ev[keep]) / unit
+    full = np.zeros(8)
+    full[used] = shift
+    return p, full[:4], full[4:]
+
+
+def sigma_of_p(p: float) -> float:
+    """The one-sided normal quantile of a p-value (for messages)."""
+    return float(norm.isf(max(p, 1e-300)))

@@ -1,0 +1,343 @@
+"""The calibration problem: recordings reduced for the fit, the parameter layout,
+and the exact first-photon likelihood of every (shot, pixel) cell near the beam's image.
+
+Data (:class:`WallData`, one per recording = one flat wall): the monitor phase
+of each shot, the raw TDC codes, and each pixel's background rate measured
+from the late part of the TDC window (where no wall return can be).
+
+Model of one cell (shot k, pixel c) of wall j.  The pixel records its first
+photon from the TDC start (τ = 0) on; photons arrive as a Poisson process of
+intensity ``I(t) = λ_c + m·φ((t − τ_k)/σ)/σ`` with λ_c the pixel's background
+rate (fixed: measured), ``τ_k = L_k/c + offset`` the return's centre
+(:func:`mems_stereo.calib.model.beam_hits`), σ the pulse's, and
+``m = μ_k · f_c(u_k, s_j)`` the signal photons that reach pixel c: μ_k the
+whole spot's (``μ_j·g_k/ḡ_j``, g the Lambertian factor cos θ_e·cos θ_r/R²),
+``f_c`` the share of a Gaussian spot of σ ``s_j`` pixels centred on the
+beam's image ``u_k`` that falls on pixel c.  Over the analysed window
+[0, T_j] the log-likelihood of the cell is
+
+* fired at t ≤ T_j: ``log I(t) − ∫₀ᵗ I``;
+* not fired by T_j: ``−∫₀^{T_j} I``,
+
+which is exact for a first-photon SPAD: the first-photon bias (early for a
+strong return, late where the TDC start cuts the pulse), background that
+fires first, and returns split over two pixels all follow from it; nothing is
+picked per shot.  The nuisances μ_j and s_j are fixed by the data through the
+same likelihood (the share of cells that fire, and the share that fire on two
+pixels); λ_c is not fitted at all.  Cells are the pixels within ``radius`` of
+the predicted image, fixed during one solver run (:mod:`.association`).
+
+Frames and units: receiver camera frame, metres, radians, seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from mems_stereo.calib.model import PARAM_SCALE, SYSTEM_PARAMS, beam_hits, plane_normal
+from scipy.special import ndtr
+
+from mems_stereo.model.system import System
+
+#: solver units of the wall parameters (PARAM_SCALE has the system's)
+WALL_SCALE = {"alpha": 1e-3, "beta": 1e-3, "dist": 1e-3, "logmu": 0.01, "logspot": 0.01}
+#: spot σ is kept within these bounds, pixels
+SPOT_MIN, SPOT_MAX = 0.12, 6.0
+_SQ2PI = math.sqrt(2.0 * math.pi)
+
+
+@dataclass
+class WallData:
+    """One recording of a flat wall, reduced for the fit.
+
+    phase : (K,) float64 rad, monitor phase of each usable shot.
+    bins : (K, H, W) uint16 TDC codes of those shots (0: no detection).
+    background : (H, W) float64 Hz, each pixel's background rate (late window).
+    bin_width : s.  source : str, for messages.
+    """
+
+    phase: np.ndarray
+    bins: np.ndarray
+    background: np.ndarray
+    bin_width: float
+    source: str = "<memory>"
+
+    @property
+    def n_shots(self) -> int:
+        return int(self.phase.shape[0])
+
+
+class Layout:
+    """Parameter vector ↔ named values: free system parameters, then per wall
+    (α, [β,] D, log μ, log s).  The solver works in units of :data:`PARAM_SCALE`
+    / :data:`WALL_SCALE` around a reference point."""
+
+    def __init__(self, names, n_walls: int, two_d: bool):
+        self.names = [n for n in SYSTEM_PARAMS if n in names]
+        self.T = int(n_walls)
+        self.two_d = bool(two_d)
+        self.wall_names = (["alpha", "beta", "dist", "logmu", "logspot"] if two_d
+                           else ["alpha", "dist", "logmu", "logspot"])
+        self.n_sys = len(self.names)
+        self.n_wall = len(self.wall_names)
+        self.size = self.n_sys + self.T * self.n_wall
+        self.scales = np.array([PARAM_SCALE[n] for n in self.names]
+                               + [WALL_SCALE[p] for _ in range(self.T) for p in self.wall_names])
+
+    @property
+    def labels(self) -> list:
+        return self.names + [f"{p}[{j}]" for j in range(self.T) for p in self.wall_names]
+
+    def wall_slice(self, j: int) -> slice:
+        a = self.n_sys + j * self.n_wall
+        return slice(a, a + self.n_wall)
+
+    def pack(self, values: dict, walls: np.ndarray) -> np.ndarray:
+        """SI values (dict) and walls (T, 5: α, β, D, log μ, log s) → x (SI)."""
+        x = [values[n] for n in self.names]
+        cols = [0, 1, 2, 3, 4] if self.two_d else [0, 2, 3, 4]
+        for j in range(self.T):
+            x += list(walls[j, cols])
+        return np.asarray(x, dtype=np.float64)
+
+    def unpack(self, x):
+        """x (SI) → (values dict, walls (T, 5))."""
+        x = np.asarray(x, dtype=np.float64)
+        values = {n: float(x[i]) for i, n in enumerate(self.names)}
+        walls = np.zeros((self.T, 5))
+        cols = [0, 1, 2, 3, 4] if self.two_d else [0, 2, 3, 4]
+        for j in range(self.T):
+            walls[j, cols] = x[self.wall_slice(j)]
+        return values, walls
+
+
+def lambert(point: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """(N,) relative Lambertian signal cos θ_e·cos θ_r / R² of hits ``point`` (N, 3)."""
+    r2 = np.einsum("ij,ij->i", point, point)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.abs(point @ normal) * point[:, 2] / (r2 * r2)
+
+
+def shot_model(system: System, values: dict, wall: np.ndarray, phase: np.ndarray):
+    """Per-shot predictions for one wall: τ (s), u, v (pixels), log g, ok.
+
+    ``wall`` : (5,) α, β, D, log μ, log s.  Returns (N, 4) [τ, u, v, log g] and
+    (N,) bool.
+    """
+    normal = plane_normal(wall[0], wall[1])
+    h = beam_hits(system, values, phase, normal, wall[2])
+    off = values["tdc_offset"] if "tdc_offset" in values else system.tdc.offset
+    tau = h.path / system.speed_of_light + off
+    g = lambert(h.point, normal)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        lg = np.log(g)
+    out = np.stack([tau, h.pixel[:, 0], h.pixel[:, 1], lg], axis=1)
+    ok = h.ok & np.all(np.isfinite(out), axis=1)
+    return out, ok
+
+
+@dataclass
+class Cells:
+    """The analysed cells of one wall (fixed during a solver run).
+
+    shot : (N,) int64 index into the wall's shots; col, row : (N,) float64 pixel;
+    t : (N,) s, time of the pixel's first detection, NaN when it did not fire by
+    ``t_max``; lam : (N,) Hz, background rate; t_max : s; shots : (S,) int64
+    the shots analysed; log_gref : float, reference log g of the wall (μ_j is
+    the whole spot's mean signal at g = exp(log_gref)).
+    """
+
+    shot: np.ndarray
+    col: np.ndarray
+    row: np.ndarray
+    t: np.ndarray
+    lam: np.ndarray
+    t_max: float
+    shots: np.ndarray
+    log_gref: float
+
+
+def spot_share(c, u, s):
+    """Share of a Gaussian spot (centre u, σ s pixels) on pixel c, and its
+    derivatives by u and by log s."""
+    a = (c + 0.5 - u) / s
+    b = (c - 0.5 - u) / s
+    pa = np.exp(-0.5 * a * a) / _SQ2PI
+    pb = np.exp(-0.5 * b * b) / _SQ2PI
+    f = ndtr(a) - ndtr(b)
+    return f, -(pa - pb) / s, -(a * pa - b * pb)
+
+
+def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sigma: float,
+               two_d: bool, pitch_ratio: float = 1.0):
+    """Log-likelihood of each cell and its derivatives.
+
+    pred : (N, 4) per-cell [τ, u, v, log g] (already indexed by ``cells.shot``).
+    Returns ``ll`` (N,) and ``d`` (N, 5): ∂ℓ/∂[τ, u, v, log μ_k, log s].
+    """
+    tau, u, v, lg = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
+    s = min(max(math.exp(logspot), SPOT_MIN), SPOT_MAX)
+    mu = np.exp(logmu + lg - cells.log_gref)
+    f, fu, fs = spot_share(cells.col, u, s)
+    if two_d:
+        sr = s * pitch_ratio
+        fr, fv, frs = spot_share(cells.row, v, sr)
+        share = f * fr
+        dshare_u, dshare_v = fu * fr, f * fv
+        dshare_s = fs * fr + f * frs
+    else:
+        share = f
+        dshare_u, dshare_v, dshare_s = fu, np.zeros_like(fu), fs
+    m = mu * share
+    z0 = -tau / sigma
+    fired = np.isfinite(cells.t)
+    t_end = np.where(fired, cells.t, cells.t_max)
+    z = (t_end - tau) / sigma
+    phz = np.exp(-0.5 * z * z) / _SQ2PI
+    ph0 = np.exp(-0.5 * z0 * z0) / _SQ2PI
+    dG = ndtr(z) - ndtr(z0)
+    # ∫ signal intensity from 0 to t_end, and its derivatives
+    ll = -m * dG
+    dll_dm = -dG
+    dll_dtau = m * (phz - ph0) / sigma
+    # the fired cells: + log I(t)
+    lam = cells.lam
+    sig_int = m * phz / sigma
+    inten = np.where(fired, lam + sig_int, 1.0)
+    inten = np.maximum(inten, 1e-300)
+    ll = ll + np.where(fired, np.log(inten), 0.0)
+    dll_dm = dll_dm + np.where(fired, (phz / sigma) / inten, 0.0)
+    dll_dtau = dll_dtau + np.where(fired, m * z * phz / (sigma * sigma) / inten, 0.0)
+    d = np.empty((tau.size, 5))
+    d[:, 0] = dll_dtau
+    d[:, 1] = dll_dm * mu * dshare_u
+    d[:, 2] = dll_dm * mu * dshare_v
+    d[:, 3] = dll_dm * m
+    d[:, 4] = dll_dm * mu * dshare_s * (1.0 if SPOT_MIN < s < SPOT_MAX else 0.0)
+    return ll, d
+
+
+class Problem:
+    """Total log-likelihood, its score and information over all walls.
+
+    Parameters
+    ----------
+    walls : list of :class:`WallData`.
+    system : the nominal system (fixed parts; reference values).
+    layout : :class:`Layout`.
+    sigma : pulse σ, s (with jitter).
+    priors : list of (j, kind, distance m, σ m) measured distances.
+    """
+
+    def __init__(self, walls, system: System, layout: Layout, sigma: float, priors=()):
+        self.walls = list(walls)
+        self.system = system
+        self.layout = layout
+        self.sigma = float(sigma)
+        self.priors = list(priors)
+        self.cells: list = [None] * layout.T
+        pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
+        self.pitch_ratio = float(pitch[0] / pitch[1])
+
+    # ------------------------------------------------------------------ model
+    def predictions(self, x, j: int, shots=None, steps: bool = False):
+        """Per-shot [τ, u, v, log g] of wall j (and its Jacobian by the wall's
+        system + plane parameters when ``steps``): (S, 4), ok (S,), J (S, 4, P)."""
+        lay = self.layout
+        values, walls = lay.unpack(x)
+        w = self.walls[j]
+        ph = w.phase if shots is None else w.phase[shots]
+        p0, ok = shot_model(self.system, values, walls[j], ph)
+        if not steps:
+            return p0, ok, None
+        geo = list(range(lay.n_sys)) + [lay.wall_slice(j).start + i
+                                         for i, n in enumerate(lay.wall_names)
+                                         if n in ("alpha", "beta", "dist")]
+        J = np.zeros((ph.size, 4, len(geo)))
+        for q, i in enumerate(geo):  # forward differences (the model is smooth)
+            h = 1e-3 * lay.scales[i]
+            xp = x.copy()
+            xp[i] += h
+            vp, wp = lay.unpack(xp)
+            pp, _ = shot_model(self.system, vp, wp[j], ph)
+            J[:, :, q] = (pp - p0) / h
+        J[~np.isfinite(J)] = 0.0
+        return p0, ok, (J, geo)
+
+    def wall_terms(self, x, j: int, grad: bool = False):
+        """ℓ per cell of wall j; with ``grad`` also the cell scores (N, P_j) and the
+        parameter indices they belong to."""
+        c = self.cells[j]
+        lay = self.layout
+        _, walls = lay.unpack(x)
+        pred, ok, jac = self.predictions(x, j, c.shots, steps=grad)
+        pos = np.searchsorted(c.shots, c.shot)
+        pc = pred[pos]
+        good = ok[pos]
+        pc = np.where(good[:, None], pc, [0.0, -1e6, -1e6, 0.0])
+        ll, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], self.sigma, lay.two_d,
+                           self.pitch_ratio)
+        if not grad:
+            return ll, None, None
+        J, geo = jac
+        Jc = J[pos]  # (N, 4, G)
+        d = np.where(good[:, None], d, 0.0)
+        # τ, u, v and log g chain through the geometry; log μ and log s directly
+        sc = np.einsum("nk,nkg->ng", d[:, [0, 1, 2, 3]], Jc)
+        ws = lay.wall_slice(j)
+        idx = geo + [ws.start + lay.wall_names.index("logmu"),
+                     ws.start + lay.wall_names.index("logspot")]
+        S = np.concatenate([sc, d[:, 3:4], d[:, 4:5]], axis=1)
+        return ll, S, idx
+
+    def prior_terms(self, x):
+        """Log-prior of the measured distances, its gradient and Gauss-Newton information."""
+        lay = self.layout
+        _, walls = lay.unpack(x)
+        lp = 0.0
+        g = np.zeros(lay.size)
+        H = np.zeros((lay.size, lay.size))
+        for j, kind, d, sd in self.priors:
+            ws = lay.wall_slice(j)
+            jac = np.zeros(lay.size)
+            val = distance_model(walls[j], kind)
+            for i, n in enumerate(lay.wall_names):
+                if n in ("alpha", "beta", "dist"):
+                    wp = walls[j].copy()
+                    h = 1e-6
+                    col = {"alpha": 0, "beta": 1, "dist": 2}[n]
+                    wp[col] += h
+                    jac[ws.start + i] = (distance_model(wp, kind) - val) / h
+            r = (val - d) / sd
+            lp -= 0.5 * r * r
+            g -= r / sd * jac
+            H += np.outer(jac, jac) / (sd * sd)
+        return lp, g, H
+
+    def loglik(self, x) -> float:
+        tot = sum(float(np.sum(self.wall_terms(x, j)[0])) for j in range(self.layout.T))
+        return tot + self.prior_terms(x)[0]
+
+    def score(self, x):
+        """(total ℓ, gradient (P,), OPG information (P, P)) in SI units."""
+        lay = self.layout
+        g = np.zeros(lay.size)
+        H = np.zeros((lay.size, lay.size))
+        tot = 0.0
+        for j in range(lay.T):
+            ll, S, idx = self.wall_terms(x, j, grad=True)
+            tot += float(np.sum(ll))
+            g[idx] += S.sum(axis=0)
+            H[np.ix_(idx, idx)] += S.T @ S
+        lp, gp, Hp = self.prior_terms(x)
+        return tot + lp, g + gp, H + Hp
+
+
+def distance_model(wall, kind: str = "axis") -> float:
+    """The distance a user measures from wall parameters (α, β, D, ...), m:
+    "axis" D / n_z (along the optical axis), "normal" D."""
+    if kind == "normal":
+        return float(wall[2])
+    return float(wall[2] / plane_normal(wall[0], wall[1])[2])
