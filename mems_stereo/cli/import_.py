@@ -9,7 +9,8 @@ from mems_stereo.cli._common import Reporter
 NAME = "import"
 HELP = ("convert a time-tagger file (PicoQuant .ptu T2/T3, Photon-HDF5 .h5/.hdf5) into a "
         "FORMAT v1 recording, through a channel mapping")
-EXAMPLE = "mems-stereo import samples/room48.ptu --map samples/room48_map.json -o room48.h5"
+EXAMPLE = ["mems-stereo samples -o samples room48.ptu room48_map.json room48_system.json",
+           "mems-stereo import samples/room48.ptu --map samples/room48_map.json -o room48.h5"]
 
 
 def add_arguments(p):

@@ -22,7 +22,7 @@ from mems_stereo.errors import FormatError
 __all__ = ["SAMPLE_SUFFIXES", "list", "path", "root"]
 
 #: the kinds of files that are sample data (the generator script and README are not)
-SAMPLE_SUFFIXES = (".h5", ".json")
+SAMPLE_SUFFIXES = (".h5", ".json", ".ptu")
 
 _HERE = Path(__file__).resolve().parent
 
@@ -48,7 +48,7 @@ def root() -> Path:
 
 
 def list() -> list[str]:  # noqa: A001 - the name skimage.data / open3d.data users expect
-    """Names of the bundled sample files, sorted (``.h5`` recordings and ``.json`` files)."""
+    """Names of the bundled sample files, sorted (``.h5`` recordings, ``.json`` files, ``.ptu`` time-tag files)."""
     return sorted(p.name for p in root().iterdir()
                   if p.is_file() and p.suffix in SAMPLE_SUFFIXES)
 
