@@ -48,7 +48,8 @@ def root() -> Path:
 
 
 def list() -> list[str]:  # noqa: A001 - the name skimage.data / open3d.data users expect
-    """Names of the bundled sample files, sorted (``.h5`` recordings, ``.json`` files, ``.ptu`` time-tag files)."""
+    """Names of the bundled sample files, sorted (``.h5`` recordings, ``.json`` files,
+    ``.ptu`` time-tag files)."""
     return sorted(p.name for p in root().iterdir()
                   if p.is_file() and p.suffix in SAMPLE_SUFFIXES)
 
