@@ -248,6 +248,12 @@ class DetectionPoints:
     ok: np.ndarray
     dtof_dL: np.ndarray | None = None
 
+    def subset(self, sel) -> DetectionPoints:
+        """The entries ``sel`` (index or bool mask) of every field."""
+        return DetectionPoints(*(None if v is None else v[sel] for v in (
+            self.stereo, self.cov_stereo, self.tof, self.cov_tof, self.fused, self.cov_fused,
+            self.weight_stereo, self.ok, self.dtof_dL)))
+
 
 def _s_stereo(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
@@ -406,7 +412,7 @@ class EstimateSums:
     def add(self, q, x, C, m, g=None) -> None:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
-        self.W += np.bincount(q, weights=m, minlength=self.W.size)
+        np.add.at(self.W, q, m)
         np.add.at(self.X, q, x * m[:, None])
         np.add.at(self.C, q, C * np.abs(m)[:, None, None])
         if self.D is not None and g is not None:
@@ -597,7 +603,10 @@ class PeakAccumulator:
         counted once with their number, possibly scaled by their probability
         of being signal.
         """
-        peak, _, _, r, sr, ok, w = self._points(shot, peak, code, theta, weight)
+        self._add_mode_points(self._points(shot, peak, code, theta, weight))
+
+    def _add_mode_points(self, pts) -> None:
+        peak, _, _, r, sr, ok, w = pts
         self.mode.add(peak[ok], r[ok], sr[ok], w[ok])
 
     def finish_mode(self) -> np.ndarray:
@@ -618,26 +627,41 @@ class PeakAccumulator:
         """
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
-        peak, code, dp, r, sr, ok, m = self._points(shot, peak, code, theta, weight)
-        Q = self.Q
+        self._add_inliers_points(self._points(shot, peak, code, theta, weight), shot, theta,
+                                 background)
+
+    def _add_inliers_points(self, pts, shot, theta, background) -> None:
+        # every per-peak sum is sequential in entry order (np.add.at), so adding the
+        # entries in blocks gives the sums of adding them at once, bit for bit
+        peak, code, dp, r, sr, ok, m = pts
+        self._add_inliers_sums(peak, code, r, sr, ok, m, lambda inl: dp.subset(inl), shot,
+                               theta, background)
+
+    def _add_inliers_sums(self, peak, code, r, sr, ok, m, dp_of, shot, theta,
+                          background) -> None:
+        """The sums of :meth:`add_inliers` from each entry's fused range r, its σ sr and
+        ok (M,); ``dp_of(inl)`` gives the :class:`DetectionPoints` of the inliers only
+        (each entry's points are its own: computing them for the inliers alone
+        changes no bit)."""
         s = self.sums
-        s.window += np.bincount(peak, weights=m, minlength=Q)
+        np.add.at(s.window, peak, m)
         with np.errstate(invalid="ignore"):
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr + self.halfwidth[peak])
         q = peak[inl]
         m_all, m = m, m[inl]
-        s.n += np.bincount(q, weights=m, minlength=Q)
+        np.add.at(s.n, q, m)
+        dp = dp_of(inl)
         # equal weights: inside one peak the spread of the estimates is the pixel's
         # footprint swept by the beam (stereo) or the pulse (ToF), and their σ grows
         # with the value itself (stereo σ ∝ r²; a ToF point near the mirror has a
         # tiny range variance): inverse-variance weights would pull every peak
         # towards its nearest detections.  ∂x/∂L: the ToF point's, the fused
         # point's share of it.
-        g = dp.dtof_dL[inl]
-        s.fused.add(q, dp.fused[inl], dp.cov_fused[inl], m,
-                    g * (1.0 - dp.weight_stereo[inl])[:, None])
-        s.stereo.add(q, dp.stereo[inl], dp.cov_stereo[inl], m)
-        s.tof.add(q, dp.tof[inl], dp.cov_tof[inl], m, g)
+        g = dp.dtof_dL
+        s.fused.add(q, dp.fused, dp.cov_fused, m,
+                    g * (1.0 - dp.weight_stereo)[:, None])
+        s.stereo.add(q, dp.stereo, dp.cov_stereo, m)
+        s.tof.add(q, dp.tof, dp.cov_tof, m, g)
         if self.shots_per_step is not None and self.first_photon and peak.size:
             # band: the inliers' steps; likelihood: every detection of the window (the
             # in-peak test drops true returns at the band's edges, where the spot is
@@ -652,17 +676,17 @@ class PeakAccumulator:
             np.add.at(s.loglik, peak, _detection_log_odds(f) * m_all[:, None])
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
-        s.theta += np.bincount(q, weights=m * th_e, minlength=Q)
-        s.code += np.bincount(q, weights=m * code[inl], minlength=Q)
-        s.weight += np.bincount(q, weights=m * dp.weight_stereo[inl], minlength=Q)
-        s.w += np.bincount(q, weights=m * w, minlength=Q)
-        s.wr += np.bincount(q, weights=m * w * r[inl], minlength=Q)
-        s.wrr += np.bincount(q, weights=m * w * r[inl] ** 2, minlength=Q)
+        np.add.at(s.theta, q, m * th_e)
+        np.add.at(s.code, q, m * code[inl])
+        np.add.at(s.weight, q, m * dp.weight_stereo)
+        np.add.at(s.w, q, m * w)
+        np.add.at(s.wr, q, m * w * r[inl])
+        np.add.at(s.wrr, q, m * w * r[inl] ** 2)
         if background is not None:  # (the means have equal weights)
             b = np.asarray(background, dtype=np.float64).ravel()[inl]
-            s.b0 += np.bincount(q, weights=b, minlength=Q)
-            s.b1 += np.bincount(q, weights=b * r[inl], minlength=Q)
-            s.b2 += np.bincount(q, weights=b * r[inl] ** 2, minlength=Q)
+            np.add.at(s.b0, q, b)
+            np.add.at(s.b1, q, b * r[inl])
+            np.add.at(s.b2, q, b * r[inl] ** 2)
 
     def cloud(self, min_counts: int = 1) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
@@ -893,10 +917,46 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                           shots_per_step=shots_per_step, step_grid=step_grid,
                           first_photon=first_photon, rate_hz=rate_hz,
                           step_window=step_window, accept=accept, spot_sigma=spot_sigma)
-    acc.add_mode(shot, peak, code, theta, weight)
+    shot = np.asarray(shot, dtype=np.int64).ravel()
+    M = shot.size
+    if M <= ENTRY_BLOCK:  # the entries' points computed once, used by both sub-passes
+        pts = acc._points(shot, peak, code, theta, weight)
+        acc._add_mode_points(pts)
+        acc.finish_mode()
+        acc._add_inliers_points(pts, shot, theta, background)
+        return acc.cloud(min_counts)
+    # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
+    # keeps each entry's fused range, its σ and ok (17 bytes an entry); sub-pass 2
+    # computes the points of the inliers alone
+    peak = np.asarray(peak, dtype=np.int64).ravel()
+    code = np.asarray(code, dtype=np.float64).ravel()
+    m = (np.ones(M) if weight is None else np.asarray(weight, dtype=np.float64).ravel())
+    bg = None if background is None else np.asarray(background, np.float64).ravel()
+    r, sr, ok = np.empty(M), np.empty(M), np.empty(M, bool)
+    for a in range(0, M, ENTRY_BLOCK):
+        e = slice(a, a + ENTRY_BLOCK)
+        pts = acc._points(shot[e], peak[e], code[e], theta, m[e])
+        acc._add_mode_points(pts)
+        r[e], sr[e], ok[e] = pts[3], pts[4], pts[5]
+        del pts
     acc.finish_mode()
-    acc.add_inliers(shot, peak, code, theta, weight, background)
+    for a in range(0, M, ENTRY_BLOCK):
+        e = slice(a, a + ENTRY_BLOCK)
+        pe, ce, se = peak[e], code[e], shot[e]
+
+        def dp_of(inl, pe=pe, ce=ce, se=se):
+            return detection_points(system, se[inl], acc.rows[pe[inl]], acc.cols[pe[inl]],
+                                    ce[inl], theta, acc.spreads)
+
+        acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
+                              None if bg is None else bg[e])
     return acc.cloud(min_counts)
+
+
+#: entries (detections, or distinct (peak, step, code) keys) evaluated at once by
+#: :func:`points_from_peak_detections`; sums are sequential in entry order, so the
+#: blocks change no bit of the result
+ENTRY_BLOCK = 1 << 17
 
 
 def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointCloud:
