@@ -20,7 +20,7 @@
    NumPy, the package, the pipeline and Open3D (which writing the PLY needs).
 
 Run:  .venv/bin/python benchmarks/bench_stream.py [--gigabytes 2] [--dense-shots 200000 2000000]
-      [--dir /tmp]   (--gigabytes 0 or --dense-shots with no number skip a part)
+      [--dir /tmp] [--before COMMIT]   (--gigabytes 0 or --dense-shots with no number skip a part)
 """
 
 from __future__ import annotations
@@ -90,7 +90,7 @@ print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process
 """
 
 
-def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
+def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) -> None:
     path = d / f"dense{shots}.h5"
     t0 = time.perf_counter()
     info = make_dense_recording(path, shots, seed)
@@ -110,8 +110,12 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
 
         os.environ["MEMS_STEREO_CACHE"] = str(cache)
         IntervalTable.for_settings(burkard2022(), Settings()).fill_all().save_cache()
-    for label in (f"{r} table cache" for r in runs):
-        r = measure_child(PROCESS, path, env=env)
+    labels = [(f"{r} table cache", env) for r in runs]
+    if before:  # the same recording and cache with the package of another commit
+        labels.insert(0, (f"BEFORE ({before}), {runs[-1]} table cache",
+                          dict(env, PYTHONPATH=str(extract_commit(before, d)))))
+    for label, env_ in labels:
+        r = measure_child(PROCESS, path, env=env_)
         t = r["seconds"]
         ok = (t <= TARGET_READ_RATIO * t_read, real / t >= TARGET_REALTIME,
               r["maxrss_mb"] <= TARGET_RSS_MB)
@@ -124,6 +128,17 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
         print(f"    CPU {r['cpu_s']:.2f} s = {r['cpu_s'] / c_read:.1f}x read+copy CPU; stages: "
               + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings"].items())
               + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}")
+
+
+def extract_commit(ref: str, d: Path) -> Path:
+    """The package ``mems_stereo`` of git commit ``ref`` extracted under ``d``."""
+    out = d / f"src-{ref}"
+    if not out.exists():
+        out.mkdir()
+        tar = subprocess.run(["git", "archive", ref, "mems_stereo"], cwd=ROOT, check=True,
+                             capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(out)], input=tar, check=True)
+    return out
 
 
 IMPORTS = r"""
@@ -172,6 +187,9 @@ def main():
     ap.add_argument("--dir", default=None, help="where to write the recording (default: a "
                                                  "temporary directory, removed afterwards)")
     ap.add_argument("--no-startup", action="store_true", help="skip the startup figures")
+    ap.add_argument("--before", default=None, metavar="COMMIT",
+                    help="also process each dense recording with the package of this git "
+                         "commit (same recording, same table cache, same minutes)")
     args = ap.parse_args()
     if not args.no_startup:
         with tempfile.TemporaryDirectory(dir=args.dir) as d:
@@ -180,7 +198,7 @@ def main():
         stream(args)
     for i, n in enumerate(args.dense_shots):
         with tempfile.TemporaryDirectory(dir=args.dir) as d:
-            dense(n, args.seed + i, Path(d), args.runs)
+            dense(n, args.seed + i, Path(d), args.runs, args.before)
 
 
 def stream(args):

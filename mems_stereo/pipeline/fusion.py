@@ -772,9 +772,16 @@ class PeakAccumulator:
             st = np.rint((th[inl] - t0) / dt).astype(np.int64)
             np.minimum.at(self.band[0], q, st)
             np.maximum.at(self.band[1], q, st)
-            f = spot_fraction(self.system, self.rows[peak], self.cols[peak], th,
-                              self.centre[peak], self.spot_sigma)
-            np.add.at(s.loglik, peak, _detection_log_odds(f) * m_all[:, None])
+            # the log-odds depend on (peak, θ) alone: once per run of equal (peak, θ)
+            # (the entries of one (peak, step) are consecutive), gathered per entry
+            new = np.ones(peak.size, bool)
+            new[1:] = (peak[1:] != peak[:-1]) | (th[1:] != th[:-1])
+            start = np.flatnonzero(new)
+            ps = peak[start]
+            f = spot_fraction(self.system, self.rows[ps], self.cols[ps], th[start],
+                              self.centre[ps], self.spot_sigma)
+            run = np.cumsum(new) - 1
+            np.add.at(s.loglik, peak, _detection_log_odds(f)[run] * m_all[:, None])
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
         np.add.at(s.theta, q, m * th_e)
@@ -1057,7 +1064,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by
 #: :func:`points_from_peak_detections`; sums are sequential in entry order, so the
 #: blocks change no bit of the result
-ENTRY_BLOCK = 1 << 17
+ENTRY_BLOCK = 1 << 15
 
 
 def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointCloud:
