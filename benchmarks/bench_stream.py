@@ -51,7 +51,7 @@ t0 = time.perf_counter()
 from mems_stereo.pipeline.run import process_recording
 res = process_recording(sys.argv[1])
 dt = time.perf_counter() - t0
-print(json.dumps({"seconds": dt, "counts": res.counts, "timings": res.timings,
+print(json.dumps({"seconds": dt, "counts": dict(res.counts), "timings": res.timings,
                   "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
@@ -86,7 +86,7 @@ c1 = time.process_time()
 res = process_recording(sys.argv[1])
 t2 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process_time() - c1,
-                  "counts": res.counts, "timings": res.timings}))
+                  "counts": dict(res.counts), "timings": res.timings}))
 """
 
 

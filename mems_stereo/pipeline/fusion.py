@@ -123,15 +123,15 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
 
     tot = s0[:, None] * length
     tot_c = s0[:, None] * csum(s_lo, s_hi)
-    ce = code[:, None]
-    start = np.maximum(s_lo[inv], ce + 1.0)  # codes of the segment after the detection
+    ce1 = code + 1.0
     closed = np.zeros((G, J))
     closed_c = np.zeros((G, J))
-    for j in range(J):
-        m = np.maximum(s_hi[inv, j] - start[:, j] + 1.0, 0.0)
+    for j in range(J):  # one segment at a time: (M,) temporaries, no (M, J)
+        start = np.maximum(s_lo[inv, j], ce1)  # codes of the segment after the detection
+        hi_j = s_hi[inv, j]
+        m = np.maximum(hi_j - start + 1.0, 0.0)
         closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
-        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start[:, j], s_hi[inv, j]),
-                                     minlength=G)
+        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start, hi_j), minlength=G)
     S_sum = np.maximum(tot - closed, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
