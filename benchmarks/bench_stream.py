@@ -78,16 +78,40 @@ def make_recording(path: Path, gigabytes: float) -> int:
 
 
 PROCESS = r"""
-import json, sys, time
+import json, os, sys, time
+src = os.environ.get("BENCH_PACKAGE_SRC")
+if src:  # another commit's package: ahead of the editable install's finder
+    sys.meta_path[:] = [f for f in sys.meta_path
+                        if "__editable__" not in getattr(f, "__module__", "")]
+    sys.path.insert(0, src)
 t0 = time.perf_counter()
 from mems_stereo.pipeline.run import process_recording
 t1 = time.perf_counter()
 c1 = time.process_time()
 res = process_recording(sys.argv[1])
 t2 = time.perf_counter()
+import mems_stereo
+import numpy as np
+c = res.cloud
+np.savez(sys.argv[2], points=c.points, **{k: np.asarray(v) for k, v in c.attributes.items()})
 print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process_time() - c1,
-                  "counts": dict(res.counts), "timings": res.timings}))
+                  "counts": dict(res.counts), "timings": res.timings,
+                  "package": mems_stereo.__file__}))
 """
+
+
+def compare_clouds(a_path, b_path) -> str:
+    """Whether two saved clouds are equal bit for bit, else their largest differences."""
+    a, b = np.load(a_path), np.load(b_path)
+    if sorted(a.files) != sorted(b.files) or a["points"].shape != b["points"].shape:
+        return f"DIFFERENT attributes or sizes ({a['points'].shape} vs {b['points'].shape})"
+    if all(np.array_equal(a[k], b[k], equal_nan=True) for k in a.files):
+        return (f"identical bit for bit ({a['points'].shape[0]} points, "
+                f"{len(a.files) - 1} attributes)")
+    dp = float(np.nanmax(np.abs(a["points"] - b["points"])))
+    rel = max(float(np.nanmax(np.abs(a[k] - b[k]) / np.maximum(np.abs(a[k]), 1e-300)))
+              for k in a.files if k != "points")
+    return f"NOT bit-identical: points differ by up to {dp:.3g} m, attributes by {rel:.3g} relative"
 
 
 def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) -> None:
@@ -113,9 +137,11 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) ->
     labels = [(f"{r} table cache", env) for r in runs]
     if before:  # the same recording and cache with the package of another commit
         labels.insert(0, (f"BEFORE ({before}), {runs[-1]} table cache",
-                          dict(env, PYTHONPATH=str(extract_commit(before, d)))))
+                          dict(env, BENCH_PACKAGE_SRC=str(extract_commit(before, d)))))
+    clouds = []
     for label, env_ in labels:
-        r = measure_child(PROCESS, path, env=env_)
+        clouds.append(d / f"cloud{len(clouds)}.npz")
+        r = measure_child(PROCESS, path, clouds[-1], env=env_)
         t = r["seconds"]
         ok = (t <= TARGET_READ_RATIO * t_read, real / t >= TARGET_REALTIME,
               r["maxrss_mb"] <= TARGET_RSS_MB)
@@ -127,7 +153,10 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) ->
               f"{r['import_s']:.2f} s before")
         print(f"    CPU {r['cpu_s']:.2f} s = {r['cpu_s'] / c_read:.1f}x read+copy CPU; stages: "
               + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings"].items())
-              + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}")
+              + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}"
+              + ("" if not before else f"; package {r['package']}"))
+    if before:
+        print(f"  cloud against BEFORE: {compare_clouds(clouds[0], clouds[-1])}")
 
 
 def extract_commit(ref: str, d: Path) -> Path:

@@ -302,3 +302,19 @@ def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     assert a.attributes.keys() == b.attributes.keys()
     for k in a.attributes:
         assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+def test_background_by_step_is_stored_over_the_counted_steps_only():
+    """Peaks.background_by_step: the rows of the (P, S) expected background over each
+    peak's steps step_lo..step_hi, sparse, zero elsewhere (checked densely)."""
+    from mems_stereo.pipeline.peaks import window_rows
+
+    rng = np.random.default_rng(5)
+    B = rng.random((12, 40))
+    q, lo, hi = np.array([3, 7, 1, 0]), np.array([5, 0, 39, 10]), np.array([9, 39, 39, 9])
+    got = window_rows(B, q, lo, hi)
+    want = np.zeros((4, 40))
+    for i in range(4):
+        want[i, lo[i]:hi[i] + 1] = B[q[i], lo[i]:hi[i] + 1]
+    assert got.nnz == 5 + 40 + 1
+    assert np.array_equal(got.toarray(), want)
