@@ -177,9 +177,16 @@ def check_input_consistency(command: str, args) -> None:
             else:
                 yield f"{pre}{k}", v
 
-    ref = dict(flat(system_to_dict(read_header(args.recordings[0]).system)))
+    from mems_stereo.io.recording2d import is_two_axis_recording, read_recording_2d
+
+    def system_of(path):
+        if is_two_axis_recording(path):  # the two-axis extension (docs/formats.md §5)
+            return read_recording_2d(path, truth=False).system
+        return read_header(path).system
+
+    ref = dict(flat(system_to_dict(system_of(args.recordings[0]))))
     for r in args.recordings[1:]:
-        other = dict(flat(system_to_dict(read_header(r).system)))
+        other = dict(flat(system_to_dict(system_of(r))))
         diff = sorted(k for k in set(ref) | set(other) if ref.get(k) != other.get(k))
         if diff:
             raise FormatError(f"differs from {args.recordings[0]}'s in {', '.join(diff[:4])}; "
