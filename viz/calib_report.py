@@ -252,7 +252,8 @@ def record_next(d: ReportData) -> list[str]:
         if sig is not None and sig < MIN_DETECTIONS:
             todo.append(f"{name}: only {sig:.0f} signal detections; record more shots or "
                         "use a brighter target")
-    if not d.ok and ("no wall" in d.reason or "flat" in d.reason or "return" in d.reason):
+    if not d.ok and any(k in d.reason for k in ("no wall", "flat", "return", "converge",
+                                                "implausible")):
         todo.append("record a flat, matte wall filling the scan, one wall per recording, "
                     "at several distances (e.g. 1.5, 2.5 and 4 m)")
     if d.ok and d.rms.get("pixel", 0.0) > 0.75:
@@ -461,7 +462,8 @@ def _failure_page(pdf, d: ReportData, hists: list):
             f, unit = UNITS.get(n, (1.0, ""))
             nom = d.initial.get(n, math.nan)
             s = d.std.get(n, math.nan)
-            rows.append(f"{n:<15}{nom * f:>12.4f}{d.values[n] * f:>12.4f}{s * f:>10.4f}  {unit}")
+            s_txt = f"{s * f:>10.4f}" if math.isfinite(s) else f"{'—':>10}"
+            rows.append(f"{n:<15}{nom * f:>12.4f}{d.values[n] * f:>12.4f}{s_txt}  {unit}")
         blocks.append(("Where the fit stopped (not a calibration)", rows))
     else:
         blocks.append(("Where the fit stopped", ["no estimates: the calibration stopped "
