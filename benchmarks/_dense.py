@@ -110,7 +110,7 @@ c1 = time.process_time()
 res = process_recording(sys.argv[1])
 t2 = time.perf_counter()
 print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process_time() - c1,
-                  "counts": res.counts, "timings": res.timings}))
+                  "counts": dict(res.counts), "timings": res.timings}))
 """
 
 

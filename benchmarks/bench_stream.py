@@ -20,7 +20,7 @@
    NumPy, the package, the pipeline and Open3D (which writing the PLY needs).
 
 Run:  .venv/bin/python benchmarks/bench_stream.py [--gigabytes 2] [--dense-shots 200000 2000000]
-      [--dir /tmp]   (--gigabytes 0 or --dense-shots with no number skip a part)
+      [--dir /tmp] [--before COMMIT]   (--gigabytes 0 or --dense-shots with no number skip a part)
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ t0 = time.perf_counter()
 from mems_stereo.pipeline.run import process_recording
 res = process_recording(sys.argv[1])
 dt = time.perf_counter() - t0
-print(json.dumps({"seconds": dt, "counts": res.counts, "timings": res.timings,
+print(json.dumps({"seconds": dt, "counts": dict(res.counts), "timings": res.timings,
                   "maxrss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
 """
 
@@ -78,19 +78,43 @@ def make_recording(path: Path, gigabytes: float) -> int:
 
 
 PROCESS = r"""
-import json, sys, time
+import json, os, sys, time
+src = os.environ.get("BENCH_PACKAGE_SRC")
+if src:  # another commit's package: ahead of the editable install's finder
+    sys.meta_path[:] = [f for f in sys.meta_path
+                        if "__editable__" not in getattr(f, "__module__", "")]
+    sys.path.insert(0, src)
 t0 = time.perf_counter()
 from mems_stereo.pipeline.run import process_recording
 t1 = time.perf_counter()
 c1 = time.process_time()
 res = process_recording(sys.argv[1])
 t2 = time.perf_counter()
+import mems_stereo
+import numpy as np
+c = res.cloud
+np.savez(sys.argv[2], points=c.points, **{k: np.asarray(v) for k, v in c.attributes.items()})
 print(json.dumps({"import_s": t1 - t0, "seconds": t2 - t1, "cpu_s": time.process_time() - c1,
-                  "counts": res.counts, "timings": res.timings}))
+                  "counts": dict(res.counts), "timings": res.timings,
+                  "package": mems_stereo.__file__}))
 """
 
 
-def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
+def compare_clouds(a_path, b_path) -> str:
+    """Whether two saved clouds are equal bit for bit, else their largest differences."""
+    a, b = np.load(a_path), np.load(b_path)
+    if sorted(a.files) != sorted(b.files) or a["points"].shape != b["points"].shape:
+        return f"DIFFERENT attributes or sizes ({a['points'].shape} vs {b['points'].shape})"
+    if all(np.array_equal(a[k], b[k], equal_nan=True) for k in a.files):
+        return (f"identical bit for bit ({a['points'].shape[0]} points, "
+                f"{len(a.files) - 1} attributes)")
+    dp = float(np.nanmax(np.abs(a["points"] - b["points"])))
+    rel = max(float(np.nanmax(np.abs(a[k] - b[k]) / np.maximum(np.abs(a[k]), 1e-300)))
+              for k in a.files if k != "points")
+    return f"NOT bit-identical: points differ by up to {dp:.3g} m, attributes by {rel:.3g} relative"
+
+
+def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) -> None:
     path = d / f"dense{shots}.h5"
     t0 = time.perf_counter()
     info = make_dense_recording(path, shots, seed)
@@ -110,8 +134,14 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
 
         os.environ["MEMS_STEREO_CACHE"] = str(cache)
         IntervalTable.for_settings(burkard2022(), Settings()).fill_all().save_cache()
-    for label in (f"{r} table cache" for r in runs):
-        r = measure_child(PROCESS, path, env=env)
+    labels = [(f"{r} table cache", env) for r in runs]
+    if before:  # the same recording and cache with the package of another commit
+        labels.insert(0, (f"BEFORE ({before}), {runs[-1]} table cache",
+                          dict(env, BENCH_PACKAGE_SRC=str(extract_commit(before, d)))))
+    clouds = []
+    for label, env_ in labels:
+        clouds.append(d / f"cloud{len(clouds)}.npz")
+        r = measure_child(PROCESS, path, clouds[-1], env=env_)
         t = r["seconds"]
         ok = (t <= TARGET_READ_RATIO * t_read, real / t >= TARGET_REALTIME,
               r["maxrss_mb"] <= TARGET_RSS_MB)
@@ -123,7 +153,21 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm")) -> None:
               f"{r['import_s']:.2f} s before")
         print(f"    CPU {r['cpu_s']:.2f} s = {r['cpu_s'] / c_read:.1f}x read+copy CPU; stages: "
               + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings"].items())
-              + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}")
+              + f"; peaks {r['counts']['peaks']}, points {r['counts']['points']}"
+              + ("" if not before else f"; package {r['package']}"))
+    if before:
+        print(f"  cloud against BEFORE: {compare_clouds(clouds[0], clouds[-1])}")
+
+
+def extract_commit(ref: str, d: Path) -> Path:
+    """The package ``mems_stereo`` of git commit ``ref`` extracted under ``d``."""
+    out = d / f"src-{ref}"
+    if not out.exists():
+        out.mkdir()
+        tar = subprocess.run(["git", "archive", ref, "mems_stereo"], cwd=ROOT, check=True,
+                             capture_output=True).stdout
+        subprocess.run(["tar", "-x", "-C", str(out)], input=tar, check=True)
+    return out
 
 
 IMPORTS = r"""
@@ -172,6 +216,9 @@ def main():
     ap.add_argument("--dir", default=None, help="where to write the recording (default: a "
                                                  "temporary directory, removed afterwards)")
     ap.add_argument("--no-startup", action="store_true", help="skip the startup figures")
+    ap.add_argument("--before", default=None, metavar="COMMIT",
+                    help="also process each dense recording with the package of this git "
+                         "commit (same recording, same table cache, same minutes)")
     args = ap.parse_args()
     if not args.no_startup:
         with tempfile.TemporaryDirectory(dir=args.dir) as d:
@@ -180,7 +227,7 @@ def main():
         stream(args)
     for i, n in enumerate(args.dense_shots):
         with tempfile.TemporaryDirectory(dir=args.dir) as d:
-            dense(n, args.seed + i, Path(d), args.runs)
+            dense(n, args.seed + i, Path(d), args.runs, args.before)
 
 
 def stream(args):

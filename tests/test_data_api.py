@@ -21,7 +21,7 @@ def test_data_finds_the_source_trees_samples():
     assert ms.data.root() == ROOT / "samples"
     names = ms.data.list()
     on_disk = sorted(p.name for p in (ROOT / "samples").iterdir()
-                     if p.suffix in (".h5", ".json"))
+                     if p.suffix in ms.data.SAMPLE_SUFFIXES)
     assert names == on_disk and "room.h5" in names and "make_samples.py" not in names
     assert ms.data.path("room.h5") == ROOT / "samples" / "room.h5"
     with pytest.raises(ValueError, match="did you mean 'room.h5'"):

@@ -264,3 +264,57 @@ def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
     for k in ("hist_raw", "hist_signal", "hist_angle", "n_per_step"):
         np.testing.assert_array_equal(getattr(s, k), getattr(whole, k))
     np.testing.assert_array_equal(whole.n_per_step, t.shots_per_step(th, va))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed):
+    """detection_points evaluates each geometry variant once; the reference propagates
+    the three estimators one after the other: every field equal, NaN rows included."""
+    from mems_stereo.pipeline.fusion import _detection_points_reference, detection_points
+
+    s = burkard2022()
+    rng = np.random.default_rng(seed)
+    n = 3000
+    theta = rng.uniform(-0.35, 0.35, 200)
+    args = (rng.integers(0, 200, n), rng.integers(0, s.receiver.height, n),
+            rng.integers(0, s.receiver.width, n), rng.uniform(0.5, s.tdc.n_bins, n), theta)
+    a = detection_points(s, *args)
+    b = _detection_points_reference(s, *args)
+    assert 0.05 < a.ok.mean() < 0.95  # both finite and degenerate rows are compared
+    for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused", "weight_stereo",
+              "ok", "dtof_dL"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+
+
+def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
+    """points_from_counts in blocks of 97 entries (second sub-pass for the inliers
+    only) gives the cloud of one block, bit for bit."""
+    import mems_stereo.pipeline.fusion as fusion
+    from mems_stereo.pipeline.run import process_recording
+
+    clouds = []
+    for block in (1 << 17, 97):
+        monkeypatch.setattr(fusion, "ENTRY_BLOCK", block)
+        clouds.append(process_recording(SAMPLES / "room.h5").cloud)
+    a, b = clouds
+    assert len(a) > 10
+    assert np.array_equal(a.points, b.points)
+    assert a.attributes.keys() == b.attributes.keys()
+    for k in a.attributes:
+        assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+def test_background_by_step_is_stored_over_the_counted_steps_only():
+    """Peaks.background_by_step: the rows of the (P, S) expected background over each
+    peak's steps step_lo..step_hi, sparse, zero elsewhere (checked densely)."""
+    from mems_stereo.pipeline.peaks import window_rows
+
+    rng = np.random.default_rng(5)
+    B = rng.random((12, 40))
+    q, lo, hi = np.array([3, 7, 1, 0]), np.array([5, 0, 39, 10]), np.array([9, 39, 39, 9])
+    got = window_rows(B, q, lo, hi)
+    want = np.zeros((4, 40))
+    for i in range(4):
+        want[i, lo[i]:hi[i] + 1] = B[q[i], lo[i]:hi[i] + 1]
+    assert got.nnz == 5 + 40 + 1
+    assert np.array_equal(got.toarray(), want)

@@ -165,15 +165,25 @@ def _scalar(v):
     return a.reshape(())[()]
 
 
-def attr_int(f: h5py.File, key: str, source: str) -> int | None:
-    """Integer root attribute ``key`` (None when absent); anything else is refused."""
+_ABSENT = object()
+
+
+def _root_attr(f: h5py.File, key: str, source: str):
+    """Root attribute ``key`` as a scalar, or ``_ABSENT``; read errors become FormatError."""
     try:
         if key not in f.attrs:
-            return None
-        v = _scalar(f.attrs[key])
+            return _ABSENT
+        return _scalar(f.attrs[key])
     except _H5_ERRORS as e:
         raise FormatError(f"cannot read the attribute ({_msg(e)})", source,
                           f"attrs/{key}") from None
+
+
+def attr_int(f: h5py.File, key: str, source: str) -> int | None:
+    """Integer root attribute ``key`` (None when absent); anything else is refused."""
+    v = _root_attr(f, key, source)
+    if v is _ABSENT:
+        return None
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
         raise FormatError(f"expected an integer, found {v!r}", source, f"attrs/{key}")
     return int(v)
@@ -181,13 +191,9 @@ def attr_int(f: h5py.File, key: str, source: str) -> int | None:
 
 def attr_str(f: h5py.File, key: str, source: str) -> str | None:
     """String root attribute ``key`` (None when absent or not a string)."""
-    try:
-        if key not in f.attrs:
-            return None
-        v = _scalar(f.attrs[key])
-    except _H5_ERRORS as e:
-        raise FormatError(f"cannot read the attribute ({_msg(e)})", source,
-                          f"attrs/{key}") from None
+    v = _root_attr(f, key, source)
+    if v is _ABSENT:
+        return None
     if isinstance(v, bytes):
         try:
             return v.decode("utf-8")

@@ -84,21 +84,27 @@ def _first_photon_table():
 
 
 def _table_lookup(a, logmu):
-    """Bilinear look-up of (mean, var) on the table; arguments clipped to its grid."""
+    """Bilinear look-up of (mean, var) on the table; arguments clipped to its grid.
+
+    ``a`` and ``logmu`` broadcast against each other; the arithmetic is done on
+    their own shapes (``a`` is usually one value per peak) and the four corners
+    are gathered from the flattened tables, so an (Q, 1, 1) ``a`` against a
+    (Q, J, B) ``logmu`` costs no (Q, J, B) index arrays for ``a``.
+    """
     ag, lg, mean, var = _first_photon_table()
     fa = np.clip((np.asarray(a, dtype=np.float64) - ag[0]) / (ag[1] - ag[0]), 0.0,
                  ag.size - 1.000001)
     fm = np.clip((np.asarray(logmu, dtype=np.float64) - lg[0]) / (lg[1] - lg[0]), 0.0,
                  lg.size - 1.000001)
-    fa, fm = np.broadcast_arrays(fa, fm)
     i, j = fa.astype(np.int64), fm.astype(np.int64)
     wa, wm = fa - i, fm - j
-
-    def bil(t):
-        return ((1 - wa) * (1 - wm) * t[i, j] + wa * (1 - wm) * t[i + 1, j]
-                + (1 - wa) * wm * t[i, j + 1] + wa * wm * t[i + 1, j + 1])
-
-    return bil(mean), bil(var)
+    n = lg.size
+    k00 = i * n + j  # flat index of corner (i, j); (i+1, j) is +n, (i, j+1) is +1
+    c00, c10, c01, c11 = (1 - wa) * (1 - wm), wa * (1 - wm), (1 - wa) * wm, wa * wm
+    out = []
+    for t in (mean.ravel(), var.ravel()):
+        out.append(c00 * t[k00] + c10 * t[k00 + n] + c01 * t[k00 + 1] + c11 * t[k00 + n + 1])
+    return out[0], out[1]
 
 
 #: grid of the signal photons per shot μ0 (spot centred on the pixel) of the posterior

@@ -302,6 +302,14 @@ def classify_detections(system: System, shot_idx, rows, cols, codes, theta,
     return ok & np.isfinite(off[:, 0])
 
 
+def truth_suffix(truth: dict | None) -> str:
+    """``", recall R, noise rejection N"`` of a result's truth scores ("" without truth)."""
+    if not truth:
+        return ""
+    return (f", recall {truth['recall']:.4f}, noise rejection "
+            f"{truth['noise_rejection']:.4f}")
+
+
 @dataclass
 class ClassificationResult:
     """Labels of a recording and the counts
@@ -323,12 +331,8 @@ class ClassificationResult:
 
     def __repr__(self) -> str:
         c = self.counts
-        tr = ""
-        if self.truth:
-            tr = (f", recall {self.truth['recall']:.4f}, noise rejection "
-                  f"{self.truth['noise_rejection']:.4f}")
         return (f"<ClassificationResult {c['shots']} shots, {c['raw']} detections: "
-                f"{c['signal']} signal, {c['noise']} noise{tr}>")
+                f"{c['signal']} signal, {c['noise']} noise{truth_suffix(self.truth)}>")
 
 
 def __getattr__(name):

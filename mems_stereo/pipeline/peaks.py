@@ -135,8 +135,10 @@ class Peaks:
     of the interval table counted in pass 2; counts : (Q,) int64, signal
     detections in the peak's angle band; background : (Q,) float64, their
     expected background; rate_hz : (Q,) float64, the pixel's ML background
-    rate; background_by_step : (Q, S) float64 expected background detections
-    per angle step (None once used up).
+    rate; background_by_step : (Q, S) ``scipy.sparse.csr_array`` float64,
+    the expected background detections per angle step over each peak's
+    counted steps ``step_lo..step_hi`` (zero elsewhere; :func:`window_rows`;
+    None once used up).
 
     ``peaks["row"]`` and ``peaks.get("row")`` read a field (mapping-style
     callers of version 0.1).
@@ -152,7 +154,7 @@ class Peaks:
     counts: np.ndarray
     background: np.ndarray
     rate_hz: np.ndarray
-    background_by_step: np.ndarray | None = None
+    background_by_step: object | None = None
 
     def __len__(self) -> int:
         return int(self.row.size)
@@ -254,11 +256,26 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
+    step_lo = np.maximum(0, b_lo - half).astype(np.int64)
+    step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
     peaks = Peaks(
         row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
-        step_lo=np.maximum(0, b_lo - half).astype(np.int64),
-        step_hi=np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64),
+        step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
-        rate_hz=rate.reshape(-1)[q], background_by_step=B[q])
+        rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
     return peaks, rate.reshape(H, W)
+
+
+def window_rows(B, q, lo, hi):
+    """(Q, S) ``scipy.sparse.csr_array`` of rows ``q`` (Q,) of ``B`` (P, S) over the
+    columns ``lo[i]..hi[i]`` of each row (zero outside), without a dense (Q, S) copy."""
+    from scipy.sparse import csr_array
+
+    q, lo, hi = (np.asarray(x, np.int64).ravel() for x in (q, lo, hi))
+    n = np.maximum(hi - lo + 1, 0)
+    indptr = np.zeros(q.size + 1, np.int64)
+    np.cumsum(n, out=indptr[1:])
+    row = np.repeat(np.arange(q.size), n)
+    col = np.arange(indptr[-1]) - indptr[:-1][row] + lo[row]
+    return csr_array((np.asarray(B)[q[row], col], col, indptr), shape=(q.size, B.shape[1]))

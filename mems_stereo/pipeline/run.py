@@ -35,6 +35,7 @@ from mems_stereo.io.recording import Recording, read_header
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.consistency import truth_suffix
 from mems_stereo.pipeline.fusion import points_from_counts
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import (
@@ -81,12 +82,9 @@ class ProcessResult:
 
     def __repr__(self) -> str:
         c = self.counts
-        tr = ""
-        if self.truth:
-            tr = (f", recall {self.truth['recall']:.4f}, noise rejection "
-                  f"{self.truth['noise_rejection']:.4f}")
         return (f"<ProcessResult {self.source}: {c['shots']} shots, {c['raw']} raw, "
-                f"{c['signal']} signal, {c['peaks']} peaks, {c['points']} points{tr}>")
+                f"{c['signal']} signal, {c['peaks']} peaks, {c['points']} points"
+                f"{truth_suffix(self.truth)}>")
 
     def __getstate__(self):
         # compact between processes (Dask): raw and signal as uint32 where every
