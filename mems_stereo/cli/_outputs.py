@@ -38,7 +38,7 @@ from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.util.atomic import signals_blocked
 from mems_stereo.util.paths import file_kind, require_input_file
 
-CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz")
+CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
@@ -89,10 +89,16 @@ def opt(name: str) -> str:
     return {"output": "--output"}.get(name, "--" + name.replace("_", "-"))
 
 
-def _is_preset(value: str) -> bool:
+def _preset_names() -> list[str]:
+    """Every preset name a ``--system`` option takes (one- and two-axis)."""
+    from mems_stereo.model.scanner2d import TWO_AXIS_PRESETS
     from mems_stereo.model.system import PRESETS
 
-    return value in PRESETS
+    return sorted(PRESETS) + sorted(TWO_AXIS_PRESETS)
+
+
+def _is_preset(value: str) -> bool:
+    return value in _preset_names()
 
 
 def _real(p: Path) -> str:
@@ -142,14 +148,25 @@ class OutputPlan:
                     raise OptionError(f"expected a folder, found {self._what(p)}",
                                       source=str(p), field=opt(name))
                 self.inputs.append((name, p))
+            elif kind == "file" and Path(str(v)).suffix.lower() in (".mcap", ".db3") \
+                    and Path(str(v)).with_suffix("").is_dir():
+                self.inputs.append((name, Path(str(v)).with_suffix("")))  # a ROS 2 bag folder
             else:
                 try:
                     self.inputs.append((name, require_input_file(v, None)))
                 except FileNotFoundError:
                     if name not in _NAMED_INPUTS:
                         raise
-                    presets = " a preset or" if kind == "system" else ""
-                    raise OptionError(f"expected{presets} an existing file, found {v!r} (file "
+                    if kind == "system":
+                        import difflib
+
+                        names = _preset_names()
+                        close = difflib.get_close_matches(str(v), names, n=1, cutoff=0.5)
+                        raise OptionError(
+                            f"{v!r} is neither a preset nor a system file (file not found)\n"
+                            + (f"did you mean {close[0]!r}? " if close else "")
+                            + f"presets: {', '.join(names)}", field=opt(name)) from None
+                    raise OptionError(f"expected an existing file, found {v!r} (file "
                                       "not found)", field=opt(name)) from None
         if self.command == "simulate":
             self.inputs += [("scene", m) for m in _scene_meshes(getattr(a, "scene", None))]
@@ -259,6 +276,11 @@ class OutputPlan:
         for name, p, kind in self.outputs:
             if kind == "dir":  # written in place (demo): its steps commit their own outputs
                 self._mkdirs(p)
+                continue
+            if kind == "cloud" and p.suffix.lower() in (".mcap", ".db3"):
+                # a ROS 2 bag is a folder named after the output (room.mcap → room/), which
+                # its writer fills and replaces itself: written in place, not staged
+                self._mkdirs(p.parent)
                 continue
             self._mkdirs(p.parent)
             tag = secrets.token_hex(4)
