@@ -63,6 +63,20 @@ def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys):
     assert doc["ok"] is False and doc["reason"] in err
 
 
+def test_failed_calibration_writes_the_pdf_report(tmp_path, capsys):
+    """--report X.pdf on a failure: exit non-zero, no system file, a 2-page PDF saying why."""
+    import re
+
+    out, rep = tmp_path / "s.json", tmp_path / "r.pdf"
+    rc = main(["calibrate", str(SAMPLES / "room.h5"), str(SAMPLES / "floodlight.h5"),
+               "-o", str(out), "--report", str(rep)])
+    assert rc in (1, 2) and not out.exists()
+    assert "calibration failed" in capsys.readouterr().err
+    data = rep.read_bytes()
+    assert data.startswith(b"%PDF") and b"(FAILED)" in data
+    assert len(re.findall(rb"/Type\s*/Page[^s]", data)) == 2
+
+
 def test_contradicting_distance_named_no_file(tmp_path, capsys):
     out = tmp_path / "s.json"
     walls = [str(SAMPLES / f"calib_{d}m.h5") for d in ("1.5", "2.5", "4.0")]

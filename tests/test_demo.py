@@ -21,7 +21,8 @@ def test_demo_writes_every_output(tmp_path, capsys, monkeypatch):
     text = capsys.readouterr().out
     summary = json.loads((out / "demo_summary.json").read_text())
     names = {p.split("/")[-1] for p in summary["outputs"]}
-    for name in ("fig2_acquisition.png", "calibrated_system.json", "room.ply", "room.las",
+    for name in ("fig2_acquisition.png", "calibrated_system.json", "calibration_report.pdf",
+                 "room.ply", "room.las",
                  "floodlight.ply", "fig8_room_histograms.png",
                  "fig9_floodlight_histograms.png", "fig5_uncertainty.png", "room_render.png"):
         assert name in names

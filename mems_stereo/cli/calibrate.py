@@ -52,8 +52,12 @@ def add_arguments(p):
     p.add_argument("--allow-unobservable", action="store_true",
                    help="warn instead of failing when a parameter is not observable")
     p.add_argument("--report", default=None, metavar="PATH",
-                   help="write a JSON diagnostic report (estimates, σ, covariance, per-wall "
-                        "values, checks; also for a failed calibration)")
+                   help="write a calibration report, also for a failed calibration: "
+                        "PATH ending in .pdf gives the PDF report (estimates with σ against "
+                        "nominal, correlations, residuals, walls from above, checks, what "
+                        "to record next; for a failure why); any other name a JSON "
+                        "diagnostic report (estimates, σ, covariance, per-wall values, "
+                        "checks)")
 
 
 def _write_report(res, args, rep) -> None:

@@ -1,7 +1,8 @@
 """``mems-stereo demo``: the main job on the bundled samples, end to end.
 
 It runs the commands a user would type, in order, and prints their output:
-``info`` (Fig. 2), ``calibrate`` (the calibration walls), ``process`` (room
+``info`` (Fig. 2), ``calibrate`` (the calibration walls, with the PDF
+calibration report ``calibration_report.pdf``), ``process`` (room
 light and floodlight, with the calibrated system), ``export`` (LAS),
 ``render`` (PNG, offscreen) and ``plot`` (Figs. 8 and 9, top views), plus the
 Fig. 5 uncertainty bounds.  Every bundled recording was made by one true
@@ -158,12 +159,13 @@ def run(args) -> int:
                "the nominal one in the files)")
     cal = out / "calibrated_system.json"
     calib_recs = sorted(str(p) for p in smp.glob("calib_*m.h5"))
-    argv = ["calibrate", *calib_recs, "-o", str(cal)]
+    cal_report = out / "calibration_report.pdf"
+    argv = ["calibrate", *calib_recs, "-o", str(cal), "--report", str(cal_report)]
     dist_file = smp / "calib_distances.json"
     if dist_file.exists():
         argv += ["--target-distances-file", str(dist_file)]
     _call(argv, rep)
-    written.append(cal)
+    written += [cal, cal_report]
     true_file = smp / "calib_true_system.json"
     if true_file.exists():
         from mems_stereo.model.system import load_system
