@@ -65,15 +65,9 @@ def process(args, rep, recs, system) -> int:
                     if c["shots_unknown_angle"] else ""))
         rep.info(f"  read {c['read_fraction']:.2%} of the pixel slots; events {c['events']}, "
                  f"classified signal {c['signal']}, noise {c['noise']}")
-        rep.info(f"  peaks {c['peaks']}, points {c['points']}")
-        if res.truth is not None:
-            t = res.truth
-            rep.info(f"  against the truth: signal recall {t['recall']:.4f}, noise rejection "
-                     f"{t['noise_rejection']:.4f} ({t['true_signal']} laser returns, "
-                     f"{t['true_background']} background detections)")
-        for o in outputs:
-            rep.info(f"  wrote {o}")
-        rep.detail("  timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items()))
+        from mems_stereo.cli.process import report_peaks_truth_outputs
+
+        report_peaks_truth_outputs(rep, res, outputs)
     return 0
 
 

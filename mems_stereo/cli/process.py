@@ -59,6 +59,13 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
              + (f" ({c['shots_unknown_angle']} of unknown scan angle, left out)"
                 if c["shots_unknown_angle"] else ""))
     rep.info(f"  raw counts {c['raw']}, classified signal {c['signal']}, noise {c['noise']}")
+    report_peaks_truth_outputs(rep, res, outputs)
+
+
+def report_peaks_truth_outputs(rep: Reporter, res, outputs=()) -> None:
+    """The common tail of a processing report (one- and two-axis): peaks and points,
+    scores against the truth, outputs written, stage timings (with ``-v``)."""
+    c = res.counts
     rep.info(f"  peaks {c['peaks']}, points {c['points']}")
     if res.truth is not None:
         t = res.truth
