@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 
 from mems_stereo.errors import NotObservableError
 from mems_stereo.model.system import System
-from mems_stereo.physics.first_photon_timing import first_photon_moments
+from mems_stereo.physics.first_photon import first_photon_timing
 
 T_SEARCH = 200e-9  # s: returns are looked for before this TDC time (walls up to ~28 m)
 Z_TRACK = 5.5  # significance of a track point (one phase bin, best of ~15,000 boxes)
@@ -150,7 +150,7 @@ def find_track(w: WallData, sigma: float) -> Track:
     mu = max(float(tr.n.sum()) / max(shots_used, 1.0) / 0.8, 1e-3)
     mu = -math.log(max(1.0 - min(mu, 0.95), 1e-3))
     t_pk = float(np.median(tr.t))
-    _, mean, _ = first_photon_moments(np.array([-t_pk]), mu, sigma, lam_mean)
+    _, mean, _ = first_photon_timing(np.array([t_pk]), mu, sigma, lam_mean)
     tr.mu = mu
     tr.bias = float(mean[0]) if np.isfinite(mean[0]) else 0.0
     return tr

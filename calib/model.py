@@ -12,7 +12,8 @@ For each signal detection (target j, shot with monitor phase φ):
   divided by σ_pix (the pixel's extent, pitch/√12 → 1/√12 px);
 * time residual: measured TDC time ``(N − ½)·bin_width`` minus the expected
   first-photon time of a return centred at ``τ0 = (s + |P|)/c + offset``
-  (:mod:`mems_stereo.physics.first_photon_timing`: truncation at the TDC start, first of several
+  (:func:`mems_stereo.physics.first_photon.first_photon_timing`: truncation at the TDC
+  start, first of several
   photons, background), divided by that distribution's σ.
 
 All frames: receiver camera frame (OpenCV), metres, radians, seconds.

@@ -25,9 +25,10 @@ from mems_stereo.physics.pulse import PulseShape
 # first of them: survival S(u) = (exp(−μ_w F(u)) − exp(−μ_w)) / (1 − exp(−μ_w))
 # with F the pulse's distribution truncated to u ≥ a.  Its mean is early by
 # up to ≈ −σ·sqrt(2 ln μ_w) for a strong return and late near τ0 ≈ 0 (the
-# early part of the pulse is cut off); its variance is below σ².  (The same
-# model as mems_stereo.physics.first_photon_timing.first_photon_moments with no
-# background, and as the simulator's sampling; tests/test_tof_bias.py checks all three agree.)
+# early part of the pulse is cut off); its variance is below σ².  One
+# implementation, first_photon_signal, with background as an option; the simulator
+# samples the same process; tests/test_tof_bias.py and tests/test_first_photon.py check
+# it against Monte-Carlo photons and the simulator's CDF.
 
 #: most signal photons per shot the correction considers
 MU_MAX = 100.0
@@ -35,40 +36,99 @@ _A_GRID = (-6.0, 4.0, 101)  # a = −τ0/σ: below −6 the cut does nothing
 _LOGMU_GRID = (math.log(1e-4), math.log(MU_MAX), 97)
 
 
-def first_photon_moments(a, mu_window, n_quad: int = 801):
-    """Mean and variance of a first-photon arrival, in units of the pulse σ.
+def first_photon_signal(a, mu_window, lam=0.0, n_quad: int = 801):
+    """Probability, mean and variance of a first-photon detection on a signal photon.
+
+    The one first-photon model of the package (the fusion's table, the
+    calibration's start values and the tests' oracles all use it; the
+    simulator samples the same process photon by photon).  A pixel fires on
+    the first of its photons after the TDC start: signal photons of a
+    Gaussian pulse (σ = 1 here), Poisson with ``mu_window`` expected after
+    the start, and background photons at ``lam`` per σ.  With
+    ``G(t) = e^{−μ_w}·expm1(μ_w·Φ_w(t))`` (``Φ_w`` the share of the pulse
+    after ``t = u − lo``, ``lo = max(a, −8)``: the probability that no signal
+    photon came before ``t`` but one comes later) and ``b = lam``, the
+    signal-first density is ``−G′ e^{−bt}``; integrated by parts every
+    moment is an integral of the smooth, positive ``G`` (trapezoid over
+    ``T`` = 16σ; accurate where the density is a spike at the cut, and no
+    cancellation for weak signals)::
+
+        p       = G(0) − G(T) e^{−bT} − b ∫G e^{−bt}
+        E[t·1]  = ∫G e^{−bt} (1 − b t) − T G(T) e^{−bT}
+        E[t²·1] = ∫G e^{−bt} (2t − b t²) − T² G(T) e^{−bT}
 
     Parameters
     ----------
     a : (...) float64, the TDC start relative to the pulse centre, in σ
-        (``−τ0/σ``; −inf: no cut).
-    mu_window : (...) float64 > 0, expected signal photons per shot that
-        arrive after the TDC start (so that ``1 − exp(−μ_w)`` is the
-        probability of a signal detection).
+        (``−τ0/σ``; −inf: no cut, the quadrature starts at −8σ).
+    mu_window : (...) float64 ≥ 0, expected signal photons per shot that
+        arrive after the start (``μ·Φ(−a)`` for μ photons in the whole pulse).
+    lam : (...) float64 ≥ 0, background photons per σ (rate × σ) that may
+        fire the pixel first, from the start ``a`` on (with no start, ``a =
+        −inf``, a pixel with background never fires first on the signal).
     n_quad : trapezoid nodes over the 16σ after ``max(a, −8)``.
 
     Returns
     -------
-    mean, var : (...) float64 (broadcast shape), the arrival time's mean
-        relative to the pulse centre and its variance, in σ and σ².
+    p, mean, var : (...) float64 (broadcast shape): the probability that the
+        pixel fires first on a signal photon, and the mean and variance of
+        that photon's arrival relative to the pulse centre, in σ and σ²
+        (their weak-signal limit where ``mu_window`` is 0).
     """
-
-    a, mu = np.broadcast_arrays(np.asarray(a, dtype=np.float64),
-                                np.asarray(mu_window, dtype=np.float64))
+    a, mu, b = np.broadcast_arrays(np.asarray(a, dtype=np.float64),
+                                   np.asarray(mu_window, dtype=np.float64),
+                                   np.asarray(lam, dtype=np.float64))
     lo = np.maximum(a, -8.0)[..., None]
     t = np.linspace(0.0, 16.0, n_quad)
-    u = lo + t
-    # 1 − F(u) of the truncated Gaussian, from the upper tails (no cancellation)
-    tail = ndtr(-u) / ndtr(-lo)
-    m = mu[..., None]
-    e_mu = np.exp(-m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        surv = np.where(m > 1e-9, (np.exp(-m * (1.0 - tail)) - e_mu) / -np.expm1(-m), tail)
+    # share of the truncated pulse after t, from the upper tails (no cancellation);
+    # computed once per distinct lo (a table row has one a for many μ)
+    lo_u, inv = np.unique(lo, return_inverse=True)
+    tail = (ndtr(-(lo_u[:, None] + t)) / ndtr(-lo_u)[:, None])[inv.reshape(lo.shape[:-1])]
+    # μ_w → 0: G/μ_w → tail, so a floor keeps the weak-signal shape and p is rescaled
+    m = np.maximum(mu, 1e-12)[..., None]
+    bb = b[..., None]
+    eb = np.exp(-bb * t)
+    G = np.exp(-m) * np.expm1(m * tail) * eb  # G(t) e^{−bt}
     w = np.full(n_quad, t[1] - t[0])
     w[0] = w[-1] = 0.5 * (t[1] - t[0])
-    m1 = surv @ w  # E[u − lo]
-    m2 = 2.0 * ((surv * t) @ w)  # E[(u − lo)²]
-    return lo[..., 0] + m1, np.maximum(m2 - m1 * m1, 0.0)
+    T = t[-1]
+    G_T = G[..., -1]
+    i0, i1, i2 = G @ w, (G * t) @ w, (G * (t * t)) @ w
+    p = G[..., 0] - G_T - b * i0
+    e1 = i0 - b * i1 - T * G_T
+    e2 = 2.0 * i1 - b * i2 - T * T * G_T
+    with np.errstate(invalid="ignore", divide="ignore"):
+        m1 = e1 / p
+        var = np.maximum(e2 / p - m1 * m1, 0.0)
+    # background that arrived between the TDC start and −8σ fired the pixel already
+    with np.errstate(invalid="ignore"):
+        early = np.where(b > 0, np.exp(-b * (lo[..., 0] - a)), 1.0)
+    return p * (mu / m[..., 0]) * early, lo[..., 0] + m1, var
+
+
+def first_photon_moments(a, mu_window, n_quad: int = 801):
+    """Mean and variance of a first-photon arrival without background, in units of the pulse σ.
+
+    :func:`first_photon_signal` with ``lam = 0``: see there for ``a`` and
+    ``mu_window``.  Returns ``mean, var`` (...) float64, the arrival's mean
+    relative to the pulse centre and its variance, in σ and σ².
+    """
+    _, mean, var = first_photon_signal(a, mu_window, 0.0, n_quad)
+    return mean, var
+
+
+def first_photon_timing(tau0, mu, sigma: float, lam: float = 0.0):
+    """The same model in seconds, for a return of ``mu`` photons in the whole pulse.
+
+    tau0 : (...) s, TDC time of the pulse centre; mu : (...) signal photons
+    per shot in the whole pulse; sigma : s, the pulse σ; lam : Hz, the
+    pixel's background rate.  Returns ``p, bias, var`` (...): the probability
+    of a signal-first detection, E[arrival − τ0] in s and its variance in s².
+    """
+    a = -np.asarray(tau0, dtype=np.float64) / sigma
+    mu_w = np.asarray(mu, dtype=np.float64) * ndtr(-np.maximum(a, -8.0))
+    p, mean, var = first_photon_signal(a, mu_w, lam * sigma)
+    return p, mean * sigma, var * sigma * sigma
 
 
 @functools.lru_cache(maxsize=1)
