@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+from pathlib import Path
 
 import numpy as np
 from scipy.special import ndtr
@@ -86,14 +87,16 @@ def first_photon_signal(a, mu_window, lam=0.0, n_quad: int = 801):
     tail = (ndtr(-(lo_u[:, None] + t)) / ndtr(-lo_u)[:, None])[inv.reshape(lo.shape[:-1])]
     # μ_w → 0: G/μ_w → tail, so a floor keeps the weak-signal shape and p is rescaled
     m = np.maximum(mu, 1e-12)[..., None]
-    bb = b[..., None]
-    eb = np.exp(-bb * t)
-    G = np.exp(-m) * np.expm1(m * tail) * eb  # G(t) e^{−bt}
+    G = np.expm1(m * tail)
+    G *= np.exp(-m)
+    if np.any(b):
+        G *= np.exp(-b[..., None] * t)  # G(t) e^{−bt}
     w = np.full(n_quad, t[1] - t[0])
     w[0] = w[-1] = 0.5 * (t[1] - t[0])
     T = t[-1]
     G_T = G[..., -1]
-    i0, i1, i2 = G @ w, (G * t) @ w, (G * (t * t)) @ w
+    i012 = G @ np.stack([w, w * t, w * t * t], axis=1)
+    i0, i1, i2 = i012[..., 0], i012[..., 1], i012[..., 2]
     p = G[..., 0] - G_T - b * i0
     e1 = i0 - b * i1 - T * G_T
     e2 = 2.0 * i1 - b * i2 - T * T * G_T
@@ -133,13 +136,28 @@ def first_photon_timing(tau0, mu, sigma: float, lam: float = 0.0):
 
 @functools.lru_cache(maxsize=1)
 def _first_photon_table():
-    """(a grid, log μ_w grid, mean, var) of :func:`first_photon_moments`, tabulated once."""
+    """(a grid, log μ_w grid, mean, var) of :func:`first_photon_moments`, tabulated once
+    per process and kept in the disk cache (:mod:`mems_stereo.util.cache`) across runs."""
+    import scipy
+
+    from mems_stereo.util.cache import cached_arrays, source_key
+
     ag = np.linspace(*_A_GRID)
     lg = np.linspace(*_LOGMU_GRID)
-    mean = np.empty((ag.size, lg.size))
-    var = np.empty_like(mean)
-    for i, a in enumerate(ag):  # row by row: the temporaries stay (n_mu, n_quad)
-        mean[i], var[i] = first_photon_moments(a, np.exp(lg))
+
+    def compute():
+        mean = np.empty((ag.size, lg.size))
+        var = np.empty_like(mean)
+        for i, a in enumerate(ag):  # row by row: the temporaries stay (n_mu, n_quad)
+            mean[i], var[i] = first_photon_moments(a, np.exp(lg))
+        return {"mean": mean, "var": var}
+
+    key = source_key(Path(__file__).read_bytes(), scipy.__version__, _A_GRID, _LOGMU_GRID)
+    got = cached_arrays("first-photon", key, compute)
+    mean, var = got["mean"], got["var"]
+    if mean.shape != (ag.size, lg.size) or var.shape != mean.shape:  # a foreign file
+        got = compute()
+        mean, var = got["mean"], got["var"]
     return ag, lg, mean, var
 
 

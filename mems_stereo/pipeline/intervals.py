@@ -21,7 +21,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ import numpy as np
 from mems_stereo.geometry.uncertainty import Spreads
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.consistency import DEFAULT_CONFIDENCE, accepted_code_intervals
+from mems_stereo.util.cache import cache_dir
 
 DEFAULT_THETA_STEP = 5e-5  # rad
 FILL_BLOCK = 128  # rows computed per call of the reference (bounded, cache-sized temporaries)
@@ -179,17 +179,6 @@ class IntervalTable:
 _ROW_SOURCES = ("errors.py", "model", "geometry", "physics", "pipeline/consistency.py",
                 "pipeline/intervals.py", "io/labels.py")
 _MAX_CACHED_TABLES = 16
-
-
-def cache_dir() -> Path | None:
-    """Folder of the table cache (``$MEMS_STEREO_CACHE``, default ``~/.cache/mems-stereo``);
-    None when ``MEMS_STEREO_CACHE`` is ``off``, ``0`` or empty."""
-    v = os.environ.get("MEMS_STEREO_CACHE")
-    if v is None:
-        return Path.home() / ".cache" / "mems-stereo"
-    if v.strip().lower() in ("", "0", "off", "no", "false"):
-        return None
-    return Path(v)
 
 
 _SOURCE_DIGEST: list = []
