@@ -86,9 +86,16 @@ def shot_returns(true_system: System, scene: Scene, theta, *, link: LinkBudget,
     mean detected signal photons of the whole spot, ``center`` (k, 2) pixel
     of the spot centre, ``sigma_px`` (k, 2).
     """
+    dirs = scan_direction(np.asarray(theta, dtype=np.float64), true_system.scanner)
+    return beam_returns(true_system, scene, dirs, link=link, spot=spot, n_emitted=n_emitted)
+
+
+def beam_returns(true_system: System, scene: Scene, dirs: np.ndarray, *, link: LinkBudget,
+                 spot: SpotModel, n_emitted: float):
+    """:func:`shot_returns` for given beam directions ``dirs`` (k, 3), unit vectors in
+    the receiver camera frame from the mirror (one- and two-axis scanners alike)."""
     sc, rc = true_system.scanner, true_system.receiver
     origin = np.asarray(sc.position, dtype=np.float64)
-    dirs = scan_direction(np.asarray(theta, dtype=np.float64), sc)
     hits = scene.cast(origin, dirs)
     x = hits.point
     hit = hits.hit

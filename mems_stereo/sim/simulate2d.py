@@ -36,11 +36,12 @@ from mems_stereo.model.scanner2d import (
     triangle_wave,
 )
 from mems_stereo.model.system import System
-from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
+from mems_stereo.physics.link_budget import LinkBudget, emitted_photons
 from mems_stereo.physics.pulse import PulseShape
 from mems_stereo.physics.spot import SpotModel, spot_fractions
 from mems_stereo.sim.photons import background_first_arrivals, first_signal_arrival
 from mems_stereo.sim.scene import Scene
+from mems_stereo.sim.simulate import beam_returns
 from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
 
 CHUNK_SHOTS = 8192
@@ -63,46 +64,6 @@ def default_gate_spec(system: System, r_min: float = 0.5, r_max: float = 8.0,
     r = np.geomspace(r_min, r_max, 64)
     sig = float(np.max(spot.sigma(r, r, link)))
     return GateSpec(r_min, r_max, gate_half_width(system, sig))
-
-
-def _returns(true_system: System, scene: Scene, dirs: np.ndarray, link: LinkBudget,
-             spot: SpotModel, n_emitted: float) -> dict:
-    """Per shot: hit point, visibility, mean signal, spot centre and σ (px) —
-    the one-axis simulator's ``shot_returns`` for given beam directions."""
-    rc = true_system.receiver
-    origin = np.asarray(true_system.scanner.position, dtype=np.float64)
-    hits = scene.cast(origin, dirs)
-    x, hit = hits.point, hits.hit
-    r_rx = np.linalg.norm(x, axis=1)
-    visible = np.zeros(hit.shape, dtype=bool)
-    if np.any(hit):
-        back = scene.cast(np.zeros(3), x[hit] / r_rx[hit, None])
-        visible[hit] = back.t >= r_rx[hit] - (1e-4 + 1e-5 * r_rx[hit])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cos_emit = -np.sum(hits.normal * x, axis=1) / r_rx
-        cos_view = x[:, 2] / r_rx
-    refl = np.zeros(hit.shape)
-    refl[hit] = scene.reflectivity[hits.object_index[hit]]
-    mu = expected_signal_photons(n_emitted, refl, np.where(visible, cos_emit, 0.0),
-                                 np.where(visible, cos_view, 0.0), np.where(hit, r_rx, 1.0),
-                                 link, rc)
-    mu = np.where(visible, mu, 0.0)
-    center = np.full((x.shape[0], 2), np.nan)
-    if np.any(visible):
-        K = rc.camera_matrix
-        xv = x[visible]
-        if np.any(rc.dist_coeffs):
-            from mems_stereo.model.camera import project_points
-
-            center[visible] = project_points(xv, K, rc.dist_coeffs)
-        else:
-            center[visible] = np.stack([K[0, 0] * xv[:, 0] / xv[:, 2] + K[0, 2],
-                                        K[1, 1] * xv[:, 1] / xv[:, 2] + K[1, 2]], axis=1)
-    sig_m = spot.sigma(np.where(hit, hits.t, 1.0), np.where(hit, x[:, 2], 1.0), link)
-    sigma_px = sig_m[:, None] / np.asarray(rc.pixel_pitch, dtype=np.float64)[None, :]
-    path = np.where(hit, hits.t + r_rx, np.nan)
-    return {"point": x, "path_length": path, "mu": mu, "center": center,
-            "sigma_px": sigma_px, "visible": visible}
 
 
 def _axis2_truth(system: System, n_shots: int, shot_time: np.ndarray, rng, phase2,
@@ -209,7 +170,7 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
         s1 = min(n_shots, s0 + CHUNK_SHOTS)
         k = s1 - s0
         dirs = scan_direction_2d(theta1[s0:s1], theta2[s0:s1], sc)
-        ret = _returns(ts, scene, dirs, link, spot, n_emit)
+        ret = beam_returns(ts, scene, dirs, link=link, spot=spot, n_emitted=n_emit)
         point[s0:s1] = np.where(ret["visible"][:, None], ret["point"], np.nan)
         # readout gate from the nominal angles (unknown angle: nothing read)
         if gate is None:
