@@ -28,6 +28,7 @@ import numpy as np
 
 from mems_stereo.errors import GeometryError
 from mems_stereo.geometry.triangulation import pixel_ray_point, scanner_ray_point
+from mems_stereo.geometry.uncertainty import central_differences
 from mems_stereo.model.camera import pixels_to_rays
 from mems_stereo.model.scanner2d import scan_direction_2d
 from mems_stereo.model.system import System
@@ -116,16 +117,8 @@ def _inputs(u, v, L, theta1, theta2) -> dict:
 def jacobian_2d(fn: Estimator2D, system: System, u, v, L, theta1, theta2):
     """Value (N, 3) and central-difference Jacobian (N, 3, 5) of an estimator,
     columns in the order of ``INPUTS_2D`` (per px, per m, per rad)."""
-    x_in = _inputs(u, v, L, theta1, theta2)
-    x0 = fn(system, **x_in)
-    cols = []
-    for name in INPUTS_2D:
-        h = _STEPS_2D[name]
-        plus, minus = dict(x_in), dict(x_in)
-        plus[name] = x_in[name] + h
-        minus[name] = x_in[name] - h
-        cols.append((fn(system, **plus) - fn(system, **minus)) / (2.0 * h))
-    return x0, np.stack(cols, axis=-1)
+    return central_differences(fn, system, _inputs(u, v, L, theta1, theta2), _STEPS_2D,
+                               INPUTS_2D)
 
 
 def propagate_2d(fn: Estimator2D, system: System, u, v, L, theta1, theta2,

@@ -199,14 +199,20 @@ def jacobian(fn: Estimator, system: System, u, v, L, theta, wrt=INPUTS):
     Returns ``(x (N, 3), J (N, 3, len(wrt)))``; derivatives per px, per m,
     per rad.  Rows where the estimator gives NaN stay NaN.
     """
-    x_in = _as_inputs(u, v, L, theta)
-    x0 = fn(system, **x_in)
+    return central_differences(fn, system, _as_inputs(u, v, L, theta), _STEPS, wrt)
+
+
+def central_differences(fn: Estimator, system: System, inputs: dict, steps: dict, wrt):
+    """``fn(system, **inputs)`` (N, 3) and its central-difference Jacobian (N, 3, len(wrt))
+    with respect to the inputs named in ``wrt``, each with its step ``steps[name]``
+    (one- and two-axis estimators alike)."""
+    x0 = fn(system, **inputs)
     cols = []
     for name in wrt:
-        h = _STEPS[name]
-        plus, minus = dict(x_in), dict(x_in)
-        plus[name] = x_in[name] + h
-        minus[name] = x_in[name] - h
+        h = steps[name]
+        plus, minus = dict(inputs), dict(inputs)
+        plus[name] = inputs[name] + h
+        minus[name] = inputs[name] - h
         cols.append((fn(system, **plus) - fn(system, **minus)) / (2.0 * h))
     return x0, np.stack(cols, axis=-1)
 
