@@ -136,20 +136,32 @@ class Scene:
         ans = rc.cast_rays(o3d.core.Tensor(rays))
         t = ans["t_hit"].numpy().astype(np.float64)
         gid = ans["geometry_ids"].numpy().astype(np.int64)
+        prim = ans["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)
         obj = np.full(n, -1, dtype=np.int64)
         obj[hit] = self._gid_to_obj[gid[hit]]
         hit &= obj >= 0
         t[~hit] = np.inf
         pts = np.full((n, 3), np.nan)
-        pts[hit] = o[hit] + t[hit, None] * d[hit]
         nrm = np.full((n, 3), np.nan)
         if np.any(hit):
-            nn = ans["primitive_normals"].numpy().astype(np.float64)[hit]
-            nn /= np.linalg.norm(nn, axis=1, keepdims=True)
-            flip = np.sum(nn * d[hit], axis=1) > 0  # face the incoming ray
-            nn[flip] *= -1.0
-            nrm[hit] = nn
+            # Embree casts in float32 (and its SIMD path differs between CPUs): it only
+            # picks the triangle; the hit itself is the float64 ray-plane intersection
+            nn = np.empty((n, 3))
+            v0 = np.empty((n, 3))
+            for i in np.unique(obj[hit]):
+                sel = hit & (obj == i)
+                ob = self.objects[i]
+                tri = np.asarray(ob.vertices, dtype=np.float64)[ob.triangles[prim[sel]]]
+                v0[sel] = tri[:, 0]
+                nn[sel] = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+            nh, dh = nn[hit], d[hit]
+            nh /= np.linalg.norm(nh, axis=1, keepdims=True)
+            t[hit] = np.sum((v0[hit] - o[hit]) * nh, axis=1) / np.sum(dh * nh, axis=1)
+            flip = np.sum(nh * dh, axis=1) > 0  # face the incoming ray
+            nh[flip] *= -1.0
+            nrm[hit] = nh
+            pts[hit] = o[hit] + t[hit, None] * dh
         return RayHits(t, pts, nrm, obj)
 
     def __repr__(self) -> str:
