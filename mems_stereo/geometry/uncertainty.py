@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mems_stereo.errors import GeometryError
+from mems_stereo.errors import GeometryError, OptionError
 from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
     paper_eq8_z,
@@ -96,7 +96,7 @@ def pixel_extent_px(system: System, model: str = "pixel") -> tuple[float, float]
     if model == "pixel":
         return 1.0, 1.0
     if model != "spad":
-        raise ValueError(f"pixel extent model: expected 'pixel' or 'spad', found {model!r}")
+        raise OptionError(f"pixel extent model: expected 'pixel' or 'spad', found {model!r}")
     rc = system.receiver
     ex = min(float(rc.spad_diameter), float(rc.pixel_pitch[0])) / float(rc.pixel_pitch[0])
     return ex, 1.0

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import ndtr
 
+from mems_stereo.errors import FormatError
+
 #: FWHM / σ of a Gaussian, 2·sqrt(2 ln 2)
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
@@ -50,10 +52,10 @@ class PulseShape:
         ts = np.asarray(times, dtype=np.float64)
         ps = np.asarray(power, dtype=np.float64)
         if ts.ndim != 1 or ts.shape != ps.shape or ts.size < 2:
-            raise ValueError(f"pulse shape: expected times and power of equal shape (m,), m >= 2,"
+            raise FormatError(f"pulse shape: expected times and power of equal shape (m,), m >= 2,"
                              f" found {ts.shape} and {ps.shape}")
         if np.any(np.diff(ts) <= 0) or np.any(ps < 0) or not np.any(ps > 0):
-            raise ValueError("pulse shape: expected increasing times and non-negative power "
+            raise FormatError("pulse shape: expected increasing times and non-negative power "
                              "with a positive peak")
         pad = 6.0 * jitter
         t = np.linspace(ts[0] - pad, ts[-1] + pad, n)

@@ -24,7 +24,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from mems_stereo.errors import GeometryError
+from mems_stereo.errors import GeometryError, OptionError
 from mems_stereo.io.recording import Recording
 from mems_stereo.model.camera import project_points
 from mems_stereo.model.scanner import scan_direction
@@ -58,7 +58,7 @@ def _rates(background_hz, dark_count_hz, shape) -> np.ndarray:
     dk = np.broadcast_to(np.asarray(dark_count_hz, dtype=np.float64), shape)
     rate = bg + dk
     if not np.all(np.isfinite(rate)) or np.any(bg < 0) or np.any(dk < 0):
-        raise ValueError("background_hz, dark_count_hz: expected non-negative finite rates")
+        raise OptionError("background_hz, dark_count_hz: expected non-negative finite rates")
     return rate
 
 
@@ -294,13 +294,13 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
         raise TypeError("rng: expected a numpy.random.Generator")
     n_shots = int(n_shots)
     if n_shots < 1:
-        raise ValueError(f"n_shots: expected a positive integer, found {n_shots}")
+        raise OptionError(f"n_shots: expected a positive integer, found {n_shots}")
     ts = system if true_system is None else true_system
     if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
         raise GeometryError(f"true_system: expected image_size {system.receiver.image_size} "
                             f"like the nominal system, found {ts.receiver.image_size}")
     if not 0.0 <= crosstalk <= 1.0:
-        raise ValueError(f"crosstalk: expected a probability in [0, 1], found {crosstalk}")
+        raise OptionError(f"crosstalk: expected a probability in [0, 1], found {crosstalk}")
     link = LinkBudget() if link is None else link
     spot = SpotModel() if spot is None else spot
     w, h = system.receiver.image_size

@@ -24,7 +24,7 @@ import math
 
 import numpy as np
 
-from mems_stereo.errors import GeometryError
+from mems_stereo.errors import GeometryError, OptionError
 from mems_stereo.geometry.gating import GateSpec, full_gate, gate_pixels
 from mems_stereo.io.recording2d import Recording2D
 from mems_stereo.model.scanner2d import (
@@ -123,19 +123,19 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
         raise TypeError("rng: expected a numpy.random.Generator")
     n_shots = int(n_shots)
     if n_shots < 1:
-        raise ValueError(f"n_shots: expected a positive integer, found {n_shots}")
+        raise OptionError(f"n_shots: expected a positive integer, found {n_shots}")
     require_two_axis(system)
     ts = system if true_system is None else true_system
     require_two_axis(ts, "true_system")
     if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
         raise GeometryError("true_system: expected the nominal system's image_size")
     if background_hz < 0 or dark_count_hz < 0:
-        raise ValueError("background_hz, dark_count_hz: expected non-negative rates")
+        raise OptionError("background_hz, dark_count_hz: expected non-negative rates")
     link = default_link() if link is None else link
     spot = SpotModel() if spot is None else spot
     if isinstance(gate, str):
         if gate != "auto":
-            raise ValueError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
+            raise OptionError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
         gate = default_gate_spec(system, spot=spot, link=link)
     w, h = system.receiver.image_size
     npix = w * h

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mems_stereo.errors import OptionError
 from mems_stereo.model.system import Scanner
 
 
@@ -66,7 +67,7 @@ class Trajectory:
         c = (np.asarray(phi, dtype=np.float64) - self.phase) / (2.0 * np.pi * self.f_mech)
         disc = 1.0 + 2.0 * self.drift * c
         if np.any(disc <= 0):
-            raise ValueError("drift: the frequency would reach zero inside the recording")
+            raise OptionError("drift: the frequency would reach zero inside the recording")
         return self.t_ref + 2.0 * c / (1.0 + np.sqrt(disc))
 
     def zero_crossings(self, t_start: float, t_stop: float):
