@@ -9,6 +9,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from mems_stereo.errors import ShapeError
 from mems_stereo.util.atomic import atomic_output
 
 #: Label values of FORMAT v1 event labels.
@@ -20,7 +21,7 @@ def write_labels(path: str | os.PathLike, label, theta) -> Path:
     lab = np.asarray(label, dtype=np.uint8)
     th = np.asarray(theta, dtype=np.float64)
     if lab.ndim != 3 or th.shape != (lab.shape[0],):
-        raise ValueError(f"labels: expected (K, H, W) and (K,), found {lab.shape}, {th.shape}")
+        raise ShapeError(f"labels: expected (K, H, W) and (K,), found {lab.shape}, {th.shape}")
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
         f.attrs["format"] = "mems-stereo/labels"
         f.attrs["version"] = 1

@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mems_stereo.errors import FormatError
+from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.util.atomic import atomic_output
 
 PHOTON, SYNC, MARKER = 0, 1, 2
@@ -242,7 +242,7 @@ def ptu_header_bytes(mode: str, global_resolution: float, resolution: float,
                      n_records: int, sync_rate: float, comment: str = "") -> bytes:
     """The tag header of a Generic T2/T3 PTU file (magic, version, tags, Header_End)."""
     if mode not in ("T2", "T3"):
-        raise ValueError(f"mode: expected 'T2' or 'T3', found {mode!r}")
+        raise OptionError(f"mode: expected 'T2' or 'T3', found {mode!r}")
     tags = [("File_GUID", "{00000000-0000-4000-8000-000000000000}"),
             ("File_Comment", comment),
             ("CreatorSW_Name", "mems-stereo"),
@@ -273,10 +273,10 @@ def encode_t2(time, kind, channel, prev_wrap: int = 0) -> np.ndarray:
     kind = np.asarray(kind)
     ch = np.asarray(channel, dtype=np.int64)
     if t.size and (t[0] < 0 or np.any(np.diff(t) < 0)):
-        raise ValueError("time: expected non-negative, non-decreasing time tags")
+        raise OptionError("time: expected non-negative, non-decreasing time tags")
     if np.any((kind == PHOTON) & ((ch < 0) | (ch > 62))) or np.any(
             (kind == MARKER) & ((ch < 1) | (ch > 15))):
-        raise ValueError("channel: photon inputs 0..62, marker masks 1..15 in Generic T2")
+        raise OptionError("channel: photon inputs 0..62, marker masks 1..15 in Generic T2")
     wrap = 1 << 25
     w = t // wrap
     # one overflow record (count = the jump) before each event whose wrap count grew
@@ -296,14 +296,14 @@ def encode_t3(nsync, dtime, kind, channel) -> np.ndarray:
     kind = np.asarray(kind)
     ch = np.asarray(channel, dtype=np.int64)
     if ns.size and (ns[0] < 0 or np.any(np.diff(ns) < 0)):
-        raise ValueError("nsync: expected non-negative, non-decreasing sync counts")
+        raise OptionError("nsync: expected non-negative, non-decreasing sync counts")
     if np.any(kind == SYNC):
-        raise ValueError("kind: T3 records carry no sync events")
+        raise OptionError("kind: T3 records carry no sync events")
     if np.any((dt < 0) | (dt > 32767)):
-        raise ValueError("dtime: expected 0..32767 in Generic T3")
+        raise OptionError("dtime: expected 0..32767 in Generic T3")
     if np.any((kind == PHOTON) & ((ch < 0) | (ch > 62))) or np.any(
             (kind == MARKER) & ((ch < 1) | (ch > 15))):
-        raise ValueError("channel: photon inputs 0..62, marker masks 1..15 in Generic T3")
+        raise OptionError("channel: photon inputs 0..62, marker masks 1..15 in Generic T3")
     w = ns // 1024
     jump = np.diff(np.concatenate([[0], w]))
     special = kind != PHOTON
@@ -385,7 +385,7 @@ def recording_to_ptu(recording, path: str | os.PathLike, *, mode: str = "T2",
     P = w * h
     ch_of_pix = np.arange(P) if channels is None else np.asarray(channels, np.int64)
     if ch_of_pix.size != P or ch_of_pix.max() > 62:
-        raise ValueError(f"channels: expected {P} inputs 0..62 (one per pixel), found "
+        raise OptionError(f"channels: expected {P} inputs 0..62 (one per pixel), found "
                          f"{ch_of_pix.size} up to {ch_of_pix.max()}")
     bins = np.asarray(recording.bins).reshape(recording.n_shots, P)
     k_idx, p_idx = np.nonzero(bins)
@@ -402,7 +402,7 @@ def recording_to_ptu(recording, path: str | os.PathLike, *, mode: str = "T2",
         st = (np.asarray(recording.shot_time) - origin) / tick
         s_ticks = np.rint(st).astype(np.int64)
         if np.any(np.abs(st - s_ticks) > 1e-3) or s_ticks[0] < 0:
-            raise ValueError("shot_time: expected non-negative multiples of the T2 time tag")
+            raise OptionError("shot_time: expected non-negative multiples of the T2 time tag")
         ph_t = s_ticks[k_idx] + (code - 1 + delay_bins) * t2_ticks_per_bin
         z_t = np.rint((zc - origin) / tick).astype(np.int64)
         t = np.concatenate([s_ticks, ph_t, z_t])
@@ -430,7 +430,7 @@ def recording_to_ptu(recording, path: str | os.PathLike, *, mode: str = "T2",
                   sync_rate=sysm.laser.f_rep)
         binning = 1
     else:
-        raise ValueError(f"mode: expected 'T2' or 'T3', found {mode!r}")
+        raise OptionError(f"mode: expected 'T2' or 'T3', found {mode!r}")
     pix_rows = [[int(ch_of_pix[i]), i % w, i // w] for i in range(P)]
     first = 0 if mode == "T2" else int(ns[0])
     m = TttrMap(np.asarray(pix_rows, np.int64), "sync", None, "marker", zc_markers[0],

@@ -26,6 +26,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mems_stereo.errors import ShapeError
+
 REQUIRED_ATTRIBUTES = ("counts", "pixel", "range", "sigma_r", "sigma_phi")
 
 
@@ -42,7 +44,7 @@ class PointCloud:
         for k, v in list(self.attributes.items()):
             v = np.asarray(v)
             if v.shape != (n,):
-                raise ValueError(f"attribute {k!r}: expected shape ({n},), found {v.shape}")
+                raise ShapeError(f"attribute {k!r}: expected shape ({n},), found {v.shape}")
             self.attributes[k] = v
 
     def __len__(self) -> int:

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import ndtri
 
-from mems_stereo.errors import GeometryError
+from mems_stereo.errors import GeometryError, OptionError
 from mems_stereo.geometry.triangulation import coplanar_ray_intersection, pixel_ray_point
 from mems_stereo.geometry.uncertainty import Spreads, spreads_for
 from mems_stereo.io.labels import LABEL_NOISE, LABEL_NONE, LABEL_SIGNAL
@@ -46,7 +46,7 @@ DEFAULT_CONFIDENCE = 0.997
 def k_from_confidence(confidence: float) -> float:
     """Two-sided Gaussian multiplier k with P(|z| ≤ k) = confidence (0.997 → 2.968)."""
     if not 0.0 < confidence < 1.0:
-        raise ValueError(f"confidence: expected a value in (0, 1), found {confidence!r}")
+        raise OptionError(f"confidence: expected a value in (0, 1), found {confidence!r}")
     return float(ndtri(0.5 * (1.0 + confidence)))
 
 
