@@ -207,8 +207,11 @@ def process_recording(path, system: System | None = None,
     if own_table:
         table.save_cache()
     timings["classify_histogram"] = time.perf_counter() - t1
-    return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                             progress=progress, table=table)
+    res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                            progress=progress, table=table)
+    if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
+        table.save_cache()
+    return res
 
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
