@@ -216,12 +216,15 @@ def process_recording(path, system: System | None = None,
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
-                      table: IntervalTable | None = None) -> ProcessResult:
+                      table: IntervalTable | None = None, make_points=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
-    (default: here, in chunks; the Dask runner passes its own).  ``table`` :
-    the run's interval table (the one pass 1 filled).
+    (default: here, in chunks; the Dask runner passes its own, which may
+    return a handle that only its ``make_points`` reads).
+    ``make_points(peaks, counts) -> PointCloud`` runs the fusion (default:
+    :func:`points_from_counts` here; the Dask runner fuses blocks of peaks on
+    its workers).  ``table`` : the run's interval table (the one pass 1 filled).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -245,8 +248,11 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
         counts = count_peaks(peaks)
     timings["peak_detections"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    cloud = points_from_counts(sysm, peaks, counts, st, shots_per_step=acc.n_per_step,
-                               table=table)
+    if make_points is None:
+        cloud = points_from_counts(sysm, peaks, counts, st, shots_per_step=acc.n_per_step,
+                                   table=table)
+    else:
+        cloud = make_points(peaks, counts)
     peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
     timings["points"] = time.perf_counter() - t4
     counts = Counts(int(K), int(acc.n_unknown), int(raw.sum()), int(sig.sum()),
