@@ -11,9 +11,11 @@ per count the wall time, speed-up T1/Tn, efficiency speed-up/n, and whether
 every result is identical to one process (histograms, cloud, counts).
 
 What bounds the speed-up on any machine is printed too: the client's serial
-seconds in ``process_split`` (header and angles, table rows, peaks, points)
-and the bytes the client gathers, per part, against T1; the serial fraction
-f = serial / T1 gives Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.
+seconds in ``process_split`` (its wall time less the time it waited on its
+workers: header and angles, table rows, scatters, the peak detector, joining
+the peak blocks' clouds) and the bytes the client gathers, per part, against
+T1 and against one worker's time; the serial fraction f = serial / T1 gives
+Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
 cache), as on a long-lived cluster; cluster start-up is printed apart.
@@ -127,7 +129,7 @@ def main():
     args = ap.parse_args()
     workers = args.workers or default_workers()
     n_rec = args.recordings or max(4, 2 * max(workers))
-    print(f"machine: {machine()}")
+    print(f"machine: {machine()}; load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         t0 = time.perf_counter()
         big = Path(d) / "split.h5"
@@ -186,6 +188,7 @@ def main():
               f"{ok_m} | {t_start:.1f} |")
     print()
     print("what bounds process_split (client side, per worker count):")
+    t1w = next((r[2] for r in rows if r[0] == 1), None)
     for n, *_, tm in rows:
         if "client_serial" not in tm:  # an older pipeline without these figures
             print(f"  {n:>2} workers: stages " + ", ".join(f"{k} {v:.2f} s"
@@ -194,19 +197,16 @@ def main():
         f = tm["client_serial"] / t1_split
         amdahl16 = 1.0 / (f + (1.0 - f) / 16)
         mb = tm["client_bytes"] / 1e6
-        print(f"  {n:>2} workers: {int(tm['parts'])} parts; client serial "
-              f"{tm['client_serial']:.2f} s (header+angles {tm['read_header']:.2f}, peaks "
-              f"{tm['peaks']:.2f}, points {tm['points']:.2f}); table rows on the workers "
-              f"{tm['table']:.2f} s; gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB "
-              f"per part; serial fraction {f:.1%} of one process's {t1_split:.2f} s -> Amdahl "
-              f"bound on 16 workers {amdahl16:.1f}x")
-        # the same without the fusion stage, whose cost grows with the background in
-        # the peak windows (issue 14, "points stage proportional to the data")
-        pts1 = one_split.timings["points"]
-        f2 = (tm["client_serial"] - tm["points"]) / max(t1_split - pts1, 1e-9)
-        print(f"      without the points stage (one process {pts1:.2f} s of it): serial "
-              f"fraction {f2:.1%} -> Amdahl bound on 16 workers "
-              f"{1.0 / (f2 + (1.0 - f2) / 16):.1f}x")
+        vs1w = (f"; {tm['client_serial'] / t1w:.1%} of one worker's {t1w:.2f} s"
+                if t1w else "")
+        print(f"  {n:>2} workers: {int(tm['parts'])} shot parts, "
+              f"{int(tm.get('peak_blocks', 0))} peak blocks fused on the workers; client "
+              f"serial {tm['client_serial']:.2f} s (wall less {tm.get('client_wait', 0):.2f} s "
+              f"waiting on the workers; header+angles {tm['read_header']:.2f}, peak detector "
+              f"{tm['peaks']:.2f}); gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB per "
+              f"part; serial fraction {f:.1%} of one process's {t1_split:.2f} s{vs1w} -> "
+              f"Amdahl bound on 16 workers {amdahl16:.1f}x")
+    print(f"load average at the end: {os.getloadavg()[0]:.1f} (other jobs share these cores)")
     best_s = max(t1_split / r[2] for r in rows)
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "

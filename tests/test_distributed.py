@@ -121,7 +121,7 @@ def test_fusion_of_peak_blocks_equals_the_whole():
     """The fusion split at multiples of FP_BLOCK peaks, joined, is the whole's cloud,
     bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index)."""
     from mems_stereo.pipeline import run as R
-    from mems_stereo.pipeline.distributed import _points_block
+    from mems_stereo.pipeline.distributed import points_block
 
     for name in ("room.h5", "floodlight.h5"):
         seen = {}
@@ -144,9 +144,29 @@ def test_fusion_of_peak_blocks_equals_the_whole():
         for n in (2, 3, 7, Q):
             blocks = split_peak_counts(seen["counts"], Q, S, nb, n)
             assert len(blocks) > 1
-            j = join_clouds([_points_block(seen["system"], light, b, seen["st"], seen["sps"],
+            j = join_clouds([points_block(seen["system"], light, b, seen["st"], seen["sps"],
                                            seen["table"]) for b in blocks])
             assert list(j.attributes) == list(whole.attributes)
             np.testing.assert_array_equal(j.points, whole.points)
             for k in whole.attributes:
                 np.testing.assert_array_equal(j[k], whole[k], err_msg=k)
+
+
+def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
+    """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
+    (cut at multiples of FP_BLOCK peaks) gives the cloud of one block, bit for bit."""
+    from mems_stereo.pipeline import run as R
+
+    one = process_recording(SAMPLES / "room.h5")
+    calls = []
+    orig = R.points_from_counts
+
+    def count(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
+    monkeypatch.setattr(R, "points_from_counts", count)
+    blocked = process_recording(SAMPLES / "room.h5")
+    assert len(calls) >= 3
+    _same(one, blocked)

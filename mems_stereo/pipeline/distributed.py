@@ -43,12 +43,18 @@ import numpy as np
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
-from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.fusion import FP_BLOCK, points_from_counts
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
-from mems_stereo.pipeline.run import ProcessResult, finish_processing, process_recording
+from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
+    ProcessResult,
+    finish_processing,
+    join_clouds,
+    peak_blocks,
+    points_block,
+    process_recording,
+    split_peak_counts,
+)
 from mems_stereo.pipeline.settings import Settings
 
 #: parts summed per task of the reduction tree
@@ -171,70 +177,6 @@ def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
-def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[tuple[int, int]]:
-    """Split the peaks 0..Q into at most ``n_blocks`` contiguous ranges ``(q0, q1)``.
-
-    Cuts only at multiples of ``unit`` (the fusion's first-photon block
-    :data:`~mems_stereo.pipeline.fusion.FP_BLOCK`, so the blocks' clouds joined are
-    the whole's, bit for bit), each near an equal share of the fusion's work
-    (``entries_per_peak`` (Q,): the peaks' distinct (step, code) entries, plus one).
-    """
-    e = np.asarray(entries_per_peak, np.float64).ravel()
-    Q = e.size
-    if Q == 0:
-        return []
-    cand = np.arange(unit, Q, unit)
-    cum = np.concatenate([[0.0], np.cumsum(e + 1.0)])
-    chosen = []
-    if cand.size and n_blocks > 1:
-        targets = cum[-1] * np.arange(1, n_blocks) / n_blocks
-        at = np.clip(np.searchsorted(cum[cand], targets), 0, cand.size - 1)
-        lower = np.clip(at - 1, 0, cand.size - 1)  # the nearer of the two candidates
-        pick = np.where(np.abs(cum[cand[lower]] - targets) < np.abs(cum[cand[at]] - targets),
-                        lower, at)
-        chosen = cand[pick]
-    edges = np.unique(np.concatenate([[0], chosen, [Q]])).astype(int)
-    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
-
-
-def split_peak_counts(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int,
-                      n_blocks: int) -> list[tuple[int, int, PeakCounts]]:
-    """``(q0, q1, counts of peaks q0..q1−1 renumbered from 0)`` per block of
-    :func:`peak_blocks`; keys are sorted by peak, so each block is a slice."""
-    span = np.int64(n_steps) * np.int64(n_codes)
-    keys = counts.keys
-    per_peak = np.bincount(keys // span, minlength=n_peaks) if keys.size else np.zeros(n_peaks)
-    out = []
-    for q0, q1 in peak_blocks(per_peak, n_blocks):
-        a, b = np.searchsorted(keys, [q0 * span, q1 * span])
-        out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b])))
-    return out
-
-
-def join_clouds(clouds: Sequence[PointCloud]) -> PointCloud:
-    """The clouds of consecutive peak blocks as one, attributes in the order of the
-    whole run's.  A block none of whose peaks has an inlier band carries no
-    first-photon attributes (``tof_delay``, ``signal_photons``); the whole run
-    gives its peaks NaN there, and so does this."""
-    full = max(clouds, key=lambda c: len(c.attributes))
-    attrs = {}
-    for k, v in full.attributes.items():
-        parts = []
-        for c in clouds:
-            if k in c.attributes:
-                parts.append(c.attributes[k])
-            elif v.dtype.kind == "f":
-                parts.append(np.full(len(c), np.nan, v.dtype))
-            else:  # pragma: no cover - only the float first-photon attributes are optional
-                raise ValueError(f"attribute {k!r} missing from a peak block")
-        attrs[k] = np.concatenate(parts)
-    for c in clouds:
-        extra = set(c.attributes) - set(full.attributes)
-        if extra:  # pragma: no cover
-            raise ValueError(f"peak blocks with different attributes: {sorted(extra)}")
-    return PointCloud(np.concatenate([c.points for c in clouds]), attrs)
-
-
 class _Waits:
     """Seconds the client spends blocked on its workers' results."""
 
@@ -307,11 +249,11 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes, 4 * n_w,
                                      pure=False)
             n_blocks = waits(client.submit(len, blocks_f, pure=False).result)
-            clouds_f = [client.submit(_points_block, sysm, shared["peaks"],
+            clouds_f = [client.submit(points_block, sysm, shared["peaks"],
                                       client.submit(operator.getitem, blocks_f, i, pure=False),
                                       st, nps_f, table_f, pure=False) for i in range(n_blocks)]
             if not clouds_f:  # no peaks: the (empty) cloud of the whole
-                return _points_block(sysm, {k: v for k, v in peaks.items()
+                return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
                                      (0, 0, PeakCounts()), st, acc.n_per_step, table)
             clouds = waits(client.gather, clouds_f)
@@ -345,11 +287,3 @@ def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)
-
-
-def _points_block(system, peaks, block, settings, n_per_step, table):
-    """The cloud of peaks ``q0..q1−1`` (``block`` of :func:`split_peak_counts`)."""
-    q0, q1, counts = block
-    sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
-    return points_from_counts(system, sub, counts, settings, shots_per_step=n_per_step,
-                              table=table)
