@@ -70,6 +70,13 @@ def same(a, b) -> bool:
     return bool(ok)
 
 
+def _cpu_seconds() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
 def default_workers() -> list[int]:
     n, out = os.cpu_count() or 1, [1]
     while out[-1] * 2 <= n:
@@ -153,14 +160,16 @@ def main():
 
         process_recording(paths[0])  # warm up: compiled kernels from the disk cache
         t0 = time.perf_counter()
+        c0 = time.process_time()
         one_split = process_recording(big)
         t1_split = time.perf_counter() - t0
+        c1_split = time.process_time() - c0
         t0 = time.perf_counter()
         one_many = [process_recording(p) for p in paths]
         t1_many = time.perf_counter() - t0
         rt_split = args.shots / 20e3
-        print(f"one process: split recording {t1_split:.2f} s ({rt_split / t1_split:.1f}x real "
-              f"time), {n_rec} recordings {t1_many:.2f} s")
+        print(f"one process: split recording {t1_split:.2f} s wall, {c1_split:.2f} s CPU "
+              f"({rt_split / t1_split:.1f}x real time), {n_rec} recordings {t1_many:.2f} s")
 
         rows = []
         for n in workers:
@@ -168,9 +177,12 @@ def main():
             with dask_client("local", n_workers=n) as client:
                 t_start = time.perf_counter() - t0
                 client.run(process_recording, str(ROOT / "samples" / "room.h5"))  # warm up
+                w0 = client.run(_cpu_seconds)
                 t0 = time.perf_counter()
                 sp = process_split(big, scheduler=client)
                 t_split = time.perf_counter() - t0
+                w1 = client.run(_cpu_seconds)
+                sp.timings["worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
                 t0 = time.perf_counter()
                 many = process_many(paths, scheduler=client)
                 t_many = time.perf_counter() - t0
@@ -207,6 +219,20 @@ def main():
               f"part; serial fraction {f:.1%} of one process's {t1_split:.2f} s{vs1w} -> "
               f"Amdahl bound on 16 workers {amdahl16:.1f}x")
     print(f"load average at the end: {os.getloadavg()[0]:.1f} (other jobs share these cores)")
+    print()
+    print("on a machine shared with other jobs the wall times above say little; the CPU "
+          "seconds of the same runs (client process and each worker process) bound the "
+          "speed-up with one core per process:")
+    for n, *_, tm in rows:
+        if "worker_cpu" not in tm:
+            continue
+        wc = tm["worker_cpu"]
+        bound = c1_split / (tm["client_cpu"] + max(wc))
+        print(f"  {n:>2} workers: client {tm['client_cpu']:.2f} s CPU, workers "
+              f"{' / '.join(f'{x:.2f}' for x in wc)} s CPU (sum {sum(wc):.2f} s against "
+              f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
+              f"worker) = {bound:.2f}x; client CPU = {tm['client_cpu'] / c1_split:.1%} of one "
+              f"process's")
     best_s = max(t1_split / r[2] for r in rows)
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "

@@ -170,3 +170,29 @@ def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     blocked = process_recording(SAMPLES / "room.h5")
     assert len(calls) >= 2
     _same(one, blocked)
+
+
+def test_peak_counts_merge_equals_unique_count():
+    """PeakCounts' sorted merge (integer, in place) against np.unique counts, over
+    random streams of keys added in random chunks and summed in random groups."""
+    rng = np.random.default_rng(16)
+    for _ in range(60):
+        n_keys = int(rng.integers(1, 5000))
+        stream = rng.integers(0, n_keys, int(rng.integers(0, 20000))) * 7 + 3
+        ref_k, ref_c = np.unique(stream, return_counts=True)
+        cuts = np.sort(rng.integers(0, stream.size + 1, int(rng.integers(0, 12))))
+        parts = []
+        for chunk in np.split(stream, cuts):
+            pc = PeakCounts()
+            for sub in np.array_split(chunk, int(rng.integers(1, 5))):
+                pc.add_keys(sub)
+                if rng.random() < 0.5:
+                    pc._merge()
+            parts.append(pc.finished())
+        total = parts[0]
+        for p in parts[1:]:
+            total = total + p
+        np.testing.assert_array_equal(total.keys, ref_k)
+        np.testing.assert_array_equal(total.counts, ref_c)
+        assert total.counts.dtype == np.int64 and total.keys.dtype == np.int64
+        assert all(np.all(np.diff(p.keys) > 0) for p in parts)

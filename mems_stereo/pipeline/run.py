@@ -336,7 +336,7 @@ def split_peak_counts(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: i
     out = []
     for q0, q1 in peak_blocks(per_peak, n_blocks):
         a, b = np.searchsorted(keys, [q0 * span, q1 * span])
-        out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b])))
+        out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b].copy())))
     return out
 
 
