@@ -165,8 +165,10 @@ def main():
         t1_split = time.perf_counter() - t0
         c1_split = time.process_time() - c0
         t0 = time.perf_counter()
+        c0 = time.process_time()
         one_many = [process_recording(p) for p in paths]
         t1_many = time.perf_counter() - t0
+        c1_many = time.process_time() - c0
         rt_split = args.shots / 20e3
         print(f"one process: split recording {t1_split:.2f} s wall, {c1_split:.2f} s CPU "
               f"({rt_split / t1_split:.1f}x real time), {n_rec} recordings {t1_many:.2f} s")
@@ -183,9 +185,14 @@ def main():
                 t_split = time.perf_counter() - t0
                 w1 = client.run(_cpu_seconds)
                 sp.timings["worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
+                w0 = client.run(_cpu_seconds)
+                c0 = time.process_time()
                 t0 = time.perf_counter()
                 many = process_many(paths, scheduler=client)
                 t_many = time.perf_counter() - t0
+                w1 = client.run(_cpu_seconds)
+                sp.timings["many_client_cpu"] = time.process_time() - c0
+                sp.timings["many_worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
             ok_split = same(one_split, sp)
             ok_many = all(same(a, b) for a, b in zip(one_many, many))
             rows.append((n, t_start, t_split, ok_split, t_many, ok_many, sp.timings))
@@ -233,6 +240,12 @@ def main():
               f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
               f"worker) = {bound:.2f}x; client CPU = {tm['client_cpu'] / c1_split:.1%} of one "
               f"process's")
+        if "many_worker_cpu" in tm:
+            mc = tm["many_worker_cpu"]
+            print(f"      process_many: client {tm['many_client_cpu']:.2f} s CPU, workers "
+                  f"{' / '.join(f'{x:.2f}' for x in mc)} s CPU (sum {sum(mc):.2f} s against "
+                  f"{c1_many:.2f} s in one process); one process's CPU / busiest worker = "
+                  f"{c1_many / max(mc):.2f}x")
     best_s = max(t1_split / r[2] for r in rows)
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "
