@@ -235,7 +235,10 @@ def main():
             continue
         wc = tm["worker_cpu"]
         bound = c1_split / (tm["client_cpu"] + max(wc))
-        print(f"  {n:>2} workers: client {tm['client_cpu']:.2f} s CPU, workers "
+        print(f"  {n:>2} workers: client {tm['client_cpu']:.2f} s CPU (its main thread "
+              f"{tm.get('client_main_cpu', float('nan')):.2f} s = "
+              f"{tm.get('client_main_cpu', float('nan')) / c1_split:.1%} of one process's CPU; "
+              f"the rest is Dask's communication threads), workers "
               f"{' / '.join(f'{x:.2f}' for x in wc)} s CPU (sum {sum(wc):.2f} s against "
               f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
               f"worker) = {bound:.2f}x; client CPU = {tm['client_cpu'] / c1_split:.1%} of one "

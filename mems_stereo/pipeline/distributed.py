@@ -207,6 +207,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     st = Settings() if settings is None else settings
     t_all = time.perf_counter()
     c_all = time.process_time()
+    m_all = time.thread_time()
     waits = _Waits()
     header = read_header(path)
     sysm = header.system if system is None else system
@@ -268,6 +269,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                                 count_peaks=count_peaks, make_points=make_points, table=table)
         t_end = time.perf_counter()
         c_end = time.process_time()
+        m_end = time.thread_time()
     t = res.timings
     # the client's serial work: everything but waiting on its workers (header and
     # angles, table rows' indices, scatters, the peak detector, joining the blocks)
@@ -276,6 +278,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     # CPU seconds of the client process over the run (all its threads: the serial
     # work above plus Dask's communication), the figure to compare on a shared machine
     t["client_cpu"] = c_end - c_all
+    t["client_main_cpu"] = m_end - m_all  # this thread alone: the serial work proper
     t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0))
     t["parts"] = float(len(parts))
     t["peak_blocks"] = float(getattr(make_points, "blocks", 0))
