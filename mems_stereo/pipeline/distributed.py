@@ -18,7 +18,7 @@ What keeps the client's serial share small (``docs/throughput.md``):
 * each part receives only its own slice of the scan angles;
 * the parts' results are summed on the workers in a tree of groups of
   :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
-  and ONE pass-1 result whatever the number of parts; the pass-1 counts travel
+  whatever the number of parts; the pass-1 counts travel
   as uint32, as their non-zero entries where that is smaller;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
   (:func:`split_peak_counts`) and each block is fused on a worker; the
@@ -33,7 +33,6 @@ address of an existing scheduler (``tcp://host:8786``), or a ready
 from __future__ import annotations
 
 import contextlib
-import operator
 import os
 import time
 from collections.abc import Sequence
@@ -43,6 +42,7 @@ import numpy as np
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
+from mems_stereo.pipeline.fusion import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
@@ -201,8 +201,13 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     block of peaks on the workers (:func:`split_peak_counts`), the client only
     joining the blocks' clouds.  ``n_parts`` : shot ranges (default: 4 per
     worker).  ``timings`` of the result add the client's own serial seconds
-    (``client_serial``: the wall time less the time it waited on its workers),
-    the bytes it received (``client_bytes``) and ``parts``, ``peak_blocks``.
+    (``client_serial``: the wall time less the time it waited on its workers,
+    ``client_wait``), the CPU seconds of the client process over the run
+    (``client_cpu``: all its threads, with a local cluster's scheduler) and of
+    its calling thread (``client_main_cpu``), the bytes it received
+    (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
+    workers while the fusion's tasks are submitted, so ``points`` holds pass 2
+    and the fusion and ``peak_detections`` only the submission.
     """
     st = Settings() if settings is None else settings
     t_all = time.perf_counter()
@@ -226,7 +231,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         fill_table(client, table, rows, settings=st, waits=waits)
         del rows
         table_f = client.scatter(table, broadcast=True)
-        angle_f = [client.scatter((theta[a:b], valid[a:b])) for a, b in parts]
+        angle_f = client.scatter([(theta[a:b], valid[a:b]) for a, b in parts])
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
@@ -250,15 +255,15 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             nps_f = client.scatter(acc.n_per_step, broadcast=True)
             blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes, 4 * n_w,
                                      pure=False)
-            n_blocks = waits(client.submit(len, blocks_f, pure=False).result)
-            clouds_f = [client.submit(points_block, sysm, shared["peaks"],
-                                      client.submit(operator.getitem, blocks_f, i, pure=False),
+            # at most this many blocks (no round trip to ask how many there are)
+            n_blocks = min(4 * n_w, -(-Q // FP_BLOCK))
+            clouds_f = [client.submit(_points_nth_block, sysm, shared["peaks"], blocks_f, i,
                                       st, nps_f, table_f, pure=False) for i in range(n_blocks)]
-            if not clouds_f:  # no peaks: the (empty) cloud of the whole
+            clouds = [c for c in waits(client.gather, clouds_f) if c is not None]
+            if not clouds:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
-                                     (0, 0, PeakCounts()), st, acc.n_per_step, table)
-            clouds = waits(client.gather, clouds_f)
+                                    (0, 0, PeakCounts()), st, acc.n_per_step, table)
             make_points.nbytes = sum(c.points.nbytes + sum(v.nbytes for v in
                                                            c.attributes.values())
                                      for c in clouds)
@@ -295,3 +300,10 @@ def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)
+
+
+def _points_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
+    """The cloud of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past the end."""
+    if i >= len(blocks):
+        return None
+    return points_block(system, peaks, blocks[i], settings, n_per_step, table)
