@@ -15,7 +15,10 @@ seconds in ``process_split`` (its wall time less the time it waited on its
 workers: header and angles, table rows, scatters, the peak detector, joining
 the peak blocks' clouds) and the bytes the client gathers, per part, against
 T1 and against one worker's time; the serial fraction f = serial / T1 gives
-Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.
+Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.  On a machine shared with
+other jobs wall times say little, so the CPU seconds of the same runs are
+printed too: the client process (with a LocalCluster: its scheduler too) and
+its calling thread, and each worker process, against one process's CPU.
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
 cache), as on a long-lived cluster; cluster start-up is printed apart.
