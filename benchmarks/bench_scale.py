@@ -11,9 +11,14 @@ per count the wall time, speed-up T1/Tn, efficiency speed-up/n, and whether
 every result is identical to one process (histograms, cloud, counts).
 
 What bounds the speed-up on any machine is printed too: the client's serial
-seconds in ``process_split`` (header and angles, table rows, peaks, points)
-and the bytes the client gathers, per part, against T1; the serial fraction
-f = serial / T1 gives Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.
+seconds in ``process_split`` (its wall time less the time it waited on its
+workers: header and angles, table rows, scatters, the peak detector, joining
+the peak blocks' clouds) and the bytes the client gathers, per part, against
+T1 and against one worker's time; the serial fraction f = serial / T1 gives
+Amdahl's bound 1 / (f + (1 − f)/n) for 16 workers.  On a machine shared with
+other jobs wall times say little, so the CPU seconds of the same runs are
+printed too: the client process (with a LocalCluster: its scheduler too) and
+its calling thread, and each worker process, against one process's CPU.
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
 cache), as on a long-lived cluster; cluster start-up is printed apart.
@@ -66,6 +71,13 @@ def same(a, b) -> bool:
     for k in a.cloud.attributes:
         ok &= np.array_equal(a.cloud[k], b.cloud[k], equal_nan=True)
     return bool(ok)
+
+
+def _cpu_seconds() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
 
 
 def default_workers() -> list[int]:
@@ -127,7 +139,7 @@ def main():
     args = ap.parse_args()
     workers = args.workers or default_workers()
     n_rec = args.recordings or max(4, 2 * max(workers))
-    print(f"machine: {machine()}")
+    print(f"machine: {machine()}; load average {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         t0 = time.perf_counter()
         big = Path(d) / "split.h5"
@@ -151,14 +163,18 @@ def main():
 
         process_recording(paths[0])  # warm up: compiled kernels from the disk cache
         t0 = time.perf_counter()
+        c0 = time.process_time()
         one_split = process_recording(big)
         t1_split = time.perf_counter() - t0
+        c1_split = time.process_time() - c0
         t0 = time.perf_counter()
+        c0 = time.process_time()
         one_many = [process_recording(p) for p in paths]
         t1_many = time.perf_counter() - t0
+        c1_many = time.process_time() - c0
         rt_split = args.shots / 20e3
-        print(f"one process: split recording {t1_split:.2f} s ({rt_split / t1_split:.1f}x real "
-              f"time), {n_rec} recordings {t1_many:.2f} s")
+        print(f"one process: split recording {t1_split:.2f} s wall, {c1_split:.2f} s CPU "
+              f"({rt_split / t1_split:.1f}x real time), {n_rec} recordings {t1_many:.2f} s")
 
         rows = []
         for n in workers:
@@ -166,12 +182,20 @@ def main():
             with dask_client("local", n_workers=n) as client:
                 t_start = time.perf_counter() - t0
                 client.run(process_recording, str(ROOT / "samples" / "room.h5"))  # warm up
+                w0 = client.run(_cpu_seconds)
                 t0 = time.perf_counter()
                 sp = process_split(big, scheduler=client)
                 t_split = time.perf_counter() - t0
+                w1 = client.run(_cpu_seconds)
+                sp.timings["worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
+                w0 = client.run(_cpu_seconds)
+                c0 = time.process_time()
                 t0 = time.perf_counter()
                 many = process_many(paths, scheduler=client)
                 t_many = time.perf_counter() - t0
+                w1 = client.run(_cpu_seconds)
+                sp.timings["many_client_cpu"] = time.process_time() - c0
+                sp.timings["many_worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
             ok_split = same(one_split, sp)
             ok_many = all(same(a, b) for a, b in zip(one_many, many))
             rows.append((n, t_start, t_split, ok_split, t_many, ok_many, sp.timings))
@@ -186,6 +210,7 @@ def main():
               f"{ok_m} | {t_start:.1f} |")
     print()
     print("what bounds process_split (client side, per worker count):")
+    t1w = next((r[2] for r in rows if r[0] == 1), None)
     for n, *_, tm in rows:
         if "client_serial" not in tm:  # an older pipeline without these figures
             print(f"  {n:>2} workers: stages " + ", ".join(f"{k} {v:.2f} s"
@@ -194,19 +219,39 @@ def main():
         f = tm["client_serial"] / t1_split
         amdahl16 = 1.0 / (f + (1.0 - f) / 16)
         mb = tm["client_bytes"] / 1e6
-        print(f"  {n:>2} workers: {int(tm['parts'])} parts; client serial "
-              f"{tm['client_serial']:.2f} s (header+angles {tm['read_header']:.2f}, peaks "
-              f"{tm['peaks']:.2f}, points {tm['points']:.2f}); table rows on the workers "
-              f"{tm['table']:.2f} s; gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB "
-              f"per part; serial fraction {f:.1%} of one process's {t1_split:.2f} s -> Amdahl "
-              f"bound on 16 workers {amdahl16:.1f}x")
-        # the same without the fusion stage, whose cost grows with the background in
-        # the peak windows (issue 14, "points stage proportional to the data")
-        pts1 = one_split.timings["points"]
-        f2 = (tm["client_serial"] - tm["points"]) / max(t1_split - pts1, 1e-9)
-        print(f"      without the points stage (one process {pts1:.2f} s of it): serial "
-              f"fraction {f2:.1%} -> Amdahl bound on 16 workers "
-              f"{1.0 / (f2 + (1.0 - f2) / 16):.1f}x")
+        vs1w = (f"; {tm['client_serial'] / t1w:.1%} of one worker's {t1w:.2f} s"
+                if t1w else "")
+        print(f"  {n:>2} workers: {int(tm['parts'])} shot parts, "
+              f"{int(tm.get('peak_blocks', 0))} peak blocks fused on the workers; client "
+              f"serial {tm['client_serial']:.2f} s (wall less {tm.get('client_wait', 0):.2f} s "
+              f"waiting on the workers; header+angles {tm['read_header']:.2f}, peak detector "
+              f"{tm['peaks']:.2f}); gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB per "
+              f"part; serial fraction {f:.1%} of one process's {t1_split:.2f} s{vs1w} -> "
+              f"Amdahl bound on 16 workers {amdahl16:.1f}x")
+    print(f"load average at the end: {os.getloadavg()[0]:.1f} (other jobs share these cores)")
+    print()
+    print("on a machine shared with other jobs the wall times above say little; the CPU "
+          "seconds of the same runs (client process and each worker process) bound the "
+          "speed-up with one core per process:")
+    for n, *_, tm in rows:
+        if "worker_cpu" not in tm:
+            continue
+        wc = tm["worker_cpu"]
+        bound = c1_split / (tm["client_cpu"] + max(wc))
+        print(f"  {n:>2} workers: client {tm['client_cpu']:.2f} s CPU (its main thread "
+              f"{tm.get('client_main_cpu', float('nan')):.2f} s = "
+              f"{tm.get('client_main_cpu', float('nan')) / c1_split:.1%} of one process's CPU; "
+              f"the rest is Dask's communication threads), workers "
+              f"{' / '.join(f'{x:.2f}' for x in wc)} s CPU (sum {sum(wc):.2f} s against "
+              f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
+              f"worker) = {bound:.2f}x; client CPU = {tm['client_cpu'] / c1_split:.1%} of one "
+              f"process's")
+        if "many_worker_cpu" in tm:
+            mc = tm["many_worker_cpu"]
+            print(f"      process_many: client {tm['many_client_cpu']:.2f} s CPU, workers "
+                  f"{' / '.join(f'{x:.2f}' for x in mc)} s CPU (sum {sum(mc):.2f} s against "
+                  f"{c1_many:.2f} s in one process); one process's CPU / busiest worker = "
+                  f"{c1_many / max(mc):.2f}x")
     best_s = max(t1_split / r[2] for r in rows)
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "

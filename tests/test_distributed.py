@@ -7,7 +7,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mems_stereo.pipeline.distributed import dask_client, process_many, process_split, shot_ranges
+from mems_stereo.pipeline.distributed import (
+    dask_client,
+    join_clouds,
+    peak_blocks,
+    process_many,
+    process_split,
+    shot_ranges,
+    split_peak_counts,
+)
+from mems_stereo.pipeline.fusion import FP_BLOCK
+from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
@@ -44,6 +54,8 @@ def test_split_recording_equals_one_process(client):
     one_result = P * 4097 * 4 * 2 + P * S * 4
     t = split.timings
     assert t["parts"] == 5
+    # the fusion ran on the workers in blocks of peaks (room: 75 peaks, 5 blocks of 16)
+    assert t["peak_blocks"] >= 2
     assert one_result <= t["client_bytes"] < one_result + 1e6
     assert 0 < t["client_serial"] < sum(v for k, v in t.items()
                                         if k in ("read_header", "classify_histogram", "peaks",
@@ -55,3 +67,151 @@ def test_many_recordings_equal_one_process(client):
     res = process_many(paths, scheduler=client)
     for p, r in zip(paths, res):
         _same(process_recording(p), r)
+
+
+def test_peak_blocks_cut_at_the_fusion_block_and_balance_work():
+    rng = np.random.default_rng(14)
+    for _ in range(200):
+        Q = int(rng.integers(0, 300))
+        e = rng.integers(0, 5000, Q)
+        n = int(rng.integers(1, 20))
+        b = peak_blocks(e, n)
+        if Q == 0:
+            assert b == []
+            continue
+        assert b[0][0] == 0 and b[-1][1] == Q and len(b) <= n
+        assert all(x[1] == y[0] for x, y in zip(b[:-1], b[1:]))
+        assert all(q0 % FP_BLOCK == 0 for q0, _ in b)
+        if Q >= FP_BLOCK * n * 4 and n > 1:  # enough cuts: every block near 1/n of the work
+            w = np.array([e[q0:q1].sum() + (q1 - q0) for q0, q1 in b], float)
+            assert len(b) == n
+            assert w.max() <= (e.sum() + Q) / n + FP_BLOCK * e.max() + FP_BLOCK
+
+
+def test_split_peak_counts_renumbers_each_block():
+    rng = np.random.default_rng(15)
+    S, nb, Q = 50, 33, 70
+    q = rng.integers(0, Q, 2000)
+    k = encode_peak_keys(q, rng.integers(0, S, q.size), rng.integers(1, nb, q.size), S, nb)
+    pc = PeakCounts()
+    pc.add_keys(k)
+    pc = pc.finished()
+    blocks = split_peak_counts(pc, Q, S, nb, 3)
+    assert sum(len(b[2].keys) for b in blocks) == pc.keys.size
+    for q0, q1, sub in blocks:
+        back = sub.keys + q0 * S * nb
+        a, b = np.searchsorted(pc.keys, [q0 * S * nb, q1 * S * nb])
+        np.testing.assert_array_equal(back, pc.keys[a:b])
+        np.testing.assert_array_equal(sub.counts, pc.counts[a:b])
+        assert sub.keys.min() >= 0 and sub.keys.max() < (q1 - q0) * S * nb
+
+
+def test_join_clouds_fills_missing_first_photon_attributes():
+    from mems_stereo.pipeline.cloud import PointCloud
+
+    a = PointCloud(np.ones((2, 3)), {"counts": np.ones(2, np.int32), "tof_delay": np.ones(2),
+                                     "z": np.zeros(2)})
+    b = PointCloud(np.zeros((1, 3)), {"counts": np.ones(1, np.int32), "z": np.ones(1)})
+    j = join_clouds([b, a])
+    assert list(j.attributes) == ["counts", "tof_delay", "z"]
+    assert np.isnan(j["tof_delay"][0]) and j["tof_delay"][1:].tolist() == [1.0, 1.0]
+
+
+def test_fusion_of_peak_blocks_equals_the_whole():
+    """The fusion split at multiples of FP_BLOCK peaks, joined, is the whole's cloud,
+    bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index)."""
+    from mems_stereo.pipeline import run as R
+    from mems_stereo.pipeline.distributed import points_block
+
+    for name in ("room.h5", "floodlight.h5"):
+        seen = {}
+        orig = R.points_from_counts
+
+        def spy(system, peaks, counts, st, shots_per_step=None, table=None, seen=seen,
+                orig=orig):
+            seen.update(system=system, peaks=peaks, counts=counts, st=st, sps=shots_per_step,
+                        table=table)
+            return orig(system, peaks, counts, st, shots_per_step=shots_per_step, table=table)
+
+        R.points_from_counts = spy
+        try:
+            whole = process_recording(SAMPLES / name).cloud
+        finally:
+            R.points_from_counts = orig
+        light = {k: v for k, v in seen["peaks"].items() if k != "background_by_step"}
+        Q = len(light["row"])
+        S, nb = seen["table"].n_steps, seen["system"].tdc.n_bins + 1
+        for n in (2, 3, 7, Q):
+            blocks = split_peak_counts(seen["counts"], Q, S, nb, n)
+            assert len(blocks) > 1
+            j = join_clouds([points_block(seen["system"], light, b, seen["st"], seen["sps"],
+                                           seen["table"]) for b in blocks])
+            assert list(j.attributes) == list(whole.attributes)
+            np.testing.assert_array_equal(j.points, whole.points)
+            for k in whole.attributes:
+                np.testing.assert_array_equal(j[k], whole[k], err_msg=k)
+
+
+def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
+    """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
+    (cut at multiples of FP_BLOCK peaks) gives the cloud of one block, bit for bit."""
+    from mems_stereo.pipeline import run as R
+
+    one = process_recording(SAMPLES / "room.h5")
+    calls = []
+    orig = R.points_from_counts
+
+    def count(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
+    monkeypatch.setattr(R, "points_from_counts", count)
+    blocked = process_recording(SAMPLES / "room.h5")
+    assert len(calls) >= 2
+    _same(one, blocked)
+
+
+def test_peak_counts_merge_equals_unique_count():
+    """PeakCounts' sorted merge (integer, in place) against np.unique counts, over
+    random streams of keys added in random chunks and summed in random groups."""
+    rng = np.random.default_rng(16)
+    for _ in range(60):
+        n_keys = int(rng.integers(1, 5000))
+        stream = rng.integers(0, n_keys, int(rng.integers(0, 20000))) * 7 + 3
+        ref_k, ref_c = np.unique(stream, return_counts=True)
+        cuts = np.sort(rng.integers(0, stream.size + 1, int(rng.integers(0, 12))))
+        parts = []
+        for chunk in np.split(stream, cuts):
+            pc = PeakCounts()
+            for sub in np.array_split(chunk, int(rng.integers(1, 5))):
+                pc.add_keys(sub)
+                if rng.random() < 0.5:
+                    pc._merge()
+            parts.append(pc.finished())
+        total = parts[0]
+        for p in parts[1:]:
+            total = total + p
+        np.testing.assert_array_equal(total.keys, ref_k)
+        np.testing.assert_array_equal(total.counts, ref_c)
+        assert total.counts.dtype == np.int64 and total.keys.dtype == np.int64
+        assert all(np.all(np.diff(p.keys) > 0) for p in parts)
+
+
+def test_trimming_the_heap_between_stages_changes_nothing(monkeypatch):
+    """With TRIM_SLOTS = 0 every run hands freed heap back between its stages
+    (glibc malloc_trim; a no-op elsewhere): same result, and it did run."""
+    from mems_stereo.pipeline import run as R
+
+    one = process_recording(SAMPLES / "room.h5")
+    calls = []
+    orig = R.release_freed_memory
+
+    def spy():
+        calls.append(orig())
+        return calls[-1]
+
+    monkeypatch.setattr(R, "TRIM_SLOTS", 0)
+    monkeypatch.setattr(R, "release_freed_memory", spy)
+    _same(one, process_recording(SAMPLES / "room.h5"))
+    assert len(calls) == 4

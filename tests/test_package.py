@@ -19,6 +19,19 @@ def test_core_imports_without_open3d_or_matplotlib():
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
 
 
+def test_process_to_ply_loads_no_heavy_module(tmp_path):
+    """``mems-stereo process samples/room.h5 -o x.ply`` (the start-up figure of issue 14)
+    loads neither Open3D, matplotlib, Dask nor numba (small recordings run in NumPy),
+    nor the simulator; the PLY is written by NumPy."""
+    code = ("import sys; from mems_stereo.cli import main; "
+            f"rc = main(['-q', 'process', {str(ROOT / 'samples' / 'room.h5')!r}, '-o', "
+            f"{str(tmp_path / 'x.ply')!r}]); "
+            "bad = [m for m in ('open3d', 'matplotlib', 'dask', 'numba', 'mems_stereo.sim') "
+            "if m in sys.modules]; assert rc == 0 and not bad, (rc, bad)")
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
+    assert (tmp_path / "x.ply").stat().st_size > 0
+
+
 def test_ruff_lint_is_clean():
     ruff = shutil.which("ruff") or str(Path(sys.executable).with_name("ruff"))
     if not Path(ruff).exists():

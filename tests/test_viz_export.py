@@ -151,18 +151,19 @@ def test_bad_paths(tmp_path):
 def test_failed_write_leaves_target_untouched(tmp_path, monkeypatch):
     import mems_stereo.viz.export as ex
 
-    target = tmp_path / "keep.ply"
-    target.write_bytes(b"old")
-
     def boom(tmp, points, attrs):
         tmp.write_bytes(b"half")
         raise KeyboardInterrupt
 
+    monkeypatch.setattr(ex, "_write_ply", boom)
     monkeypatch.setattr(ex, "_write_o3d", boom)
-    with pytest.raises(KeyboardInterrupt):
-        write_cloud(target, make_cloud(np.random.default_rng(8), 3))
-    assert target.read_bytes() == b"old"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.ply"]
+    for name in ("keep.ply", "keep.pcd"):
+        target = tmp_path / name
+        target.write_bytes(b"old")
+        with pytest.raises(KeyboardInterrupt):
+            write_cloud(target, make_cloud(np.random.default_rng(8), 3))
+        assert target.read_bytes() == b"old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.pcd", "keep.ply"]
 
 
 def test_laz_without_backend_says_what_to_install(tmp_path):
@@ -172,3 +173,38 @@ def test_laz_without_backend_says_what_to_install(tmp_path):
         pytest.skip("a LAZ backend is installed; .laz works")
     with pytest.raises(FormatError, match="lazrs"):
         write_cloud(tmp_path / "c.laz", make_cloud(np.random.default_rng(9), 3))
+
+
+def test_ply_written_without_open3d_has_open3d_fields(tmp_path):
+    """The NumPy PLY writer gives the properties and types Open3D writes, and Open3D
+    reads it back exactly; writing it does not import Open3D."""
+    import subprocess
+    import sys
+
+    import open3d as o3d
+
+    ref = make_cloud(np.random.default_rng(10), 40)
+    ours = write_cloud(tmp_path / "ours.ply", ref)
+    theirs = tmp_path / "o3d.ply"
+    pc = o3d.t.geometry.PointCloud(o3d.core.Tensor(ref.points))
+    for k, v in ref.attributes.items():
+        pc.point[k] = o3d.core.Tensor(np.ascontiguousarray(v.reshape(-1, 1)))
+    assert o3d.t.io.write_point_cloud(str(theirs), pc, write_ascii=False, compressed=False)
+
+    def props(p):
+        head = p.read_bytes().split(b"end_header")[0].decode().splitlines()
+        return sorted(ln for ln in head if ln.startswith(("property", "element", "format")))
+
+    assert props(ours) == props(theirs)
+    back = o3d.t.io.read_point_cloud(str(ours))
+    np.testing.assert_array_equal(back.point.positions.numpy(), ref.points)
+    for k, v in ref.attributes.items():
+        got = back.point[k].numpy()[:, 0]
+        assert got.dtype == v.dtype, k
+        np.testing.assert_array_equal(got, v, err_msg=k)
+    code = ("import sys; import numpy as np; from mems_stereo.viz.export import write_cloud; "
+            "from mems_stereo.pipeline.cloud import PointCloud; "
+            f"write_cloud({str(tmp_path / 'sub.ply')!r}, PointCloud(np.ones((3, 3)), "
+            "{'counts': np.ones(3, np.int32)})); print('open3d' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -1,11 +1,13 @@
-"""Point cloud files: PLY and PCD through Open3D tensor clouds, LAS through laspy.
+"""Point cloud files: PLY written with NumPy, PCD through Open3D tensor clouds, LAS through laspy.
 
 :func:`write_cloud` / :func:`read_cloud` pick the format from the extension.
 
 * ``.ply`` (binary little endian) and ``.pcd`` (binary): ``x, y, z`` float64
   metres in the world (receiver camera) frame and one scalar property per
-  attribute of the :class:`~mems_stereo.pipeline.cloud.PointCloud`, written as an
-  (N, 1) tensor attribute of an ``open3d.t.geometry.PointCloud``.  Round trips
+  attribute of the :class:`~mems_stereo.pipeline.cloud.PointCloud` (PCD: an
+  (N, 1) tensor attribute of an ``open3d.t.geometry.PointCloud``; PLY: the
+  same properties and types written by NumPy, in the cloud's attribute order,
+  so writing a PLY does not import Open3D).  Both are read through Open3D.  Round trips
   are exact (values and dtypes) for float32/64, int32, uint8 and uint16; PCD
   also keeps int64.  Other dtypes are converted losslessly before writing
   (bool → uint8, int8/int16 → int32, float16 → float32, int64/uint32 → int32
@@ -101,7 +103,9 @@ def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
                                   source=str(path), field=k)
             attrs[k] = _storable(k, v, allowed, path)
         with atomic_output(path) as tmp:
-            if len(cloud) == 0:
+            if sfx == ".ply":
+                _write_ply(tmp, cloud.points, attrs)
+            elif len(cloud) == 0:
                 _write_empty_header(tmp, sfx, attrs)
             else:
                 _write_o3d(tmp, cloud.points, attrs)
@@ -110,6 +114,33 @@ def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
     else:
         _write_las(path, cloud)
     return path
+
+
+def _ply_header(n: int, names: list, dtypes: list) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", "comment Created by mems-stereo",
+             f"element vertex {n}"]
+    lines += [f"property {_PLY_TYPE[d]} {k}" for k, d in zip(names, dtypes)]
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def _write_ply(tmp: Path, points: np.ndarray, attrs: dict) -> None:
+    """Binary little-endian PLY written with NumPy (no Open3D import: it costs
+    0.5–1 s of start-up).  The properties and their types are those Open3D
+    writes (``x, y, z`` double, then one scalar property per attribute, in the
+    cloud's order); Open3D, CloudCompare and PDAL read it."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    names = ["x", "y", "z", *attrs]
+    dtypes = ["float64"] * 3 + [str(v.dtype) for v in attrs.values()]
+    rec = np.empty(len(pts), dtype=np.dtype({"names": names, "formats": [
+        np.dtype(d).newbyteorder("<") for d in dtypes]}))
+    for i, axis in enumerate("xyz"):
+        rec[axis] = pts[:, i]
+    for k, v in attrs.items():
+        rec[k] = v.reshape(-1)
+    with open(tmp, "wb") as f:
+        f.write(_ply_header(len(pts), names, dtypes))
+        f.write(rec.tobytes())
 
 
 def _write_o3d(tmp: Path, points: np.ndarray, attrs: dict) -> None:
@@ -131,21 +162,18 @@ _PCD_TYPE = {"float64": ("8", "F"), "float32": ("4", "F"), "int32": ("4", "I"),
 
 
 def _write_empty_header(tmp: Path, sfx: str, attrs: dict) -> None:
-    """Open3D refuses to write 0 points; a header-only file is still a valid cloud."""
+    """Open3D refuses to write 0 points; a header-only file is still a valid cloud (PCD)."""
     names = ["x", "y", "z", *attrs]
     dtypes = ["float64"] * 3 + [str(v.dtype) for v in attrs.values()]
     if sfx == ".ply":
-        lines = ["ply", "format binary_little_endian 1.0", "comment Created by mems-stereo",
-                 "element vertex 0"]
-        lines += [f"property {_PLY_TYPE[d]} {n}" for n, d in zip(names, dtypes)]
-        lines.append("end_header")
-    else:
-        lines = ["# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
-                 "FIELDS " + " ".join(names),
-                 "SIZE " + " ".join(_PCD_TYPE[d][0] for d in dtypes),
-                 "TYPE " + " ".join(_PCD_TYPE[d][1] for d in dtypes),
-                 "COUNT " + " ".join("1" for _ in names), "WIDTH 0", "HEIGHT 1",
-                 "VIEWPOINT 0 0 0 1 0 0 0", "POINTS 0", "DATA binary"]
+        tmp.write_bytes(_ply_header(0, names, dtypes))
+        return
+    lines = ["# .PCD v0.7 - Point Cloud Data file format", "VERSION 0.7",
+             "FIELDS " + " ".join(names),
+             "SIZE " + " ".join(_PCD_TYPE[d][0] for d in dtypes),
+             "TYPE " + " ".join(_PCD_TYPE[d][1] for d in dtypes),
+             "COUNT " + " ".join("1" for _ in names), "WIDTH 0", "HEIGHT 1",
+             "VIEWPOINT 0 0 0 1 0 0 0", "POINTS 0", "DATA binary"]
     tmp.write_bytes(("\n".join(lines) + "\n").encode("ascii"))
 
 

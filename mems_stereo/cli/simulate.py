@@ -8,7 +8,6 @@ import numpy as np
 
 from mems_stereo.cli._common import Reporter
 from mems_stereo.model.scanner2d import is_two_axis, resolve_any_system
-from mems_stereo.sim import load_scene, simulate, write_simulation
 
 NAME = "simulate"
 HELP = "simulate a recording of a scene (JSON of primitives/meshes) with ground truth"
@@ -45,6 +44,8 @@ def run(args) -> int:
         print(f"mems-stereo simulate: error: --shots: expected a positive integer, found "
               f"{args.shots}", file=sys.stderr)
         return 2
+    from mems_stereo.sim import load_scene, simulate, write_simulation  # not on other commands
+
     system = resolve_any_system(args.system)
     true_system = resolve_any_system(args.true_system) if args.true_system else None
     scene = load_scene(args.scene)

@@ -7,7 +7,8 @@ are integers), so the outcome is identical to one process, bit for bit.
 * :func:`process_many` — one task per recording.
 * :func:`process_split` — one recording split into shot ranges: pass 1
   (classify + histograms) per range, peaks on the client, pass 2 (peak
-  counts) per range, points on the client.
+  counts) per range, the fusion per block of peaks on the workers; the
+  client joins the blocks' clouds.
 
 What keeps the client's serial share small (``docs/throughput.md``):
 
@@ -17,8 +18,11 @@ What keeps the client's serial share small (``docs/throughput.md``):
 * each part receives only its own slice of the scan angles;
 * the parts' results are summed on the workers in a tree of groups of
   :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
-  and ONE pass-2 result whatever the number of parts; the pass-1 counts travel
-  as uint32, as their non-zero entries where that is smaller.
+  whatever the number of parts; the pass-1 counts travel
+  as uint32, as their non-zero entries where that is smaller;
+* pass 2's sum stays on the workers: it is split by blocks of peaks there
+  (:func:`split_peak_counts`) and each block is fused on a worker; the
+  client receives the blocks' clouds only.
 
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
@@ -38,10 +42,19 @@ import numpy as np
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
+from mems_stereo.pipeline.fusion import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import accumulate_range
-from mems_stereo.pipeline.pass2 import peak_counts_range
-from mems_stereo.pipeline.run import ProcessResult, finish_processing, process_recording
+from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
+    ProcessResult,
+    finish_processing,
+    join_clouds,
+    peak_blocks,
+    points_block,
+    process_recording,
+    split_peak_counts,
+)
 from mems_stereo.pipeline.settings import Settings
 
 #: parts summed per task of the reduction tree
@@ -105,8 +118,8 @@ def _table_rows(system: System, settings: Settings, rows):
     return table.compute_rows(rows)
 
 
-def fill_table(client, table: IntervalTable, rows=None, settings: Settings | None = None
-               ) -> IntervalTable:
+def fill_table(client, table: IntervalTable, rows=None, settings: Settings | None = None,
+               waits=None) -> IntervalTable:
     """Fill ``rows`` (default: all) of ``table`` on the workers in parallel; returns it.
 
     Rows in the disk cache are taken from it; the others are split into one
@@ -123,7 +136,8 @@ def fill_table(client, table: IntervalTable, rows=None, settings: Settings | Non
     blocks = [b for b in np.array_split(need, _n_workers(client)) if b.size]
     futs = client.map(_table_rows, [table.system] * len(blocks), [st] * len(blocks), blocks,
                       pure=False)
-    for b, (lo, hi) in zip(blocks, client.gather(futs)):
+    got = client.gather(futs) if waits is None else waits(client.gather, futs)
+    for b, (lo, hi) in zip(blocks, got):
         table.put_rows(b, lo, hi)
     table.save_cache()
     return table
@@ -163,17 +177,43 @@ def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
 
+class _Waits:
+    """Seconds the client spends blocked on its workers' results."""
+
+    def __init__(self):
+        self.seconds = 0.0
+
+    def __call__(self, fn, *args):
+        t = time.perf_counter()
+        try:
+            return fn(*args)
+        finally:
+            self.seconds += time.perf_counter() - t
+
+
 def process_split(path, system: System | None = None, settings: Settings | None = None,
                   scheduler="local", n_workers: int = 2, n_parts: int | None = None
                   ) -> ProcessResult:
     """Process one (large) recording split by shot ranges over Dask workers.
 
-    ``n_parts`` : shot ranges (default: 4 per worker).  ``timings`` of the
-    result add the client's own serial seconds (``client_serial``) and the
-    bytes it received (``client_bytes``).
+    Pass 1 per shot range, summed in a tree on the workers; the peak detector
+    on the client; pass 2 per shot range, summed in a tree; the fusion per
+    block of peaks on the workers (:func:`split_peak_counts`), the client only
+    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: 4 per
+    worker).  ``timings`` of the result add the client's own serial seconds
+    (``client_serial``: the wall time less the time it waited on its workers,
+    ``client_wait``), the CPU seconds of the client process over the run
+    (``client_cpu``: all its threads, with a local cluster's scheduler) and of
+    its calling thread (``client_main_cpu``), the bytes it received
+    (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
+    workers while the fusion's tasks are submitted, so ``points`` holds pass 2
+    and the fusion and ``peak_detections`` only the submission.
     """
     st = Settings() if settings is None else settings
     t_all = time.perf_counter()
+    c_all = time.process_time()
+    m_all = time.thread_time()
+    waits = _Waits()
     header = read_header(path)
     sysm = header.system if system is None else system
     theta, valid = shot_angles(header, sysm)
@@ -181,43 +221,72 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     K = header.shape[0]
     timings = {"read_header": time.perf_counter() - t_all}
     table = IntervalTable.for_settings(sysm, st)
-    serial = timings["read_header"]
+    S, n_codes = table.n_steps, sysm.tdc.n_bins + 1
     with dask_client(scheduler, n_workers) as client:
-        parts = shot_ranges(K, n_parts or 4 * _n_workers(client))
+        t_run = time.perf_counter()  # (a local cluster's start-up is not the run's)
+        n_w = _n_workers(client)
+        parts = shot_ranges(K, n_parts or 4 * n_w)
         t0 = time.perf_counter()
-        t_s = time.perf_counter()
         rows = table.rows(theta, valid)
-        serial += time.perf_counter() - t_s
-        fill_table(client, table, rows, settings=st)
+        fill_table(client, table, rows, settings=st, waits=waits)
         del rows
         table_f = client.scatter(table, broadcast=True)
-        angle_f = [client.scatter((theta[a:b], valid[a:b])) for a, b in parts]
+        angle_f = client.scatter([(theta[a:b], valid[a:b]) for a, b in parts])
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
         accs = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
                 for ang, (a, b) in zip(angle_f, parts)]
-        acc = tree_sum(client, accs).result()
+        acc = waits(tree_sum(client, accs).result)
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
+        shared = {}
 
         def count_peaks(peaks):
             # pass 2 needs only the pixels, windows and bands; send them once
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
-            pk_f = client.scatter(light, broadcast=True)
-            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, pk_f, a, b, table_f,
-                                 pure=False) for ang, (a, b) in zip(angle_f, parts)]
-            total = tree_sum(client, pcs).result()
-            count_peaks.nbytes = total.keys.nbytes + total.counts.nbytes
-            return total
+            shared["peaks"] = client.scatter(light, broadcast=True)
+            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, shared["peaks"], a, b,
+                                 table_f, pure=False) for ang, (a, b) in zip(angle_f, parts)]
+            return tree_sum(client, pcs)  # stays on the workers
+
+        def make_points(peaks, total_f):
+            Q = len(peaks["row"])
+            nps_f = client.scatter(acc.n_per_step, broadcast=True)
+            blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes, 4 * n_w,
+                                     pure=False)
+            # at most this many blocks (no round trip to ask how many there are)
+            n_blocks = min(4 * n_w, -(-Q // FP_BLOCK))
+            clouds_f = [client.submit(_points_nth_block, sysm, shared["peaks"], blocks_f, i,
+                                      st, nps_f, table_f, pure=False) for i in range(n_blocks)]
+            clouds = [c for c in waits(client.gather, clouds_f) if c is not None]
+            if not clouds:  # no peaks: the (empty) cloud of the whole
+                return points_block(sysm, {k: v for k, v in peaks.items()
+                                            if k != "background_by_step"},
+                                    (0, 0, PeakCounts()), st, acc.n_per_step, table)
+            make_points.nbytes = sum(c.points.nbytes + sum(v.nbytes for v in
+                                                           c.attributes.values())
+                                     for c in clouds)
+            make_points.blocks = len(clouds)
+            return join_clouds(clouds)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                                count_peaks=count_peaks, table=table)
+                                count_peaks=count_peaks, make_points=make_points, table=table)
+        t_end = time.perf_counter()
+        c_end = time.process_time()
+        m_end = time.thread_time()
     t = res.timings
-    # the client's serial work: header and angles, rows of the table, peaks, points
-    t["client_serial"] = serial + t["peaks"] + t["points"]
-    t["client_bytes"] = float(nbytes + getattr(count_peaks, "nbytes", 0))
+    # the client's serial work: everything but waiting on its workers (header and
+    # angles, table rows' indices, scatters, the peak detector, joining the blocks)
+    t["client_serial"] = timings["read_header"] + (t_end - t_run) - waits.seconds
+    t["client_wait"] = waits.seconds
+    # CPU seconds of the client process over the run (all its threads: the serial
+    # work above plus Dask's communication), the figure to compare on a shared machine
+    t["client_cpu"] = c_end - c_all
+    t["client_main_cpu"] = m_end - m_all  # this thread alone: the serial work proper
+    t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0))
     t["parts"] = float(len(parts))
+    t["peak_blocks"] = float(getattr(make_points, "blocks", 0))
     return res
 
 
@@ -231,3 +300,10 @@ def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)
+
+
+def _points_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
+    """The cloud of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past the end."""
+    if i >= len(blocks):
+        return None
+    return points_block(system, peaks, blocks[i], settings, n_per_step, table)

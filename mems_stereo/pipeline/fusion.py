@@ -202,14 +202,16 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
 
 
 def _acceptance(system: System, table, peaks):
-    """accept(steps (Q, B), centre (Q,) m) -> (Q, B) bool: whether the code of a return
+    """accept(steps (Q, B), centre (Q,) m, q=None) -> (Q, B) bool (rows: the peaks ``q``,
+    default all): whether the code of a return
     from the peak's centre range, at each step's grid angle, lies in the pixel's
     accepted interval (else the classifier labels it noise: such shots are
     neither hits nor misses of the first-photon likelihood)."""
     W = system.receiver.width
     pix = (peaks["row"] * W + peaks["col"]).astype(np.int64)
 
-    def accept(steps, centre):
+    def accept(steps, centre, q=None):
+        px = pix if q is None else pix[q]
         th = table.theta_min + steps * table.step
         d = scan_direction(th.ravel(), system.scanner)
         p = np.asarray(system.scanner.position, dtype=np.float64)
@@ -220,8 +222,8 @@ def _acceptance(system: System, table, peaks):
         code = np.floor(codes_from_path_length(s + r, system.tdc, system.speed_of_light))
         code = code.reshape(steps.shape)
         table.ensure(np.unique(steps))
-        lo = table.lo[steps, pix[:, None]]
-        hi = table.hi[steps, pix[:, None]]
+        lo = table.lo[steps, px[:, None]]
+        hi = table.hi[steps, px[:, None]]
         return (code >= lo) & (code <= hi)
 
     return accept
@@ -904,11 +906,14 @@ class PeakAccumulator:
         return (self.first_photon and self.shots_per_step is not None
                 and bool(np.any(self.band[1] >= self.band[0])))
 
-    def _band_steps(self, max_steps: int = 2048):
-        """(Q, B) steps around each peak's inlier band (the band widened by its width
-        plus 8 steps on each side), the valid shots of each (0 outside) and the
-        spot share of the pixel at each step (target at the peak's centre)."""
-        lo, hi = self.band
+    def _band_steps(self, q=None, max_steps: int = 2048):
+        """(Q', B) steps around the inlier band of each peak ``q`` ((Q',) int, default
+        all; the band widened by its width plus 8 steps on each side), the valid
+        shots of each (0 outside) and the spot share of the pixel at each step
+        (target at the peak's centre).  B is the widest of these peaks' bands."""
+        q = np.arange(self.Q) if q is None else np.asarray(q, np.int64)
+        lo, hi = self.band[0][q], self.band[1][q]
+        centre = np.nan_to_num(self.centre[q], nan=1.0)
         has = hi >= lo
         pad = np.where(has, hi - lo + 8, 0)
         a = np.where(has, lo - pad, 0)
@@ -918,14 +923,14 @@ class PeakAccumulator:
         S = self.shots_per_step.size
         inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
         if self.step_window is not None:  # only where pass 2 counted detections
-            inside &= ((steps >= self.step_window[0][:, None])
-                       & (steps <= self.step_window[1][:, None]))
+            inside &= ((steps >= self.step_window[0][q, None])
+                       & (steps <= self.step_window[1][q, None]))
         if self.accept is not None:  # only where the classifier accepts the return's code
-            inside &= self.accept(np.clip(steps, 0, S - 1), np.nan_to_num(self.centre, nan=1.0))
+            inside &= self.accept(np.clip(steps, 0, S - 1), centre, q)
         n = np.where(inside, self.shots_per_step[np.clip(steps, 0, S - 1)], 0)
         t0, dt = self.step_grid
-        f = spot_fraction(self.system, self.rows[:, None], self.cols[:, None], t0 + steps * dt,
-                          np.nan_to_num(self.centre, nan=1.0)[:, None], self.spot_sigma)
+        f = spot_fraction(self.system, self.rows[q, None], self.cols[q, None], t0 + steps * dt,
+                          centre[:, None], self.spot_sigma)
         return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
 
     def _first_photon(self, mean: dict) -> dict:
@@ -942,15 +947,22 @@ class PeakAccumulator:
         ok = (self.band[1] >= self.band[0]) & np.isfinite(tau) & np.isfinite(self.centre)
         if sigma <= 0 or not np.any(ok):
             return out
-        _, n_band, f_band = self._band_steps()
         idx = np.flatnonzero(ok)
         d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
-        for a in range(0, idx.size, 16):  # blocks of peaks: (16, J, B) temporaries
-            q = idx[a:a + 16]
+        # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
+        # its own band width B: a peak's result depends on its block alone, so the
+        # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
+        # identical to the whole
+        cut = np.searchsorted(idx, np.arange(0, self.Q + FP_BLOCK, FP_BLOCK))
+        for a, b in zip(cut[:-1], cut[1:]):
+            if b <= a:
+                continue
+            q = idx[a:b]
+            _, n_band, f_band = self._band_steps(q)
             ll = self.sums.loglik[q] + np.einsum(
-                "qb,qbj->qj", n_band[q], np.log1p(-_firing_probability(f_band[q])))
-            d[a:a + 16], sd[a:a + 16], var[a:a + 16], mu[a:a + 16] = first_photon_delay(
-                ll, f_band[q], n_band[q], tau[q], sigma)
+                "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
+            d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
+                ll, f_band, n_band, tau[q], sigma)
         c = s.speed_of_light
         dL = np.zeros(self.Q)
         dvar = np.zeros(self.Q)
@@ -976,6 +988,10 @@ class PeakAccumulator:
         return out
 
 
+#: peaks per block of the first-photon correction (by peak index; see
+#: :meth:`PeakAccumulator._first_photon`): a split of the peaks at multiples of it
+#: gives the same bits as the whole
+FP_BLOCK = 16
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.1
 #: relative systematic uncertainty of the first-photon delay the correction removes

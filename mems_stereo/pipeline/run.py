@@ -24,8 +24,10 @@ to one process, bit for bit.
 
 from __future__ import annotations
 
+import math
 import os
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import h5py
@@ -36,7 +38,7 @@ from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
-from mems_stereo.pipeline.fusion import points_from_counts
+from mems_stereo.pipeline.fusion import FP_BLOCK, points_from_counts
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import (
     Counts,
@@ -46,7 +48,7 @@ from mems_stereo.pipeline.pass1 import (
     accumulate_range,
     truth_scores,
 )
-from mems_stereo.pipeline.pass2 import peak_counts_range
+from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.util.atomic import atomic_output
 
@@ -190,6 +192,8 @@ def process_recording(path, system: System | None = None,
                           "/shots/bins")
     theta, valid = shot_angles(header, sysm)
     header.shot_time = None  # only the angles are needed from here on: free O(K) memory
+    if K * H * W >= TRIM_SLOTS:  # the angles' O(K) temporaries
+        release_freed_memory()
     own_table = table is None
     if own_table:
         table = IntervalTable.for_settings(sysm, st)
@@ -207,18 +211,24 @@ def process_recording(path, system: System | None = None,
     if own_table:
         table.save_cache()
     timings["classify_histogram"] = time.perf_counter() - t1
-    return finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                             progress=progress, table=table)
+    res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                            progress=progress, table=table)
+    if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
+        table.save_cache()
+    return res
 
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
-                      table: IntervalTable | None = None) -> ProcessResult:
+                      table: IntervalTable | None = None, make_points=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
-    (default: here, in chunks; the Dask runner passes its own).  ``table`` :
-    the run's interval table (the one pass 1 filled).
+    (default: here, in chunks; the Dask runner passes its own, which may
+    return a handle that only its ``make_points`` reads).
+    ``make_points(peaks, counts) -> PointCloud`` runs the fusion (default:
+    :func:`points_from_counts` here; the Dask runner fuses blocks of peaks on
+    its workers).  ``table`` : the run's interval table (the one pass 1 filled).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -230,9 +240,14 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     raw = acc.hist_raw[:, 1:].astype(np.int64).reshape(H, W, n_bins)
     sig = acc.hist_signal[:, 1:].astype(np.int64).reshape(H, W, n_bins)
     noise = raw - sig
+    big = K * H * W >= TRIM_SLOTS
+    if big:  # pass 1's freed chunks, before the detector's (P, S) temporaries
+        release_freed_memory()
     peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
                                    signal_angle=acc.hist_angle, table=table,
                                    n_per_step=acc.n_per_step)
+    if big:  # the detector's (P, S) temporaries are freed: give them back
+        release_freed_memory()
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
@@ -240,10 +255,14 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
                                    table=table)
     else:
         counts = count_peaks(peaks)
+    if big:  # pass 2's merge temporaries, before the fusion's
+        release_freed_memory()
     timings["peak_detections"] = time.perf_counter() - t3
     t4 = time.perf_counter()
-    cloud = points_from_counts(sysm, peaks, counts, st, shots_per_step=acc.n_per_step,
-                               table=table)
+    if make_points is None:
+        cloud = fuse_in_blocks(sysm, peaks, counts, st, acc.n_per_step, table)
+    else:
+        cloud = make_points(peaks, counts)
     peaks.pop("background_by_step", None)  # (Q, S): used up; keep results light
     timings["points"] = time.perf_counter() - t4
     counts = Counts(int(K), int(acc.n_unknown), int(raw.sum()), int(sig.sum()),
@@ -253,3 +272,135 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     source = path.source if isinstance(path, Recording) else str(path)
     return ProcessResult(sysm, source, {"raw": raw, "signal": sig, "noise": noise},
                          background, peaks, cloud, counts, truth, theta, valid, timings)
+
+
+# --------------------------------------------------------------------------
+# memory: freed heap back to the OS between stages
+
+#: pixel-slots of a recording from which :func:`finish_processing` trims the heap
+#: between its stages (small recordings: nothing to gain)
+TRIM_SLOTS = 1 << 24
+_TRIM: list = []
+
+
+def release_freed_memory() -> bool:
+    """Return the heap memory freed by the last stage to the OS (glibc's
+    ``malloc_trim(0)``; a no-op where there is none); returns whether it ran.
+
+    NumPy's temporaries below glibc's (growing) mmap threshold come from the
+    heap, and freed heap pages stay resident: without this the peak RSS of
+    a run adds each stage's temporaries to the freed ones of the stage
+    before.  One call costs milliseconds (unlike ``MALLOC_TRIM_THRESHOLD_``,
+    which trims at every free)."""
+    if not _TRIM:
+        try:
+            import ctypes
+
+            _TRIM.append(ctypes.CDLL("libc.so.6").malloc_trim)
+        except (OSError, AttributeError):
+            _TRIM.append(None)
+    if _TRIM[0] is None:
+        return False
+    _TRIM[0](0)
+    return True
+
+
+# --------------------------------------------------------------------------
+# the fusion in blocks of peaks: bounded memory here, one task each on Dask
+
+#: most (peak, step, code) entries fused at once by :func:`fuse_in_blocks` (the
+#: fusion's temporaries: about 85 MB at 2**16 entries, 110 MB at 2**18, 210 MB for the
+#: 10**6 entries of a 2,000,000-shot floodlight recording in one block; the same CPU)
+FUSE_ENTRIES = 1 << 16
+
+
+def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_step,
+                   table: IntervalTable, max_entries: int | None = None):
+    """:func:`points_from_counts` over blocks of peaks of at most about ``max_entries``
+    distinct (peak, step, code) entries each, joined: the same cloud bit for
+    bit (the blocks cut at multiples of ``FP_BLOCK`` peaks), with the fusion's
+    per-entry arrays (≈ 200 bytes an entry) bounded by the block instead of
+    growing with the recording's distinct entries (default :data:`FUSE_ENTRIES`)."""
+    cap = FUSE_ENTRIES if max_entries is None else max_entries
+    n_blocks = max(1, math.ceil(counts.keys.size / max(1, int(cap))))
+    if n_blocks == 1:
+        return points_from_counts(system, peaks, counts, settings, shots_per_step=n_per_step,
+                                  table=table)
+    light = {k: v for k, v in peaks.items() if k != "background_by_step"}
+    blocks = split_peak_counts(counts, len(light["row"]), table.n_steps,
+                               system.tdc.n_bins + 1, n_blocks)
+    return join_clouds([points_block(system, light, b, settings, n_per_step, table)
+                        for b in blocks])
+
+
+def points_block(system, peaks, block, settings: Settings, n_per_step, table):
+    """The cloud of peaks ``q0..q1−1`` (``block`` ``(q0, q1, counts)`` of
+    :func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays)."""
+    q0, q1, counts = block
+    sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
+    return points_from_counts(system, sub, counts, settings, shots_per_step=n_per_step,
+                              table=table)
+
+
+def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[tuple[int, int]]:
+    """Split the peaks 0..Q into at most ``n_blocks`` contiguous ranges ``(q0, q1)``.
+
+    Cuts only at multiples of ``unit`` (the fusion's first-photon block
+    :data:`~mems_stereo.pipeline.fusion.FP_BLOCK`, so the blocks' clouds joined are
+    the whole's, bit for bit), each near an equal share of the fusion's work
+    (``entries_per_peak`` (Q,): the peaks' distinct (step, code) entries, plus one).
+    """
+    e = np.asarray(entries_per_peak, np.float64).ravel()
+    Q = e.size
+    if Q == 0:
+        return []
+    cand = np.arange(unit, Q, unit)
+    cum = np.concatenate([[0.0], np.cumsum(e + 1.0)])
+    chosen = []
+    if cand.size and n_blocks > 1:
+        targets = cum[-1] * np.arange(1, n_blocks) / n_blocks
+        at = np.clip(np.searchsorted(cum[cand], targets), 0, cand.size - 1)
+        lower = np.clip(at - 1, 0, cand.size - 1)  # the nearer of the two candidates
+        pick = np.where(np.abs(cum[cand[lower]] - targets) < np.abs(cum[cand[at]] - targets),
+                        lower, at)
+        chosen = cand[pick]
+    edges = np.unique(np.concatenate([[0], chosen, [Q]])).astype(int)
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
+
+
+def split_peak_counts(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int,
+                      n_blocks: int) -> list[tuple[int, int, PeakCounts]]:
+    """``(q0, q1, counts of peaks q0..q1−1 renumbered from 0)`` per block of
+    :func:`peak_blocks`; keys are sorted by peak, so each block is a slice."""
+    span = np.int64(n_steps) * np.int64(n_codes)
+    keys = counts.keys
+    per_peak = np.bincount(keys // span, minlength=n_peaks) if keys.size else np.zeros(n_peaks)
+    out = []
+    for q0, q1 in peak_blocks(per_peak, n_blocks):
+        a, b = np.searchsorted(keys, [q0 * span, q1 * span])
+        out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b].copy())))
+    return out
+
+
+def join_clouds(clouds: Sequence[PointCloud]) -> PointCloud:
+    """The clouds of consecutive peak blocks as one, attributes in the order of the
+    whole run's.  A block none of whose peaks has an inlier band carries no
+    first-photon attributes (``tof_delay``, ``signal_photons``); the whole run
+    gives its peaks NaN there, and so does this."""
+    full = max(clouds, key=lambda c: len(c.attributes))
+    attrs = {}
+    for k, v in full.attributes.items():
+        parts = []
+        for c in clouds:
+            if k in c.attributes:
+                parts.append(c.attributes[k])
+            elif v.dtype.kind == "f":
+                parts.append(np.full(len(c), np.nan, v.dtype))
+            else:  # pragma: no cover - only the float first-photon attributes are optional
+                raise ValueError(f"attribute {k!r} missing from a peak block")
+        attrs[k] = np.concatenate(parts)
+    for c in clouds:
+        extra = set(c.attributes) - set(full.attributes)
+        if extra:  # pragma: no cover
+            raise ValueError(f"peak blocks with different attributes: {sorted(extra)}")
+    return PointCloud(np.concatenate([c.points for c in clouds]), attrs)
