@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import h5py
 import numpy as np
 
+from mems_stereo.errors import ShapeError
 from mems_stereo.io.recording import Recording, read_header
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
@@ -397,10 +398,10 @@ def join_clouds(clouds: Sequence[PointCloud]) -> PointCloud:
             elif v.dtype.kind == "f":
                 parts.append(np.full(len(c), np.nan, v.dtype))
             else:  # pragma: no cover - only the float first-photon attributes are optional
-                raise ValueError(f"attribute {k!r} missing from a peak block")
+                raise ShapeError(f"attribute {k!r} missing from a peak block")
         attrs[k] = np.concatenate(parts)
     for c in clouds:
         extra = set(c.attributes) - set(full.attributes)
         if extra:  # pragma: no cover
-            raise ValueError(f"peak blocks with different attributes: {sorted(extra)}")
+            raise ShapeError(f"peak blocks with different attributes: {sorted(extra)}")
     return PointCloud(np.concatenate([c.points for c in clouds]), attrs)
