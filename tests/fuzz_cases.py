@@ -212,6 +212,8 @@ def recording_cases(rng: random.Random):
     add("rising-short", lambda f, d: _replace(f, "scanner/rising", zcs(f)[1][:-1]))
     add("rising-all", lambda f, d: _replace(f, "scanner/rising", np.ones_like(zcs(f)[1])))
     add("rising-none", lambda f, d: _replace(f, "scanner/rising", np.zeros_like(zcs(f)[1])))
+    # inverted polarity: still alternating and spaced for f_mech; the detections tell
+    add("rising-inverted", lambda f, d: _replace(f, "scanner/rising", 1 - zcs(f)[1]))
     add("zc-spacing-x2", lambda f, d: _replace(f, "scanner/zero_crossings", zcs(f)[0] * 2))
     add("zc-spacing-half", lambda f, d: _replace(f, "scanner/zero_crossings", zcs(f)[0] / 2))
     add("truth-label-shape", lambda f, d: _replace(f, "truth/label",
