@@ -18,8 +18,9 @@ information on the polarity each is as likely, so
 
     z = (n_inv − n_rec) / sqrt(n_inv + n_rec)
 
-is about N(0, 1) then, and a run is refused when ``z >= REFUSE_Z`` (the inverted polarity explains the
-detections far better) and warned about when ``WARN_Z <= z < REFUSE_Z``.
+is about N(0, 1) then, and a run is refused when ``z >= REFUSE_Z`` (the
+inverted polarity explains the detections far better) and warned about when
+``WARN_Z <= z < REFUSE_Z``.
 Without a laser return among the detections (all background) both counts
 are equal within their noise and nothing is said.
 """
