@@ -42,6 +42,7 @@ def _simulated(d: Path, scene: str, bg: float, seed: int, signal: bool = True) -
     return p
 
 
+@pytest.mark.slow
 def test_polarity_family(tmp_path):
     rows = []
     for scene in ("room_scene.json", "calib_1.5m_scene.json", "calib_4.0m_scene.json"):
@@ -68,7 +69,7 @@ def test_polarity_family(tmp_path):
 def test_background_alone_is_never_refused(tmp_path):
     """Without laser returns the data say nothing on the polarity: z ~ N(0, 1)."""
     zs = []
-    for seed in range(6):
+    for seed in range(4):
         p = _simulated(tmp_path, "room_scene.json", 1e6, seed, signal=False)
         zs += [polarity_evidence(p).z]
         _invert(p)

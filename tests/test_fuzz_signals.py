@@ -130,6 +130,7 @@ def _random_moments(tmp_path, n: int, seed: int) -> dict:
     return kinds
 
 
+@pytest.mark.slow
 def test_signals_at_6_random_moments(tmp_path):
     # a new seed each run (printed): the suite's runs together cover more moments
     _random_moments(tmp_path, 6, seed=random.SystemRandom().randrange(10**6))
