@@ -136,3 +136,33 @@ def test_two_axis_position_channel_refused(tmp_path):
         del f["scanner/axis2/position"]
         f["scanner/axis2/position"] = np.where(np.arange(p.size) == 3, np.nan, p)
     check_refused(tmp_path, ["process", "{d}/m.h5", "-o", "{d}/o.ply"], "m.h5")
+
+
+def _other_system(src: str, change):
+    def b(d: Path):
+        shutil.copy(SAMPLES / src, d / "m.h5")
+        with h5py.File(d / "m.h5", "r+") as f:
+            s = json.loads(f["system"][()])
+            change(s)
+            del f["system"]
+            f["system"] = json.dumps(s)
+    return b
+
+
+SYSTEM_CHANGES = [("theta0", lambda s: s["scanner"].__setitem__("theta0",
+                                                                 s["scanner"]["theta0"] + 0.01)),
+                  ("f_mech", lambda s: s["scanner"].__setitem__("f_mech",
+                                                                s["scanner"]["f_mech"] * 1.001)),
+                  ("bin_width", lambda s: s["tdc"].__setitem__("bin_width",
+                                                               s["tdc"]["bin_width"] * 2))]
+
+
+@pytest.mark.parametrize("axes", [1, 2])
+@pytest.mark.parametrize("what,change", SYSTEM_CHANGES, ids=[c[0] for c in SYSTEM_CHANGES])
+def test_calibrate_recordings_of_one_system(axes, what, change, tmp_path):
+    """``calibrate`` cross-checks every recording's /system against the first's (group 3)."""
+    first, other = (("calib_1.5m.h5", "calib_2.5m.h5") if axes == 1 else
+                    ("lissajous64_calib_1.5m.h5", "lissajous64_calib_2.5m.h5"))
+    _other_system(other, change)(tmp_path)
+    check_refused(tmp_path, ["calibrate", f"{{s}}/{first}", "{d}/m.h5", "-o", "{d}/c.json"],
+                  "m.h5")
