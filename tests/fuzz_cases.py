@@ -43,6 +43,22 @@ def _replace(f, path, data, **kw):
     f.create_dataset(path, data=data, **kw)
 
 
+def rep(path, value):
+    """A mutation ``m(f, d)`` replacing dataset ``path`` by ``value`` (or ``value(f)``,
+    computed before the old dataset is deleted)."""
+    def m(f, d):
+        v = value(f) if callable(value) else value
+        del f[path]
+        f[path] = v
+    return m
+
+
+def external_link(f, d):
+    """A mutation adding an external link to a host file."""
+    (d / "secret.txt").write_text("secret")
+    f["x"] = h5py.ExternalLink(str(d / "secret.txt"), "/")
+
+
 def _system(f):
     return json.loads(f["system"][()])
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from fuzz_cases import external_link, rep
 from test_fuzz import check_refused, run_cli
 
 from mems_stereo.io.photon_hdf5 import write_photon_hdf5_events
@@ -92,39 +93,26 @@ def _photon(d: Path, mutate=None):
             mutate(f, d)
 
 
-def _rep(path, value):
-    def m(f, d):
-        v = value(f) if callable(value) else value
-        del f[path]
-        f[path] = v
-    return m
-
-
-def _ext(f, d):
-    (d / "secret.txt").write_text("secret")
-    f["x"] = h5py.ExternalLink(str(d / "secret.txt"), "/")
-
-
 PH_CASES = [
     ("no-photon-data", lambda f, d: f.__delitem__("photon_data")),
-    ("unit-string", _rep("photon_data/timestamps_specs/timestamps_unit", "abc")),
-    ("unit-nan", _rep("photon_data/timestamps_specs/timestamps_unit", np.nan)),
-    ("unit-zero", _rep("photon_data/timestamps_specs/timestamps_unit", 0.0)),
-    ("unit-array", _rep("photon_data/timestamps_specs/timestamps_unit", np.ones(3))),
-    ("timestamps-float", _rep("photon_data/timestamps",
+    ("unit-string", rep("photon_data/timestamps_specs/timestamps_unit", "abc")),
+    ("unit-nan", rep("photon_data/timestamps_specs/timestamps_unit", np.nan)),
+    ("unit-zero", rep("photon_data/timestamps_specs/timestamps_unit", 0.0)),
+    ("unit-array", rep("photon_data/timestamps_specs/timestamps_unit", np.ones(3))),
+    ("timestamps-float", rep("photon_data/timestamps",
                               lambda f: f["photon_data/timestamps"][()].astype(float))),
-    ("timestamps-2d", _rep("photon_data/timestamps",
+    ("timestamps-2d", rep("photon_data/timestamps",
                            lambda f: f["photon_data/timestamps"][()][:570].reshape(57, 10))),
-    ("detectors-short", _rep("photon_data/detectors",
+    ("detectors-short", rep("photon_data/detectors",
                              lambda f: f["photon_data/detectors"][()][:-1])),
-    ("detectors-float", _rep("photon_data/detectors",
+    ("detectors-float", rep("photon_data/detectors",
                              lambda f: f["photon_data/detectors"][()].astype(float))),
     ("nanotimes-no-unit", lambda f, d: f.create_dataset(
         "photon_data/nanotimes", data=np.zeros(f["photon_data/timestamps"].shape, np.uint16))),
-    ("timestamps-decreasing", _rep("photon_data/timestamps",
+    ("timestamps-decreasing", rep("photon_data/timestamps",
                                    lambda f: f["photon_data/timestamps"][()][::-1].copy())),
     ("format-name", lambda f, d: f.attrs.__setitem__("format_name", "other")),
-    ("external-link", _ext),
+    ("external-link", external_link),
     ("soft-dangling", lambda f, d: f.__setitem__("y", h5py.SoftLink("/nowhere"))),
 ]
 

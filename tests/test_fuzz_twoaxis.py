@@ -15,6 +15,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from fuzz_cases import external_link, rep
 from test_fuzz import check_refused
 
 from mems_stereo.io.recording2d import read_recording_2d
@@ -55,23 +56,10 @@ def test_two_axis_samples_read_as_stored(name):
             np.testing.assert_array_equal(rec.truth[k], v)
 
 
-def _rep(path, value):
-    def m(f, d):
-        v = value(f) if callable(value) else value
-        del f[path]
-        f[path] = v
-    return m
-
-
 def _attr(obj, key, value):
     def m(f, d):
         (f if obj == "/" else f[obj]).attrs[key] = value
     return m
-
-
-def _ext(f, d):
-    (d / "secret.txt").write_text("secret")
-    f["x"] = h5py.ExternalLink(str(d / "secret.txt"), "/")
 
 
 CASES_2D = [
@@ -79,35 +67,35 @@ CASES_2D = [
     ("version-nan", _attr("/", "version", np.nan)),
     ("scan-axes-nan", _attr("/", "scan_axes", np.nan)),
     ("scan-axes-3", _attr("/", "scan_axes", 3)),
-    ("system-void", _rep("system", np.void(b"\xff\xfe"))),
+    ("system-void", rep("system", np.void(b"\xff\xfe"))),
     ("system-missing", lambda f, d: f.__delitem__("system")),
-    ("external-link", _ext),
+    ("external-link", external_link),
     ("soft-dangling", lambda f, d: f.__setitem__("y", h5py.SoftLink("/nowhere"))),
-    ("time-float16", _rep("shots/time", lambda f: f["shots/time"][()].astype(np.float16))),
-    ("time-nan", _rep("shots/time", lambda f: np.where(
+    ("time-float16", rep("shots/time", lambda f: f["shots/time"][()].astype(np.float16))),
+    ("time-nan", rep("shots/time", lambda f: np.where(
         np.arange(f["shots/time"].shape[0]) == 5, np.nan, f["shots/time"][()]))),
-    ("zc-spacing-x2", _rep("scanner/zero_crossings",
+    ("zc-spacing-x2", rep("scanner/zero_crossings",
                            lambda f: f["scanner/zero_crossings"][()] * 2)),
-    ("rising-all", _rep("scanner/rising", lambda f: np.ones_like(f["scanner/rising"][()]))),
-    ("axis2-rising-all", _rep("scanner/axis2/rising",
+    ("rising-all", rep("scanner/rising", lambda f: np.ones_like(f["scanner/rising"][()]))),
+    ("axis2-rising-all", rep("scanner/axis2/rising",
                               lambda f: np.ones_like(f["scanner/axis2/rising"][()]))),
-    ("axis2-zc-float32", _rep("scanner/axis2/zero_crossings",
+    ("axis2-zc-float32", rep("scanner/axis2/zero_crossings",
                               lambda f: f["scanner/axis2/zero_crossings"][()].astype(np.float32))),
     ("readout-missing", lambda f, d: f.__delitem__("readout")),
     ("readout-mode-bogus", _attr("readout", "mode", "bogus")),
     ("readout-rmin-str", _attr("readout", "r_min", "abc")),
     ("readout-rmin-nan", _attr("readout", "r_min", np.nan)),
     ("readout-rmax-array", _attr("readout", "r_max", np.array([1.0, 2.0]))),
-    ("readout-count-2d", _rep("readout/count", np.ones((2, 3), np.uint16))),
-    ("readout-count-float", _rep("readout/count",
+    ("readout-count-2d", rep("readout/count", np.ones((2, 3), np.uint16))),
+    ("readout-count-float", rep("readout/count",
                                  lambda f: f["readout/count"][()].astype(np.float64))),
-    ("events-shot-float", _rep("events/shot", lambda f: f["events/shot"][()].astype(float))),
-    ("events-pixel-short", _rep("events/pixel", lambda f: f["events/pixel"][()][:-1])),
-    ("events-code-int32", _rep("events/code", lambda f: f["events/code"][()].astype(np.int32))),
-    ("events-code-0", _rep("events/code", lambda f: np.where(
+    ("events-shot-float", rep("events/shot", lambda f: f["events/shot"][()].astype(float))),
+    ("events-pixel-short", rep("events/pixel", lambda f: f["events/pixel"][()][:-1])),
+    ("events-code-int32", rep("events/code", lambda f: f["events/code"][()].astype(np.int32))),
+    ("events-code-0", rep("events/code", lambda f: np.where(
         np.arange(f["events/code"].shape[0]) == 7, 0, f["events/code"][()]).astype(np.uint16))),
-    ("events-unsorted", _rep("events/shot", lambda f: f["events/shot"][()][::-1])),
-    ("events-pixel-huge", _rep("events/pixel", lambda f: f["events/pixel"][()] + 10**6)),
+    ("events-unsorted", rep("events/shot", lambda f: f["events/shot"][()][::-1])),
+    ("events-pixel-huge", rep("events/pixel", lambda f: f["events/pixel"][()] + 10**6)),
 ]
 
 
