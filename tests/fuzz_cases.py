@@ -43,6 +43,22 @@ def _replace(f, path, data, **kw):
     f.create_dataset(path, data=data, **kw)
 
 
+def rep(path, value):
+    """A mutation ``m(f, d)`` replacing dataset ``path`` by ``value`` (or ``value(f)``,
+    computed before the old dataset is deleted)."""
+    def m(f, d):
+        v = value(f) if callable(value) else value
+        del f[path]
+        f[path] = v
+    return m
+
+
+def external_link(f, d):
+    """A mutation adding an external link to a host file."""
+    (d / "secret.txt").write_text("secret")
+    f["x"] = h5py.ExternalLink(str(d / "secret.txt"), "/")
+
+
 def _system(f):
     return json.loads(f["system"][()])
 
@@ -212,6 +228,8 @@ def recording_cases(rng: random.Random):
     add("rising-short", lambda f, d: _replace(f, "scanner/rising", zcs(f)[1][:-1]))
     add("rising-all", lambda f, d: _replace(f, "scanner/rising", np.ones_like(zcs(f)[1])))
     add("rising-none", lambda f, d: _replace(f, "scanner/rising", np.zeros_like(zcs(f)[1])))
+    # inverted polarity: still alternating and spaced for f_mech; the detections tell
+    add("rising-inverted", lambda f, d: _replace(f, "scanner/rising", 1 - zcs(f)[1]))
     add("zc-spacing-x2", lambda f, d: _replace(f, "scanner/zero_crossings", zcs(f)[0] * 2))
     add("zc-spacing-half", lambda f, d: _replace(f, "scanner/zero_crossings", zcs(f)[0] / 2))
     add("truth-label-shape", lambda f, d: _replace(f, "truth/label",

@@ -2,9 +2,17 @@
 
 After a signal: exit 128 + signal, one line on stderr saying what was kept,
 no ``.part`` file, no partial output (either none of the outputs or, when the
-signal came while they were committed, all of them and a line saying so),
-the input unchanged.  The fast test sends each signal once; the slow one at
-20 random moments.
+signal came while they were committed or after, all of them and a line
+saying so), the input unchanged.  The default suite sends each signal once
+at a fixed moment and the three signals at 6 random moments of a run (its
+length measured first); the ``stress`` test at 20 random moments.
+
+Two causes of the earlier rare failure of the 20-moment test were found
+with these moments: a signal in the first ~0.1 s (before the outputs are
+planned) is truthfully reported as "nothing was written", which the test
+did not accept; and a signal during the interpreter's shutdown (about
+0.5 s after the run) could be dropped, exit 0 (the program now ends with
+``os._exit`` after checking for pending signals, ``_signals.exit_now``).
 """
 
 from __future__ import annotations
@@ -67,25 +75,23 @@ def _interrupt(d: Path, sig: int, after: float):
     p.send_signal(sig)
     out, err = p.communicate(timeout=120)
     lines = err.strip().splitlines()
-    if p.returncode == -sig and not err:
-        # the signal came while Python was exiting after a finished run (it restores the
-        # default actions then): every output is there, complete
-        left = sorted(x.relative_to(d).as_posix() for x in d.rglob("*") if x.is_file())
-        assert left == sorted(["in.h5", *(f"out/{o}" for o in OUTPUTS)]), left
-        return True
     assert p.returncode == 128 + sig, (p.returncode, err)
     assert len(lines) == 1 and "Traceback" not in err, err
     assert f"interrupted by {signal.Signals(sig).name}" in lines[0]
     left = sorted(x.name for x in d.rglob("*") if x.is_file() and x.name != "in.h5")
     assert not any(".part" in x for x in left), left
     if "after every output was written" in lines[0]:
-        assert sorted(left) == sorted(OUTPUTS)
+        assert sorted(left) == sorted(OUTPUTS), (left, lines[0])
+        kind = "all kept"
     else:
-        assert left == [], left
-        assert "no output was written" in lines[0]
+        assert left == [], (left, lines[0])
+        # before the outputs were planned: "nothing was written"; after: "no output ..."
+        assert "no output was written" in lines[0] or "nothing was written" in lines[0], \
+            lines[0]
         assert not (d / "out").exists()  # the folder the run created is gone too
+        kind = "none kept"
     assert hashlib.sha1((d / "in.h5").read_bytes()).hexdigest() == digest
-    return True
+    return kind
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
@@ -93,8 +99,13 @@ def test_signal_leaves_nothing(sig, tmp_path):
     assert _interrupt(tmp_path, sig, after=0.3 + random.Random(int(sig)).random())
 
 
-@pytest.mark.stress
-def test_signals_at_20_random_moments(tmp_path):
+def _random_moments(tmp_path, n: int, seed: int) -> dict:
+    """``n`` signals at random moments of a run whose length T is measured first.
+
+    The moments are uniform on (0, T): the first ~0.1 s (loading, checking
+    options, planning), the run, the commit and the exit are all hit;
+    moments after the run ended (load varies) are drawn again.
+    """
     p = _start(tmp_path)
     _wait_for_handlers(p)
     t0 = time.monotonic()
@@ -102,12 +113,29 @@ def test_signals_at_20_random_moments(tmp_path):
     assert p.returncode == 0
     T = time.monotonic() - t0
     shutil.rmtree(tmp_path / "out")
-    rng = random.Random(20)
-    done = tries = 0
-    while done < 20 and tries < 40:  # moments after the run ended (load varies) do not count
+    print(f"seed {seed}, run of {T:.2f} s")  # shown with a failure
+    rng = random.Random(seed)
+    kinds: dict = {}
+    tries = 0
+    while sum(kinds.values()) < n and tries < 2 * n + 10:
         d = tmp_path / f"run{tries}"
         d.mkdir()
         tries += 1
         sig = rng.choice([signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
-        done += _interrupt(d, sig, after=rng.uniform(0.05, 0.95 * T))
-    assert done == 20
+        kind = _interrupt(d, sig, after=rng.uniform(0.0, T))
+        if kind:
+            kinds[kind] = kinds.get(kind, 0) + 1
+    print(f"\nrun of {T:.2f} s, {n} signals at random moments ({tries} tries): {kinds}")
+    assert sum(kinds.values()) == n, (kinds, tries)
+    return kinds
+
+
+@pytest.mark.slow
+def test_signals_at_6_random_moments(tmp_path):
+    # a new seed each run (printed): the suite's runs together cover more moments
+    _random_moments(tmp_path, 6, seed=random.SystemRandom().randrange(10**6))
+
+
+@pytest.mark.stress
+def test_signals_at_20_random_moments(tmp_path):
+    _random_moments(tmp_path, 20, seed=20)

@@ -83,19 +83,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    rc = _main(argv)
-    if argv is None and rc > 128:
-        # the program was interrupted and has cleaned up: exit now with 128 + signal
-        # (interpreter shutdown could otherwise replace the status)
-        import os
+    """Run the command line ``argv`` (default: the program's) and return its exit code.
 
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
-        os._exit(rc)
-    return rc
+    As the program itself (``argv`` None: the ``mems-stereo`` executable) it
+    does not return: it ends the process with the exit code (128 + signal
+    when interrupted, also by a signal that arrives while it exits), see
+    :func:`mems_stereo.cli._signals.exit_now`.
+    """
+    if argv is not None:
+        return _main(argv)
+    try:
+        rc = _main(argv)
+    except SystemExit as e:  # usage errors and --help (argparse)
+        rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+        if not isinstance(e.code, (int, type(None))):
+            print(e.code, file=sys.stderr)
+    from mems_stereo.cli import _signals
+
+    _signals.exit_now(rc)
+    return rc  # not reached
 
 
 def _main(argv: list[str] | None) -> int:

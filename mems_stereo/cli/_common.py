@@ -163,7 +163,15 @@ def _report_interrupt(cmd: str, plan, sig: int) -> int:
 
 
 def check_input_consistency(command: str, args) -> None:
-    """Cross-checks between inputs: every calibration recording's /system must agree."""
+    """Cross-checks of the inputs' redundant data, before any work.
+
+    * ``process`` and ``calibrate``: the zero-crossing polarity of every
+      one-axis recording against its detections
+      (:func:`mems_stereo.cli._crosscheck.check_polarity`);
+    * ``calibrate``: every recording's /system must agree.
+    """
+    if command in ("process", "calibrate"):
+        _check_polarities(command, args)
     if command != "calibrate" or len(args.recordings) < 2:
         return
     from mems_stereo.errors import FormatError
@@ -192,3 +200,23 @@ def check_input_consistency(command: str, args) -> None:
             raise FormatError(f"differs from {args.recordings[0]}'s in {', '.join(diff[:4])}; "
                               "expected the recordings of one system", source=str(r),
                               field="/system")
+
+
+def _check_polarities(command: str, args) -> None:
+    from mems_stereo.cli._crosscheck import check_polarity
+    from mems_stereo.io.recording2d import is_two_axis_recording
+
+    system = None
+    if command == "process" and getattr(args, "system", None):
+        from mems_stereo.model.system import resolve_system
+
+        system = resolve_system(args.system)
+    quiet = bool(getattr(args, "quiet", False))
+
+    def warn(text: str) -> None:
+        if not quiet:
+            print(f"mems-stereo {command}: warning: {text}", file=sys.stderr)
+
+    for r in args.recordings:
+        if not is_two_axis_recording(r):
+            check_polarity(r, system, warn)

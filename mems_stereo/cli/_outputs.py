@@ -272,7 +272,12 @@ class OutputPlan:
     # --------------------------------------------------------- stage / commit
 
     def stage(self) -> None:
-        """Rewrite the output arguments to staged paths beside their targets."""
+        """Rewrite the output arguments to staged paths beside their targets (with the
+        signals held back: every folder made is recorded in ``created`` for :meth:`abort`)."""
+        with signals_blocked():
+            self._stage()
+
+    def _stage(self) -> None:
         for name, p, kind in self.outputs:
             if kind == "dir":  # written in place (demo): its steps commit their own outputs
                 self._mkdirs(p)

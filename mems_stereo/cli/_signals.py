@@ -87,6 +87,39 @@ def _late_handler(signum, frame):  # noqa: ARG001 - signal handler signature
     os._exit(128 + signum)
 
 
+def exit_now(rc: int) -> None:
+    """End the program with ``rc`` without the interpreter's shutdown (never returns).
+
+    The interpreter's shutdown takes a noticeable time (module and library
+    teardown, about half a second with Open3D loaded) in which it restores
+    the default signal actions and drops a signal already received but not
+    yet handled: a run that had finished could then exit 0 although it was
+    interrupted, or die silently.  Instead the exit functions (``atexit``)
+    and the other threads are finished with :func:`_late_handler` in place,
+    the signals are blocked, one that is pending is reported (exit 128 +
+    signal, with what was kept), and the process ends with ``os._exit``.
+    """
+    import atexit
+    import os
+
+    with contextlib.suppress(Exception):
+        for t in threading.enumerate():
+            if t is not threading.current_thread() and not t.daemon:
+                t.join()
+        atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    if threading.current_thread() is threading.main_thread():
+        signal.pthread_sigmask(signal.SIG_BLOCK, SIGNALS)
+        # a signal another thread took is handled by the interpreter before this line
+        # ends; one sent to this thread now waits in the kernel: report it
+        pending = sorted(set(signal.sigpending()) & set(SIGNALS))
+        if pending and rc <= 128:
+            _late_handler(pending[0], None)
+    os._exit(rc)
+
+
 def committed(paths) -> None:
     """Record the outputs a run committed (called with the signals held back)."""
     _state["kept"] = _state["kept"] + [str(p) for p in paths]

@@ -67,11 +67,20 @@ def run(args) -> int:
                           f"a .npz name, found {out.name!r}", str(out))
     rep.detail(f"{src}: {info.mode}, time unit {info.macro_unit:.6g} s, TDC unit "
                f"{info.micro_unit:.6g} s, bin width {m.binning * info.micro_unit:.6g} s")
-    if all_photons:
-        st = events_to_timetags(blocks, info, m, system, out, source=str(src))
-    else:
-        st = events_to_recording(blocks, info, m, system, out, window_shots=args.window_shots,
-                                 source=str(src))
+    try:
+        if all_photons:
+            st = events_to_timetags(blocks, info, m, system, out, source=str(src))
+        else:
+            st = events_to_recording(blocks, info, m, system, out,
+                                     window_shots=args.window_shots, source=str(src))
+    except FormatError as e:
+        if e.source is None and str(e.field or "").startswith("pixels"):
+            raise FormatError(e.reason, str(args.map), e.field) from None
+        if e.source is not None and Path(e.source) == out:
+            # found while the recording was assembled: the input (or its mapping) is at fault
+            raise FormatError(f"the recording built from it with {args.map} is invalid: "
+                              f"{e.field}: {e.reason}", str(src)) from None
+        raise
     if abs(st.bin_width - system.tdc.bin_width) > 1e-6 * system.tdc.bin_width:
         rep.info(f"note: TDC bin width {st.bin_width:.6g} s from the file header replaces the "
                  f"system's {system.tdc.bin_width:.6g} s")

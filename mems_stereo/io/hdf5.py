@@ -36,6 +36,8 @@ MAX_SMALL_CHUNKS = 1024
 MAX_OBJECTS = 10000
 
 _H5_ERRORS = (OSError, RuntimeError, ValueError, KeyError, TypeError, IndexError)
+#: what h5py raises on malformed files (turned into FormatError by this module's callers)
+H5_ERRORS = _H5_ERRORS
 
 
 def _msg(e: BaseException) -> str:

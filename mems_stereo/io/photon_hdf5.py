@@ -32,6 +32,7 @@ import h5py
 import numpy as np
 
 from mems_stereo.errors import FormatError
+from mems_stereo.io import hdf5 as h5
 
 PHOTON = 0  # every Photon-HDF5 event is a detector event (mems_stereo.io.tttr codes)
 
@@ -41,50 +42,65 @@ def _scalar(f, path: str, source: str, required: bool = True):
         if required:
             raise FormatError("required Photon-HDF5 field is missing", source, path)
         return None
-    v = f[path][()]
-    return v.item() if hasattr(v, "item") else v
+    v = h5.read(h5.dataset(f, path, source, whole=True), source)
+    return v.item() if hasattr(v, "item") and np.size(v) == 1 else v
+
+
+def _positive(v, source: str, path: str) -> float:
+    """A positive finite number read from the file (anything else: FormatError)."""
+    a = np.asarray(v)
+    if a.size != 1 or a.dtype.kind not in "iuf" or not (0 < float(a.ravel()[0]) < np.inf):
+        raise FormatError(f"expected a positive finite number, found {v!r}"[:120], source, path)
+    return float(a.ravel()[0])
 
 
 def photon_hdf5_stream(path: str | os.PathLike, block: int = 1 << 22):
-    """``(StreamInfo, open_blocks)`` of a Photon-HDF5 file for :mod:`mems_stereo.io.tttr`."""
+    """``(StreamInfo, open_blocks)`` of a Photon-HDF5 file for :mod:`mems_stereo.io.tttr`.
+
+    Opened and read through the safe HDF5 layer (:mod:`mems_stereo.io.hdf5`).
+    """
     from mems_stereo.io.ptu import EventBlock
     from mems_stereo.io.tttr import StreamInfo
 
     source = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except FileNotFoundError:
-        raise
-    except OSError as e:
-        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
-    with f:
+    with h5.open_h5(path) as f:
         if "photon_data" not in f:
             multi = [k for k in f if k.startswith("photon_data")]
             raise FormatError("expected a single-spot file with /photon_data"
                               + (f", found {multi}" if multi else ""), source, "/photon_data")
         name = f.attrs.get("format_name", _scalar(f, "identity/format_name", source, False))
         if isinstance(name, bytes):
-            name = name.decode()
+            name = name.decode("utf-8", "replace")
         if name not in (None, "Photon-HDF5"):
-            raise FormatError(f"expected format_name 'Photon-HDF5', found {name!r}", source,
+            raise FormatError(f"expected format_name 'Photon-HDF5', found {name!r}"[:160], source,
                               "/identity/format_name")
-        ts = f["photon_data/timestamps"] if "photon_data/timestamps" in f else None
-        if ts is None or ts.ndim != 1 or ts.dtype.kind not in "iu":
+        ts = h5.dataset(f, "/photon_data/timestamps", source)
+        if ts.ndim != 1 or ts.dtype.kind not in "iu":
             raise FormatError("expected integer (n,) timestamps", source,
                               "/photon_data/timestamps")
-        unit = float(_scalar(f, "photon_data/timestamps_specs/timestamps_unit", source))
+        unit = _positive(_scalar(f, "photon_data/timestamps_specs/timestamps_unit", source),
+                         source, "/photon_data/timestamps_specs/timestamps_unit")
         n = ts.shape[0]
-        if "photon_data/detectors" not in f or f["photon_data/detectors"].shape != (n,):
-            raise FormatError(f"expected (n,) = ({n},) detectors", source,
+        det = h5.dataset(f, "/photon_data/detectors", source)
+        if det.shape != (n,) or det.dtype.kind not in "iu":
+            raise FormatError(f"expected integer (n,) = ({n},) detectors", source,
                               "/photon_data/detectors")
         has_nt = "photon_data/nanotimes" in f
         if has_nt:
-            tcspc = float(_scalar(f, "photon_data/nanotimes_specs/tcspc_unit", source))
+            nt = h5.dataset(f, "/photon_data/nanotimes", source)
+            if nt.shape != (n,) or nt.dtype.kind not in "iu":
+                raise FormatError(f"expected integer (n,) = ({n},) nanotimes", source,
+                                  "/photon_data/nanotimes")
+            tcspc = _positive(_scalar(f, "photon_data/nanotimes_specs/tcspc_unit", source),
+                              source, "/photon_data/nanotimes_specs/tcspc_unit")
             rate = _scalar(f, "photon_data/measurement_specs/laser_repetition_rate", source,
                            False)
+            rpath = "/photon_data/measurement_specs/laser_repetition_rate"
             if rate is None:
                 rate = _scalar(f, "setup/laser_repetition_rates", source, False)
-                rate = None if rate is None else float(np.ravel(rate)[0])
+                rpath = "/setup/laser_repetition_rates"
+                rate = None if rate is None else np.ravel(rate)[:1]
+            rate = None if rate is None else _positive(rate, source, rpath)
             if rate is None or abs(unit * float(rate) - 1.0) > 1e-6:
                 raise FormatError(f"with nanotimes, expected timestamps in laser periods "
                                   f"(timestamps_unit = 1 / laser_repetition_rate), found "
@@ -95,23 +111,24 @@ def photon_hdf5_stream(path: str | os.PathLike, block: int = 1 << 22):
             info = StreamInfo("T2", unit, unit, 0.0)
 
     def open_blocks():
-        with h5py.File(path, "r") as g:
-            t = g["photon_data/timestamps"]
-            d = g["photon_data/detectors"]
-            nt = g["photon_data/nanotimes"] if has_nt else None
+        with h5.open_h5(path) as g:
+            t = h5.dataset(g, "/photon_data/timestamps", source)
+            d = h5.dataset(g, "/photon_data/detectors", source)
+            nt = h5.dataset(g, "/photon_data/nanotimes", source) if has_nt else None
             last = None
             for a in range(0, n, block):
-                mac = t[a:a + block].astype(np.int64)
+                sel = np.s_[a:a + block]
+                mac = h5.read(t, source, sel).astype(np.int64)
                 if mac.size and (np.any(np.diff(mac) < 0) or (last is not None
                                                                and mac[0] < last)):
                     raise FormatError("expected non-decreasing timestamps", source,
                                       "/photon_data/timestamps")
                 if mac.size:
                     last = int(mac[-1])
-                mic = (nt[a:a + block].astype(np.int64) if nt is not None
+                mic = (h5.read(nt, source, sel).astype(np.int64) if nt is not None
                        else np.zeros(mac.size, np.int64))
                 yield EventBlock(mac, mic, np.zeros(mac.size, np.int8),
-                                 d[a:a + block].astype(np.int16))
+                                 h5.read(d, source, sel).astype(np.int16))
 
     return info, open_blocks
 

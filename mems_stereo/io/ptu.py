@@ -104,12 +104,26 @@ def _open(path):
     except ImportError as e:  # pragma: no cover - a declared dependency
         raise FormatError("reading PTU files needs the 'ptufile' package "
                           "(pip install ptufile)", str(path)) from e
+    from mems_stereo.util.paths import require_input_file
+
+    require_input_file(path, None)  # a FIFO or a folder is refused before the parser sees it
     try:
         return ptufile.PtuFile(path)
     except FileNotFoundError:
         raise
-    except (ValueError, OSError) as e:
-        raise FormatError(f"not a readable PicoQuant PTU file ({e})", str(path)) from None
+    except Exception as e:  # noqa: BLE001 - the parser fails in many ways on a damaged header
+        msg = (str(e).splitlines() or [type(e).__name__])[0][:120]
+        raise FormatError(f"not a readable PicoQuant PTU file ({msg})", str(path)) from None
+
+
+def _header_tag(tags: dict, key: str, default, kind, source: str):
+    """Header tag ``key`` as ``kind`` (int or float); a tag of another type or not
+    finite is a FormatError naming it."""
+    v = tags.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+            or not np.isfinite(v):
+        raise FormatError(f"expected a number, found {v!r}"[:120], source, key)
+    return kind(v)
 
 
 def read_ptu_header(path: str | os.PathLike) -> PtuHeader:
@@ -119,8 +133,13 @@ def read_ptu_header(path: str | os.PathLike) -> PtuHeader:
 
 
 def _header(p, source: str) -> PtuHeader:
-    tags = dict(p.tags)
-    rt = int(tags.get("TTResultFormat_TTTRRecType", -1))
+    try:
+        tags = dict(p.tags)
+        n_records = int(p.number_records)
+    except Exception as e:  # noqa: BLE001 - a damaged header, seen by the parser late
+        raise FormatError(f"not a readable PicoQuant PTU file ({type(e).__name__})",
+                          source) from None
+    rt = _header_tag(tags, "TTResultFormat_TTTRRecType", -1, int, source)
     if rt in _T3_WRAP:
         mode = "T3"
     elif rt in _T2_GENERIC or rt == _T2_PICOHARP:
@@ -128,17 +147,17 @@ def _header(p, source: str) -> PtuHeader:
     else:
         raise FormatError(f"expected a T2 or T3 TTTR record type, found {rt:#x}", source,
                           "TTResultFormat_TTTRRecType")
-    bits = int(tags.get("TTResultFormat_BitsPerRecord", 32))
+    bits = _header_tag(tags, "TTResultFormat_BitsPerRecord", 32, int, source)
     if bits not in (0, 32):
         raise FormatError(f"expected 32 bits per record, found {bits}", source,
                           "TTResultFormat_BitsPerRecord")
-    glob = float(tags.get("MeasDesc_GlobalResolution", 0.0))
-    res = float(tags.get("MeasDesc_Resolution", 0.0))
+    glob = _header_tag(tags, "MeasDesc_GlobalResolution", 0.0, float, source)
+    res = _header_tag(tags, "MeasDesc_Resolution", 0.0, float, source)
     if not (glob > 0 and res > 0):
         raise FormatError(f"expected positive resolutions, found global {glob}, "
                           f"resolution {res}", source, "MeasDesc_Resolution")
-    return PtuHeader(mode, rt, glob, res, float(tags.get("TTResult_SyncRate", 0.0)),
-                     int(p.number_records), tags)
+    rate = _header_tag(tags, "TTResult_SyncRate", 0.0, float, source)
+    return PtuHeader(mode, rt, glob, res, rate, n_records, tags)
 
 
 def _decode_t2_generic(rec: np.ndarray, wrap: int, v1: bool, carry: int):

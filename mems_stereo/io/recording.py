@@ -123,8 +123,12 @@ def _check_dtype(ds, kinds: str, expected: str, source: str, path: str):
         raise FormatError(f"expected {expected}, found dtype {ds.dtype}", source, path)
 
 
-def validate_header(f: h5py.File, source: str) -> System:
-    """Check the file attributes and ``/system``; return the recorded System."""
+def validate_header(f: h5py.File, source: str, scan_axes: int = 1) -> System:
+    """Check the file attributes and ``/system``; return the recorded System.
+
+    ``scan_axes`` : 1 (FORMAT v1; the attribute absent or 1) or 2 (the
+    two-axis extension, :mod:`mems_stereo.io.recording2d`; the attribute 2).
+    """
     fmt = h5.attr_str(f, "format", source)
     if fmt != FORMAT_NAME:
         raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found "
@@ -136,15 +140,19 @@ def validate_header(f: h5py.File, source: str) -> System:
     if ver != FORMAT_VERSION:
         raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found "
                           f"{_shown_attr(f, 'version')}", source, "attrs/version")
-    if "scan_axes" in f.attrs:  # the two-axis extension (docs/formats.md §5)
+    if "scan_axes" in f.attrs or scan_axes != 1:  # the two-axis extension (formats.md §5)
         try:
             axes = h5.attr_int(f, "scan_axes", source)
         except FormatError:
-            axes = None
-        if axes != 1:
+            axes = -1
+        axes = 1 if axes is None else axes
+        if axes != scan_axes and scan_axes == 1 and axes == 2:
             raise FormatError("a two-axis recording (scan_axes = 2): read it with "
                               "mems_stereo.io.recording2d.read_recording_2d", source,
                               "attrs/scan_axes")
+        if axes != scan_axes:
+            raise FormatError(f"expected attribute scan_axes = {scan_axes}, found "
+                              f"{_shown_attr(f, 'scan_axes')}", source, "attrs/scan_axes")
     ds = _need(f, "/system", source)
     if ds.shape != () or ds.dtype.kind not in "OSU":
         raise FormatError(f"expected a scalar JSON string, found {ds.dtype} {ds.shape}", source,
@@ -171,7 +179,8 @@ def _shown_attr(f: h5py.File, key: str) -> str:
 
 
 def check_crossing_frequency(zc: np.ndarray, rising: np.ndarray, f_mech: float,
-                             source: str = "", tol: float = CROSSING_FREQUENCY_TOLERANCE):
+                             source: str = "", tol: float = CROSSING_FREQUENCY_TOLERANCE,
+                             field: str = "/scanner/zero_crossings"):
     """Cross-check the zero crossings against ``f_mech`` (Hz).
 
     Between crossings the phase advances by π (alternating kinds) or 2π (same
@@ -188,18 +197,12 @@ def check_crossing_frequency(zc: np.ndarray, rising: np.ndarray, f_mech: float,
         raise FormatError(f"the crossings imply a mirror frequency of {med:.6g} Hz, but "
                           f"scanner.f_mech = {f_mech:g} Hz (/system)"
                           + (f"; the crossings are {kinds}" if kinds else ""),
-                          source, "/scanner/zero_crossings")
+                          source, field)
 
 
-def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
-                            chunk_shots: int = 4096):
-    """Validate the datasets of an open recording against FORMAT v1.
-
-    Returns ``(system, shot_time, zero_crossings, rising)``; ``/shots/bins`` is
-    checked for shape and dtype and, if ``check_codes``, streamed to check
-    that every code is <= n_bins (memory bounded by ``chunk_shots``).
-    """
-    system = validate_header(f, source)
+def read_shot_times(f: h5py.File, source: str) -> np.ndarray:
+    """``/shots/time``: (K,) float64 s, finite, strictly increasing (checked in blocks;
+    the per-shot arrays of a run are checked against the memory budget first)."""
     t_ds = _need(f, "/shots/time", source, whole=True)
     if t_ds.dtype != np.float64:
         raise FormatError(f"expected float64 seconds, found dtype {t_ds.dtype}", source,
@@ -221,6 +224,35 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
             raise FormatError(f"expected strictly increasing shot times, found t[{i + 1}] = "
                               f"{float(t[i + 1])!r} <= t[{i}] = {float(t[i])!r}", source,
                               "/shots/time")
+    return t
+
+
+def read_crossings(f: h5py.File, source: str, f_mech: float, group: str = "/scanner"):
+    """``GROUP/zero_crossings`` (float64 s) and ``GROUP/rising`` (0/1) of a resonant
+    axis, validated and cross-checked against its ``f_mech`` (Hz); returns
+    ``(zc (Z,) float64, rising (Z,) uint8)``."""
+    zpath, rpath = f"{group}/zero_crossings", f"{group}/rising"
+    zc_ds = _need(f, zpath, source, whole=True)
+    if zc_ds.dtype != np.float64:
+        raise FormatError(f"expected float64 seconds, found dtype {zc_ds.dtype}", source, zpath)
+    r_ds = _need(f, rpath, source, whole=True)
+    _check_dtype(r_ds, "iub", "uint8 0/1", source, rpath)
+    zc, rising = validate_zero_crossings(h5.read(zc_ds, source), h5.read(r_ds, source),
+                                         source=source, field=zpath)
+    check_crossing_frequency(zc, rising, f_mech, source, field=zpath)
+    return zc, rising.astype(np.uint8)
+
+
+def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
+                            chunk_shots: int = 4096):
+    """Validate the datasets of an open recording against FORMAT v1.
+
+    Returns ``(system, shot_time, zero_crossings, rising)``; ``/shots/bins`` is
+    checked for shape and dtype and, if ``check_codes``, streamed to check
+    that every code is <= n_bins (memory bounded by ``chunk_shots``).
+    """
+    system = validate_header(f, source)
+    t = read_shot_times(f, source)
     b_ds = _need(f, "/shots/bins", source)
     w, h = system.receiver.image_size
     if b_ds.ndim != 3 or b_ds.shape[0] != t.size or b_ds.shape[1:] != (h, w):
@@ -236,17 +268,9 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
                 k = s0 + int(np.argmax(blk.reshape(blk.shape[0], -1).max(axis=1) > n_bins))
                 raise FormatError(f"expected codes 0..{n_bins} (n_bins), found "
                                   f"{int(blk.max())} in shot {k}", source, "/shots/bins")
-    zc_ds = _need(f, "/scanner/zero_crossings", source, whole=True)
-    if zc_ds.dtype != np.float64:
-        raise FormatError(f"expected float64 seconds, found dtype {zc_ds.dtype}", source,
-                          "/scanner/zero_crossings")
-    r_ds = _need(f, "/scanner/rising", source, whole=True)
-    _check_dtype(r_ds, "iub", "uint8 0/1", source, "/scanner/rising")
-    zc, rising = validate_zero_crossings(h5.read(zc_ds, source), h5.read(r_ds, source),
-                                         source=source)
-    check_crossing_frequency(zc, rising, system.scanner.f_mech, source)
+    zc, rising = read_crossings(f, source, system.scanner.f_mech)
     _check_truth(f, b_ds, source)
-    return system, t, zc, rising.astype(np.uint8)
+    return system, t, zc, rising
 
 
 def _check_truth(f: h5py.File, b_ds: h5py.Dataset, source: str) -> None:
@@ -262,13 +286,26 @@ def _check_truth(f: h5py.File, b_ds: h5py.Dataset, source: str) -> None:
                               f" found {lab.dtype} {lab.shape}", source, "/truth/label")
 
 
-def _read_truth(f: h5py.File, source: str = "") -> dict:
+def read_truth(f: h5py.File, source: str = "", attrs: bool = False) -> dict:
+    """The optional ``/truth`` group's datasets (and, with ``attrs``, its scalar
+    attributes) as a dict; anything but a group there is ignored (processing
+    never reads the truth)."""
     truth = {}
-    if "truth" in f and isinstance(f["truth"], h5py.Group):
-        for k, v in f["truth"].items():
-            if isinstance(v, h5py.Dataset):
+    try:
+        g = f["truth"] if "truth" in f else None
+    except h5.H5_ERRORS:
+        g = None
+    if isinstance(g, h5py.Group):
+        for k in g:
+            if isinstance(g.get(k), h5py.Dataset):
                 ds = h5.dataset(f, f"/truth/{k}", source, whole=True)
                 truth[k] = h5.read(ds, source)
+        if attrs:
+            try:
+                truth.update({k: v for k, v in g.attrs.items()})
+            except h5.H5_ERRORS as e:
+                raise FormatError(f"cannot read the attributes ({e})", source,
+                                  "/truth") from None
     return truth
 
 
@@ -285,7 +322,7 @@ def read_recording(path: str | os.PathLike, *, truth: bool = True) -> Recording:
             k = int(np.argmax(bins.reshape(bins.shape[0], -1).max(axis=1) > system.tdc.n_bins))
             raise FormatError(f"expected codes 0..{system.tdc.n_bins} (n_bins), found "
                               f"{int(bins.max())} in shot {k}", source, "/shots/bins")
-        tr = _read_truth(f, source) if truth else {}
+        tr = read_truth(f, source) if truth else {}
     return Recording(system, t, bins, zc, rising, tr, source)
 
 

@@ -38,17 +38,23 @@ import h5py
 import numpy as np
 
 from mems_stereo.errors import FormatError
-from mems_stereo.model.scanner import validate_zero_crossings
+from mems_stereo.io import hdf5 as h5
+from mems_stereo.io.recording import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    read_crossings,
+    read_shot_times,
+    read_truth,
+    validate_header,
+)
 from mems_stereo.model.scanner2d import (
     Axis2Monitor,
     require_two_axis,
     validate_position_channel,
 )
-from mems_stereo.model.system import System, system_from_json, system_to_json
+from mems_stereo.model.system import System, system_to_json
 from mems_stereo.util.atomic import atomic_output
 
-FORMAT_NAME = "mems-stereo/recording"
-FORMAT_VERSION = 1
 SCAN_AXES = 2
 
 
@@ -90,114 +96,117 @@ class Recording2D:
 
 
 def is_two_axis_recording(path: str | os.PathLike) -> bool:
-    """True when the HDF5 file carries ``scan_axes = 2`` (False for v1 or unreadable files)."""
+    """True when the HDF5 file carries ``scan_axes = 2`` (False for v1 or unreadable files:
+    their reader then says what is wrong)."""
     try:
-        with h5py.File(path, "r") as f:
-            return int(np.asarray(f.attrs.get("scan_axes", 1))) == SCAN_AXES
-    except (OSError, ValueError, TypeError):
+        with h5.open_h5(path) as f:
+            return h5.attr_int(f, "scan_axes", str(path)) == SCAN_AXES
+    except (FormatError, OSError):
         return False
 
 
-def _need(f, path, source):
-    if path not in f or not isinstance(f[path], h5py.Dataset):
-        raise FormatError("required dataset is missing", source, path)
-    return f[path][()]
+def _whole(f, path: str, source: str, kinds: str | None = None, what: str = "") -> np.ndarray:
+    """A dataset read whole through the safe reader (:mod:`mems_stereo.io.hdf5`);
+    ``kinds``: the accepted dtype kinds (``"iu"``: integers)."""
+    ds = h5.dataset(f, path, source, whole=True)
+    if kinds is not None and ds.dtype.kind not in kinds:
+        raise FormatError(f"expected {what or 'integers'}, found dtype {ds.dtype}", source, path)
+    return h5.read(ds, source)
+
+
+def _readout(f, source: str) -> dict:
+    """``/readout`` attributes: ``mode`` and, gated, ``r_min``, ``r_max`` (m), ``half_width``."""
+    try:
+        g = f["readout"] if "readout" in f else None
+        if not isinstance(g, h5py.Group):
+            raise FormatError("required group is missing", source, "/readout")
+        ra = dict(g.attrs.items())
+    except h5.H5_ERRORS as e:
+        raise FormatError(f"cannot read the attributes ({e})", source, "/readout") from None
+    mode = ra.get("mode")
+    mode = mode.decode("utf-8", "replace") if isinstance(mode, bytes) else mode
+    if mode not in ("gated", "full"):
+        raise FormatError(f"expected 'gated' or 'full', found {mode!r}"[:120], source,
+                          "/readout attrs/mode")
+    readout = {"mode": mode}
+    if mode == "gated":
+        for k in ("r_min", "r_max", "half_width"):
+            if k not in ra:
+                raise FormatError("required attribute is missing", source,
+                                  f"/readout attrs/{k}")
+            v = np.asarray(ra[k])
+            if v.shape not in ((), (1,)) or v.dtype.kind not in "iuf":
+                raise FormatError(f"expected a number, found {ra[k]!r}"[:120], source,
+                                  f"/readout attrs/{k}")
+            readout[k] = float(v.reshape(()))
+        if not (0 < readout["r_min"] < readout["r_max"] < np.inf
+                and 0 <= readout["half_width"] < np.inf):
+            raise FormatError(f"expected 0 < r_min < r_max < inf (m) and a finite half_width "
+                              f">= 0 (px), found r_min={readout['r_min']}, r_max="
+                              f"{readout['r_max']}, half_width={readout['half_width']}",
+                              source, "/readout attrs")
+    return readout
 
 
 def read_recording_2d(path: str | os.PathLike, *, truth: bool = True) -> Recording2D:
-    """Read and validate a two-axis recording (errors: :class:`FormatError`)."""
+    """Read and validate a two-axis recording (errors: :class:`FormatError`).
+
+    The header, the shot times, the fast axis' crossings and the truth are
+    read and checked by the one-axis reader's functions
+    (:mod:`mems_stereo.io.recording`), through the safe HDF5 layer
+    (:mod:`mems_stereo.io.hdf5`: links, layout, memory budget, corrupt chunks).
+    """
     source = str(path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as e:
-        raise FormatError(f"cannot open as HDF5 ({e})", source) from None
-    with f:
-        fmt = f.attrs.get("format")
-        fmt = fmt.decode() if isinstance(fmt, bytes) else fmt
-        if fmt != FORMAT_NAME:
-            raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
-                              source, "attrs/format")
-        ver = f.attrs.get("version")
-        if ver is None or int(np.asarray(ver)) != FORMAT_VERSION:
-            raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found {ver!r}",
-                              source, "attrs/version")
-        ax = int(np.asarray(f.attrs.get("scan_axes", 1)))
-        if ax != SCAN_AXES:
-            raise FormatError(f"expected attribute scan_axes = 2, found {ax}", source,
-                              "attrs/scan_axes")
-        raw = _need(f, "/system", source)
-        raw = raw.decode("utf-8") if isinstance(raw, bytes) else raw
-        system = system_from_json(raw, source=f"{source}:/system")
+    with h5.open_h5(path) as f:
+        system = validate_header(f, source, scan_axes=SCAN_AXES)
         a2 = require_two_axis(system, f"{source}:/system")
-        t = np.asarray(_need(f, "/shots/time", source), dtype=np.float64)
-        if t.ndim != 1 or not np.all(np.isfinite(t)) or np.any(np.diff(t) <= 0):
-            raise FormatError("expected (K,) finite, strictly increasing times", source,
-                              "/shots/time")
-        zc, rising = validate_zero_crossings(_need(f, "/scanner/zero_crossings", source),
-                                             _need(f, "/scanner/rising", source), source)
+        t = read_shot_times(f, source)
+        zc, rising = read_crossings(f, source, system.scanner.f_mech)
         if a2.mode == "resonant":
-            z2, r2 = validate_zero_crossings(
-                _need(f, "/scanner/axis2/zero_crossings", source),
-                _need(f, "/scanner/axis2/rising", source), source,
-                field="/scanner/axis2/zero_crossings")
-            mon = Axis2Monitor(zero_crossings=z2, rising=r2.astype(np.uint8))
+            z2, r2 = read_crossings(f, source, a2.f_mech, "/scanner/axis2")
+            mon = Axis2Monitor(zero_crossings=z2, rising=r2)
         else:
-            pt, pp = validate_position_channel(_need(f, "/scanner/axis2/time", source),
-                                               _need(f, "/scanner/axis2/position", source),
-                                               source)
+            pt, pp = validate_position_channel(
+                _whole(f, "/scanner/axis2/time", source, "f", "float seconds"),
+                _whole(f, "/scanner/axis2/position", source, "f", "float radians"), source)
             mon = Axis2Monitor(time=pt, position=pp)
-        if "readout" not in f:
-            raise FormatError("required group is missing", source, "/readout")
-        ra = f["readout"].attrs
-        mode = ra.get("mode")
-        mode = mode.decode() if isinstance(mode, bytes) else mode
-        if mode not in ("gated", "full"):
-            raise FormatError(f"expected 'gated' or 'full', found {mode!r}", source,
-                              "/readout attrs/mode")
-        readout = {"mode": mode}
-        if mode == "gated":
-            for k in ("r_min", "r_max", "half_width"):
-                if k not in ra:
-                    raise FormatError("required attribute is missing", source,
-                                      f"/readout attrs/{k}")
-                readout[k] = float(ra[k])
-        count = np.asarray(_need(f, "/readout/count", source)).astype(np.int64)
+        readout = _readout(f, source)
+        count = _whole(f, "/readout/count", source, "iu").astype(np.int64)
         if count.shape != t.shape:
             raise FormatError(f"expected shape {t.shape}, found {count.shape}", source,
                               "/readout/count")
-        es = np.asarray(_need(f, "/events/shot", source)).astype(np.int64)
-        ep = np.asarray(_need(f, "/events/pixel", source)).astype(np.int64)
-        ec = np.asarray(_need(f, "/events/code", source))
+        es = _whole(f, "/events/shot", source, "iu").astype(np.int64)
+        ep = _whole(f, "/events/pixel", source, "iu").astype(np.int64)
+        ec = _whole(f, "/events/code", source)
         if not (es.shape == ep.shape == ec.shape) or es.ndim != 1:
             raise FormatError(f"expected equal (E,) shapes, found {es.shape}, {ep.shape}, "
                               f"{ec.shape}", source, "/events")
         if ec.dtype != np.uint16:
             raise FormatError(f"expected dtype uint16, found {ec.dtype}", source,
                               "/events/code")
-        w, h = system.receiver.image_size
-        n_bins = system.tdc.n_bins
-        if es.size:
-            if es.min() < 0 or es.max() >= t.size:
-                raise FormatError(f"expected shot indices 0..{t.size - 1}, found "
-                                  f"{es.min()}..{es.max()}", source, "/events/shot")
-            if ep.min() < 0 or ep.max() >= w * h:
-                raise FormatError(f"expected pixel indices 0..{w * h - 1}, found "
-                                  f"{ep.min()}..{ep.max()}", source, "/events/pixel")
-            if ec.min() < 1 or ec.max() > n_bins:
-                raise FormatError(f"expected codes 1..{n_bins}, found {ec.min()}..{ec.max()}",
-                                  source, "/events/code")
-            key = es * (w * h) + ep
-            if np.any(np.diff(key) <= 0):
-                raise FormatError("expected events sorted by shot then pixel, one per slot",
-                                  source, "/events")
-        tr: dict = {}
-        if truth and "truth" in f:
-            for k, v in f["truth"].items():
-                if isinstance(v, h5py.Dataset):
-                    tr[k] = v[()]
-            tr.update({k: v for k, v in f["truth"].attrs.items()})
-    return Recording2D(system, t, zc, rising.astype(np.uint8), mon, readout, count, es, ep,
-                       ec, tr, source)
+        _check_events(es, ep, ec, t.size, system, source)
+        tr = read_truth(f, source, attrs=True) if truth else {}
+    return Recording2D(system, t, zc, rising, mon, readout, count, es, ep, ec, tr, source)
+
+
+def _check_events(es, ep, ec, n_shots: int, system: System, source: str) -> None:
+    w, h = system.receiver.image_size
+    n_bins = system.tdc.n_bins
+    if not es.size:
+        return
+    if es.min() < 0 or es.max() >= n_shots:
+        raise FormatError(f"expected shot indices 0..{n_shots - 1}, found "
+                          f"{es.min()}..{es.max()}", source, "/events/shot")
+    if ep.min() < 0 or ep.max() >= w * h:
+        raise FormatError(f"expected pixel indices 0..{w * h - 1}, found "
+                          f"{ep.min()}..{ep.max()}", source, "/events/pixel")
+    if ec.min() < 1 or ec.max() > n_bins:
+        raise FormatError(f"expected codes 1..{n_bins}, found {ec.min()}..{ec.max()}",
+                          source, "/events/code")
+    key = es * (w * h) + ep
+    if np.any(np.diff(key) <= 0):
+        raise FormatError("expected events sorted by shot then pixel, one per slot",
+                          source, "/events")
 
 
 def write_recording_2d(path: str | os.PathLike, rec: Recording2D,

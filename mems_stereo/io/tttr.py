@@ -158,6 +158,8 @@ def map_from_dict(d: dict, source: str = "<dict>", base_dir: str | os.PathLike =
                                                  f"{shown(pol)}")
     delay = ck.number(zc.get("delay", 0.0), "zero_crossings.delay")
     tdc = d.get("tdc", {})
+    if not isinstance(tdc, dict):
+        raise ck.fail("tdc", f"expected an object, found {shown(tdc)}")
     binning = _int(ck, tdc.get("binning", 1), "tdc.binning", 1)
     delay_bins = tdc.get("delay_bins", 0)
     if isinstance(delay_bins, bool) or not isinstance(delay_bins, int):

@@ -50,16 +50,21 @@ def signals_blocked() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+    # the depth first: from here on a handler that honours deferring() only records a
+    # signal, so nothing below can be cut short between blocking and the try
     _defer["depth"] += 1
     try:
-        yield
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, _HELD)
+        try:
+            yield
+        finally:
+            # unblocked while still deferring: a signal pending in the kernel is recorded
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
     finally:
+        pending = None
+        if _defer["depth"] == 1:
+            pending, _defer["pending"] = _defer["pending"], None
         _defer["depth"] -= 1
-        pending = _defer["pending"] if _defer["depth"] == 0 else None
-        if pending is not None:
-            _defer["pending"] = None
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
         if pending is not None:
             signal.raise_signal(pending)
 
@@ -77,11 +82,15 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterato
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
     sfx = target.suffix if suffix is None else suffix
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".part{sfx}",
-                               dir=target.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    tmp_path = None
     try:
+        # created with the signals held back, inside the try: an interrupt can come
+        # before the file exists or after tmp_path names it, never in between
+        with signals_blocked():
+            fd, tmp = tempfile.mkstemp(prefix=f".{target.stem}.", suffix=f".part{sfx}",
+                                       dir=target.parent)
+            tmp_path = Path(tmp)
+            os.close(fd)
         yield tmp_path
         with signals_blocked():
             um = os.umask(0)  # mkstemp makes 0600 files; give outputs the usual mode
@@ -89,8 +98,9 @@ def atomic_output(path: str | os.PathLike, suffix: str | None = None) -> Iterato
             os.chmod(tmp_path, 0o666 & ~um)
             os.replace(tmp_path, target)
     except BaseException:
-        with signals_blocked(), contextlib.suppress(OSError):
-            tmp_path.unlink()
+        if tmp_path is not None:
+            with signals_blocked(), contextlib.suppress(OSError):
+                tmp_path.unlink()
         raise
 
 
