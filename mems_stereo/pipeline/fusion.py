@@ -38,7 +38,6 @@ from mems_stereo.errors import GeometryError
 from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
     path_length_of_point,
-    scanner_ray_point,
 )
 from mems_stereo.geometry.uncertainty import (
     _STEPS,
@@ -51,7 +50,6 @@ from mems_stereo.geometry.uncertainty import (
     propagate,
     spreads_for,
     stereo_point_est,
-    tof_point,
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
@@ -258,6 +256,46 @@ class DetectionPoints:
             self.weight_stereo, self.ok, self.dtof_dL)))
 
 
+#: below ``TOF_LINEAR_BELOW`` × |b| of path length the time-of-flight point on the
+#: scanner ray continues linearly (see :func:`tof_on_scanner_ray`)
+TOF_LINEAR_BELOW = 2.0
+
+
+def tof_on_scanner_ray(p, d, L):
+    """Time-of-flight point at path length L on the scanner ray ``p + s·d``, for every L.
+
+    The exact root ``s = (L² − |b|²) / (2 (L + d·b))`` (as
+    :func:`~mems_stereo.geometry.triangulation.scanner_ray_point`) for
+    ``L ≥ L_c = TOF_LINEAR_BELOW·|b|``, continued linearly below (value and
+    slope of the root at L_c: C¹).  A near return's detections spread over
+    ±c·σ_t ≈ ±1.9 m of path, and those at the TDC start are recorded at code 1
+    (arrivals before it are clipped there): their path lengths fall below |b|,
+    where the root does not exist.  Left out, they bias the peak's ToF mean
+    late and take counts from its stereo mean; the first-photon model expects
+    them (it knows the clipping), so each keeps its measured L on this
+    continuation.  ``p`` (3,), ``d`` (N, 3) unit, ``L`` (N,).  Returns
+    ``(points (N, 3), s (N,))``; NaN only for non-finite L.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    L = np.asarray(L, dtype=np.float64)
+    bb = float(p @ p)
+    db = np.sum(d * p, axis=-1)
+    Lc = TOF_LINEAR_BELOW * math.sqrt(bb)
+    Le = np.maximum(L, Lc)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (Le * Le - bb) / (2.0 * (Le + db))
+        slope = (Lc * Lc + 2.0 * Lc * db + bb) / (2.0 * (Lc + db) ** 2)
+        s = np.where(L < Lc, s + slope * (L - Lc), s)
+    s = np.where(np.isfinite(L), s, np.nan)
+    return p + s[..., None] * d, s
+
+
+def _tof_point_ext(system: System, u, v, L, theta) -> np.ndarray:
+    """:func:`tof_on_scanner_ray` as an estimator ``(system, u, v, L, θ) → (N, 3)``."""
+    return tof_on_scanner_ray(system.scanner.position, scan_direction(theta, system.scanner),
+                              L)[0]
+
+
 def _s_stereo(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
     s = epipolar_stereo_point(system.scanner.position, d, _rays(system, u, v))[1]
@@ -266,7 +304,7 @@ def _s_stereo(system, u, v, L, theta):
 
 def _s_tof(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
-    s = scanner_ray_point(system.scanner.position, d, L)[1]
+    s = tof_on_scanner_ray(system.scanner.position, d, L)[1]
     return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
 
 
@@ -309,7 +347,7 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                                        rays[ray_key])[:2]
 
     def tof(key, LL, tt, dir_key):
-        T[key] = scanner_ray_point(system.scanner.position, direction(dir_key, tt), LL)[:2]
+        T[key] = tof_on_scanner_ray(system.scanner.position, direction(dir_key, tt), LL)
 
     U, V, Lx, TH = x_in["u"], x_in["v"], x_in["L"], x_in["theta"]
     hu, hv, hL, ht = (_STEPS[n] for n in INPUTS)
@@ -396,7 +434,7 @@ def _detection_points_reference(system: System, shot_idx, rows, cols, codes, the
     sp = spreads_for(system) if spreads is None else spreads
     u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
     x_st, c_st = propagate(stereo_point_est, system, u, v, L, th, sp)
-    x_tf, c_tf = propagate(tof_point, system, u, v, L, th, sp)
+    x_tf, c_tf = propagate(_tof_point_ext, system, u, v, L, th, sp)
     # conditional (given θ) along-ray variances: pixel for stereo, timing for ToF
     s_st, J_st = jacobian(_s_stereo, system, u, v, L, th, wrt=("u", "v"))
     s_tf, J_tf = jacobian(_s_tof, system, u, v, L, th, wrt=("L",))
@@ -532,21 +570,25 @@ class EstimateSums:
 
 
 #: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
-_SCALARS = ("n", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0", "b1", "b2")
+_SCALARS = ("n", "detections", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0",
+            "b1", "b2")
 
 
 @dataclass
 class PeakSums:
     """Everything the inliers of Q peaks add up to (sums of chunks add: ``a + b``).
 
-    n : Σ m (inliers); code, weight, theta : Σ m·code, Σ m·stereo weight,
-    Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ², Σ m·r²/σ² (the scatter test);
+    n : Σ m (inliers); detections : Σ m over the inliers that are detections (m > 0,
+    not subtracted background: the count ``min_counts`` applies to); code, weight,
+    theta : Σ m·code, Σ m·stereo weight, Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ²,
+    Σ m·r²/σ² (the scatter test);
     window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
     subtracted background (its variance); loglik : (Q, J) the detections'
     log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
     """
 
     n: np.ndarray
+    detections: np.ndarray
     code: np.ndarray
     weight: np.ndarray
     theta: np.ndarray
@@ -714,7 +756,36 @@ class PeakAccumulator:
         """Fix each peak's centre range (Q,) m (NaN without detections) and the
         inliers' half-width (:class:`RangeMode`)."""
         self.centre, self.halfwidth = self.mode.finish()
+        self.halfwidth = np.maximum(self.halfwidth, self._footprint_halfwidth(self.centre))
         return self.centre
+
+    def _footprint_halfwidth(self, centre) -> np.ndarray:
+        """(Q,) m: half the stereo range span of ±:data:`INLIER_FOOTPRINT_PX` pixels about
+        each peak's pixel at its centre range (0 where undefined).
+
+        A return fires the pixel while the spot crosses its footprint and, when
+        strong or defocused (near range), while the spot's tails are still on
+        it: its detections' stereo ranges spread over that span, several of one
+        detection's σ.  With few detections the mode's plateau cannot show it
+        and the inlier bound would cut true returns; the angle band of pass 2
+        has already selected the steps, so this floor lets the band's
+        detections in (their mean is taken at the mean angle: no bias).
+        """
+        out = np.zeros(self.Q)
+        ok = np.isfinite(centre) & (centre > 0)
+        if not np.any(ok):
+            return out
+        u = self.cols[ok].astype(np.float64)
+        v = self.rows[ok].astype(np.float64)
+        p = np.asarray(self.system.scanner.position, dtype=np.float64)
+        x = centre[ok, None] * _rays(self.system, u, v)
+        d = x - p
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        h = INLIER_FOOTPRINT_PX
+        r = [np.linalg.norm(epipolar_stereo_point(p, d, _rays(self.system, u + a, v))[0], axis=1)
+             for a in (-h, h)]
+        out[ok] = np.nan_to_num(0.5 * np.abs(r[1] - r[0]))
+        return out
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
@@ -751,6 +822,7 @@ class PeakAccumulator:
         q = peak[inl]
         m_all, m = m, m[inl]
         np.add.at(s.n, q, m)
+        np.add.at(s.detections, q, np.maximum(m, 0.0))
         dp = dp_of(inl)
         # equal weights: inside one peak the spread of the estimates is the pixel's
         # footprint swept by the beam (stereo) or the pulse (ToF), and their σ grows
@@ -850,7 +922,10 @@ class PeakAccumulator:
         if fp is not None:
             attrs["tof_delay"] = fp["delay"]
             attrs["signal_photons"] = fp["mu"]
-        keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
+        # the detections (not their background-subtracted sum: 3 detections over an
+        # expected background of 0.01 are 3 detections) set the fewest counts
+        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
+                & np.all(np.isfinite(xf), axis=1))
         # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
         # their difference (see :func:`consistent_points`)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -976,6 +1051,9 @@ class PeakAccumulator:
         return out
 
 
+#: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
+#: (:meth:`PeakAccumulator._footprint_halfwidth`)
+INLIER_FOOTPRINT_PX = 1.0
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.1
 #: relative systematic uncertainty of the first-photon delay the correction removes
