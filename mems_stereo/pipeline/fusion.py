@@ -883,32 +883,38 @@ class PeakAccumulator:
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         c_pix = self._stereo_at_mean_angle(mean, n)
+        # the first-photon correction needs the pulse's centre: from the peak-level
+        # fusion of the stereo (at the mean angle) and uncorrected ToF means
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
         fp = self._first_photon(mean) if self._correcting() else None
-        for name in mean:
+        for name in ("stereo", "tof"):
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
         for name, C in (c_pix or {}).items():  # systematic: not scaled
             mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
             var_bg = np.maximum(s.b2 - 2 * rbar * s.b1 + rbar ** 2 * s.b0, 0.0) / W ** 2
-        for name in ("fused", "stereo"):  # along the viewing direction of the point
-            x0 = mean[name][0]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
-            add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
-            mean[name] = (x0, mean[name][1] + np.nan_to_num(add))
+        x0 = mean["stereo"][0]  # along the viewing direction of the point
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
+        add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
+        mean["stereo"] = (x0, mean["stereo"][1] + np.nan_to_num(add))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
-            for name in ("fused", "tof"):
-                D = s.estimate(name).dL()[0]
-                mean[name] = (mean[name][0], mean[name][1] + D[:, :, None] * D[:, None, :]
-                              * (fp["sigma_L"] ** 2)[:, None, None])
-        xf, Cf = mean["fused"]
+            D = s.tof.dL()[0]
+            mean["tof"] = (mean["tof"][0], mean["tof"][1] + D[:, :, None] * D[:, None, :]
+                           * (fp["sigma_L"] ** 2)[:, None, None])
+        # the point: the peak's stereo and ToF means, each with every term of its σ
+        # (scatter, pixel location, background, first-photon model), combined by
+        # their range variances (a stereo mean near the beam's vanishing point,
+        # σ of metres, then leaves the ToF alone instead of dragging the mean)
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        w_mean = mean["fused"][2]
+        xf, Cf = mean["fused"][:2]
         r, _, sr, sphi = polar_from_cartesian(xf, Cf)
         r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
         r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
         sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             code_mean = s.code / n
-            w_mean = s.weight / n
         attrs = {
             "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
             "row": self.rows.astype(np.int32),
@@ -939,13 +945,12 @@ class PeakAccumulator:
         disparity): the mean of the ranges over a band of angles lies behind the
         surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
         strong return that fires the pixel over several pixel footprints), the
-        range at the mean angle does not.  The fused point moves by its stereo
-        share of the difference.  Returns the systematic covariance of the
-        pixel location (:data:`STEREO_PIXEL_SIGMA`) per estimate, to add unscaled.
+        range at the mean angle does not.  Returns the systematic covariance of
+        the pixel location (:data:`STEREO_PIXEL_SIGMA`), ``{"stereo": C}``, to add
+        unscaled.
         """
         with np.errstate(invalid="ignore", divide="ignore"):
             th = self.sums.theta / n
-            w = self.sums.weight / n
         ok = np.isfinite(th) & (n > 0)
         if not np.any(ok):
             return None
@@ -956,7 +961,6 @@ class PeakAccumulator:
                                      th[ok])
         good = ok & np.all(np.isfinite(x_new), axis=1)
         x_new[~good] = x_old[~good]
-        shift = np.where(good[:, None], x_new - x_old, 0.0)
         # the band locates the spot's centre on the pixel to a fraction of a pixel
         # (spot profile, band edges, a surface inclined across the footprint):
         # STEREO_PIXEL_SIGMA px along the row, propagated at the mean angle
@@ -970,10 +974,7 @@ class PeakAccumulator:
         J = np.nan_to_num(J)
         C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
         mean["stereo"] = (x_new, mean["stereo"][1])
-        xf, Cf = mean["fused"]
-        wn = np.nan_to_num(w)
-        mean["fused"] = (xf + wn[:, None] * shift, Cf)
-        return {"stereo": C_sys, "fused": (wn ** 2)[:, None, None] * C_sys}
+        return {"stereo": C_sys}
 
     def _correcting(self) -> bool:
         return (self.first_photon and self.shots_per_step is not None
@@ -1044,10 +1045,9 @@ class PeakAccumulator:
         sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
                                    SATURATED_EDGE_SIGMA * sigma * sat ** 2))
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
-        for name in ("fused", "tof"):
-            D, G = self.sums.estimate(name).dL()
-            x, C = mean[name]
-            mean[name] = (x + D * dL[:, None], C + G * dvar[:, None, None])
+        D, G = self.sums.tof.dL()
+        x, C = mean["tof"]
+        mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
 
 
@@ -1061,6 +1061,34 @@ MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
+
+
+def fuse_along_ray(stereo, tof):
+    """Peak-level fusion of the stereo and ToF means: ``(x (Q, 3), C (Q, 3, 3), w (Q,))``.
+
+    ``stereo``, ``tof`` : (x (Q, 3), C (Q, 3, 3)) means and covariances (both
+    on the scanner ray at the peak's angle).  ``x = w·x_st + (1 − w)·x_tof`` with
+    ``w = σ_r,tof² / (σ_r,st² + σ_r,tof²)`` (range variances: inverse-variance
+    weights), ``C = w²·C_st + (1 − w)²·C_tof`` (independent given θ: pixel vs
+    timing).  One estimate missing (NaN), the other alone.
+    """
+    xs, Cs = stereo[0], stereo[1]
+    xt, Ct = tof[0], tof[1]
+    _, _, ss, _ = polar_from_cartesian(xs, Cs)
+    _, _, st, _ = polar_from_cartesian(xt, Ct)
+    vs, vt = ss ** 2, st ** 2
+    ok_s = np.all(np.isfinite(xs), axis=1) & np.isfinite(vs)
+    ok_t = np.all(np.isfinite(xt), axis=1) & np.isfinite(vt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(vs + vt > 0, vt / (vs + vt), 0.5)
+    w = np.where(ok_s & ok_t, w, np.where(ok_s, 1.0, 0.0))
+    x = w[:, None] * np.nan_to_num(xs) + (1 - w)[:, None] * np.nan_to_num(xt)
+    C = ((w ** 2)[:, None, None] * np.nan_to_num(Cs)
+         + ((1 - w) ** 2)[:, None, None] * np.nan_to_num(Ct))
+    bad = ~(ok_s | ok_t)
+    x[bad] = np.nan
+    C[bad] = np.nan
+    return x, C, w
 
 
 def _empty_band(Q: int):

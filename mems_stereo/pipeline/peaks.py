@@ -29,6 +29,7 @@ from mems_stereo.physics.background import (
     background_rate_from_noise,
     expected_background_by_angle,
     moving_sum,
+    poisson_isf,
 )
 from mems_stereo.pipeline.histograms import moving_average
 from mems_stereo.pipeline.intervals import interval_table
@@ -65,42 +66,21 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
-def scan_p_value(count, mu, n_windows):
-    """False-alarm probability of the largest sliding-window count of a row.
-
-    ``count`` : (P,) the largest window count (integers); ``mu`` : (P,) its
-    expected background; ``n_windows`` : (P,) the row's support in windows.
-    A window sliding one step at a time tests far more than ``n_windows``
-    disjoint windows: the Poisson clumping approximation of the scan statistic
-    (Aldous 1989; Glaz, Naus & Wallenstein 2001) counts the clumps of windows
-    at or above ``count`` as ``n_windows·(count − μ)·p(count; μ)``, which a
-    Bonferroni bound over disjoint windows underestimates by a factor of about
-    ``count`` at low background and ``z²`` at high.  Returns (P,) float64,
-    ``P(X ≥ k) + n_windows·max(k − μ, 0)·p(k; μ)`` (capped at 1).
-    """
-    from scipy.special import gammaln, pdtrc
-
-    k = np.asarray(count, np.float64)
-    m = np.maximum(np.asarray(mu, np.float64), 1e-300)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        tail = pdtrc(k - 1.0, m)  # P(X >= k)
-        pk = np.exp(k * np.log(m) - m - gammaln(k + 1.0))
-        p = tail + np.asarray(n_windows, np.float64) * np.maximum(k - m, 0.0) * pk
-    return np.where(k <= 0, 1.0, np.minimum(np.nan_to_num(p, nan=1.0), 1.0))
-
-
 def strongest_window(counts, background, width: int, support, settings: Settings):
     """Per row, the window of ``width`` bins with the largest excess over the background.
 
     ``counts``, ``background`` : (P, B) observed and expected counts;
-    ``support`` : (P, B) bool, where background can occur at all (its count /
-    width is the number of independent window positions).  The false-alarm
-    probability ``settings.false_alarm`` is per row, for the largest window
-    of a sliding scan (:func:`scan_p_value`).  Window sums are exact
-    (integer counts, no rescaling at the ends of the rows).
+    ``support`` : (P, B) bool, where background can occur at all (the number
+    of independent window positions is its count / width: the false-alarm
+    probability ``settings.false_alarm`` is per row, spread over them —
+    Bonferroni over disjoint windows; the largest of a window sliding one step
+    at a time exceeds it more often, by about the window count at low
+    background, see docs/pipeline.md).  Window sums are exact: integer counts,
+    no rescaling at the ends of the rows (a float sum of 7 read as
+    7.000000000000001 passed a threshold of 7).
     Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
-    count and expected background, and whether it passes the threshold and
-    ``settings.min_counts``.
+    count and expected background, and whether it passes the Poisson threshold
+    and ``settings.min_counts``.
     """
     S_w = np.rint(moving_sum(counts, width))  # window sums (integers)
     B_w = moving_sum(background, width)
@@ -108,8 +88,8 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     rows = np.arange(counts.shape[0])
     cnt, mu = S_w[rows, j], B_w[rows, j]
     n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
-    p = scan_p_value(cnt, mu, n_windows)
-    return j, cnt, mu, (p <= settings.false_alarm) & (cnt >= settings.min_counts)
+    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
+    return j, cnt, mu, (cnt > thr) & (cnt >= settings.min_counts)
 
 
 def excess_band(counts, background, width: int, j, level: float = 0.5):
@@ -279,6 +259,13 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # the pixel while the spot's tails are still on it: a plateau much wider than
     # the footprint, whose first maximum j need not be its centre), plus ``half``
     b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
+    if scanned.size:
+        # the same for the band itself (the half-maximum of the footprint-smoothed
+        # excess, which reaches half a footprint beyond the returns): a return seen
+        # only where the scan turns, its shots bunched there, lies at the footprint's
+        # edge, not its centre
+        inside = (b_lo >= scanned[0]) & (b_hi <= scanned[-1])
+        q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
