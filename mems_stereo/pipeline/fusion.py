@@ -784,7 +784,16 @@ class PeakAccumulator:
         h = INLIER_FOOTPRINT_PX
         r = [np.linalg.norm(epipolar_stereo_point(p, d, _rays(self.system, u + a, v))[0], axis=1)
              for a in (-h, h)]
-        out[ok] = np.nan_to_num(0.5 * np.abs(r[1] - r[0]))
+        span = np.nan_to_num(0.5 * np.abs(r[1] - r[0]), nan=0.0, posinf=0.0)
+        # the inlier test is on the fused range: the stereo spread enters it by the
+        # stereo's weight (far, or with a short baseline, the ToF decides alone and the
+        # floor must not open the bound to the whole window)
+        sp = spreads_for(self.system) if self.spreads is None else self.spreads
+        var_st = (sp.sigma_u * span / h) ** 2
+        var_tof = (0.5 * sp.sigma_L(self.system)) ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(var_st + var_tof > 0, var_tof / (var_st + var_tof), 0.0)
+        out[ok] = w * span
         return out
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
@@ -1055,7 +1064,7 @@ class PeakAccumulator:
 #: (:meth:`PeakAccumulator._footprint_halfwidth`)
 INLIER_FOOTPRINT_PX = 1.0
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
-STEREO_PIXEL_SIGMA = 0.1
+STEREO_PIXEL_SIGMA = 0.05
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
