@@ -916,6 +916,18 @@ class PeakAccumulator:
         # their range variances (a stereo mean near the beam's vanishing point,
         # σ of metres, then leaves the ToF alone instead of dragging the mean)
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        # the detections (not their background-subtracted sum: 3 detections over an
+        # expected background of 0.01 are 3 detections) set the fewest counts
+        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
+                & np.all(np.isfinite(mean["fused"][0]), axis=1))
+        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
+        if c_pix is not None and np.any(edge):
+            J = self._range_per_px[edge]
+            x, C = mean["stereo"]
+            C = C.copy()
+            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+            mean["stereo"] = (x, C)
+            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
         w_mean = mean["fused"][2]
         xf, Cf = mean["fused"][:2]
         r, _, sr, sphi = polar_from_cartesian(xf, Cf)
@@ -937,15 +949,43 @@ class PeakAccumulator:
         if fp is not None:
             attrs["tof_delay"] = fp["delay"]
             attrs["signal_photons"] = fp["mu"]
-        # the detections (not their background-subtracted sum: 3 detections over an
-        # expected background of 0.01 are 3 detections) set the fewest counts
-        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
-                & np.all(np.isfinite(xf), axis=1))
         # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
         # their difference (see :func:`consistent_points`)
         with np.errstate(invalid="ignore", divide="ignore"):
             attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
         return PointCloud(xf, attrs).select(keep)
+
+    def _depth_edges(self, x, C, keep) -> np.ndarray:
+        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
+
+        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
+        point whose range differs by more than k·σ of the difference, or when one
+        neighbour holds a point and the other none (the end of a run of points:
+        an object's silhouette, a shadow).  ``x`` (Q, 3), ``C`` (Q, 3, 3) the
+        points; ``keep`` (Q,) those that become points.
+        """
+        Q = self.Q
+        edge = np.zeros(Q, bool)
+        if Q == 0 or not np.any(keep):
+            return edge
+        r, _, sr, _ = polar_from_cartesian(x, C)
+        H = int(self.rows.max()) + 1
+        W = self.system.receiver.width
+        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
+        idx = np.flatnonzero(keep)
+        at[self.rows[idx], self.cols[idx] + 1] = idx
+        present = []
+        for dc in (-1, 1):
+            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
+            has = j >= 0
+            jj = np.where(has, j, 0)
+            with np.errstate(invalid="ignore"):
+                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
+            edge[idx[jump]] = True
+            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
+            present.append(has | ~inside)  # the sensor's border is not an edge
+        edge[idx[present[0] ^ present[1]]] = True
+        return edge
 
     def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
         """Stereo point of each peak at its detections' mean scan angle (in place).
@@ -981,6 +1021,7 @@ class PeakAccumulator:
             J[good] = (stereo_point_est(self.system, u + 0.5, v, z, th[good])
                        - stereo_point_est(self.system, u - 0.5, v, z, th[good]))
         J = np.nan_to_num(J)
+        self._range_per_px = J  # (Q, 3) m per pixel at the mean angle (depth edges)
         C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
         mean["stereo"] = (x_new, mean["stereo"][1])
         return {"stereo": C_sys}
@@ -1063,6 +1104,10 @@ class PeakAccumulator:
 #: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
 #: (:meth:`PeakAccumulator._footprint_halfwidth`)
 INLIER_FOOTPRINT_PX = 1.0
+#: systematic uncertainty, in pixels, of the stereo of a peak at a depth edge of the cloud
+#: (:meth:`PeakAccumulator._depth_edges`): the pixel sees part of the spot on one
+#: surface, its image off the pixel's centre by up to the spot's size
+EDGE_PIXEL_SIGMA = 0.5
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.05
 #: relative systematic uncertainty of the first-photon delay the correction removes
