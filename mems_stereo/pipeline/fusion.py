@@ -959,10 +959,10 @@ class PeakAccumulator:
         """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
 
         A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
-        point whose range differs by more than k·σ of the difference, or when one
-        neighbour holds a point and the other none (the end of a run of points:
-        an object's silhouette, a shadow).  ``x`` (Q, 3), ``C`` (Q, 3, 3) the
-        points; ``keep`` (Q,) those that become points.
+        point whose range differs by more than k·σ of the difference (an object's
+        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
+        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
+        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
         """
         Q = self.Q
         edge = np.zeros(Q, bool)
@@ -984,7 +984,8 @@ class PeakAccumulator:
             edge[idx[jump]] = True
             inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
             present.append(has | ~inside)  # the sensor's border is not an edge
-        edge[idx[present[0] ^ present[1]]] = True
+        if EDGE_RUN_ENDS:
+            edge[idx[present[0] ^ present[1]]] = True
         return edge
 
     def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
@@ -1108,6 +1109,10 @@ INLIER_FOOTPRINT_PX = 1.0
 #: (:meth:`PeakAccumulator._depth_edges`): the pixel sees part of the spot on one
 #: surface, its image off the pixel's centre by up to the spot's size
 EDGE_PIXEL_SIGMA = 0.5
+#: whether the end of a run of points (one row neighbour with a point, the other
+#: without) also counts as a depth edge (off: in sparse clouds it flags most points
+#: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
+EDGE_RUN_ENDS = False
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.05
 #: relative systematic uncertainty of the first-photon delay the correction removes
