@@ -198,7 +198,7 @@ def test_depth_edge_pixels_give_no_false_point():
     4.4 m and a box's edge.  Pixels at the silhouettes see part of the spot on one
     surface (pixel 18: the wall's returns while its ray meets the cylinder; its point
     was 24 cm from any surface at σ 6 cm); at a depth edge of the cloud the stereo
-    carries half a pixel more, and no point is false (farther than max(3σ, 10 cm))."""
+    carries a quarter pixel more, and no point is false (farther than max(3σ, 10 cm))."""
     from dataclasses import replace
 
     s = burkard2022().with_params(baseline_x=-0.12287688194275999,

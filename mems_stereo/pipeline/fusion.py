@@ -1108,7 +1108,7 @@ INLIER_FOOTPRINT_PX = 1.0
 #: systematic uncertainty, in pixels, of the stereo of a peak at a depth edge of the cloud
 #: (:meth:`PeakAccumulator._depth_edges`): the pixel sees part of the spot on one
 #: surface, its image off the pixel's centre by up to the spot's size
-EDGE_PIXEL_SIGMA = 0.5
+EDGE_PIXEL_SIGMA = 0.25
 #: whether the end of a run of points (one row neighbour with a point, the other
 #: without) also counts as a depth edge (off: in sparse clouds it flags most points
 #: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
