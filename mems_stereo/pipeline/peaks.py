@@ -260,11 +260,12 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # the footprint, whose first maximum j need not be its centre), plus ``half``
     b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
     if scanned.size:
-        # the same for the band itself (the half-maximum of the footprint-smoothed
-        # excess, which reaches half a footprint beyond the returns): a return seen
+        # the same for the band itself (the half maximum of the footprint-smoothed
+        # excess: the returns' own extent for a full crossing, half a footprint
+        # beyond a narrow cluster), with a quarter footprint of slack: a return seen
         # only where the scan turns, its shots bunched there, lies at the footprint's
         # edge, not its centre
-        inside = (b_lo >= scanned[0]) & (b_hi <= scanned[-1])
+        inside = (b_lo >= scanned[0] - width // 4) & (b_hi <= scanned[-1] + width // 4)
         q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
