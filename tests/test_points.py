@@ -99,6 +99,14 @@ def test_room_sample_detection_accuracy():
     dp = detection_points(true, k, r, c, rec.bins[k, r, c], res.theta)
     X = tr["point"][k]
     g = dp.ok & np.all(np.isfinite(X), 1) & (np.linalg.norm(X, axis=1) < 6)
+    # path lengths below 2|b| (codes at the TDC start, clipped there) have no ellipsoid
+    # root: their ToF is the linear continuation the peak means need, not an
+    # estimate with the pulse's σ (before, they were NaN and left out here too)
+    from mems_stereo.model.tdc import path_length_from_codes
+    from mems_stereo.pipeline.fusion import TOF_LINEAR_BELOW
+
+    L = path_length_from_codes(rec.bins[k, r, c], true.tdc, true.speed_of_light)
+    g &= L >= TOF_LINEAR_BELOW * np.linalg.norm(true.scanner.position)
     for name in ("stereo", "tof", "fused"):
         rr, _, sr, _ = polar_from_cartesian(getattr(dp, name)[g], getattr(dp, "cov_" + name)[g])
         z = (rr - np.linalg.norm(X[g], axis=1)) / sr

@@ -38,7 +38,6 @@ from mems_stereo.errors import GeometryError
 from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
     path_length_of_point,
-    scanner_ray_point,
 )
 from mems_stereo.geometry.uncertainty import (
     _STEPS,
@@ -51,7 +50,6 @@ from mems_stereo.geometry.uncertainty import (
     propagate,
     spreads_for,
     stereo_point_est,
-    tof_point,
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
@@ -260,6 +258,46 @@ class DetectionPoints:
             self.weight_stereo, self.ok, self.dtof_dL)))
 
 
+#: below ``TOF_LINEAR_BELOW`` × |b| of path length the time-of-flight point on the
+#: scanner ray continues linearly (see :func:`tof_on_scanner_ray`)
+TOF_LINEAR_BELOW = 2.0
+
+
+def tof_on_scanner_ray(p, d, L):
+    """Time-of-flight point at path length L on the scanner ray ``p + s·d``, for every L.
+
+    The exact root ``s = (L² − |b|²) / (2 (L + d·b))`` (as
+    :func:`~mems_stereo.geometry.triangulation.scanner_ray_point`) for
+    ``L ≥ L_c = TOF_LINEAR_BELOW·|b|``, continued linearly below (value and
+    slope of the root at L_c: C¹).  A near return's detections spread over
+    ±c·σ_t ≈ ±1.9 m of path, and those at the TDC start are recorded at code 1
+    (arrivals before it are clipped there): their path lengths fall below |b|,
+    where the root does not exist.  Left out, they bias the peak's ToF mean
+    late and take counts from its stereo mean; the first-photon model expects
+    them (it knows the clipping), so each keeps its measured L on this
+    continuation.  ``p`` (3,), ``d`` (N, 3) unit, ``L`` (N,).  Returns
+    ``(points (N, 3), s (N,))``; NaN only for non-finite L.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    L = np.asarray(L, dtype=np.float64)
+    bb = float(p @ p)
+    db = np.sum(d * p, axis=-1)
+    Lc = TOF_LINEAR_BELOW * math.sqrt(bb)
+    Le = np.maximum(L, Lc)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (Le * Le - bb) / (2.0 * (Le + db))
+        slope = (Lc * Lc + 2.0 * Lc * db + bb) / (2.0 * (Lc + db) ** 2)
+        s = np.where(L < Lc, s + slope * (L - Lc), s)
+    s = np.where(np.isfinite(L), s, np.nan)
+    return p + s[..., None] * d, s
+
+
+def _tof_point_ext(system: System, u, v, L, theta) -> np.ndarray:
+    """:func:`tof_on_scanner_ray` as an estimator ``(system, u, v, L, θ) → (N, 3)``."""
+    return tof_on_scanner_ray(system.scanner.position, scan_direction(theta, system.scanner),
+                              L)[0]
+
+
 def _s_stereo(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
     s = epipolar_stereo_point(system.scanner.position, d, _rays(system, u, v))[1]
@@ -268,7 +306,7 @@ def _s_stereo(system, u, v, L, theta):
 
 def _s_tof(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
-    s = scanner_ray_point(system.scanner.position, d, L)[1]
+    s = tof_on_scanner_ray(system.scanner.position, d, L)[1]
     return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
 
 
@@ -311,7 +349,7 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                                        rays[ray_key])[:2]
 
     def tof(key, LL, tt, dir_key):
-        T[key] = scanner_ray_point(system.scanner.position, direction(dir_key, tt), LL)[:2]
+        T[key] = tof_on_scanner_ray(system.scanner.position, direction(dir_key, tt), LL)
 
     U, V, Lx, TH = x_in["u"], x_in["v"], x_in["L"], x_in["theta"]
     hu, hv, hL, ht = (_STEPS[n] for n in INPUTS)
@@ -398,7 +436,7 @@ def _detection_points_reference(system: System, shot_idx, rows, cols, codes, the
     sp = spreads_for(system) if spreads is None else spreads
     u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
     x_st, c_st = propagate(stereo_point_est, system, u, v, L, th, sp)
-    x_tf, c_tf = propagate(tof_point, system, u, v, L, th, sp)
+    x_tf, c_tf = propagate(_tof_point_ext, system, u, v, L, th, sp)
     # conditional (given θ) along-ray variances: pixel for stereo, timing for ToF
     s_st, J_st = jacobian(_s_stereo, system, u, v, L, th, wrt=("u", "v"))
     s_tf, J_tf = jacobian(_s_tof, system, u, v, L, th, wrt=("L",))
@@ -534,21 +572,25 @@ class EstimateSums:
 
 
 #: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
-_SCALARS = ("n", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0", "b1", "b2")
+_SCALARS = ("n", "detections", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0",
+            "b1", "b2")
 
 
 @dataclass
 class PeakSums:
     """Everything the inliers of Q peaks add up to (sums of chunks add: ``a + b``).
 
-    n : Σ m (inliers); code, weight, theta : Σ m·code, Σ m·stereo weight,
-    Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ², Σ m·r²/σ² (the scatter test);
+    n : Σ m (inliers); detections : Σ m over the inliers that are detections (m > 0,
+    not subtracted background: the count ``min_counts`` applies to); code, weight,
+    theta : Σ m·code, Σ m·stereo weight, Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ²,
+    Σ m·r²/σ² (the scatter test);
     window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
     subtracted background (its variance); loglik : (Q, J) the detections'
     log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
     """
 
     n: np.ndarray
+    detections: np.ndarray
     code: np.ndarray
     weight: np.ndarray
     theta: np.ndarray
@@ -716,7 +758,45 @@ class PeakAccumulator:
         """Fix each peak's centre range (Q,) m (NaN without detections) and the
         inliers' half-width (:class:`RangeMode`)."""
         self.centre, self.halfwidth = self.mode.finish()
+        self.halfwidth = np.maximum(self.halfwidth, self._footprint_halfwidth(self.centre))
         return self.centre
+
+    def _footprint_halfwidth(self, centre) -> np.ndarray:
+        """(Q,) m: half the stereo range span of ±:data:`INLIER_FOOTPRINT_PX` pixels about
+        each peak's pixel at its centre range (0 where undefined).
+
+        A return fires the pixel while the spot crosses its footprint and, when
+        strong or defocused (near range), while the spot's tails are still on
+        it: its detections' stereo ranges spread over that span, several of one
+        detection's σ.  With few detections the mode's plateau cannot show it
+        and the inlier bound would cut true returns; the angle band of pass 2
+        has already selected the steps, so this floor lets the band's
+        detections in (their mean is taken at the mean angle: no bias).
+        """
+        out = np.zeros(self.Q)
+        ok = np.isfinite(centre) & (centre > 0)
+        if not np.any(ok):
+            return out
+        u = self.cols[ok].astype(np.float64)
+        v = self.rows[ok].astype(np.float64)
+        p = np.asarray(self.system.scanner.position, dtype=np.float64)
+        x = centre[ok, None] * _rays(self.system, u, v)
+        d = x - p
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        h = INLIER_FOOTPRINT_PX
+        r = [np.linalg.norm(epipolar_stereo_point(p, d, _rays(self.system, u + a, v))[0], axis=1)
+             for a in (-h, h)]
+        span = np.nan_to_num(0.5 * np.abs(r[1] - r[0]), nan=0.0, posinf=0.0)
+        # the inlier test is on the fused range: the stereo spread enters it by the
+        # stereo's weight (far, or with a short baseline, the ToF decides alone and the
+        # floor must not open the bound to the whole window)
+        sp = spreads_for(self.system) if self.spreads is None else self.spreads
+        var_st = (sp.sigma_u * span / h) ** 2
+        var_tof = (0.5 * sp.sigma_L(self.system)) ** 2
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(var_st + var_tof > 0, var_tof / (var_st + var_tof), 0.0)
+        out[ok] = w * span
+        return out
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
@@ -753,6 +833,7 @@ class PeakAccumulator:
         q = peak[inl]
         m_all, m = m, m[inl]
         np.add.at(s.n, q, m)
+        np.add.at(s.detections, q, np.maximum(m, 0.0))
         dp = dp_of(inl)
         # equal weights: inside one peak the spread of the estimates is the pixel's
         # footprint swept by the beam (stereo) or the pulse (ToF), and their σ grows
@@ -813,32 +894,50 @@ class PeakAccumulator:
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         c_pix = self._stereo_at_mean_angle(mean, n)
+        # the first-photon correction needs the pulse's centre: from the peak-level
+        # fusion of the stereo (at the mean angle) and uncorrected ToF means
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
         fp = self._first_photon(mean) if self._correcting() else None
-        for name in mean:
+        for name in ("stereo", "tof"):
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
         for name, C in (c_pix or {}).items():  # systematic: not scaled
             mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
             var_bg = np.maximum(s.b2 - 2 * rbar * s.b1 + rbar ** 2 * s.b0, 0.0) / W ** 2
-        for name in ("fused", "stereo"):  # along the viewing direction of the point
-            x0 = mean[name][0]
-            with np.errstate(invalid="ignore", divide="ignore"):
-                u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
-            add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
-            mean[name] = (x0, mean[name][1] + np.nan_to_num(add))
+        x0 = mean["stereo"][0]  # along the viewing direction of the point
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
+        add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
+        mean["stereo"] = (x0, mean["stereo"][1] + np.nan_to_num(add))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
-            for name in ("fused", "tof"):
-                D = s.estimate(name).dL()[0]
-                mean[name] = (mean[name][0], mean[name][1] + D[:, :, None] * D[:, None, :]
-                              * (fp["sigma_L"] ** 2)[:, None, None])
-        xf, Cf = mean["fused"]
+            D = s.tof.dL()[0]
+            mean["tof"] = (mean["tof"][0], mean["tof"][1] + D[:, :, None] * D[:, None, :]
+                           * (fp["sigma_L"] ** 2)[:, None, None])
+        # the point: the peak's stereo and ToF means, each with every term of its σ
+        # (scatter, pixel location, background, first-photon model), combined by
+        # their range variances (a stereo mean near the beam's vanishing point,
+        # σ of metres, then leaves the ToF alone instead of dragging the mean)
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        # the detections (not their background-subtracted sum: 3 detections over an
+        # expected background of 0.01 are 3 detections) set the fewest counts
+        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
+                & np.all(np.isfinite(mean["fused"][0]), axis=1))
+        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
+        if c_pix is not None and np.any(edge):
+            J = self._range_per_px[edge]
+            x, C = mean["stereo"]
+            C = C.copy()
+            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+            mean["stereo"] = (x, C)
+            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        w_mean = mean["fused"][2]
+        xf, Cf = mean["fused"][:2]
         r, _, sr, sphi = polar_from_cartesian(xf, Cf)
         r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
         r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
         sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             code_mean = s.code / n
-            w_mean = s.weight / n
         attrs = {
             "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
             "row": self.rows.astype(np.int32),
@@ -852,12 +951,44 @@ class PeakAccumulator:
         if fp is not None:
             attrs["tof_delay"] = fp["delay"]
             attrs["signal_photons"] = fp["mu"]
-        keep = (n >= max(1, int(min_counts))) & np.all(np.isfinite(xf), axis=1)
         # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
         # their difference (see :func:`consistent_points`)
         with np.errstate(invalid="ignore", divide="ignore"):
             attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
         return PointCloud(xf, attrs).select(keep)
+
+    def _depth_edges(self, x, C, keep) -> np.ndarray:
+        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
+
+        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
+        point whose range differs by more than k·σ of the difference (an object's
+        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
+        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
+        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
+        """
+        Q = self.Q
+        edge = np.zeros(Q, bool)
+        if Q == 0 or not np.any(keep):
+            return edge
+        r, _, sr, _ = polar_from_cartesian(x, C)
+        H = int(self.rows.max()) + 1
+        W = self.system.receiver.width
+        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
+        idx = np.flatnonzero(keep)
+        at[self.rows[idx], self.cols[idx] + 1] = idx
+        present = []
+        for dc in (-1, 1):
+            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
+            has = j >= 0
+            jj = np.where(has, j, 0)
+            with np.errstate(invalid="ignore"):
+                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
+            edge[idx[jump]] = True
+            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
+            present.append(has | ~inside)  # the sensor's border is not an edge
+        if EDGE_RUN_ENDS:
+            edge[idx[present[0] ^ present[1]]] = True
+        return edge
 
     def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
         """Stereo point of each peak at its detections' mean scan angle (in place).
@@ -866,13 +997,12 @@ class PeakAccumulator:
         disparity): the mean of the ranges over a band of angles lies behind the
         surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
         strong return that fires the pixel over several pixel footprints), the
-        range at the mean angle does not.  The fused point moves by its stereo
-        share of the difference.  Returns the systematic covariance of the
-        pixel location (:data:`STEREO_PIXEL_SIGMA`) per estimate, to add unscaled.
+        range at the mean angle does not.  Returns the systematic covariance of
+        the pixel location (:data:`STEREO_PIXEL_SIGMA`), ``{"stereo": C}``, to add
+        unscaled.
         """
         with np.errstate(invalid="ignore", divide="ignore"):
             th = self.sums.theta / n
-            w = self.sums.weight / n
         ok = np.isfinite(th) & (n > 0)
         if not np.any(ok):
             return None
@@ -883,7 +1013,6 @@ class PeakAccumulator:
                                      th[ok])
         good = ok & np.all(np.isfinite(x_new), axis=1)
         x_new[~good] = x_old[~good]
-        shift = np.where(good[:, None], x_new - x_old, 0.0)
         # the band locates the spot's centre on the pixel to a fraction of a pixel
         # (spot profile, band edges, a surface inclined across the footprint):
         # STEREO_PIXEL_SIGMA px along the row, propagated at the mean angle
@@ -895,12 +1024,10 @@ class PeakAccumulator:
             J[good] = (stereo_point_est(self.system, u + 0.5, v, z, th[good])
                        - stereo_point_est(self.system, u - 0.5, v, z, th[good]))
         J = np.nan_to_num(J)
+        self._range_per_px = J  # (Q, 3) m per pixel at the mean angle (depth edges)
         C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
         mean["stereo"] = (x_new, mean["stereo"][1])
-        xf, Cf = mean["fused"]
-        wn = np.nan_to_num(w)
-        mean["fused"] = (xf + wn[:, None] * shift, Cf)
-        return {"stereo": C_sys, "fused": (wn ** 2)[:, None, None] * C_sys}
+        return {"stereo": C_sys}
 
     def _correcting(self) -> bool:
         return (self.first_photon and self.shots_per_step is not None
@@ -981,10 +1108,9 @@ class PeakAccumulator:
         sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
                                    SATURATED_EDGE_SIGMA * sigma * sat ** 2))
         out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
-        for name in ("fused", "tof"):
-            D, G = self.sums.estimate(name).dL()
-            x, C = mean[name]
-            mean[name] = (x + D * dL[:, None], C + G * dvar[:, None, None])
+        D, G = self.sums.tof.dL()
+        x, C = mean["tof"]
+        mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
 
 
@@ -992,13 +1118,52 @@ class PeakAccumulator:
 #: :meth:`PeakAccumulator._first_photon`): a split of the peaks at multiples of it
 #: gives the same bits as the whole
 FP_BLOCK = 16
+#: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
+#: (:meth:`PeakAccumulator._footprint_halfwidth`)
+INLIER_FOOTPRINT_PX = 1.0
+#: systematic uncertainty, in pixels, of the stereo of a peak at a depth edge of the cloud
+#: (:meth:`PeakAccumulator._depth_edges`): the pixel sees part of the spot on one
+#: surface, its image off the pixel's centre by up to the spot's size
+EDGE_PIXEL_SIGMA = 0.25
+#: whether the end of a run of points (one row neighbour with a point, the other
+#: without) also counts as a depth edge (off: in sparse clouds it flags most points
+#: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
+EDGE_RUN_ENDS = False
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
-STEREO_PIXEL_SIGMA = 0.1
+STEREO_PIXEL_SIGMA = 0.05
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
+
+
+def fuse_along_ray(stereo, tof):
+    """Peak-level fusion of the stereo and ToF means: ``(x (Q, 3), C (Q, 3, 3), w (Q,))``.
+
+    ``stereo``, ``tof`` : (x (Q, 3), C (Q, 3, 3)) means and covariances (both
+    on the scanner ray at the peak's angle).  ``x = w·x_st + (1 − w)·x_tof`` with
+    ``w = σ_r,tof² / (σ_r,st² + σ_r,tof²)`` (range variances: inverse-variance
+    weights), ``C = w²·C_st + (1 − w)²·C_tof`` (independent given θ: pixel vs
+    timing).  One estimate missing (NaN), the other alone.
+    """
+    xs, Cs = stereo[0], stereo[1]
+    xt, Ct = tof[0], tof[1]
+    _, _, ss, _ = polar_from_cartesian(xs, Cs)
+    _, _, st, _ = polar_from_cartesian(xt, Ct)
+    vs, vt = ss ** 2, st ** 2
+    ok_s = np.all(np.isfinite(xs), axis=1) & np.isfinite(vs)
+    ok_t = np.all(np.isfinite(xt), axis=1) & np.isfinite(vt)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(vs + vt > 0, vt / (vs + vt), 0.5)
+    w = np.where(ok_s & ok_t, w, np.where(ok_s, 1.0, 0.0))
+    x = w[:, None] * np.nan_to_num(xs) + (1 - w)[:, None] * np.nan_to_num(xt)
+    C = ((w ** 2)[:, None, None] * np.nan_to_num(Cs)
+         + ((1 - w) ** 2)[:, None, None] * np.nan_to_num(Ct))
+    bad = ~(ok_s | ok_t)
+    x[bad] = np.nan
+    C[bad] = np.nan
+    return x, C, w
 
 
 def _empty_band(Q: int):

@@ -28,6 +28,7 @@ from mems_stereo.model.system import System
 from mems_stereo.physics.background import (
     background_rate_from_noise,
     expected_background_by_angle,
+    moving_sum,
     poisson_isf,
 )
 from mems_stereo.pipeline.histograms import moving_average
@@ -71,13 +72,18 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     ``counts``, ``background`` : (P, B) observed and expected counts;
     ``support`` : (P, B) bool, where background can occur at all (the number
     of independent window positions is its count / width: the false-alarm
-    probability ``settings.false_alarm`` is per row, spread over them).
+    probability ``settings.false_alarm`` is per row, spread over them —
+    Bonferroni over disjoint windows; the largest of a window sliding one step
+    at a time exceeds it more often, by about the window count at low
+    background, see docs/pipeline.md).  Window sums are exact: integer counts,
+    no rescaling at the ends of the rows (a float sum of 7 read as
+    7.000000000000001 passed a threshold of 7).
     Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
     count and expected background, and whether it passes the Poisson threshold
     and ``settings.min_counts``.
     """
-    S_w = moving_average(counts, width) * width  # window sums
-    B_w = moving_average(background, width) * width
+    S_w = np.rint(moving_sum(counts, width))  # window sums (integers)
+    B_w = moving_sum(background, width)
     j = np.argmax(S_w - B_w, axis=1)
     rows = np.arange(counts.shape[0])
     cnt, mu = S_w[rows, j], B_w[rows, j]
@@ -253,6 +259,14 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # the pixel while the spot's tails are still on it: a plateau much wider than
     # the footprint, whose first maximum j need not be its centre), plus ``half``
     b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
+    if scanned.size:
+        # the same for the band itself (the half maximum of the footprint-smoothed
+        # excess: the returns' own extent for a full crossing, half a footprint
+        # beyond a narrow cluster), with a quarter footprint of slack: a return seen
+        # only where the scan turns, its shots bunched there, lies at the footprint's
+        # edge, not its centre
+        inside = (b_lo >= scanned[0] - width // 4) & (b_hi <= scanned[-1] + width // 4)
+        q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
     # the peak code: the strongest code of the signal histogram in the band's codes
     S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
