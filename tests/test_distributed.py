@@ -117,11 +117,17 @@ def test_join_clouds_fills_missing_first_photon_attributes():
     assert np.isnan(j["tof_delay"][0]) and j["tof_delay"][1:].tolist() == [1.0, 1.0]
 
 
-def test_fusion_of_peak_blocks_equals_the_whole():
+@pytest.mark.parametrize("run_ends", [False, True])
+def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
     """The fusion split at multiples of FP_BLOCK peaks, joined, is the whole's cloud,
-    bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index)."""
+    bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index, and
+    each block fuses a halo of its row neighbours for the depth edges; with the run
+    ends counted as edges nearly every cut separates two neighbours)."""
+    from mems_stereo.pipeline import fusion
     from mems_stereo.pipeline import run as R
     from mems_stereo.pipeline.distributed import points_block
+
+    monkeypatch.setattr(fusion, "EDGE_RUN_ENDS", run_ends)
 
     for name in ("room.h5", "floodlight.h5"):
         seen = {}
@@ -144,8 +150,9 @@ def test_fusion_of_peak_blocks_equals_the_whole():
         for n in (2, 3, 7, Q):
             blocks = split_peak_counts(seen["counts"], Q, S, nb, n)
             assert len(blocks) > 1
-            j = join_clouds([points_block(seen["system"], light, b, seen["st"], seen["sps"],
-                                           seen["table"]) for b in blocks])
+            j = join_clouds([points_block(seen["system"], light, blocks, i, seen["st"],
+                                           seen["sps"], seen["table"])
+                             for i in range(len(blocks))])
             assert list(j.attributes) == list(whole.attributes)
             np.testing.assert_array_equal(j.points, whole.points)
             for k in whole.attributes:

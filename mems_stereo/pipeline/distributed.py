@@ -263,7 +263,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             if not clouds:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
-                                    (0, 0, PeakCounts()), st, acc.n_per_step, table)
+                                    [(0, 0, PeakCounts())], 0, st, acc.n_per_step, table)
             make_points.nbytes = sum(c.points.nbytes + sum(v.nbytes for v in
                                                            c.attributes.values())
                                      for c in clouds)
@@ -306,4 +306,4 @@ def _points_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
     """The cloud of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past the end."""
     if i >= len(blocks):
         return None
-    return points_block(system, peaks, blocks[i], settings, n_per_step, table)
+    return points_block(system, peaks, blocks, i, settings, n_per_step, table)

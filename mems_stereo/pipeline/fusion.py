@@ -137,7 +137,7 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
 
 
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
-                       shots_per_step=None, table=None):
+                       shots_per_step=None, table=None, own=None):
     """The cloud: one fused point per peak from its counted detections.
 
     Each distinct (peak, step, code) is triangulated once at the step's grid
@@ -195,7 +195,8 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
                                         step_grid=(table.theta_min, table.step), rate_hz=rate,
                                         step_window=(peaks["step_lo"], peaks["step_hi"])
                                         if peaks.get("step_lo") is not None else None,
-                                        accept=_acceptance(system, table, peaks))
+                                        accept=_acceptance(system, table, peaks),
+                                        own=own)
     return consistent_points(cloud, settings.confidence)
 
 
@@ -879,8 +880,12 @@ class PeakAccumulator:
             np.add.at(s.b1, q, b * r[inl])
             np.add.at(s.b2, q, b * r[inl] ** 2)
 
-    def cloud(self, min_counts: int = 1) -> PointCloud:
-        """One point per peak with at least ``min_counts`` inliers (see class docstring)."""
+    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
+        """One point per peak with at least ``min_counts`` inliers (see class docstring).
+
+        ``own`` : (a, b) or None — points of peaks a..b−1 only; the others are the
+        block's halo, fused so that the depth edges of its own peaks see every
+        neighbour (:func:`mems_stereo.pipeline.run.points_block`)."""
         s = self.sums
         n = s.n
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -955,6 +960,9 @@ class PeakAccumulator:
         # their difference (see :func:`consistent_points`)
         with np.errstate(invalid="ignore", divide="ignore"):
             attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
+        if own is not None:
+            q = np.arange(self.Q)
+            keep = keep & (q >= own[0]) & (q < own[1])
         return PointCloud(xf, attrs).select(keep)
 
     def _depth_edges(self, x, C, keep) -> np.ndarray:
@@ -1175,7 +1183,8 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                                 min_counts: int = 1, confidence: float = 0.997,
                                 weight=None, background=None, shots_per_step=None, step_grid=None,
                                 first_photon: bool = True, rate_hz=None, step_window=None,
-                                accept=None, spot_sigma: float | None = None) -> PointCloud:
+                                accept=None, spot_sigma: float | None = None,
+                                own=None) -> PointCloud:
     """One fused point per peak from the signal detections inside its code window.
 
     In-memory form of :class:`PeakAccumulator` (same result as streaming it).
@@ -1213,7 +1222,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         acc._add_mode_points(pts)
         acc.finish_mode()
         acc._add_inliers_points(pts, shot, theta, background)
-        return acc.cloud(min_counts)
+        return acc.cloud(min_counts, own)
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
     # keeps each entry's fused range, its σ and ok (17 bytes an entry); sub-pass 2
     # computes the points of the inliers alone
@@ -1239,7 +1248,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
 
         acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
                               None if bg is None else bg[e])
-    return acc.cloud(min_counts)
+    return acc.cloud(min_counts, own)
 
 
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by

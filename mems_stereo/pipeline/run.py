@@ -330,17 +330,54 @@ def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_
     light = {k: v for k, v in peaks.items() if k != "background_by_step"}
     blocks = split_peak_counts(counts, len(light["row"]), table.n_steps,
                                system.tdc.n_bins + 1, n_blocks)
-    return join_clouds([points_block(system, light, b, settings, n_per_step, table)
-                        for b in blocks])
+    return join_clouds([points_block(system, light, blocks, i, settings, n_per_step, table)
+                        for i in range(len(blocks))])
 
 
-def points_block(system, peaks, block, settings: Settings, n_per_step, table):
-    """The cloud of peaks ``q0..q1−1`` (``block`` ``(q0, q1, counts)`` of
-    :func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays)."""
-    q0, q1, counts = block
-    sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
+def block_with_halo(system, peaks, blocks, i: int, n_steps: int):
+    """Peaks to fuse for block ``i``: its own and a halo, ``(sel (Q',) int64 sorted,
+    counts of sel renumbered 0..Q'−1, own (a, b) local range of the block's peaks)``.
+
+    The fusion of a peak depends on its row neighbours (column ± 1: the depth
+    edges of :meth:`PeakAccumulator.cloud`), so the halo holds every peak of a
+    pixel beside one of the block's; it is widened to whole groups of
+    ``FP_BLOCK`` peaks by index, so the first-photon step groups every peak as
+    the whole run does and the halo's points are the whole's, bit for bit.
+    """
+    q0, q1, _ = blocks[i]
+    rows = np.asarray(peaks["row"], np.int64)
+    cols = np.asarray(peaks["col"], np.int64)
+    Q = rows.size
+    W = int(system.receiver.width)
+    pix = rows * (W + 2) + cols  # a padded row: column −1 and W belong to no pixel
+    mine = np.unique(pix[q0:q1])
+    halo = np.flatnonzero(np.isin(pix, np.concatenate([mine - 1, mine + 1])))
+    groups = np.unique(np.concatenate([np.arange(q0, q1), halo]) // FP_BLOCK)
+    sel = (groups[:, None] * FP_BLOCK + np.arange(FP_BLOCK)[None, :]).ravel()
+    sel = sel[sel < Q]
+    span = np.int64(n_steps) * np.int64(system.tdc.n_bins + 1)  # keys of split_peak_counts
+    keys, vals = [], []
+    for b0, b1, c in blocks:
+        if b1 <= b0 or c.keys.size == 0 or not np.any((sel >= b0) & (sel < b1)):
+            continue
+        gq = c.keys // span + b0
+        m = np.isin(gq, sel)
+        keys.append(np.searchsorted(sel, gq[m]) * span + c.keys[m] % span)
+        vals.append(c.counts[m])
+    counts = (PeakCounts(np.concatenate(keys), np.concatenate(vals)) if keys
+              else PeakCounts())
+    own = (int(np.searchsorted(sel, q0)), int(np.searchsorted(sel, q1)))
+    return sel, counts, own
+
+
+def points_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, table):
+    """The cloud of the peaks of block ``i`` of ``blocks`` (:func:`split_peak_counts`;
+    ``peaks`` a mapping of (Q,) arrays), fused with the halo of
+    :func:`block_with_halo`: the blocks' clouds joined are the whole's, bit for bit."""
+    sel, counts, own = block_with_halo(system, peaks, blocks, i, table.n_steps)
+    sub = {k: np.asarray(v)[sel] for k, v in peaks.items() if v is not None}
     return points_from_counts(system, sub, counts, settings, shots_per_step=n_per_step,
-                              table=table)
+                              table=table, own=own)
 
 
 def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[tuple[int, int]]:
