@@ -104,8 +104,25 @@ def main(argv: list[str] | None = None) -> int:
     return rc  # not reached
 
 
+#: libraries whose log records would reach stderr through Python's last-resort
+#: handler (ptufile warns about damaged PTU tags): the command's own one line says
+#: what is wrong with the input
+QUIET_LOGGERS = ("ptufile", "h5py", "numba", "distributed", "laspy")
+
+
+def _quiet_library_loggers() -> None:
+    import logging
+
+    for name in QUIET_LOGGERS:
+        lg = logging.getLogger(name)
+        if not any(isinstance(h, logging.NullHandler) for h in lg.handlers):
+            lg.addHandler(logging.NullHandler())
+
+
 def _main(argv: list[str] | None) -> int:
     from mems_stereo.cli import _signals
+
+    _quiet_library_loggers()
 
     # first: an interrupt while loading the commands is handled too
     with _signals.signal_guard(final=argv is None):
