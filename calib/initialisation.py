@@ -54,6 +54,17 @@ class Track:
     z: float
 
 
+def poisson_z(n, e):
+    """Signed significance of ``n`` counts where ``e`` are expected (Poisson
+    likelihood ratio, ``sign(n − e)·√(2(n ln(n/e) − n + e))``): right for the few
+    counts of a weak wall at a low background, where ``(n − e)/√e`` is not."""
+    n = np.asarray(n, dtype=np.float64)
+    e = np.maximum(np.asarray(e, dtype=np.float64), 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(n > 0, n * np.log(np.maximum(n, 1e-300) / e), 0.0) - n + e
+    return np.sign(n - e) * np.sqrt(np.maximum(2.0 * t, 0.0))
+
+
 def _early(w: WallData, t_search: float):
     k, r, c = np.nonzero((w.bins > 0) & (w.bins <= int(t_search / w.bin_width) + 1))
     t = (w.bins[k, r, c].astype(np.float64) - 0.5) * w.bin_width
@@ -92,9 +103,13 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
     pcell = np.exp(-lam_c[:, None] * edges[None, :-1]) * -np.expm1(-lam_c[:, None] * dt)
     expc = n_shots_bin[:, None, None] * pcell[None, :, :]
     nt = max(3, int(round(2.0 * sigma / dt)) | 1)
-    ho = _box(_box(hist, 1, 3), 2, nt)
-    he = _box(_box(expc, 1, 3), 2, nt)
-    z = (ho - he) / np.sqrt(he + 1.0)
+    # the beam crosses ~W columns per sweep: a phase bin spans ~W / n_half of them
+    # (3 at 64 bins per sweep, 25 at 8), and the box collects the whole bin's return
+    nc = max(3, int(W / n_half) | 1)
+    hc = nc // 2
+    ho = _box(_box(hist, 1, nc), 2, nt)
+    he = _box(_box(expc, 1, nc), 2, nt)
+    z = poisson_z(ho, he)
     flat = z.reshape(nbin, -1)
     best = np.argmax(flat, axis=1)
     zmax = flat[np.arange(nbin), best]
@@ -102,10 +117,10 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
     P_phase, P_u, P_t, P_n, shots_used = [], [], [], [], 0.0
     for b in np.flatnonzero(zmax > Z_TRACK):
         cc, t_pk = pc[b], (pt[b] + 0.5) * dt
-        m = (bk == b) & (np.abs(c - cc) <= 1) & (np.abs(t - t_pk) < 2.0 * sigma)
+        m = (bk == b) & (np.abs(c - cc) <= hc) & (np.abs(t - t_pk) < 2.0 * sigma)
         if np.count_nonzero(m) < 3:
             continue
-        lo, hi = max(0, cc - 1), min(W, cc + 2)
+        lo, hi = max(0, cc - hc), min(W, cc + hc + 1)
         cols = np.arange(lo, hi)
         ex = np.maximum(hist[b, lo:hi].sum(axis=1) - expc[b, lo:hi].sum(axis=1), 0.0)
         if ex.sum() <= 0:
@@ -374,8 +389,7 @@ def find_wall(w: WallData, system: System, values: dict, sigma: float,
         pb = np.where(ok, np.exp(-lu * lo) * -np.expm1(-lu * (tau + 2.0 * sigma - lo)), 0.0)
         hs = hit.reshape(n_d, -1).sum(axis=1)
         es = pb.reshape(n_d, -1).sum(axis=1)
-        vs = (pb * (1 - pb)).reshape(n_d, -1).sum(axis=1)
-        z = (hs - es) / np.sqrt(vs + 1.0)
+        z = poisson_z(hs, es)
         i = int(np.argmax(z))
         if z[i] > best[0]:
             n_on = max(int(ok.reshape(n_d, -1)[i].sum()), 1)
