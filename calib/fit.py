@@ -166,6 +166,53 @@ def _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state, pr
     return prob, x, H
 
 
+#: pinned at their nominal values while a degenerate first fit guides the search for
+#: missed walls (the scale-like directions that a single wall cannot fix)
+PINNED_FOR_GUIDE = ("tdc_offset", "baseline_x", "baseline_y", "baseline_z")
+
+
+def _guide_values(prob, x, H, state, walls, system, names, two_d, sigma, priors, values0,
+                  wall_p0, limits, progress):
+    """System values (all of ``names``) and walls to search missed walls with.
+
+    The converged fit of the walls found when it determines every parameter;
+    otherwise (one wall, walls at one distance: the fit is degenerate or does not
+    converge) a fit from the start values with the TDC offset and the baseline
+    pinned at their nominal values (a mechanical tolerance away from the truth:
+    a few pixels and ns, which the pose search over distances absorbs).  Returns
+    (values dict, walls (T, 5)) or None.
+    """
+    lay = prob.layout
+    if state.converged:
+        cov, _, _ = obs.covariance(H, lay.scales)
+        d = np.diag(cov)
+        std = {n: float(math.sqrt(d[i])) if np.isfinite(d[i]) and d[i] >= 0 else math.inf
+               for i, n in enumerate(lay.names)}
+        if not obs.weak_parameters(std, limits, [])[0]:
+            return lay.unpack(x)
+    names_r = [n for n in names if n not in PINNED_FOR_GUIDE]
+    if names_r == names:
+        return lay.unpack(x) if state.converged else None
+    if progress:
+        progress("first fit degenerate: the offset and the baseline pinned at their "
+                 "nominal values to search the missed walls")
+    st = FitState()
+    try:  # start values again, with the pinned parameters held
+        v0, wp0, used, _, _ = initialise(walls, system, names_r, sigma, priors)
+        if len(used) < len(walls):
+            return None
+        prob_r, x_r, _ = _solve(walls, system, names_r, two_d, sigma, priors,
+                                {n: v0[n] for n in names_r}, wp0, st, progress)
+    except NotObservableError:
+        return None
+    if not st.converged:
+        return None
+    v_r, wp_r = prob_r.layout.unpack(x_r)
+    vals = {n: system.get_param(n) for n in names}
+    vals.update(v_r)
+    return vals, wp_r
+
+
 def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: float = 50e-12,
               max_std: dict | None = None, on_unobservable: str = "raise",
               initial=None, progress=None, sources=None):
@@ -236,8 +283,12 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         prob, x, H = _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state,
                             progress)
         left = [j for j in range(len(all_walls)) if j not in used]
-        if state.converged and left:  # walls the track search missed: search them
-            values, wall_p = prob.layout.unpack(x)
+        guide = None
+        if left:  # walls the track search missed: search them with a trusted system
+            guide = _guide_values(prob, x, H, state, walls, system, names, two_d, sigma,
+                                  priors, values, wall_p, limits, progress)
+        if guide is not None:
+            values, wall_p = guide
             found, new_p = [], {}
             for j in left:
                 f = find_wall(all_walls[j], system.with_params(**values), values, sigma)
@@ -435,8 +486,11 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         again = fit_walls([walls[j] for j in keep], system, free=free, fix=fix, priors=pri,
                           jitter=jitter, max_std=max_std, on_unobservable=on_unobservable,
                           initial=(values, wall_p[keep]), progress=progress)
+        why = {j: "; ".join(b.split(": ", 1)[-1] for b in bad if f"({walls[j].source})" in b)
+               for j in guided}
         again.warnings[:0] = warns + [f"left out: {walls[j].source}: found with the fitted "
-                                      f"system but not consistent with it" for j in guided]
+                                      f"system but not consistent with it ({why[j]})"
+                                      for j in guided]
         return again
     if bad:
         return fail("implausible result: " + "; ".join(bad), **details)
