@@ -24,7 +24,7 @@ import time
 import numpy as np
 from mems_stereo.calib import observability as obs
 from mems_stereo.calib.association import cells_near_track
-from mems_stereo.calib.initialisation import find_wall, initialise
+from mems_stereo.calib.initialisation import _fit_line, _triangulate, find_wall, initialise
 from mems_stereo.calib.model import DEFAULT_FREE, SYSTEM_PARAMS, plane_normal
 from mems_stereo.calib.problem import (
     Layout,
@@ -48,7 +48,8 @@ MIN_SIGNAL_SHARE = 0.5
 #: a measured distance farther than this many σ from the data is named
 DISTANCE_PULL = 5.0
 N_ROUNDS = 2
-#: the fitted track must pass within this many pixels of this share of the track points
+#: the fitted track must pass within this many pixels (or 3σ of a point's column,
+#: when larger) of this share of the track points
 TRACK_GATE = 2.0
 MIN_ON_TRACK = 0.6
 MAX_ITER = 100
@@ -215,7 +216,7 @@ def _guide_values(prob, x, H, state, walls, system, names, two_d, sigma, priors,
 
 def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: float = 50e-12,
               max_std: dict | None = None, on_unobservable: str = "raise",
-              initial=None, progress=None, sources=None):
+              initial=None, progress=None, sources=None, _tracks=None, _repair=True):
     """Calibrate from reduced wall recordings.
 
     Parameters
@@ -230,6 +231,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         result carries it with its σ and a warning.
     initial : optional (values dict, walls (T, 5)) to start from (skips the
         global search; tests and the benchmark's Fisher check use it).
+    _tracks, _repair : internal (the re-fit of walls whose fitted plane missed
+        their own track).
 
     Returns
     -------
@@ -276,7 +279,7 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         tracks = list(tracks)
     else:
         values, wall_p = dict(initial[0]), np.array(initial[1], dtype=np.float64)
-        tracks = None
+        tracks = None if _tracks is None else list(_tracks)
     all_walls, all_priors = walls_in, list(priors_in)
     state = FitState()
     try:
@@ -410,7 +413,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         if tracks is not None and tracks[j] is not None:  # beam must follow the track
             tr = tracks[j]
             u_fit = shot_model(system.with_params(**values), values, wall, tr.phase)[0][:, 1]
-            on_track = float(np.mean(np.abs(u_fit - tr.u) < TRACK_GATE))
+            gate = np.maximum(TRACK_GATE, 3.0 * tr.u_err)
+            on_track = float(np.mean(np.abs(u_fit - tr.u) < gate))
             t["on_track"] = on_track
             checks[f"wall {j} track points followed"] = (on_track, MIN_ON_TRACK,
                                                          on_track >= MIN_ON_TRACK)
@@ -478,6 +482,30 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             warns.append(w_text)
             bad.insert(0, w_text)
     details = dict(partial, std=std, checks=checks, targets=targets)
+    off_track = [j for j in bad_walls if tracks is not None and tracks[j] is not None
+                 and targets[j].get("on_track", 1.0) < MIN_ON_TRACK]
+    if off_track and _repair:
+        # the system is held by the other walls: each such wall's plane again from its
+        # own track (triangulated with the fitted system), then one more fit
+        wp = wall_p.copy()
+        sys_fit = system.with_params(**values)
+        for j in off_track:
+            f = find_wall(walls[j], sys_fit, values, sigma)
+            if f is not None:  # the pose search over the whole recording
+                wp[j] = [f[0], 0.0, f[1], math.log(f[2]), math.log(0.3)]
+            else:
+                P = _triangulate(system, values, tracks[j].phase, tracks[j].u)
+                wp[j, 0], wp[j, 2] = _fit_line(P)
+        if progress:
+            progress(f"{len(off_track)} wall(s) off their track: poses searched again "
+                     "with the fitted system")
+        again = fit_walls(walls, system, free=free, fix=fix, priors=priors, jitter=jitter,
+                          max_std=max_std, on_unobservable=on_unobservable,
+                          initial=(values, wp), progress=progress, _tracks=tracks,
+                          _repair=False)
+        if again:
+            again.warnings[:0] = warns
+            return again
     guided = [j for j in bad_walls if tracks is not None and tracks[j] is None]
     if bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls:
         # only walls found by the pose search with the fitted system fail: without them

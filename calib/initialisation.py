@@ -42,7 +42,8 @@ N_REFINE = 4  # starts refined by least squares (the lowest start costs)
 class Track:
     """Track points of one wall: phase (N,) rad, u (N,) px, t (N,) s, n (N,)
     excess counts; window (t0, t1) s; mu: mean signal photons per shot (rough);
-    bias: first-photon bias of the median time, s."""
+    bias: first-photon bias of the median time, s; u_err (N,) px: σ of each
+    point's column (a phase bin's return spreads over the columns it sweeps)."""
 
     phase: np.ndarray
     u: np.ndarray
@@ -52,6 +53,7 @@ class Track:
     mu: float
     bias: float
     z: float
+    u_err: np.ndarray | None = None
 
 
 def poisson_z(n, e):
@@ -114,7 +116,7 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
     best = np.argmax(flat, axis=1)
     zmax = flat[np.arange(nbin), best]
     pc, pt = np.divmod(best, ntb)
-    P_phase, P_u, P_t, P_n, shots_used = [], [], [], [], 0.0
+    P_phase, P_u, P_t, P_n, P_e, shots_used = [], [], [], [], [], 0.0
     for b in np.flatnonzero(zmax > Z_TRACK):
         cc, t_pk = pc[b], (pt[b] + 0.5) * dt
         m = (bk == b) & (np.abs(c - cc) <= hc) & (np.abs(t - t_pk) < 2.0 * sigma)
@@ -129,9 +131,12 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
         P_t.append(float(np.median(t[m])))
         P_phase.append(float(np.angle(np.mean(np.exp(1j * ph[k[m]])))))
         P_n.append(float(ex.sum()))
+        # centroid of a return spread evenly over the nc columns the bin sweeps, and
+        # (nc / 6) the box's placement and the track's curvature within the bin
+        P_e.append(max(0.5, nc / 6.0, nc / math.sqrt(12.0 * max(ex.sum(), 1.0))))
         shots_used += n_shots_bin[b]
     return (np.array(P_phase), np.array(P_u), np.array(P_t), np.array(P_n),
-            shots_used, float(zmax.max()) if zmax.size else 0.0)
+            shots_used, float(zmax.max()) if zmax.size else 0.0, np.array(P_e))
 
 
 def find_track(w: WallData, sigma: float) -> Track:
@@ -153,7 +158,7 @@ def find_track(w: WallData, sigma: float) -> Track:
     for n_half in (64, 32, 16, 8, 4):
         res = _track_at(w, k, c, t, sigma, n_half)
         tr = _clean_track(Track(res[0], res[1], res[2], res[3], (0.0, T_SEARCH), 0.0, 0.0,
-                                res[5]))
+                                res[5], res[6]))
         if best is None or tr.u.size > best[0].u.size * 1.2:
             best = (tr, res[4])
     tr, shots_used = best
@@ -188,10 +193,10 @@ def _clean_track(tr: Track) -> Track:
             coef, *_ = np.linalg.lstsq(A[k], tr.u[m][k], rcond=None)
             res = tr.u[m] - A @ coef
             mad = 1.4826 * np.median(np.abs(res[k])) + 0.3
-            k = np.abs(res) < max(3.0 * mad, 1.5)
+            k = np.abs(res) < np.maximum(max(3.0 * mad, 1.5), 3.0 * tr.u_err[m])
         keep[m] = k
     return Track(tr.phase[keep], tr.u[keep], tr.t[keep], tr.n[keep], tr.window, tr.mu,
-                 tr.bias, tr.z)
+                 tr.bias, tr.z, tr.u_err[keep])
 
 
 def _triangulate(system: System, values: dict, phase, u):
@@ -267,8 +272,8 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     uu = np.concatenate([tr.u for tr in tracks])
     tt = np.concatenate([tr.t - tr.bias for tr in tracks])
     nn = np.concatenate([tr.n for tr in tracks])
+    s_u = np.concatenate([tr.u_err for tr in tracks])
     s_t = np.maximum(sigma / np.sqrt(np.maximum(nn, 1.0)) * 1.5, 0.3e-9)
-    s_u = 0.5
     free = [n for n in ("theta0", "theta_mech_max", "phase_offset", "tdc_offset",
                         "baseline_x", "baseline_z", "fx", "cx") if n in names]
     from mems_stereo.calib.model import PARAM_SCALE
