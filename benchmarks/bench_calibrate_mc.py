@@ -20,7 +20,10 @@ and the Fisher information at the true system agrees that a parameter is not
 observable (:func:`mems_stereo.calib.fit.fisher_std` at the true system and
 walls gives a σ above the limit of :data:`DEFAULT_MAX_STD` for some parameter).  Printed:
 success rates, refusal fractions, error quantiles, pulls (error / σ) per
-parameter with their standard deviation, and the time per calibration.
+parameter with their standard deviation, the CPU and wall time per
+calibration, and the cause of each failed trial (written but wrong; refused as
+not observable with the σ at the truth within 20 % of its limit; walls missed
+by the association; not converged; implausible).
 """
 
 from __future__ import annotations
