@@ -27,6 +27,7 @@ from mems_stereo.calib.association import cells_near_track
 from mems_stereo.calib.initialisation import _fit_line, _triangulate, find_wall, initialise
 from mems_stereo.calib.model import DEFAULT_FREE, SYSTEM_PARAMS, plane_normal
 from mems_stereo.calib.problem import (
+    SPOT_MIN,
     Layout,
     Problem,
     cell_terms,
@@ -424,6 +425,13 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
                            f"{on_track:.0%} of the returns found on the sensor (need "
                            f"{MIN_ON_TRACK:.0%}): the fit converged to a wrong geometry")
         checks[f"wall {j} distance"] = (z_axis, MIN_DISTANCE, z_axis >= MIN_DISTANCE)
+        spot_ok = s_px > 1.05 * SPOT_MIN
+        checks[f"wall {j} spot σ above its bound"] = (s_px, SPOT_MIN, spot_ok)
+        if not spot_ok:  # pixel-share derivatives of a collapsed spot inflate the information
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}): the fitted spot σ {s_px:.2f} px sits at its "
+                       f"lower bound ({SPOT_MIN} px): a degenerate optimum whose σ values "
+                       "cannot be trusted")
         if z_axis < MIN_DISTANCE:
             bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}) fitted at {z_axis:.3f} m (closer than "
@@ -484,7 +492,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
     details = dict(partial, std=std, checks=checks, targets=targets)
     off_track = [j for j in bad_walls if tracks is not None and tracks[j] is not None
                  and targets[j].get("on_track", 1.0) < MIN_ON_TRACK]
-    if off_track and _repair:
+    collapsed = [j for j in bad_walls if targets[j]["spot_px"] <= 1.05 * SPOT_MIN]
+    if (off_track or collapsed) and _repair:
         # the system is held by the other walls: each such wall's plane again from its
         # own track (triangulated with the fitted system), then one more fit
         wp = wall_p.copy()
@@ -496,9 +505,12 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             else:
                 P = _triangulate(system, values, tracks[j].phase, tracks[j].u)
                 wp[j, 0], wp[j, 2] = _fit_line(P)
+        for j in collapsed:  # the spot again from the other walls' (or a typical) size
+            others = [wall_p[i, 4] for i in range(len(walls)) if i not in collapsed]
+            wp[j, 4] = float(np.median(others)) if others else math.log(0.3)
         if progress:
-            progress(f"{len(off_track)} wall(s) off their track: poses searched again "
-                     "with the fitted system")
+            progress(f"{len(off_track)} wall(s) off their track, {len(collapsed)} with a "
+                     "collapsed spot: poses searched again with the fitted system")
         again = fit_walls(walls, system, free=free, fix=fix, priors=priors, jitter=jitter,
                           max_std=max_std, on_unobservable=on_unobservable,
                           initial=(values, wp), progress=progress, _tracks=tracks,
