@@ -428,10 +428,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         spot_ok = s_px > 1.05 * SPOT_MIN
         checks[f"wall {j} spot σ above its bound"] = (s_px, SPOT_MIN, spot_ok)
         if not spot_ok:  # pixel-share derivatives of a collapsed spot inflate the information
-            bad_walls.add(j)
-            bad.append(f"wall {j} ({w.source}): the fitted spot σ {s_px:.2f} px sits at its "
-                       f"lower bound ({SPOT_MIN} px): a degenerate optimum whose σ values "
-                       "cannot be trusted")
+            warns.append(f"wall {j} ({w.source}): the fitted spot σ {s_px:.2f} px sits at "
+                         f"its lower bound ({SPOT_MIN} px)")
         if z_axis < MIN_DISTANCE:
             bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}) fitted at {z_axis:.3f} m (closer than "
@@ -492,7 +490,10 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
     details = dict(partial, std=std, checks=checks, targets=targets)
     off_track = [j for j in bad_walls if tracks is not None and tracks[j] is not None
                  and targets[j].get("on_track", 1.0) < MIN_ON_TRACK]
-    collapsed = [j for j in bad_walls if targets[j]["spot_px"] <= 1.05 * SPOT_MIN]
+    # a spot collapsed onto its bound: a weak wall's spot size is poorly determined, but
+    # the collapse can also be a degenerate optimum that inflates the pixel information
+    # (an overconfident σ): the fit again from a typical spot, kept when it passes
+    collapsed = [j for j in range(len(walls)) if targets[j]["spot_px"] <= 1.05 * SPOT_MIN]
     if (off_track or collapsed) and _repair:
         # the system is held by the other walls: each such wall's plane again from its
         # own track (triangulated with the fitted system), then one more fit
@@ -516,7 +517,7 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
                           initial=(values, wp), progress=progress, _tracks=tracks,
                           _repair=False)
         if again:
-            again.warnings[:0] = warns
+            again.warnings[:0] = [m for m in warns if "sits at its lower bound" not in m]
             return again
     guided = [j for j in bad_walls if tracks is not None and tracks[j] is None]
     if bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls:
