@@ -20,7 +20,10 @@ and the Fisher information at the true system agrees that a parameter is not
 observable (:func:`mems_stereo.calib.fit.fisher_std` at the true system and
 walls gives a σ above the limit of :data:`DEFAULT_MAX_STD` for some parameter).  Printed:
 success rates, refusal fractions, error quantiles, pulls (error / σ) per
-parameter with their standard deviation, and the time per calibration.
+parameter with their standard deviation, the CPU and wall time per
+calibration, and the cause of each failed trial (written but wrong; refused as
+not observable with the σ at the truth within 20 % of its limit; walls missed
+by the association; not converged; implausible).
 """
 
 from __future__ import annotations
@@ -83,13 +86,15 @@ def run_trial(args):
                                    for w in case.walls]}
     for mode, priors in (("free", []), ("dist", [(j, "axis", d, FAMILY["distance_std"])
                                                  for j, d in enumerate(case.measured)])):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         r = fit_walls(walls, nom, priors=priors)
-        dt = time.perf_counter() - t0
-        rec = {"time": dt, "ok": bool(r)}
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        left = sum(1 for w in r.warnings if w.startswith("left out"))
+        rec = {"time": dt, "cpu": dc, "ok": bool(r), "left_out": left}
         if r:
             rec["err"] = {n: r.values[n] - truth[n] for n in r.names if n in truth}
             rec["std"] = {n: r.std[n] for n in r.names if n in truth}
+            rec["iterations"] = r.iterations
         else:
             rec["reason"] = r.reason
             rec["kind"] = r.kind
@@ -97,6 +102,7 @@ def run_trial(args):
                 vals = {n: true.get_param(n) for n in PARAMS}
                 st = fisher_std(walls, nom, vals, true_walls(case, true), priors)
                 rec["truth_std"] = {n: st[n] for n in PARAMS}
+                rec["truth_ratio"] = max(st[n] / DEFAULT_MAX_STD[n] for n in PARAMS)
                 rec["truth_observable"] = all(st[n] <= DEFAULT_MAX_STD[n] for n in PARAMS)
         out[mode] = rec
     return out
@@ -131,8 +137,19 @@ def summarise(results, mode):
                          f"{np.median(s) * f:>10.3g}{np.std(pull):>10.2f}"
                          f"{1.4826 * np.median(np.abs(pull - np.median(pull))):>10.2f}  {unit}")
     t = np.array([r[mode]["time"] for r in results])
-    lines.append(f"[{mode}] time per calibration: median {np.median(t):.1f} s, "
-                 f"p90 {np.quantile(t, 0.9):.1f} s, max {t.max():.1f} s")
+    c = np.array([r[mode].get("cpu", np.nan) for r in results])
+    lines.append(f"[{mode}] time per calibration: CPU median {np.median(c):.1f} s, "
+                 f"p90 {np.quantile(c, 0.9):.1f} s, max {c.max():.1f} s; wall median "
+                 f"{np.median(t):.1f} s, max {t.max():.1f} s")
+    causes = {}
+    if wrong:
+        causes["written, wrong by > 4σ"] = len(wrong)
+    for r in refused:
+        if r.get("truth_observable") is not False:
+            k = failure_cause(r)
+            causes[k] = causes.get(k, 0) + 1
+    for k, v in sorted(causes.items(), key=lambda kv: -kv[1]):
+        lines.append(f"[{mode}]   failure {v}×: {k}")
     reasons = {}
     for r in refused:
         key = r["reason"].split(":")[0][:60]
@@ -140,6 +157,16 @@ def summarise(results, mode):
     for k, v in sorted(reasons.items(), key=lambda kv: -kv[1])[:6]:
         lines.append(f"[{mode}]   refused {v}×: {k}")
     return lines
+
+
+def failure_cause(r) -> str:
+    """Why a refusal that the Fisher information at the truth does not back failed."""
+    reason = r["reason"]
+    if reason.startswith("not observable") and r.get("truth_ratio", 0.0) > 0.8:
+        return "refused as not observable, σ at the truth within 20 % of the limit"
+    if r.get("left_out", 0) or "usable wall return" in reason:
+        return (f"walls missed by the association ({reason.split(':')[0][:50]})")
+    return reason.split("(")[0].split(":")[0][:60]
 
 
 def main(argv=None) -> int:
@@ -189,10 +216,14 @@ def _trial_line(r, verbose):
         m = r[mode]
         if m["ok"]:
             worst = max(abs(m["err"][p] / m["std"][p]) for p in m["err"])
-            parts.append(f"{mode}: ok {m['time']:.1f}s θ0 {m['err']['theta0'] * 1e3:+.3f} mrad "
+            parts.append(f"{mode}: ok {m.get('cpu', m['time']):.1f}s CPU, "
+                         f"{m.get('iterations', 0)} it, "
+                         f"θ0 {m['err']['theta0'] * 1e3:+.3f} mrad "
                          f"off {m['err']['tdc_offset'] * 1e9:+.3f} ns max|pull| {worst:.1f}")
         else:
-            parts.append(f"{mode}: refused ({m.get('truth_observable')}) {m['reason'][:90]}")
+            parts.append(f"{mode}: refused (truth observable {m.get('truth_observable')}, "
+                         f"σ/limit {m.get('truth_ratio', float('nan')):.2f}, "
+                         f"{m.get('left_out', 0)} left out) {m['reason'][:90]}")
     w = " ".join(f"{d:.1f}m/{f:.2f}/{s}/{b / 1e6:.2g}M" for d, f, s, b in r["walls"])
     print(f"seed {r['seed']} [{w}]\n   " + "\n   ".join(parts), flush=True)
 

@@ -24,9 +24,10 @@ import time
 import numpy as np
 from mems_stereo.calib import observability as obs
 from mems_stereo.calib.association import cells_near_track
-from mems_stereo.calib.initialisation import find_wall, initialise
+from mems_stereo.calib.initialisation import _fit_line, _triangulate, find_wall, initialise
 from mems_stereo.calib.model import DEFAULT_FREE, SYSTEM_PARAMS, plane_normal
 from mems_stereo.calib.problem import (
+    SPOT_MIN,
     Layout,
     Problem,
     cell_terms,
@@ -48,7 +49,8 @@ MIN_SIGNAL_SHARE = 0.5
 #: a measured distance farther than this many σ from the data is named
 DISTANCE_PULL = 5.0
 N_ROUNDS = 2
-#: the fitted track must pass within this many pixels of this share of the track points
+#: the fitted track must pass within this many pixels (or 3σ of a point's column,
+#: when larger) of this share of the track points
 TRACK_GATE = 2.0
 MIN_ON_TRACK = 0.6
 MAX_ITER = 100
@@ -166,9 +168,56 @@ def _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state, pr
     return prob, x, H
 
 
+#: pinned at their nominal values while a degenerate first fit guides the search for
+#: missed walls (the scale-like directions that a single wall cannot fix)
+PINNED_FOR_GUIDE = ("tdc_offset", "baseline_x", "baseline_y", "baseline_z")
+
+
+def _guide_values(prob, x, H, state, walls, system, names, two_d, sigma, priors, values0,
+                  wall_p0, limits, progress):
+    """System values (all of ``names``) and walls to search missed walls with.
+
+    The converged fit of the walls found when it determines every parameter;
+    otherwise (one wall, walls at one distance: the fit is degenerate or does not
+    converge) a fit from the start values with the TDC offset and the baseline
+    pinned at their nominal values (a mechanical tolerance away from the truth:
+    a few pixels and ns, which the pose search over distances absorbs).  Returns
+    (values dict, walls (T, 5)) or None.
+    """
+    lay = prob.layout
+    if state.converged:
+        cov, _, _ = obs.covariance(H, lay.scales)
+        d = np.diag(cov)
+        std = {n: float(math.sqrt(d[i])) if np.isfinite(d[i]) and d[i] >= 0 else math.inf
+               for i, n in enumerate(lay.names)}
+        if not obs.weak_parameters(std, limits, [])[0]:
+            return lay.unpack(x)
+    names_r = [n for n in names if n not in PINNED_FOR_GUIDE]
+    if names_r == names:
+        return lay.unpack(x) if state.converged else None
+    if progress:
+        progress("first fit degenerate: the offset and the baseline pinned at their "
+                 "nominal values to search the missed walls")
+    st = FitState()
+    try:  # start values again, with the pinned parameters held
+        v0, wp0, used, _, _ = initialise(walls, system, names_r, sigma, priors)
+        if len(used) < len(walls):
+            return None
+        prob_r, x_r, _ = _solve(walls, system, names_r, two_d, sigma, priors,
+                                {n: v0[n] for n in names_r}, wp0, st, progress)
+    except NotObservableError:
+        return None
+    if not st.converged:
+        return None
+    v_r, wp_r = prob_r.layout.unpack(x_r)
+    vals = {n: system.get_param(n) for n in names}
+    vals.update(v_r)
+    return vals, wp_r
+
+
 def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: float = 50e-12,
               max_std: dict | None = None, on_unobservable: str = "raise",
-              initial=None, progress=None, sources=None):
+              initial=None, progress=None, sources=None, _tracks=None, _repair=True):
     """Calibrate from reduced wall recordings.
 
     Parameters
@@ -183,6 +232,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         result carries it with its σ and a warning.
     initial : optional (values dict, walls (T, 5)) to start from (skips the
         global search; tests and the benchmark's Fisher check use it).
+    _tracks, _repair : internal (the re-fit of walls whose fitted plane missed
+        their own track).
 
     Returns
     -------
@@ -229,15 +280,19 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         tracks = list(tracks)
     else:
         values, wall_p = dict(initial[0]), np.array(initial[1], dtype=np.float64)
-        tracks = None
+        tracks = None if _tracks is None else list(_tracks)
     all_walls, all_priors = walls_in, list(priors_in)
     state = FitState()
     try:
         prob, x, H = _solve(walls, system, names, two_d, sigma, priors, values, wall_p, state,
                             progress)
         left = [j for j in range(len(all_walls)) if j not in used]
-        if state.converged and left:  # walls the track search missed: search them
-            values, wall_p = prob.layout.unpack(x)
+        guide = None
+        if left:  # walls the track search missed: search them with a trusted system
+            guide = _guide_values(prob, x, H, state, walls, system, names, two_d, sigma,
+                                  priors, values, wall_p, limits, progress)
+        if guide is not None:
+            values, wall_p = guide
             found, new_p = [], {}
             for j in left:
                 f = find_wall(all_walls[j], system.with_params(**values), values, sigma)
@@ -359,7 +414,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         if tracks is not None and tracks[j] is not None:  # beam must follow the track
             tr = tracks[j]
             u_fit = shot_model(system.with_params(**values), values, wall, tr.phase)[0][:, 1]
-            on_track = float(np.mean(np.abs(u_fit - tr.u) < TRACK_GATE))
+            gate = np.maximum(TRACK_GATE, 3.0 * tr.u_err)
+            on_track = float(np.mean(np.abs(u_fit - tr.u) < gate))
             t["on_track"] = on_track
             checks[f"wall {j} track points followed"] = (on_track, MIN_ON_TRACK,
                                                          on_track >= MIN_ON_TRACK)
@@ -369,6 +425,11 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
                            f"{on_track:.0%} of the returns found on the sensor (need "
                            f"{MIN_ON_TRACK:.0%}): the fit converged to a wrong geometry")
         checks[f"wall {j} distance"] = (z_axis, MIN_DISTANCE, z_axis >= MIN_DISTANCE)
+        spot_ok = s_px > 1.05 * SPOT_MIN
+        checks[f"wall {j} spot σ above its bound"] = (s_px, SPOT_MIN, spot_ok)
+        if not spot_ok:  # pixel-share derivatives of a collapsed spot inflate the information
+            warns.append(f"wall {j} ({w.source}): the fitted spot σ {s_px:.2f} px sits at "
+                         f"its lower bound ({SPOT_MIN} px)")
         if z_axis < MIN_DISTANCE:
             bad_walls.add(j)
             bad.append(f"wall {j} ({w.source}) fitted at {z_axis:.3f} m (closer than "
@@ -427,6 +488,37 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             warns.append(w_text)
             bad.insert(0, w_text)
     details = dict(partial, std=std, checks=checks, targets=targets)
+    off_track = [j for j in bad_walls if tracks is not None and tracks[j] is not None
+                 and targets[j].get("on_track", 1.0) < MIN_ON_TRACK]
+    # a spot collapsed onto its bound: a weak wall's spot size is poorly determined, but
+    # the collapse can also be a degenerate optimum that inflates the pixel information
+    # (an overconfident σ): the fit again from a typical spot, kept when it passes
+    collapsed = [j for j in range(len(walls)) if targets[j]["spot_px"] <= 1.05 * SPOT_MIN]
+    if (off_track or collapsed) and _repair:
+        # the system is held by the other walls: each such wall's plane again from its
+        # own track (triangulated with the fitted system), then one more fit
+        wp = wall_p.copy()
+        sys_fit = system.with_params(**values)
+        for j in off_track:
+            f = find_wall(walls[j], sys_fit, values, sigma)
+            if f is not None:  # the pose search over the whole recording
+                wp[j] = [f[0], 0.0, f[1], math.log(f[2]), math.log(0.3)]
+            else:
+                P = _triangulate(system, values, tracks[j].phase, tracks[j].u)
+                wp[j, 0], wp[j, 2] = _fit_line(P)
+        for j in collapsed:  # the spot again from the other walls' (or a typical) size
+            others = [wall_p[i, 4] for i in range(len(walls)) if i not in collapsed]
+            wp[j, 4] = float(np.median(others)) if others else math.log(0.3)
+        if progress:
+            progress(f"{len(off_track)} wall(s) off their track, {len(collapsed)} with a "
+                     "collapsed spot: poses searched again with the fitted system")
+        again = fit_walls(walls, system, free=free, fix=fix, priors=priors, jitter=jitter,
+                          max_std=max_std, on_unobservable=on_unobservable,
+                          initial=(values, wp), progress=progress, _tracks=tracks,
+                          _repair=False)
+        if again:
+            again.warnings[:0] = [m for m in warns if "sits at its lower bound" not in m]
+            return again
     guided = [j for j in bad_walls if tracks is not None and tracks[j] is None]
     if bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls:
         # only walls found by the pose search with the fitted system fail: without them
@@ -435,8 +527,11 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
         again = fit_walls([walls[j] for j in keep], system, free=free, fix=fix, priors=pri,
                           jitter=jitter, max_std=max_std, on_unobservable=on_unobservable,
                           initial=(values, wall_p[keep]), progress=progress)
+        why = {j: "; ".join(b.split(": ", 1)[-1] for b in bad if f"({walls[j].source})" in b)
+               for j in guided}
         again.warnings[:0] = warns + [f"left out: {walls[j].source}: found with the fitted "
-                                      f"system but not consistent with it" for j in guided]
+                                      f"system but not consistent with it ({why[j]})"
+                                      for j in guided]
         return again
     if bad:
         return fail("implausible result: " + "; ".join(bad), **details)

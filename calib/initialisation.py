@@ -42,7 +42,8 @@ N_REFINE = 4  # starts refined by least squares (the lowest start costs)
 class Track:
     """Track points of one wall: phase (N,) rad, u (N,) px, t (N,) s, n (N,)
     excess counts; window (t0, t1) s; mu: mean signal photons per shot (rough);
-    bias: first-photon bias of the median time, s."""
+    bias: first-photon bias of the median time, s; u_err (N,) px: σ of each
+    point's column (a phase bin's return spreads over the columns it sweeps)."""
 
     phase: np.ndarray
     u: np.ndarray
@@ -52,6 +53,18 @@ class Track:
     mu: float
     bias: float
     z: float
+    u_err: np.ndarray | None = None
+
+
+def poisson_z(n, e):
+    """Signed significance of ``n`` counts where ``e`` are expected (Poisson
+    likelihood ratio, ``sign(n − e)·√(2(n ln(n/e) − n + e))``): right for the few
+    counts of a weak wall at a low background, where ``(n − e)/√e`` is not."""
+    n = np.asarray(n, dtype=np.float64)
+    e = np.maximum(np.asarray(e, dtype=np.float64), 1e-12)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(n > 0, n * np.log(np.maximum(n, 1e-300) / e), 0.0) - n + e
+    return np.sign(n - e) * np.sqrt(np.maximum(2.0 * t, 0.0))
 
 
 def _early(w: WallData, t_search: float):
@@ -92,20 +105,24 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
     pcell = np.exp(-lam_c[:, None] * edges[None, :-1]) * -np.expm1(-lam_c[:, None] * dt)
     expc = n_shots_bin[:, None, None] * pcell[None, :, :]
     nt = max(3, int(round(2.0 * sigma / dt)) | 1)
-    ho = _box(_box(hist, 1, 3), 2, nt)
-    he = _box(_box(expc, 1, 3), 2, nt)
-    z = (ho - he) / np.sqrt(he + 1.0)
+    # the beam crosses ~W columns per sweep: a phase bin spans ~W / n_half of them
+    # (3 at 64 bins per sweep, 25 at 8), and the box collects the whole bin's return
+    nc = max(3, int(W / n_half) | 1)
+    hc = nc // 2
+    ho = _box(_box(hist, 1, nc), 2, nt)
+    he = _box(_box(expc, 1, nc), 2, nt)
+    z = poisson_z(ho, he)
     flat = z.reshape(nbin, -1)
     best = np.argmax(flat, axis=1)
     zmax = flat[np.arange(nbin), best]
     pc, pt = np.divmod(best, ntb)
-    P_phase, P_u, P_t, P_n, shots_used = [], [], [], [], 0.0
+    P_phase, P_u, P_t, P_n, P_e, shots_used = [], [], [], [], [], 0.0
     for b in np.flatnonzero(zmax > Z_TRACK):
         cc, t_pk = pc[b], (pt[b] + 0.5) * dt
-        m = (bk == b) & (np.abs(c - cc) <= 1) & (np.abs(t - t_pk) < 2.0 * sigma)
+        m = (bk == b) & (np.abs(c - cc) <= hc) & (np.abs(t - t_pk) < 2.0 * sigma)
         if np.count_nonzero(m) < 3:
             continue
-        lo, hi = max(0, cc - 1), min(W, cc + 2)
+        lo, hi = max(0, cc - hc), min(W, cc + hc + 1)
         cols = np.arange(lo, hi)
         ex = np.maximum(hist[b, lo:hi].sum(axis=1) - expc[b, lo:hi].sum(axis=1), 0.0)
         if ex.sum() <= 0:
@@ -114,9 +131,12 @@ def _track_at(w: WallData, k, c, t, sigma: float, n_half: int):
         P_t.append(float(np.median(t[m])))
         P_phase.append(float(np.angle(np.mean(np.exp(1j * ph[k[m]])))))
         P_n.append(float(ex.sum()))
+        # centroid of a return spread evenly over the nc columns the bin sweeps, and
+        # (nc / 6) the box's placement and the track's curvature within the bin
+        P_e.append(max(0.5, nc / 6.0, nc / math.sqrt(12.0 * max(ex.sum(), 1.0))))
         shots_used += n_shots_bin[b]
     return (np.array(P_phase), np.array(P_u), np.array(P_t), np.array(P_n),
-            shots_used, float(zmax.max()) if zmax.size else 0.0)
+            shots_used, float(zmax.max()) if zmax.size else 0.0, np.array(P_e))
 
 
 def find_track(w: WallData, sigma: float) -> Track:
@@ -138,7 +158,7 @@ def find_track(w: WallData, sigma: float) -> Track:
     for n_half in (64, 32, 16, 8, 4):
         res = _track_at(w, k, c, t, sigma, n_half)
         tr = _clean_track(Track(res[0], res[1], res[2], res[3], (0.0, T_SEARCH), 0.0, 0.0,
-                                res[5]))
+                                res[5], res[6]))
         if best is None or tr.u.size > best[0].u.size * 1.2:
             best = (tr, res[4])
     tr, shots_used = best
@@ -173,10 +193,10 @@ def _clean_track(tr: Track) -> Track:
             coef, *_ = np.linalg.lstsq(A[k], tr.u[m][k], rcond=None)
             res = tr.u[m] - A @ coef
             mad = 1.4826 * np.median(np.abs(res[k])) + 0.3
-            k = np.abs(res) < max(3.0 * mad, 1.5)
+            k = np.abs(res) < np.maximum(max(3.0 * mad, 1.5), 3.0 * tr.u_err[m])
         keep[m] = k
     return Track(tr.phase[keep], tr.u[keep], tr.t[keep], tr.n[keep], tr.window, tr.mu,
-                 tr.bias, tr.z)
+                 tr.bias, tr.z, tr.u_err[keep])
 
 
 def _triangulate(system: System, values: dict, phase, u):
@@ -252,8 +272,8 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     uu = np.concatenate([tr.u for tr in tracks])
     tt = np.concatenate([tr.t - tr.bias for tr in tracks])
     nn = np.concatenate([tr.n for tr in tracks])
+    s_u = np.concatenate([tr.u_err for tr in tracks])
     s_t = np.maximum(sigma / np.sqrt(np.maximum(nn, 1.0)) * 1.5, 0.3e-9)
-    s_u = 0.5
     free = [n for n in ("theta0", "theta_mech_max", "phase_offset", "tdc_offset",
                         "baseline_x", "baseline_z", "fx", "cx") if n in names]
     from mems_stereo.calib.model import PARAM_SCALE
@@ -374,8 +394,7 @@ def find_wall(w: WallData, system: System, values: dict, sigma: float,
         pb = np.where(ok, np.exp(-lu * lo) * -np.expm1(-lu * (tau + 2.0 * sigma - lo)), 0.0)
         hs = hit.reshape(n_d, -1).sum(axis=1)
         es = pb.reshape(n_d, -1).sum(axis=1)
-        vs = (pb * (1 - pb)).reshape(n_d, -1).sum(axis=1)
-        z = (hs - es) / np.sqrt(vs + 1.0)
+        z = poisson_z(hs, es)
         i = int(np.argmax(z))
         if z[i] > best[0]:
             n_on = max(int(ok.reshape(n_d, -1)[i].sum()), 1)

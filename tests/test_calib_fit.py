@@ -136,3 +136,22 @@ def test_calib3d_shaped_api(nominal):
     assert set(rms) == {"pixel", "time"} and 0 < rms["pixel"] < 1.5
     assert abs(system.scanner.theta0 - case.true_system(nominal).scanner.theta0) < 4 * std["theta0"]
     assert len(per_target) == 3 and "distance_axis" in per_target[0]
+
+
+@pytest.mark.slow
+def test_collapsed_spot_is_not_written_with_an_overconfident_sigma(nominal):
+    """Family member 1005 at 1/8 of its shots: from the track-search start one wall's
+    fitted spot σ collapsed onto its lower bound, which inflated the pixel
+    information (phase lag written 4.1σ off).  The spot is reset and refitted; the
+    written system lies within 4σ of the truth and no wall's spot sits at the bound."""
+    from mems_stereo.calib.family import draw_case
+    from mems_stereo.calib.problem import SPOT_MIN
+
+    case = draw_case(np.random.default_rng(1005), 1005)
+    walls = [wall_data(r) for r in simulate_case(case, nominal, shot_scale=8)]
+    res = fit_walls(walls, nominal)
+    if res:
+        _check_within(res, case.true_system(nominal))
+        assert all(t["spot_px"] > 1.05 * SPOT_MIN for t in res.targets)
+    else:
+        assert res.reason
