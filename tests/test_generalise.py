@@ -159,21 +159,28 @@ _CASE_13047 = {"objects": [
      "rotation_deg": [0.0, -14.297028587330097, 0.0], "reflectivity": 0.25829773706902104}]}
 
 
+def _sweep_case(bx, bz, theta0, k1, scene_dict, n_shots, seed, background_hz):
+    """(scene, cloud) of one case of benchmarks/bench_scenarios.py, rebuilt from its
+    drawn parameters (system, k1 distortion, scene, shots, seed, background)."""
+    from dataclasses import replace
+
+    s = burkard2022().with_params(baseline_x=bx, baseline_z=bz, theta0=theta0)
+    dist = np.zeros(5)
+    dist[0] = k1
+    s = replace(s, receiver=replace(s.receiver, dist_coeffs=dist))
+    scene = scene_from_dict(scene_dict)
+    rec = simulate(s, scene, n_shots, rng=np.random.default_rng(seed),
+                   background_hz=background_hz, dark_count_hz=1e3)
+    return scene, process_recording(rec).cloud
+
+
 @pytest.mark.slow
 def test_turning_point_return_gives_no_biased_point():
     """Sweep case 13047 (37,648 shots, 0.16 MHz): pixel 174 sees the wall only where the
     scan turns, its shots bunched at the footprint's edge (the stereo mean was 16 cm
     behind, 8σ); left out now, the false points are ≤ 1 % (one object-edge pixel)."""
-    from dataclasses import replace
-
-    s = burkard2022().with_params(baseline_x=BX, baseline_z=BZ, theta0=0.7758342622745028)
-    dist = np.zeros(5)
-    dist[0] = 0.0381451198377582
-    s = replace(s, receiver=replace(s.receiver, dist_coeffs=dist))
-    scene = scene_from_dict(_CASE_13047)
-    rec = simulate(s, scene, 37648, rng=np.random.default_rng(13047),
-                   background_hz=160047.31962008242, dark_count_hz=1e3)
-    c = process_recording(rec).cloud
+    scene, c = _sweep_case(BX, BZ, 0.7758342622745028, 0.0381451198377582, _CASE_13047,
+                           37648, 13047, 160047.31962008242)
     assert len(c) > 150
     bad = np.abs(_error(scene, c)) > np.maximum(3 * c["sigma_r"], 0.10)
     assert 174 not in set(c["pixel"][bad].tolist())
@@ -199,18 +206,8 @@ def test_depth_edge_pixels_give_no_false_point():
     surface (pixel 18: the wall's returns while its ray meets the cylinder; its point
     was 24 cm from any surface at σ 6 cm); at a depth edge of the cloud the stereo
     carries a quarter pixel more, and no point is false (farther than max(3σ, 10 cm))."""
-    from dataclasses import replace
-
-    s = burkard2022().with_params(baseline_x=-0.12287688194275999,
-                                  baseline_z=-0.014952558300030953,
-                                  theta0=0.7606194112088224)
-    dist = np.zeros(5)
-    dist[0] = 0.02712997221388018
-    s = replace(s, receiver=replace(s.receiver, dist_coeffs=dist))
-    scene = scene_from_dict(_CASE_13001)
-    rec = simulate(s, scene, 24664, rng=np.random.default_rng(13001),
-                   background_hz=23698.211205348547, dark_count_hz=1e3)
-    c = process_recording(rec).cloud
+    scene, c = _sweep_case(-0.12287688194275999, -0.014952558300030953, 0.7606194112088224,
+                           0.02712997221388018, _CASE_13001, 24664, 13001, 23698.211205348547)
     assert len(c) > 150
     err = _error(scene, c)
     bad = np.abs(err) > np.maximum(3 * c["sigma_r"], 0.10)
