@@ -38,6 +38,8 @@ MOVED = {
     "mems_stereo.peaks": ('mems_stereo.pipeline.peaks', 'mems_stereo.physics.background'),
     "mems_stereo.points": (
         "mems_stereo.pipeline.fusion",
+        "mems_stereo.pipeline.detections",
+        "mems_stereo.pipeline.sums",
         "mems_stereo.physics.first_photon",
         "mems_stereo.physics.spot",
     ),

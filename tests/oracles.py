@@ -26,7 +26,7 @@ from mems_stereo.physics.background import (
     expected_background_in_signal,
 )
 from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.fusion import detection_points
+from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.peaks import acceptance_counts, strongest_window
 
 

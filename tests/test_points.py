@@ -14,7 +14,7 @@ from mems_stereo.model.camera import project_points
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.tdc import codes_from_path_length
 from mems_stereo.pipeline.cloud import REQUIRED_ATTRIBUTES
-from mems_stereo.pipeline.fusion import detection_points
+from mems_stereo.pipeline.detections import detection_points
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -103,7 +103,7 @@ def test_room_sample_detection_accuracy():
     # root: their ToF is the linear continuation the peak means need, not an
     # estimate with the pulse's σ (before, they were NaN and left out here too)
     from mems_stereo.model.tdc import path_length_from_codes
-    from mems_stereo.pipeline.fusion import TOF_LINEAR_BELOW
+    from mems_stereo.pipeline.detections import TOF_LINEAR_BELOW
 
     L = path_length_from_codes(rec.bins[k, r, c], true.tdc, true.speed_of_light)
     g &= L >= TOF_LINEAR_BELOW * np.linalg.norm(true.scanner.position)

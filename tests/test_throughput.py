@@ -270,7 +270,7 @@ def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
 def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed):
     """detection_points evaluates each geometry variant once; the reference propagates
     the three estimators one after the other: every field equal, NaN rows included."""
-    from mems_stereo.pipeline.fusion import _detection_points_reference, detection_points
+    from mems_stereo.pipeline.detections import _detection_points_reference, detection_points
 
     s = burkard2022()
     rng = np.random.default_rng(seed)

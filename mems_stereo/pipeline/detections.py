@@ -1,0 +1,261 @@
+"""Points of single detections: stereo, time of flight and their fusion per
+(pixel, code, scan angle), with their propagated covariances (receiver camera frame,
+metres).  Used by the fusion (:mod:`mems_stereo.pipeline.fusion`) for every distinct
+(peak, step, code) entry and by the tests as the per-detection reference.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mems_stereo.errors import GeometryError
+from mems_stereo.geometry.triangulation import (
+    epipolar_stereo_point,
+)
+from mems_stereo.geometry.uncertainty import (
+    _STEPS,
+    INPUTS,
+    Spreads,
+    _as_inputs,
+    _rays,
+    jacobian,
+    propagate,
+    spreads_for,
+    stereo_point_est,
+)
+from mems_stereo.model.scanner import scan_direction
+from mems_stereo.model.system import System
+from mems_stereo.model.tdc import path_length_from_codes
+
+
+@dataclass
+class DetectionPoints:
+    """Per-detection estimates, each (M, 3) m with covariance (M, 3, 3) m².
+
+    stereo, cov_stereo : pixel ray ∩ scanner ray.
+    tof, cov_tof : path length on the scanner ray.
+    fused, cov_fused : inverse-variance combination along the scanner ray.
+    weight_stereo : (M,) weight of the stereo estimate in the fusion (0..1).
+    ok : (M,) bool, False where an estimate is degenerate (all NaN then).
+    dtof_dL : (M, 3) m/m, derivative of the ToF point along the scanner ray
+        with respect to the path length L (the fused point's is
+        ``(1 − weight_stereo)`` times it), or None.
+    """
+
+    stereo: np.ndarray
+    cov_stereo: np.ndarray
+    tof: np.ndarray
+    cov_tof: np.ndarray
+    fused: np.ndarray
+    cov_fused: np.ndarray
+    weight_stereo: np.ndarray
+    ok: np.ndarray
+    dtof_dL: np.ndarray | None = None
+
+    def subset(self, sel) -> DetectionPoints:
+        """The entries ``sel`` (index or bool mask) of every field."""
+        return DetectionPoints(*(None if v is None else v[sel] for v in (
+            self.stereo, self.cov_stereo, self.tof, self.cov_tof, self.fused, self.cov_fused,
+            self.weight_stereo, self.ok, self.dtof_dL)))
+
+
+#: below ``TOF_LINEAR_BELOW`` × |b| of path length the time-of-flight point on the
+#: scanner ray continues linearly (see :func:`tof_on_scanner_ray`)
+TOF_LINEAR_BELOW = 2.0
+
+
+def tof_on_scanner_ray(p, d, L):
+    """Time-of-flight point at path length L on the scanner ray ``p + s·d``, for every L.
+
+    The exact root ``s = (L² − |b|²) / (2 (L + d·b))`` (as
+    :func:`~mems_stereo.geometry.triangulation.scanner_ray_point`) for
+    ``L ≥ L_c = TOF_LINEAR_BELOW·|b|``, continued linearly below (value and
+    slope of the root at L_c: C¹).  A near return's detections spread over
+    ±c·σ_t ≈ ±1.9 m of path, and those at the TDC start are recorded at code 1
+    (arrivals before it are clipped there): their path lengths fall below |b|,
+    where the root does not exist.  Left out, they bias the peak's ToF mean
+    late and take counts from its stereo mean; the first-photon model expects
+    them (it knows the clipping), so each keeps its measured L on this
+    continuation.  ``p`` (3,), ``d`` (N, 3) unit, ``L`` (N,).  Returns
+    ``(points (N, 3), s (N,))``; NaN only for non-finite L.
+    """
+    p = np.asarray(p, dtype=np.float64)
+    L = np.asarray(L, dtype=np.float64)
+    bb = float(p @ p)
+    db = np.sum(d * p, axis=-1)
+    Lc = TOF_LINEAR_BELOW * math.sqrt(bb)
+    Le = np.maximum(L, Lc)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s = (Le * Le - bb) / (2.0 * (Le + db))
+        slope = (Lc * Lc + 2.0 * Lc * db + bb) / (2.0 * (Lc + db) ** 2)
+        s = np.where(L < Lc, s + slope * (L - Lc), s)
+    s = np.where(np.isfinite(L), s, np.nan)
+    return p + s[..., None] * d, s
+
+
+def _tof_point_ext(system: System, u, v, L, theta) -> np.ndarray:
+    """:func:`tof_on_scanner_ray` as an estimator ``(system, u, v, L, θ) → (N, 3)``."""
+    return tof_on_scanner_ray(system.scanner.position, scan_direction(theta, system.scanner),
+                              L)[0]
+
+
+def _s_stereo(system, u, v, L, theta):
+    d = scan_direction(theta, system.scanner)
+    s = epipolar_stereo_point(system.scanner.position, d, _rays(system, u, v))[1]
+    return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
+
+
+def _s_tof(system, u, v, L, theta):
+    d = scan_direction(theta, system.scanner)
+    s = tof_on_scanner_ray(system.scanner.position, d, L)[1]
+    return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
+
+
+def detection_points(system: System, shot_idx, rows, cols, codes, theta,
+                     spreads: Spreads | None = None) -> DetectionPoints:
+    """Stereo, time-of-flight and fused points of detections.
+
+    The same numbers as :func:`_detection_points_reference` (the three
+    estimators propagated one after the other), bit for bit, from one
+    evaluation of the stereo geometry per (u, v, θ) variant of the central
+    differences (7) and of the time-of-flight geometry per (L, θ) variant (5),
+    instead of 35 evaluations: the stereo estimate ignores L, the ToF one u
+    and v, so their other differences are ``(x0 − x0) / 2h``.  With a
+    calibration covariance (``spreads.param_names``) it is the reference.
+
+    Parameters
+    ----------
+    shot_idx, rows, cols, codes : (M,) integer arrays (codes 1..n_bins).
+    theta : (K,) float64 scan angle of every shot, rad (indexed by shot_idx).
+    spreads : :class:`~mems_stereo.geometry.uncertainty.Spreads` (default
+        :func:`~mems_stereo.geometry.uncertainty.spreads_for`).
+    """
+    sp = spreads_for(system) if spreads is None else spreads
+    if sp.param_names:
+        return _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
+    u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
+    x_in = _as_inputs(u, v, L, th)
+    p = np.asarray(system.scanner.position)
+    dirs, rays, E, T = {}, {}, {}, {}
+
+    def direction(key, t):
+        if key not in dirs:
+            dirs[key] = scan_direction(t, system.scanner)
+        return dirs[key]
+
+    def stereo(key, uu, vv, tt, ray_key, dir_key):  # (point (N, 3), s (N,))
+        if ray_key not in rays:
+            rays[ray_key] = _rays(system, uu, vv)
+        E[key] = epipolar_stereo_point(system.scanner.position, direction(dir_key, tt),
+                                       rays[ray_key])[:2]
+
+    def tof(key, LL, tt, dir_key):
+        T[key] = tof_on_scanner_ray(system.scanner.position, direction(dir_key, tt), LL)
+
+    U, V, Lx, TH = x_in["u"], x_in["v"], x_in["L"], x_in["theta"]
+    hu, hv, hL, ht = (_STEPS[n] for n in INPUTS)
+    stereo("0", U, V, TH, "0", "0")
+    stereo("u+", U + hu, V, TH, "u+", "0")
+    stereo("u-", U - hu, V, TH, "u-", "0")
+    stereo("v+", U, V + hv, TH, "v+", "0")
+    stereo("v-", U, V - hv, TH, "v-", "0")
+    stereo("t+", U, V, TH + ht, "0", "t+")
+    stereo("t-", U, V, TH - ht, "0", "t-")
+    tof("0", Lx, TH, "0")
+    tof("L+", Lx + hL, TH, "0")
+    tof("L-", Lx - hL, TH, "0")
+    tof("t+", Lx, TH + ht, "t+")
+    tof("t-", Lx, TH - ht, "t-")
+    sig = sp.input_sigmas(system)
+    var_in = np.array([sig[n] ** 2 for n in INPUTS])
+
+    def cov_of(cols):  # as :func:`propagate`
+        J = np.stack(cols, axis=-1)
+        return np.einsum("nik,k,njk->nij", J, var_in, J)
+
+    def diff(a, b, h):
+        return (a - b) / (2.0 * h)
+
+    x_st = E["0"][0]
+    c_st = cov_of([diff(E["u+"][0], E["u-"][0], hu), diff(E["v+"][0], E["v-"][0], hv),
+                   diff(x_st, x_st, hL), diff(E["t+"][0], E["t-"][0], ht)])
+    x_tf = T["0"][0]
+    c_tf = cov_of([diff(x_tf, x_tf, hu), diff(x_tf, x_tf, hv), diff(T["L+"][0], T["L-"][0], hL),
+                   diff(T["t+"][0], T["t-"][0], ht)])
+
+    def s3(s):  # as _s_stereo / _s_tof: (N, 3) with the along-ray distance first
+        return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
+
+    J_st = np.stack([diff(s3(E["u+"][1]), s3(E["u-"][1]), hu),
+                     diff(s3(E["v+"][1]), s3(E["v-"][1]), hv)], axis=-1)
+    J_tf = np.stack([diff(s3(T["L+"][1]), s3(T["L-"][1]), hL)], axis=-1)
+    var_st = J_st[:, 0, 0] ** 2 * sp.sigma_u ** 2 + J_st[:, 0, 1] ** 2 * sp.sigma_v ** 2
+    var_tf = J_tf[:, 0, 0] ** 2 * sp.sigma_L(system) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
+
+    def fused(e, t, d):
+        s = w * E[e][1] + (1.0 - w) * T[t][1]
+        return p + s[:, None] * dirs[d]
+
+    x_f = fused("0", "0", "0")
+    c_f = cov_of([diff(fused("u+", "0", "0"), fused("u-", "0", "0"), hu),
+                  diff(fused("v+", "0", "0"), fused("v-", "0", "0"), hv),
+                  diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL),
+                  diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht)])
+    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, dirs["0"])
+
+
+def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):
+    shot_idx = np.asarray(shot_idx, dtype=np.int64).ravel()
+    th_all = np.asarray(theta, dtype=np.float64).ravel()
+    if shot_idx.size and (shot_idx.min() < 0 or shot_idx.max() >= th_all.size):
+        raise GeometryError(f"shot_idx: expected indices in 0..{th_all.size - 1}")
+    th = th_all[shot_idx]
+    u = np.asarray(cols, dtype=np.float64).ravel()
+    v = np.asarray(rows, dtype=np.float64).ravel()
+    L = path_length_from_codes(np.asarray(codes).ravel(), system.tdc, system.speed_of_light)
+    if not (u.shape == v.shape == L.shape == th.shape):
+        raise GeometryError(f"shot_idx, rows, cols, codes: expected equal shapes, found "
+                            f"{shot_idx.shape}, {v.shape}, {u.shape}, {L.shape}")
+    return u, v, L, th
+
+
+def _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, d):
+    ok = np.all(np.isfinite(x_st), 1) & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
+    nan3 = np.where(ok[:, None], 0.0, np.nan)
+    nan33 = nan3[:, :, None]
+    dxdL = d * J_tf[:, 0, 0][:, None] + nan3
+    return DetectionPoints(x_st + nan3, c_st + nan33, x_tf + nan3, c_tf + nan33,
+                           x_f + nan3, c_f + nan33, np.where(ok, w, np.nan), ok, dxdL)
+
+
+def _detection_points_reference(system: System, shot_idx, rows, cols, codes, theta,
+                                spreads: Spreads | None = None) -> DetectionPoints:
+    """:func:`detection_points` by propagating each estimator on its own (the
+    reference it is tested against; used with a calibration covariance)."""
+    sp = spreads_for(system) if spreads is None else spreads
+    u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
+    x_st, c_st = propagate(stereo_point_est, system, u, v, L, th, sp)
+    x_tf, c_tf = propagate(_tof_point_ext, system, u, v, L, th, sp)
+    # conditional (given θ) along-ray variances: pixel for stereo, timing for ToF
+    s_st, J_st = jacobian(_s_stereo, system, u, v, L, th, wrt=("u", "v"))
+    s_tf, J_tf = jacobian(_s_tof, system, u, v, L, th, wrt=("L",))
+    var_st = J_st[:, 0, 0] ** 2 * sp.sigma_u ** 2 + J_st[:, 0, 1] ** 2 * sp.sigma_v ** 2
+    var_tf = J_tf[:, 0, 0] ** 2 * sp.sigma_L(system) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
+
+    def fused(sys_, u, v, L, theta):
+        d = scan_direction(theta, sys_.scanner)
+        a = _s_stereo(sys_, u, v, L, theta)[:, 0]
+        b = _s_tof(sys_, u, v, L, theta)[:, 0]
+        s = w * a + (1.0 - w) * b
+        return np.asarray(sys_.scanner.position) + s[:, None] * d
+
+    x_f, c_f = propagate(fused, system, u, v, L, th, sp)
+    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf,
+                             scan_direction(th, system.scanner))

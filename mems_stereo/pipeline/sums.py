@@ -1,0 +1,179 @@
+"""The fusion's sums per peak: the range mode of a peak's detections
+(:class:`RangeMode`), weighted sums of point estimates (:class:`EstimateSums`) and
+all of a peak's sums (:class:`PeakSums`); each adds with ``+`` so partial
+results of chunks, parts and workers combine exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mems_stereo.physics.first_photon import (
+    MU_GRID,
+)
+
+
+class RangeMode:
+    """The centre range of each of Q peaks: the mode of its detections' range intervals.
+
+    Each detection adds its interval ``[r_i − σ_i, r_i + σ_i]`` (weight m_i) to
+    a coverage count on a logarithmic range grid (relative step ``rel_step``,
+    from ``r_min`` to ``r_max`` m); coverages of chunks add (``a + b``).
+    :meth:`finish` gives the middle of the contiguous range where the coverage
+    stays above half its maximum, and half that range's width: a strong
+    return fires the pixel while the spot's tails are still on it, its
+    detections' stereo ranges then cover a plateau (several σ of one
+    detection wide) whose first maximum is anywhere on it; its middle is
+    where the spot was centred on the pixel.  A sharp cluster of a few
+    near-range background detections cannot outvote a broad cluster of many
+    true returns.
+    """
+
+    def __init__(self, Q: int, r_min: float = 0.01, r_max: float = 1000.0,
+                 rel_step: float = 2e-3):
+        self.log_min = float(np.log(r_min))
+        self.dlog = float(np.log1p(rel_step))
+        self.n_grid = int(np.ceil((np.log(r_max) - self.log_min) / self.dlog)) + 1
+        self.cover = np.zeros((int(Q), self.n_grid + 1), np.float64)
+
+    def __add__(self, other: RangeMode) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = self.cover + other.cover
+        return new
+
+    def zeroed(self) -> RangeMode:
+        new = object.__new__(RangeMode)
+        new.__dict__.update(self.__dict__)
+        new.cover = np.zeros_like(self.cover)
+        return new
+
+    def _bin(self, r):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            b = np.floor((np.log(np.maximum(r, 1e-300)) - self.log_min) / self.dlog)
+        return np.clip(np.nan_to_num(b, nan=0), 0, self.n_grid - 1).astype(np.int64)
+
+    def add(self, peak, r, sr, m) -> None:
+        """Intervals r ± sr (N,) m of peaks ``peak`` (N,) with weights m (N,)."""
+        lo = self._bin(r - sr)
+        hi = self._bin(r + sr)
+        np.add.at(self.cover, (peak, lo), m)
+        np.add.at(self.cover, (peak, hi + 1), -m)
+
+    def finish(self):
+        """(centre (Q,) m, NaN without detections; halfwidth (Q,) m)."""
+        Q = self.cover.shape[0]
+        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
+        j = np.argmax(density, axis=1)
+        top = density[np.arange(Q), j]
+        below = density < 0.5 * top[:, None]
+        idx = np.arange(self.n_grid)[None, :]
+        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
+        r_lo = np.exp(self.log_min + lo * self.dlog)
+        r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
+        ok = top > 0
+        return np.where(ok, 0.5 * (r_lo + r_hi), np.nan), np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
+
+
+@dataclass
+class EstimateSums:
+    """Per-peak sums of one estimate (fused, stereo or time of flight), Q peaks.
+
+    W : (Q,) Σ m·w; X : (Q, 3) Σ m·w·x; C : (Q, 3, 3) Σ |m|·w²·C_i (a
+    subtracted background entry, m < 0, adds its variance as a detection
+    does); D : (Q, 3) Σ m·w·∂x/∂L and G : (Q, 3, 3) Σ |m|·w²·(∂x/∂L)(∂x/∂L)ᵀ
+    for the first-photon correction (None for the stereo estimate, which has
+    no time).  Sums of disjoint chunks add (``a + b``).
+    """
+
+    W: np.ndarray
+    X: np.ndarray
+    C: np.ndarray
+    D: np.ndarray | None = None
+    G: np.ndarray | None = None
+
+    @classmethod
+    def zeros(cls, Q: int, timed: bool) -> EstimateSums:
+        return cls(np.zeros(Q), np.zeros((Q, 3)), np.zeros((Q, 3, 3)),
+                   np.zeros((Q, 3)) if timed else None,
+                   np.zeros((Q, 3, 3)) if timed else None)
+
+    def __add__(self, other: EstimateSums) -> EstimateSums:
+        def add(a, b):
+            return None if a is None else a + b
+
+        return EstimateSums(self.W + other.W, self.X + other.X, self.C + other.C,
+                            add(self.D, other.D), add(self.G, other.G))
+
+    def add(self, q, x, C, m, g=None) -> None:
+        """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
+        multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
+        np.add.at(self.W, q, m)
+        np.add.at(self.X, q, x * m[:, None])
+        np.add.at(self.C, q, C * np.abs(m)[:, None, None])
+        if self.D is not None and g is not None:
+            np.add.at(self.D, q, g * m[:, None])
+            np.add.at(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
+
+    def mean(self):
+        """(x̄ (Q, 3), covariance (Q, 3, 3)) = (X / W, C / W²)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.X / self.W[:, None], self.C / (self.W ** 2)[:, None, None]
+
+    def dL(self):
+        """(Q, 3) mean ∂x/∂L and (Q, 3, 3) its second moment, each / W (resp. W²)."""
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return self.D / self.W[:, None], self.G / (self.W ** 2)[:, None, None]
+
+
+#: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
+_SCALARS = ("n", "detections", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0",
+            "b1", "b2")
+
+
+@dataclass
+class PeakSums:
+    """Everything the inliers of Q peaks add up to (sums of chunks add: ``a + b``).
+
+    n : Σ m (inliers); detections : Σ m over the inliers that are detections (m > 0,
+    not subtracted background: the count ``min_counts`` applies to); code, weight,
+    theta : Σ m·code, Σ m·stereo weight, Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ²,
+    Σ m·r²/σ² (the scatter test);
+    window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
+    subtracted background (its variance); loglik : (Q, J) the detections'
+    log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
+    """
+
+    n: np.ndarray
+    detections: np.ndarray
+    code: np.ndarray
+    weight: np.ndarray
+    theta: np.ndarray
+    w: np.ndarray
+    wr: np.ndarray
+    wrr: np.ndarray
+    window: np.ndarray
+    b0: np.ndarray
+    b1: np.ndarray
+    b2: np.ndarray
+    loglik: np.ndarray
+    fused: EstimateSums
+    stereo: EstimateSums
+    tof: EstimateSums
+
+    @classmethod
+    def zeros(cls, Q: int) -> PeakSums:
+        return cls(*(np.zeros(Q) for _ in _SCALARS), np.zeros((Q, MU_GRID.size)),
+                   EstimateSums.zeros(Q, True), EstimateSums.zeros(Q, False),
+                   EstimateSums.zeros(Q, True))
+
+    def __add__(self, other: PeakSums) -> PeakSums:
+        return PeakSums(*(getattr(self, k) + getattr(other, k) for k in _SCALARS),
+                        self.loglik + other.loglik, self.fused + other.fused,
+                        self.stereo + other.stereo, self.tof + other.tof)
+
+    def estimate(self, name: str) -> EstimateSums:
+        return getattr(self, name)
