@@ -129,7 +129,7 @@ RULES: dict[str, dict[str, Callable]] = {
 
 def check_options(command: str, args) -> None:
     """Run the rules of ``command`` on ``args`` and the cross-option checks."""
-    from mems_stereo.cli._outputs import opt
+    from mems_stereo.cli._pathcheck import opt
 
     for name, rule in RULES.get(command, {}).items():
         v = getattr(args, name, None)

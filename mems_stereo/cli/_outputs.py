@@ -3,13 +3,9 @@
 :class:`OutputPlan` is built from the command's arguments (:data:`IO` says
 which arguments are inputs and outputs), before the command runs:
 
-* every input must be an existing regular file (or folder where a folder is
-  expected); a FIFO, a device or a directory in place of a file is refused;
-* every output path is resolved and must differ from every input (also
-  through symbolic or hard links) and from the other outputs, must not be an
-  existing directory (or file, where a folder is written), its nearest
-  existing ancestor must be a writable folder (not a file), its name must
-  fit the file system, and its extension must be one the writer knows;
+* every input and output passes the checks of :mod:`mems_stereo.cli._pathcheck`
+  (inputs exist and are regular files; outputs are not inputs, are distinct,
+  writable, with names that fit and extensions the writers know);
 * the command then writes each output to a *staged* path beside the target
   (``.NAME.ms-XXXXXXXX.part.EXT``): the arguments are rewritten to the staged
   paths, so the command's own code is unchanged;
@@ -29,17 +25,12 @@ import contextlib
 import os
 import secrets
 import shutil
-import stat
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mems_stereo.errors import FormatError, OptionError
+from mems_stereo.cli._pathcheck import check_outputs, resolve_inputs, resolve_outputs
 from mems_stereo.util.atomic import signals_blocked
-from mems_stereo.util.paths import file_kind, require_input_file
-
-CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
-PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 
 
 @dataclass(frozen=True)
@@ -80,36 +71,6 @@ IO: dict[str, Spec] = {
 }
 
 _STACK: list[OutputPlan] = []
-#: inputs given by an option (their errors name the option as well as the file)
-_NAMED_INPUTS = ("system", "true_system", "target_distances_file")
-
-
-def opt(name: str) -> str:
-    """The option's name as typed (``output`` → ``-o/--output``, ``recordings`` → ``REC``)."""
-    return {"output": "--output"}.get(name, "--" + name.replace("_", "-"))
-
-
-def _preset_names() -> list[str]:
-    """Every preset name a ``--system`` option takes (one- and two-axis)."""
-    from mems_stereo.model.scanner2d import TWO_AXIS_PRESETS
-    from mems_stereo.model.system import PRESETS
-
-    return sorted(PRESETS) + sorted(TWO_AXIS_PRESETS)
-
-
-def _is_preset(value: str) -> bool:
-    return value in _preset_names()
-
-
-def _real(p: Path) -> str:
-    return os.path.realpath(os.path.abspath(p))
-
-
-def _name_max(folder: Path) -> int:
-    try:
-        return os.pathconf(folder, "PC_NAME_MAX")
-    except (OSError, ValueError):
-        return 255
 
 
 class OutputPlan:
@@ -128,146 +89,12 @@ class OutputPlan:
         self.buffer: list[str] = []
         self.state = "planned"
 
-    # ---------------------------------------------------------------- checks
-
     def check(self) -> OutputPlan:
         """Check every input and output (raises before any work)."""
-        a = self.args
-        for name, kind in self.spec.inputs.items():
-            v = getattr(a, name, None)
-            if v is None:
-                continue
-            if kind == "files":
-                for x in v:
-                    self.inputs.append((name, require_input_file(x, None)))
-            elif kind == "system" and _is_preset(str(v)):
-                continue
-            elif kind == "dir":
-                p = Path(v)
-                if not p.is_dir():
-                    raise OptionError(f"expected a folder, found {self._what(p)}",
-                                      source=str(p), field=opt(name))
-                self.inputs.append((name, p))
-            elif kind == "file" and Path(str(v)).suffix.lower() in (".mcap", ".db3") \
-                    and Path(str(v)).with_suffix("").is_dir():
-                self.inputs.append((name, Path(str(v)).with_suffix("")))  # a ROS 2 bag folder
-            else:
-                try:
-                    self.inputs.append((name, require_input_file(v, None)))
-                except FileNotFoundError:
-                    if name not in _NAMED_INPUTS:
-                        raise
-                    if kind == "system":
-                        import difflib
-
-                        names = _preset_names()
-                        close = difflib.get_close_matches(str(v), names, n=1, cutoff=0.5)
-                        raise OptionError(
-                            f"{v!r} is neither a preset nor a system file (file not found)\n"
-                            + (f"did you mean {close[0]!r}? " if close else "")
-                            + f"presets: {', '.join(names)}", field=opt(name)) from None
-                    raise OptionError(f"expected an existing file, found {v!r} (file "
-                                      "not found)", field=opt(name)) from None
-        if self.command == "simulate":
-            self.inputs += [("scene", m) for m in _scene_meshes(getattr(a, "scene", None))]
-        if self.command == "demo" and getattr(a, "samples", None) is None:
-            with contextlib.suppress(Exception):
-                from mems_stereo.cli.demo import samples_dir
-
-                self.inputs.append(("samples", samples_dir(None)))
-        for name, kind in self.spec.outputs.items():
-            v = getattr(a, name, None)
-            if v is None:
-                continue
-            if kind == "cloud-or-dir":
-                kind = "dir-of-clouds" if len(getattr(a, "recordings", [])) > 1 else "cloud"
-            self.outputs.append((name, Path(v), kind))
-        finals = {}
-        for name, p, kind in self.outputs:
-            self._check_output(name, p, kind)
-            key = _real(p)
-            if key in finals:
-                raise OptionError(f"{p} is also the output of {opt(finals[key])}; "
-                                  "expected distinct outputs", field=opt(name))
-            finals[key] = name
-            for member in self._members(p, kind):
-                self._check_not_input(name, member, kind)
+        self.inputs = resolve_inputs(self.command, self.spec.inputs, self.args)
+        self.outputs = resolve_outputs(self.spec.outputs, self.args)
+        check_outputs(self.outputs, self.inputs, getattr(self.args, "recordings", ()))
         return self
-
-    @staticmethod
-    def _what(p: Path) -> str:
-        try:
-            return file_kind(os.stat(p).st_mode)
-        except OSError:
-            return "nothing there"
-
-    def _members(self, p: Path, kind: str) -> list[Path]:
-        if kind == "dir-of-clouds":
-            return [p, *(p / f"{Path(r).stem}.ply" for r in self.args.recordings)]
-        return [p]
-
-    def _check_not_input(self, name: str, p: Path, kind: str) -> None:
-        key = _real(p)
-        try:
-            st = os.stat(p)
-        except OSError:
-            st = None
-        for _iname, ip in self.inputs:
-            same = key == _real(ip)
-            if not same and st is not None:
-                with contextlib.suppress(OSError):
-                    ist = os.stat(ip)
-                    same = (st.st_dev, st.st_ino) == (ist.st_dev, ist.st_ino)
-            if kind == "dir" and not same:  # a folder written in place must not hold inputs
-                same = key == _real(ip.parent) or key == _real(ip)
-            if same:
-                raise OptionError(f"{p} is an input of this run ({ip}); refusing to "
-                                  "overwrite an input", field=opt(name))
-
-    def _check_output(self, name: str, p: Path, kind: str) -> None:
-        o = opt(name)
-        if not str(p):
-            raise OptionError("expected a file name, found an empty string", field=o)
-        if len(os.fsencode(_real(p))) >= 4000:
-            raise OptionError(f"path of {len(str(p))} characters is too long", field=o)
-        try:
-            st = os.stat(p)
-        except FileNotFoundError:
-            st = None
-        except OSError as e:
-            raise OptionError(f"cannot use {p} ({e.strerror})", field=o) from None
-        folder = kind in ("dir", "dir-of-clouds")
-        if st is not None:
-            if folder and not stat.S_ISDIR(st.st_mode):
-                raise OptionError(f"{p} is {file_kind(st.st_mode)}, expected a folder", field=o)
-            if not folder and not stat.S_ISREG(st.st_mode):
-                raise OptionError(f"{p} is {file_kind(st.st_mode)}, expected a file to write",
-                                  field=o)
-        # the nearest existing ancestor must be a writable folder
-        anc = Path(os.path.abspath(p)).parent
-        while not anc.exists() and anc != anc.parent:
-            anc = anc.parent
-        if not anc.is_dir():
-            raise OptionError(f"cannot create {p}: {anc} is a file, not a folder", field=o)
-        if not os.access(anc, os.W_OK | os.X_OK):
-            raise OptionError(f"cannot write into {anc} (permission denied)", field=o)
-        nmax = _name_max(anc)
-        for part in Path(os.path.abspath(p)).parts:
-            if len(os.fsencode(part)) > nmax - 40:
-                raise OptionError(f"file name of {len(part)} characters is too long (the file "
-                                  f"system allows {nmax}, less room for the temporary name)",
-                                  field=o)
-        sfx = p.suffix.lower()
-        allowed = {"cloud": CLOUD_SUFFIXES, "png": (".png",), "plot": PLOT_SUFFIXES}.get(kind)
-        if allowed and sfx not in allowed:
-            raise OptionError(f"unknown extension {p.suffix!r} of {p}; expected one of "
-                              f"{', '.join(allowed)}", field=o)
-        if sfx == ".laz" and kind == "cloud":
-            import laspy
-
-            if not laspy.LazBackend.detect_available():
-                raise OptionError("writing .laz needs a LAZ backend for laspy (pip install "
-                                  "lazrs); use .las", field=o)
 
     # --------------------------------------------------------- stage / commit
 
@@ -388,18 +215,3 @@ def translate(text: str) -> str:
     for plan in reversed(_STACK):
         text = plan.translate(text)
     return text
-
-
-def _scene_meshes(scene) -> list[Path]:
-    """Mesh files a scene JSON names (best effort: the scene is validated later)."""
-    if scene is None:
-        return []
-    try:
-        from mems_stereo.util.jsonfile import read_json_file
-
-        d = read_json_file(scene)
-        base = Path(scene).parent
-        return [base / o["file"] for o in d.get("objects", [])
-                if isinstance(o, dict) and isinstance(o.get("file"), str)]
-    except (FormatError, OSError, AttributeError, TypeError):
-        return []

@@ -1,0 +1,248 @@
+"""The checks a command's paths pass before any work (used by :class:`OutputPlan`).
+
+* every input must be an existing regular file (or folder where a folder is
+  expected); a FIFO, a device or a directory in place of a file is refused;
+* every output path must differ from every input (also through symbolic or
+  hard links) and from the other outputs, must not be an existing directory
+  (or file, where a folder is written), its nearest existing ancestor must
+  be a writable folder (not a file), its name must fit the file system
+  (with room for the staged name), and its extension must be one the writer
+  knows.
+
+Each check raises :class:`~mems_stereo.errors.OptionError` naming the option.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+from pathlib import Path
+
+from mems_stereo.errors import FormatError, OptionError
+from mems_stereo.util.paths import file_kind, require_input_file
+
+CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+#: inputs given by an option (their errors name the option as well as the file)
+_NAMED_INPUTS = ("system", "true_system", "target_distances_file")
+
+
+def opt(name: str) -> str:
+    """The option's name as typed (``output`` → ``-o/--output``, ``recordings`` → ``REC``)."""
+    return {"output": "--output"}.get(name, "--" + name.replace("_", "-"))
+
+
+def _preset_names() -> list[str]:
+    """Every preset name a ``--system`` option takes (one- and two-axis)."""
+    from mems_stereo.model.scanner2d import TWO_AXIS_PRESETS
+    from mems_stereo.model.system import PRESETS
+
+    return sorted(PRESETS) + sorted(TWO_AXIS_PRESETS)
+
+
+def _real(p: Path) -> str:
+    return os.path.realpath(os.path.abspath(p))
+
+
+def _name_max(folder: Path) -> int:
+    try:
+        return os.pathconf(folder, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        return 255
+
+
+def describe(p: Path) -> str:
+    """What is at ``p`` in words ("a folder", "a FIFO", "nothing there")."""
+    try:
+        return file_kind(os.stat(p).st_mode)
+    except OSError:
+        return "nothing there"
+
+
+# ------------------------------------------------------------------ inputs
+
+def _missing_named_input(name: str, kind: str, v) -> OptionError:
+    """The error for a ``--system``/``--target-distances-file`` value that is no file."""
+    if kind == "system":
+        import difflib
+
+        names = _preset_names()
+        close = difflib.get_close_matches(str(v), names, n=1, cutoff=0.5)
+        return OptionError(f"{v!r} is neither a preset nor a system file (file not found)\n"
+                           + (f"did you mean {close[0]!r}? " if close else "")
+                           + f"presets: {', '.join(names)}", field=opt(name))
+    return OptionError(f"expected an existing file, found {v!r} (file not found)",
+                       field=opt(name))
+
+
+def _input_paths(name: str, kind: str, v) -> list[Path]:
+    """The checked path(s) of one input argument (none for a preset name)."""
+    if kind == "files":
+        return [require_input_file(x, None) for x in v]
+    if kind == "system" and str(v) in _preset_names():
+        return []
+    if kind == "dir":
+        p = Path(v)
+        if not p.is_dir():
+            raise OptionError(f"expected a folder, found {describe(p)}", source=str(p),
+                              field=opt(name))
+        return [p]
+    if kind == "file" and Path(str(v)).suffix.lower() in (".mcap", ".db3") \
+            and Path(str(v)).with_suffix("").is_dir():
+        return [Path(str(v)).with_suffix("")]  # a ROS 2 bag folder
+    try:
+        return [require_input_file(v, None)]
+    except FileNotFoundError:
+        if name not in _NAMED_INPUTS:
+            raise
+        raise _missing_named_input(name, kind, v) from None
+
+
+def resolve_inputs(command: str, inputs: dict, args) -> list[tuple[str, Path]]:
+    """Every input path of a run as ``(argument, path)``, each checked to exist.
+
+    ``inputs`` maps argument name → kind (``file``, ``files``, ``system``,
+    ``dir``); the meshes a ``simulate`` scene names and the sample folder
+    ``demo`` reads count as inputs too (so no output may overwrite them).
+    """
+    out: list[tuple[str, Path]] = []
+    for name, kind in inputs.items():
+        v = getattr(args, name, None)
+        if v is not None:
+            out += [(name, p) for p in _input_paths(name, kind, v)]
+    if command == "simulate":
+        out += [("scene", m) for m in _scene_meshes(getattr(args, "scene", None))]
+    if command == "demo" and getattr(args, "samples", None) is None:
+        with contextlib.suppress(Exception):
+            from mems_stereo.cli.demo import samples_dir
+
+            out.append(("samples", samples_dir(None)))
+    return out
+
+
+def _scene_meshes(scene) -> list[Path]:
+    """Mesh files a scene JSON names (best effort: the scene is validated later)."""
+    if scene is None:
+        return []
+    try:
+        from mems_stereo.util.jsonfile import read_json_file
+
+        d = read_json_file(scene)
+        base = Path(scene).parent
+        return [base / o["file"] for o in d.get("objects", [])
+                if isinstance(o, dict) and isinstance(o.get("file"), str)]
+    except (FormatError, OSError, AttributeError, TypeError):
+        return []
+
+
+# ----------------------------------------------------------------- outputs
+
+def resolve_outputs(outputs: dict, args) -> list[tuple[str, Path, str]]:
+    """Every output of a run as ``(argument, path, kind)``; ``cloud-or-dir``
+    becomes ``dir-of-clouds`` when several recordings are given, else ``cloud``."""
+    out = []
+    for name, kind in outputs.items():
+        v = getattr(args, name, None)
+        if v is None:
+            continue
+        if kind == "cloud-or-dir":
+            kind = "dir-of-clouds" if len(getattr(args, "recordings", [])) > 1 else "cloud"
+        out.append((name, Path(v), kind))
+    return out
+
+
+def check_outputs(outputs: list, inputs: list, recordings=()) -> None:
+    """Check every output path, that they are distinct and that none is an input."""
+    finals: dict[str, str] = {}
+    for name, p, kind in outputs:
+        check_output_path(name, p, kind)
+        key = _real(p)
+        if key in finals:
+            raise OptionError(f"{p} is also the output of {opt(finals[key])}; "
+                              "expected distinct outputs", field=opt(name))
+        finals[key] = name
+        members = [p]
+        if kind == "dir-of-clouds":
+            members += [p / f"{Path(r).stem}.ply" for r in recordings]
+        for member in members:
+            check_not_input(name, member, kind, inputs)
+
+
+def check_not_input(name: str, p: Path, kind: str, inputs: list) -> None:
+    """Refuse an output ``p`` that is one of ``inputs`` (by path or by inode);
+    a folder written in place (``kind == "dir"``) must not hold an input either."""
+    key = _real(p)
+    try:
+        st = os.stat(p)
+    except OSError:
+        st = None
+    for _iname, ip in inputs:
+        same = key == _real(ip)
+        if not same and st is not None:
+            with contextlib.suppress(OSError):
+                ist = os.stat(ip)
+                same = (st.st_dev, st.st_ino) == (ist.st_dev, ist.st_ino)
+        if kind == "dir" and not same:
+            same = key == _real(ip.parent) or key == _real(ip)
+        if same:
+            raise OptionError(f"{p} is an input of this run ({ip}); refusing to "
+                              "overwrite an input", field=opt(name))
+
+
+def _check_existing(o: str, p: Path, folder: bool) -> None:
+    """What already exists at ``p`` must be of the kind written there."""
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        return
+    except OSError as e:
+        raise OptionError(f"cannot use {p} ({e.strerror})", field=o) from None
+    if folder and not stat.S_ISDIR(st.st_mode):
+        raise OptionError(f"{p} is {file_kind(st.st_mode)}, expected a folder", field=o)
+    if not folder and not stat.S_ISREG(st.st_mode):
+        raise OptionError(f"{p} is {file_kind(st.st_mode)}, expected a file to write",
+                          field=o)
+
+
+def _check_writable_place(o: str, p: Path) -> None:
+    """The nearest existing ancestor is a writable folder; every name fits."""
+    anc = Path(os.path.abspath(p)).parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise OptionError(f"cannot create {p}: {anc} is a file, not a folder", field=o)
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise OptionError(f"cannot write into {anc} (permission denied)", field=o)
+    nmax = _name_max(anc)
+    for part in Path(os.path.abspath(p)).parts:
+        if len(os.fsencode(part)) > nmax - 40:
+            raise OptionError(f"file name of {len(part)} characters is too long (the file "
+                              f"system allows {nmax}, less room for the temporary name)",
+                              field=o)
+
+
+def _check_extension(o: str, p: Path, kind: str) -> None:
+    sfx = p.suffix.lower()
+    allowed = {"cloud": CLOUD_SUFFIXES, "png": (".png",), "plot": PLOT_SUFFIXES}.get(kind)
+    if allowed and sfx not in allowed:
+        raise OptionError(f"unknown extension {p.suffix!r} of {p}; expected one of "
+                          f"{', '.join(allowed)}", field=o)
+    if sfx == ".laz" and kind == "cloud":
+        import laspy
+
+        if not laspy.LazBackend.detect_available():
+            raise OptionError("writing .laz needs a LAZ backend for laspy (pip install "
+                              "lazrs); use .las", field=o)
+
+
+def check_output_path(name: str, p: Path, kind: str) -> None:
+    """Check one output path of argument ``name`` before any work (see module doc)."""
+    o = opt(name)
+    if not str(p):
+        raise OptionError("expected a file name, found an empty string", field=o)
+    if len(os.fsencode(_real(p))) >= 4000:
+        raise OptionError(f"path of {len(str(p))} characters is too long", field=o)
+    _check_existing(o, p, folder=kind in ("dir", "dir-of-clouds"))
+    _check_writable_place(o, p)
+    _check_extension(o, p, kind)
