@@ -555,3 +555,14 @@ def test_bit_flips_many(tmp_path):
         d.mkdir()
         codes.append(_flip_case(d, seed))
     print(f"\nbit flips: {codes.count(0)} processed, {codes.count(2)} refused")
+
+
+def test_system_with_fewer_bins_names_the_recording(tmp_path):
+    # a --system whose TDC has fewer bins than the recording's codes: the error names
+    # the recording's file and dataset, the system used and the recording's own n_bins
+    d = json.loads((SAMPLES / "nominal_system.json").read_text())
+    d["tdc"]["n_bins"] = 64
+    (tmp_path / "small.json").write_text(json.dumps(d))
+    check_refused(tmp_path, ["process", "{s}/room.h5", "--system", "{d}/small.json",
+                             "-o", "{d}/out.ply"],
+                  "room.h5: /shots/bins: expected codes 0..64 (tdc.n_bins of the system used)")

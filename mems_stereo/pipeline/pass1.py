@@ -289,7 +289,8 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     dt = _count_dtype(K_range)
     compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
     # the reader checks codes against the file's n_bins: enough when it is ours too
-    checked = read_system(path).tdc.n_bins <= n_bins
+    file_bins = read_system(path).tdc.n_bins
+    checked = file_bins <= n_bins
     raw = np.zeros((P, n_bins + 1), dt)
     sig = np.zeros((P, n_bins + 1), dt)
     angle = np.zeros((P, table.n_steps), dt)
@@ -303,6 +304,13 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         a, b = s0 - angle_offset, s1 - angle_offset
         th, v = theta[a:b], valid[a:b]
         rows = table.rows(th, v)
+        if not checked and bins.size and int(bins.max()) > n_bins:
+            from mems_stereo.errors import FormatError
+
+            raise FormatError(f"expected codes 0..{n_bins} (tdc.n_bins of the system used), "
+                              f"found {int(bins.max())} in shots {s0}..{s1 - 1} (the "
+                              f"recording's own system has n_bins = {file_bins})",
+                              str(getattr(path, "source", path)), "/shots/bins")
         want = labels_out is not None or truth is not None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
                                                want_labels=want, hist_angle=angle, rows=rows,
