@@ -86,6 +86,70 @@ def _axis2_truth(system: System, n_shots: int, shot_time: np.ndarray, rng, phase
     return a2.theta0 + mech(shot_time), Axis2Monitor(time=pt, position=pp)
 
 
+def _check_args(system: System, ts: System, rng, n_shots, background_hz: float,
+                dark_count_hz: float) -> int:
+    """Validate :func:`simulate_2d`'s arguments; returns ``n_shots`` as int."""
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError("rng: expected a numpy.random.Generator")
+    n_shots = int(n_shots)
+    if n_shots < 1:
+        raise OptionError(f"n_shots: expected a positive integer, found {n_shots}")
+    require_two_axis(system)
+    require_two_axis(ts, "true_system")
+    if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
+        raise GeometryError("true_system: expected the nominal system's image_size")
+    if background_hz < 0 or dark_count_hz < 0:
+        raise OptionError("background_hz, dark_count_hz: expected non-negative rates")
+    return n_shots
+
+
+def _signal_slots(ts: System, ret: dict, spot: SpotModel, pulse: PulseShape, rng):
+    """First laser-return arrival per pixel-slot of one chunk of shots.
+
+    ``ret`` : :func:`~mems_stereo.sim.simulate.beam_returns` of the chunk's k shots.
+    Returns ``(slot, tau)``: chunk-local slot keys ``shot * H*W + row * W + col``
+    (int64) and first-photon times (s after the trigger) of the slots that saw one.
+    """
+    w, h = ts.receiver.image_size
+    tdc = ts.tdc
+    rows, cols, frac = spot_fractions(ret["center"], ret["sigma_px"], (w, h), spot.radius)
+    mu_slot = ret["mu"][:, None, None] * frac
+    sel = mu_slot > MIN_SLOT_PHOTONS
+    ks, ri, ci = np.nonzero(sel)
+    slot = ks * (w * h) + rows[ks, ri] * w + cols[ks, ci]
+    delay = ret["path_length"][ks] / ts.speed_of_light + tdc.offset
+    tau, _ = first_signal_arrival(mu_slot[sel], delay, pulse, tdc.n_bins * tdc.bin_width, rng)
+    has = np.isfinite(tau)
+    return slot[has], tau[has]
+
+
+def _in_gate(read_keys: np.ndarray, slot: np.ndarray) -> np.ndarray:
+    """Which of the chunk-local ``slot`` keys are among the (sorted) ``read_keys``."""
+    if not read_keys.size:
+        return np.zeros(slot.shape, bool)
+    pos = np.minimum(np.searchsorted(read_keys, slot), read_keys.size - 1)
+    return read_keys[pos] == slot
+
+
+def _first_events(b_key, b_tau, s_key, s_tau, tdc):
+    """The earlier of signal and background per slot, as TDC events.
+
+    Returns ``(key, code, label)``: slot keys (increasing), codes
+    ``min(floor(τ / bin_width) + 1, n_bins)`` uint16 and labels (1 laser
+    return, 2 background/dark) uint8.
+    """
+    keys = np.concatenate([b_key, s_key])
+    taus = np.concatenate([b_tau.astype(np.float64), s_tau])
+    labs = np.concatenate([np.full(b_key.size, 2, np.uint8), np.ones(s_key.size, np.uint8)])
+    order = np.lexsort((taus, keys))
+    keys, taus, labs = keys[order], taus[order], labs[order]
+    first = np.ones(keys.size, bool)
+    first[1:] = keys[1:] != keys[:-1]
+    keys, taus, labs = keys[first], taus[first], labs[first]
+    code = np.minimum(np.floor(taus / tdc.bin_width) + 1, tdc.n_bins).astype(np.uint16)
+    return keys, code, labs
+
+
 def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Generator,
                 background_hz: float = 1e5, dark_count_hz: float = 1e3,
                 true_system: System | None = None, gate: GateSpec | None | str = "auto",
@@ -119,26 +183,15 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
     ``signal_total`` (laser-return detections on the whole array, read or not)
     and ``signal_lost`` (those outside the gate).
     """
-    if not isinstance(rng, np.random.Generator):
-        raise TypeError("rng: expected a numpy.random.Generator")
-    n_shots = int(n_shots)
-    if n_shots < 1:
-        raise OptionError(f"n_shots: expected a positive integer, found {n_shots}")
-    require_two_axis(system)
     ts = system if true_system is None else true_system
-    require_two_axis(ts, "true_system")
-    if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
-        raise GeometryError("true_system: expected the nominal system's image_size")
-    if background_hz < 0 or dark_count_hz < 0:
-        raise OptionError("background_hz, dark_count_hz: expected non-negative rates")
+    n_shots = _check_args(system, ts, rng, n_shots, background_hz, dark_count_hz)
     link = default_link() if link is None else link
     spot = SpotModel() if spot is None else spot
     if isinstance(gate, str):
         if gate != "auto":
             raise OptionError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
         gate = default_gate_spec(system, spot=spot, link=link)
-    w, h = system.receiver.image_size
-    npix = w * h
+    npix = system.receiver.width * system.receiver.height
     sc = ts.scanner
 
     if phase is None:
@@ -158,8 +211,7 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
 
     pulse = PulseShape.gaussian(ts.laser.pulse_fwhm, timing_jitter)
     n_emit = emitted_photons(link, pulse, ts.laser.wavelength)
-    tdc = ts.tdc
-    bw, window = tdc.bin_width, tdc.n_bins * tdc.bin_width
+    window = ts.tdc.n_bins * ts.tdc.bin_width
     lam = float(background_hz + dark_count_hz)
 
     ev_key, ev_code, ev_label, counts = [], [], [], []
@@ -182,40 +234,15 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
         counts.append(g.counts())
         read_keys = g.keys()  # chunk-local slot keys, increasing
 
-        # laser return on the spot's pixels
-        rows, cols, frac = spot_fractions(ret["center"], ret["sigma_px"], (w, h), spot.radius)
-        mu_slot = ret["mu"][:, None, None] * frac
-        sel = mu_slot > MIN_SLOT_PHOTONS
-        ks, ri, ci = np.nonzero(sel)
-        slot_sig = ks * npix + rows[ks, ri] * w + cols[ks, ci]
-        delay = ret["path_length"][ks] / ts.speed_of_light + tdc.offset
-        tau_sig, _ = first_signal_arrival(mu_slot[sel], delay, pulse, window, rng)
-        has = np.isfinite(tau_sig)
-        slot_sig, tau_sig = slot_sig[has], tau_sig[has]
+        slot_sig, tau_sig = _signal_slots(ts, ret, spot, pulse, rng)
         sig_total += int(slot_sig.size)
-
         # background + dark counts on the read slots only
         bidx, btau = background_first_arrivals(lam, read_keys.size, window, rng)
-        b_key = read_keys[bidx]
-        if gate is None:
-            in_gate = np.ones(slot_sig.shape, bool)
-        else:
-            pos = np.minimum(np.searchsorted(read_keys, slot_sig), max(0, read_keys.size - 1))
-            in_gate = ((read_keys[pos] == slot_sig) if read_keys.size
-                       else np.zeros(slot_sig.shape, bool))
+        in_gate = np.ones(slot_sig.shape, bool) if gate is None else _in_gate(read_keys,
+                                                                              slot_sig)
         sig_lost += int(np.count_nonzero(~in_gate))
-        slot_sig, tau_sig = slot_sig[in_gate], tau_sig[in_gate]
-
-        # the earlier of signal and background wins
-        keys = np.concatenate([b_key, slot_sig])
-        taus = np.concatenate([btau.astype(np.float64), tau_sig])
-        labs = np.concatenate([np.full(b_key.size, 2, np.uint8), np.ones(slot_sig.size, np.uint8)])
-        order = np.lexsort((taus, keys))
-        keys, taus, labs = keys[order], taus[order], labs[order]
-        first = np.ones(keys.size, bool)
-        first[1:] = keys[1:] != keys[:-1]
-        keys, taus, labs = keys[first], taus[first], labs[first]
-        code = np.minimum(np.floor(taus / bw) + 1, tdc.n_bins).astype(np.uint16)
+        keys, code, labs = _first_events(read_keys[bidx], btau, slot_sig[in_gate],
+                                         tau_sig[in_gate], ts.tdc)
         ev_key.append(keys + s0 * npix)
         ev_code.append(code)
         ev_label.append(labs)
