@@ -220,6 +220,54 @@ class TimetagEstimate:
     n_total: int
 
 
+def _outside_spans(det: np.ndarray, span_radius: int, g_pre: int, g_post: int,
+                   p_false_alarm: float, n_iter: int) -> np.ndarray:
+    """(H, W, nb) bool: the bins outside every return span (step 3 of
+    :func:`signal_background_from_timetags`).
+
+    ``det`` : (H, W, nb) box-summed counts of the other colour's pixels.  A
+    bin is a return where it exceeds the Poisson ``p_false_alarm`` quantile
+    of the level of the free bins (re-estimated ``n_iter`` times); the span
+    runs from the first return − ``g_pre`` bins to the last + ``g_post``,
+    widened over ``span_radius`` pixels.
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+    from scipy.stats import poisson
+
+    nb = det.shape[-1]
+    j = np.arange(nb)
+    free = np.ones(det.shape, dtype=bool)
+    for _ in range(int(n_iter)):
+        mu = (det * free).sum(-1) / np.maximum(free.sum(-1), 1)
+        sig = det > poisson.isf(p_false_alarm, mu)[..., None]
+        has = sig.any(-1)
+        first = np.where(has, sig.argmax(-1), nb)
+        last = np.where(has, nb - 1 - sig[..., ::-1].argmax(-1), -1)
+        if span_radius > 0:
+            first = minimum_filter(first, size=2 * span_radius + 1, mode="nearest")
+            last = maximum_filter(last, size=2 * span_radius + 1, mode="nearest")
+        free = ~((j >= (first - g_pre)[..., None]) & (j <= (last + g_post)[..., None]))
+    return free
+
+
+def _pooled_rate(hist: np.ndarray, free: np.ndarray, mine: np.ndarray, radius: int,
+                 bw: float):
+    """Background rate from the free bins of the ``mine`` pixels, pooled over boxes
+    of (2·radius+1)² pixels (step 4).
+
+    Returns ``(rate (H, W) per time unit, cells (H, W) free bins pooled,
+    own_free (H, W) free-bin counts of each pixel of this colour)``.
+    """
+    m = mine[..., None]
+    own_free = (hist * free * m).sum(-1)
+    # the box sum is linear: sum over the bins first, then over the box
+    cnt = _box(own_free, radius)
+    cells = _box((free & m).sum(-1).astype(np.float64), radius)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = cnt / (cells * bw)
+    return rate, cells, own_free
+
+
 def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bin_width,
                                     lead, tail, radius: int = 3, span_radius=None,
                                     background_radius: int = 3,
@@ -265,9 +313,6 @@ def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bi
     -------
     :class:`TimetagEstimate`.
     """
-    from scipy.ndimage import maximum_filter, minimum_filter
-    from scipy.stats import poisson
-
     t, pix = _check(timestamps, offsets)
     H, W = (int(v) for v in shape)
     if H * W != np.asarray(offsets).size - 1:
@@ -285,37 +330,20 @@ def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bi
     g_pre = int(np.ceil(lead / bw - 1e-9))
     g_post = int(np.ceil(tail / bw - 1e-9))
     R = radius if span_radius is None else int(span_radius)
-    j = np.arange(nb)
     rate = np.full((H, W), np.nan)
     used_cells = 0.0
     var_sum = 0.0
     for c in (False, True):
         mine = colour == c
         det = np.rint(_box(hist * (~mine)[..., None], radius))
-        free = np.ones(det.shape, dtype=bool)
-        for _ in range(int(n_iter)):
-            mu = (det * free).sum(-1) / np.maximum(free.sum(-1), 1)
-            sig = det > poisson.isf(p_false_alarm, mu)[..., None]
-            has = sig.any(-1)
-            first = np.where(has, sig.argmax(-1), nb)
-            last = np.where(has, nb - 1 - sig[..., ::-1].argmax(-1), -1)
-            if R > 0:
-                first = minimum_filter(first, size=2 * R + 1, mode="nearest")
-                last = maximum_filter(last, size=2 * R + 1, mode="nearest")
-            free = ~((j >= (first - g_pre)[..., None]) & (j <= (last + g_post)[..., None]))
-        m = mine[..., None]
-        # the box sum is linear: sum over the bins first, then over the box
-        cnt = _box((hist * free * m).sum(-1), background_radius)
-        cells = _box((free & m).sum(-1).astype(np.float64), background_radius)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            r_c = cnt / (cells * bw)
+        free = _outside_spans(det, R, g_pre, g_post, p_false_alarm, n_iter)
+        r_c, cells, own_free = _pooled_rate(hist, free, mine, background_radius, bw)
         rate[mine] = r_c[mine]
-        used_cells += float((free & m).sum())
+        used_cells += float((free & mine[..., None]).sum())
         # Var(Σ_i b_i T) for the pixels of this colour: each pooled count enters
         # the rates of the pixels whose box holds it (weights w_k = Σ_i T/cells_i).
         with np.errstate(invalid="ignore", divide="ignore"):
             wgt = _box(np.where(mine & (cells > 0), T / (cells * bw), 0.0), background_radius)
-        own_free = (hist * free * m).sum(-1)
         var_sum += float(np.nansum(wgt ** 2 * own_free))
     # Pixels whose whole pool lies inside spans: the mean rate of the frame.
     lost = ~np.isfinite(rate)
