@@ -140,21 +140,8 @@ def _fig5(out: Path) -> Path:
                                          "ellipses x20")
 
 
-def run(args) -> int:
-    rep = Reporter(args)
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    smp = samples_dir(args.samples)
-    t_start = time.perf_counter()
-    written: list[Path] = []
-    rep.info("mems-stereo demo: the paper's system, calibration, processing, clouds and "
-             f"figures (samples: {smp})")
-
-    _step(rep, "1. the system and its acquisition statistics (paper Sec. 2.1, Fig. 2)")
-    _call(["info", "--shots", "400", "--ratio", "0.0785", "--distance", "2.5",
-           "--plot", str(out / "fig2_acquisition.png")], rep)
-    written.append(out / "fig2_acquisition.png")
-
+def _calibrate(rep, out: Path, smp: Path) -> tuple[Path, list[Path]]:
+    """Step 2: calibrate from the sample walls; the system file and what was written."""
     _step(rep, "2. calibration from three flat-wall recordings (true system differs from "
                "the nominal one in the files)")
     cal = out / "calibrated_system.json"
@@ -165,7 +152,6 @@ def run(args) -> int:
     if dist_file.exists():
         argv += ["--target-distances-file", str(dist_file)]
     _call(argv, rep)
-    written += [cal, cal_report]
     true_file = smp / "calib_true_system.json"
     if true_file.exists():
         from mems_stereo.model.system import load_system
@@ -174,10 +160,14 @@ def run(args) -> int:
         rep.info("  estimate - truth: " + ", ".join(
             f"{n} {est.get_param(n) - true.get_param(n):+.3g}"
             for n in ("theta0", "baseline_x", "baseline_z", "tdc_offset", "phase_offset")))
+    return cal, [cal, cal_report]
 
+
+def _process(rep, out: Path, smp: Path, cal: Path) -> tuple[dict, list[Path]]:
+    """Step 3: process room and floodlight; their clouds and what was written."""
     _step(rep, "3. processing with the calibrated system: classification, histograms, peaks, "
                "point clouds")
-    clouds = {}
+    clouds, written = {}, []
     for name, fig in (("room", "fig8"), ("floodlight", "fig9")):
         rec = smp / f"{name}.h5"
         ply = out / f"{name}.ply"
@@ -193,7 +183,11 @@ def run(args) -> int:
                "--max-code", "256"], rep)
         _call(["plot", "cloud", str(ply), "-o", str(out / f"{name}_topview.png")], rep)
         written += [out / f"{fig}_{name}_histograms.png", out / f"{name}_topview.png"]
+    return clouds, written
 
+
+def _gain(rep, smp: Path, cal: Path) -> tuple[dict, dict]:
+    """Step 4: nominal vs calibrated system against the samples' truth."""
     _step(rep, "4. the gain of calibration: nominal vs calibrated system, against the samples' "
                "truth (points whose true surface is within 6 m)")
     from mems_stereo.model.system import load_system
@@ -207,18 +201,27 @@ def run(args) -> int:
                  f"{'yes' if v['median_error'] else 'NO'}, on coverage: "
                  f"{'yes' if v['coverage'] else 'NO'}; recall not worse: "
                  f"{'yes' if v['recall'] else 'NO'}")
+    return gain, verdicts
 
+
+def _figures(rep, out: Path, clouds: dict, render: bool) -> list[Path]:
+    """Step 5: Fig. 5 and the renders of the clouds."""
     _step(rep, "5. figures and renders")
-    written.append(_fig5(out / "fig5_uncertainty.png"))
+    written = [_fig5(out / "fig5_uncertainty.png")]
     rep.info(f"  wrote {written[-1]}")
-    if not args.no_render:
+    if render:
         for name, ply in clouds.items():
             png = out / f"{name}_render.png"
             _call(["render", str(ply), "-o", str(png), "--point-size", "6",
                    "--color-by", "range"], rep)
             written.append(png)
+    return written
 
-    _step(rep, "5. two-axis scanners with 2-D SPAD arrays (docs/two_axis.md)")
+
+def _two_axis(rep, out: Path, smp: Path, render: bool) -> list[Path]:
+    """Step 6: the two-axis samples processed (and rendered from two views)."""
+    _step(rep, "6. two-axis scanners with 2-D SPAD arrays (docs/two_axis.md)")
+    written = []
     for name in ("lissajous64", "raster128x96"):
         rec = smp / f"{name}.h5"
         if not rec.exists():
@@ -226,12 +229,35 @@ def run(args) -> int:
         ply = out / f"{name}.ply"
         _call(["process", str(rec), "-o", str(ply)], rep)
         written.append(ply)
-        if not args.no_render:
+        if render:
             for view in ("camera", "oblique"):
                 png = out / f"{name}_{view}_render.png"
                 _call(["render", str(ply), "-o", str(png), "--view", view, "--point-size", "4",
                        "--color-by", "range"], rep)
                 written.append(png)
+    return written
+
+
+def run(args) -> int:
+    rep = Reporter(args)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    smp = samples_dir(args.samples)
+    t_start = time.perf_counter()
+    rep.info("mems-stereo demo: the paper's system, calibration, processing, clouds and "
+             f"figures (samples: {smp})")
+
+    _step(rep, "1. the system and its acquisition statistics (paper Sec. 2.1, Fig. 2)")
+    _call(["info", "--shots", "400", "--ratio", "0.0785", "--distance", "2.5",
+           "--plot", str(out / "fig2_acquisition.png")], rep)
+    written: list[Path] = [out / "fig2_acquisition.png"]
+    cal, files = _calibrate(rep, out, smp)
+    written += files
+    clouds, files = _process(rep, out, smp, cal)
+    written += files
+    gain, verdicts = _gain(rep, smp, cal)
+    written += _figures(rep, out, clouds, not args.no_render)
+    written += _two_axis(rep, out, smp, not args.no_render)
 
     _step(rep, "outputs")
     missing = [p for p in written if not Path(p).exists()]
