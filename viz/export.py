@@ -33,13 +33,20 @@ import os
 from pathlib import Path
 
 import numpy as np
+from mems_stereo.viz.cloud_common import check_cloud, ordered_attributes
+from mems_stereo.viz.export_las import LAS_SCALE, read_las, write_las  # noqa: F401
+from mems_stereo.viz.export_ros2 import (  # noqa: F401  (public names re-exported)
+    ROS_FRAME_ID,
+    ROS_TOPIC,
+    read_ros2_bag,
+    ros2_bag_dir,
+    write_ros2_bag,
+)
 
 from mems_stereo.errors import FormatError
-from mems_stereo.pipeline.cloud import REQUIRED_ATTRIBUTES, PointCloud
+from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.util.atomic import atomic_output
 
-#: LAS coordinate resolution, m (quantisation error at most half of it)
-LAS_SCALE = 1e-4
 FORMATS = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
 
 # dtypes Open3D keeps exactly as (N, 1) attributes (ENVIRONMENT.md)
@@ -76,13 +83,6 @@ def _storable(name: str, values: np.ndarray, allowed: set, path: Path) -> np.nda
                       source=str(path), field=name)
 
 
-def _check_cloud(cloud, path: Path) -> None:
-    if not isinstance(cloud, PointCloud):
-        raise FormatError("expected a mems_stereo.pipeline.cloud.PointCloud, found "
-                          f"{type(cloud).__name__}",
-                          source=str(path))
-
-
 def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
     """Write ``cloud`` to ``path`` (.ply, .pcd, .las, .laz) atomically; returns the path.
 
@@ -91,7 +91,7 @@ def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
     """
     path = Path(path)
     sfx = _suffix(path)
-    _check_cloud(cloud, path)
+    check_cloud(cloud, path)
     if path.exists() and path.is_dir():
         raise FormatError("is a directory, expected a file", source=str(path))
     if sfx in (".ply", ".pcd"):
@@ -112,7 +112,7 @@ def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
     elif sfx in (".mcap", ".db3"):
         return write_ros2_bag(path, cloud)
     else:
-        _write_las(path, cloud)
+        write_las(path, cloud)
     return path
 
 
@@ -199,12 +199,6 @@ def _empty_pcd(path: Path) -> PointCloud | None:
     return PointCloud(np.zeros((0, 3)), attrs)
 
 
-def _ordered(attrs: dict) -> dict:
-    keys = [k for k in REQUIRED_ATTRIBUTES if k in attrs]
-    keys += sorted(k for k in attrs if k not in keys)
-    return {k: attrs[k] for k in keys}
-
-
 def read_cloud(path: str | os.PathLike) -> PointCloud:
     """Read a .ply, .pcd, .las or .laz point cloud into a :class:`PointCloud`.
 
@@ -221,7 +215,7 @@ def read_cloud(path: str | os.PathLike) -> PointCloud:
         return read_ros2_bag(path)
     require_input_file(path)
     if sfx in (".las", ".laz"):
-        return _read_las(path)
+        return read_las(path)
     if sfx == ".ply":
         _check_ply_header(path)
     else:
@@ -249,7 +243,7 @@ def read_cloud(path: str | os.PathLike) -> PointCloud:
         a = pc.point[k].numpy()
         if a.ndim == 2 and a.shape[1] == 1:
             attrs[k] = a[:, 0].copy()
-    return PointCloud(points, _ordered(attrs))
+    return PointCloud(points, ordered_attributes(attrs))
 
 
 _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
@@ -371,253 +365,3 @@ def _check_pcd_header(path: Path) -> None:
     from mems_stereo.util.limits import check_allocation
 
     check_allocation(n * (24 + 8 * len(fields)), f"{n} points", str(path))
-
-
-# ---------------------------------------------------------------- LAS / LAZ
-
-def _laspy():
-    import laspy
-
-    return laspy
-
-
-def _write_las(path: Path, cloud: PointCloud) -> None:
-    laspy = _laspy()
-    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
-        raise FormatError("writing .laz needs a LAZ backend for laspy (pip install lazrs); "
-                          "use .las", source=str(path))
-    pts = cloud.points
-    if not np.all(np.isfinite(pts)):
-        bad = int((~np.isfinite(pts).all(axis=1)).sum())
-        raise FormatError(f"{bad} points have non-finite coordinates, which LAS cannot store",
-                          source=str(path), field="points")
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    standard = {d.lower() for d in header.point_format.dimension_names}
-    extra = []
-    attrs = {}
-    for k, v in cloud.attributes.items():
-        if k.lower() in standard or len(k) > 32:
-            raise FormatError(f"attribute name {k!r} clashes with a LAS dimension or is longer "
-                              "than 32 characters", source=str(path), field=k)
-        v = np.asarray(v)
-        if v.dtype == np.bool_:
-            v = v.astype(np.uint8)
-        if v.dtype.kind not in "uif" or v.dtype.itemsize > 8 or v.dtype == np.float16:
-            raise FormatError(f"attribute {k!r} has dtype {v.dtype}, which LAS extra bytes "
-                              "cannot store", source=str(path), field=k)
-        attrs[k] = v
-        extra.append(laspy.ExtraBytesParams(name=k, type=v.dtype))
-    if extra:
-        header.add_extra_dims(extra)
-    lo = np.floor(pts.min(axis=0)) if len(pts) else np.zeros(3)
-    header.offsets = lo
-    header.scales = np.full(3, LAS_SCALE)
-    if len(pts) and (pts.max(axis=0) - lo).max() / LAS_SCALE >= 2**31 - 1:
-        raise FormatError(f"the cloud spans more than {(2**31 - 1) * LAS_SCALE:.0f} m, beyond "
-                          f"LAS int32 coordinates at {LAS_SCALE} m resolution", source=str(path))
-    las = laspy.LasData(header)
-    if len(pts):
-        las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
-    else:
-        las.points = laspy.ScaleAwarePointRecord.zeros(0, header=header)
-    n = len(pts)
-    las.return_number = np.ones(n, np.uint8)
-    las.number_of_returns = np.ones(n, np.uint8)
-    if "counts" in attrs:
-        las.intensity = np.clip(attrs["counts"], 0, 65535).astype(np.uint16)
-    for k, v in attrs.items():
-        las[k] = v
-    with atomic_output(path) as tmp:
-        las.write(str(tmp))
-
-
-def _read_las(path: Path) -> PointCloud:
-    laspy = _laspy()
-    try:
-        with laspy.open(str(path)) as rd:
-            hdr = rd.header
-            scales = np.asarray(hdr.scales, dtype=np.float64)
-            if scales.shape != (3,) or not np.all(np.isfinite(scales)) or np.any(scales <= 0):
-                raise FormatError(f"expected positive finite coordinate scales, found "
-                                  f"{scales.tolist()}", source=str(path), field="header.scales")
-            offs = np.asarray(hdr.offsets, dtype=np.float64)
-            if not np.all(np.isfinite(offs)):
-                raise FormatError(f"expected finite offsets, found {offs.tolist()}",
-                                  source=str(path), field="header.offsets")
-            n = int(hdr.point_count)
-            size = hdr.point_format.size
-            if path.suffix.lower() == ".las":
-                real = path.stat().st_size - int(hdr.offset_to_point_data)
-                if real < n * size:
-                    raise FormatError(f"truncated: the header declares {n} points "
-                                      f"({n * size} bytes), the file holds {max(real, 0)}",
-                                      source=str(path))
-            from mems_stereo.util.limits import check_allocation
-
-            check_allocation(n * (size + 48), f"{n} points", str(path))
-            las = rd.read()
-    except FormatError:
-        raise
-    except (laspy.errors.LaspyException, ValueError, OSError, EOFError, KeyError,
-            IndexError, TypeError) as e:
-        raise FormatError(f"not a readable LAS/LAZ file: {str(e)[:120]}", source=str(path)) \
-            from None
-    points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
-    attrs = {}
-    for name in las.point_format.extra_dimension_names:
-        a = np.asarray(las[name])
-        if a.ndim == 1:
-            attrs[name] = a.copy()
-    return PointCloud(points.astype(np.float64), _ordered(attrs))
-
-
-# ---------------------------------------------------------------- ROS 2 bags
-
-#: ROS 2 bag defaults: the receiver camera frame is an optical frame (x right, y down,
-#: z forward), as ROS names frames with the OpenCV convention
-ROS_FRAME_ID = "mems_stereo_receiver_optical_frame"
-ROS_TOPIC = "/mems_stereo/points"
-_ROS_STORAGE = {".mcap": "MCAP", ".db3": "SQLITE3"}
-# PointField datatypes (sensor_msgs/msg/PointField constants)
-_PF = {"int8": 1, "uint8": 2, "int16": 3, "uint16": 4, "int32": 5, "uint32": 6,
-       "float32": 7, "float64": 8}
-_PF_DTYPE = {v: np.dtype(k) for k, v in _PF.items()}
-
-
-def ros2_bag_dir(path: str | os.PathLike) -> Path:
-    """The rosbag2 directory of an output name: ``room.mcap`` → ``room/`` (which holds
-    ``room.mcap`` and ``metadata.yaml``, as ``ros2 bag record -o room -s mcap`` makes)."""
-    p = Path(path)
-    return p.with_suffix("") if p.suffix.lower() in _ROS_STORAGE else p
-
-
-def _ros_field_values(name: str, v: np.ndarray, path: Path) -> np.ndarray:
-    v = np.asarray(v)
-    if v.dtype == np.bool_:
-        return v.astype(np.uint8)
-    if v.dtype == np.float16:
-        return v.astype(np.float32)
-    if str(v.dtype) in _PF:
-        return v
-    if v.dtype.kind in "iu":  # 64-bit integers: PointField has none
-        for t in ("int32", "uint32"):
-            info = np.iinfo(t)
-            if v.size == 0 or (int(v.min()) >= info.min and int(v.max()) <= info.max):
-                return v.astype(t)
-    raise FormatError(f"attribute {name!r} ({v.dtype}) has no sensor_msgs/PointField type",
-                      source=str(path), field=name)
-
-
-def write_ros2_bag(path: str | os.PathLike, cloud: PointCloud, *, frame_id: str = ROS_FRAME_ID,
-                   topic: str = ROS_TOPIC, stamp_ns: int | None = None) -> Path:
-    """Write ``cloud`` as one sensor_msgs/msg/PointCloud2 message in a ROS 2 bag.
-
-    ``path`` ending in ``.mcap`` (MCAP storage) or ``.db3`` (SQLite 3) names
-    the bag: the directory :func:`ros2_bag_dir` is created (replaced when it
-    holds a bag).  Fields: ``x, y, z`` FLOAT32 (metres, the receiver camera
-    frame = ``frame_id``, an optical frame; float32 as RViz and PCL expect:
-    < 1 µm at 10 m) and one field per attribute in its own type (int64 →
-    INT32/UINT32 when the values fit; bool → UINT8).  ``height`` 1, ``width``
-    N, little endian, ``is_dense`` when every point is finite.  Written through
-    the pure-Python ``rosbags`` (ROS 2 Humble message definitions); returns the
-    bag directory.
-    """
-    import shutil
-    import tempfile
-    import time
-
-    from rosbags.rosbag2 import StoragePlugin, Writer
-    from rosbags.typesys import Stores, get_typestore
-
-    p = Path(path)
-    sfx = p.suffix.lower()
-    if sfx not in _ROS_STORAGE:
-        raise FormatError(f"expected a .mcap or .db3 bag name, found {p.name!r}", str(p))
-    _check_cloud(cloud, p)
-    bag = ros2_bag_dir(p)
-    if bag.exists() and not (bag / "metadata.yaml").is_file():
-        raise FormatError("exists and is not a ROS 2 bag; not replacing it", str(bag))
-    names = ["x", "y", "z"]
-    cols = [cloud.points[:, i].astype(np.float32) for i in range(3)]
-    for k, v in cloud.attributes.items():
-        if k in ("x", "y", "z"):
-            raise FormatError(f"attribute name {k!r} is reserved", str(p), k)
-        names.append(k)
-        cols.append(_ros_field_values(k, v, p))
-    dt = np.dtype({"names": names, "formats": [c.dtype.newbyteorder("<") for c in cols]})
-    rec = np.empty(len(cloud), dtype=dt)
-    for n, c in zip(names, cols):
-        rec[n] = c
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
-    stamp = time.time_ns() if stamp_ns is None else int(stamp_ns)
-    header = T["std_msgs/msg/Header"](
-        stamp=T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
-        frame_id=frame_id)
-    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=int(dt.fields[n][1]),
-                                              datatype=_PF[str(dt.fields[n][0].newbyteorder("="))],
-                                              count=1) for n in names]
-    msg = T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
-        point_step=dt.itemsize, row_step=dt.itemsize * len(cloud),
-        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
-        is_dense=bool(np.isfinite(cloud.points).all()))
-    raw = ts.serialize_cdr(msg, msg.__msgtype__)
-    bag.parent.mkdir(parents=True, exist_ok=True)
-    tmp_parent = Path(tempfile.mkdtemp(prefix=f".{bag.name}.", suffix=".part", dir=bag.parent))
-    try:
-        w = Writer(tmp_parent / bag.name, version=8,
-                   storage_plugin=getattr(StoragePlugin, _ROS_STORAGE[sfx]))
-        w.open()
-        try:
-            conn = w.add_connection(topic, msg.__msgtype__, typestore=ts)
-            w.write(conn, stamp, raw)
-        finally:
-            w.close()
-        if bag.exists():
-            shutil.rmtree(bag)
-        os.replace(tmp_parent / bag.name, bag)
-    finally:
-        shutil.rmtree(tmp_parent, ignore_errors=True)
-    return bag
-
-
-def read_ros2_bag(path: str | os.PathLike, topic: str | None = None) -> PointCloud:
-    """Read the PointCloud2 messages of a ROS 2 bag (directory, or the ``.mcap``/``.db3``
-    name given to :func:`write_ros2_bag`) into one :class:`PointCloud`.
-
-    Every field becomes an attribute (x, y, z the points, float64); messages
-    of ``topic`` (default: every PointCloud2 topic) are concatenated.
-    """
-    from rosbags.rosbag2 import Reader
-    from rosbags.typesys import Stores, get_typestore
-
-    bag = ros2_bag_dir(path)
-    if not (bag / "metadata.yaml").is_file():
-        if not Path(path).exists() and not bag.exists():
-            raise FileNotFoundError(2, "file not found", str(path))
-        raise FormatError("not a ROS 2 bag (no metadata.yaml)", str(bag))
-    ts = get_typestore(Stores.ROS2_HUMBLE)
-    clouds = []
-    with Reader(bag) as r:
-        conns = [c for c in r.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"
-                 and (topic is None or c.topic == topic)]
-        for conn, _, raw in r.messages(connections=conns):
-            m = ts.deserialize_cdr(raw, conn.msgtype)
-            dt = np.dtype({"names": [f.name for f in m.fields],
-                           "formats": [_PF_DTYPE[f.datatype].newbyteorder(
-                               ">" if m.is_bigendian else "<") for f in m.fields],
-                           "offsets": [f.offset for f in m.fields], "itemsize": m.point_step})
-            a = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), dtype=dt,
-                              count=m.width * m.height)
-            pts = np.stack([a["x"], a["y"], a["z"]], axis=1).astype(np.float64)
-            attrs = {n: a[n].astype(a[n].dtype.newbyteorder("=")) for n in dt.names
-                     if n not in ("x", "y", "z")}
-            clouds.append(PointCloud(pts, _ordered(attrs)))
-    if not clouds:
-        raise FormatError("no sensor_msgs/msg/PointCloud2 messages"
-                          + (f" on {topic}" if topic else ""), str(bag))
-    if len(clouds) == 1:
-        return clouds[0]
-    c = PointCloud.concatenate(clouds)
-    return PointCloud(c.points, _ordered(c.attributes))
