@@ -323,3 +323,22 @@ def test_path_length_follows_format():
     assert path_length(1, DT) == pytest.approx(c * DT / 2)
     assert path_length(101, DT, offset=1e-9) == pytest.approx(c * (100.5 * DT - 1e-9))
     assert np.isnan(path_length(0, DT))
+
+
+@pytest.mark.parametrize("key,value,field", [("format", "mems-stereo/labels", "attrs/format"),
+                                             ("version", 2, "attrs/version"),
+                                             ("version", "1", "attrs/version")])
+def test_histogram_file_format_and_version_checked(tmp_path, key, value, field):
+    # the histogram reader and the recording reader share one format/version check
+    import h5py
+
+    from mems_stereo.io.histograms import read_histograms, write_histograms
+
+    h = np.zeros((1, 4, 8), np.int32)
+    p = write_histograms(tmp_path / "h.h5", h, h, h)
+    assert read_histograms(p)[0].shape == (1, 4, 8)
+    with h5py.File(p, "r+") as f:
+        f.attrs[key] = value
+    with pytest.raises(FormatError) as e:
+        read_histograms(p)
+    assert e.value.field == field and repr(value)[:20] in str(e.value)

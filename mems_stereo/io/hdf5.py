@@ -202,3 +202,27 @@ def attr_str(f: h5py.File, key: str, source: str) -> str | None:
         except UnicodeDecodeError:
             return None
     return v if isinstance(v, str) else None
+
+
+def shown_attr(f: h5py.File, key: str) -> str:
+    """Root attribute ``key`` as shown in an error message (repr, at most 60 characters)."""
+    try:
+        v = f.attrs[key] if key in f.attrs else None
+    except Exception:  # noqa: BLE001 - only for the message
+        return "an unreadable value"
+    return repr(v)[:60]
+
+
+def require_format(f: h5py.File, name: str, version: int, source: str) -> None:
+    """The root attributes ``format`` = ``name`` and ``version`` = ``version``, or
+    :class:`FormatError` naming ``attrs/format`` / ``attrs/version`` and what was found."""
+    if attr_str(f, "format", source) != name:
+        raise FormatError(f"expected attribute format = {name!r}, found "
+                          f"{shown_attr(f, 'format')}", source, "attrs/format")
+    try:
+        ver = attr_int(f, "version", source)
+    except FormatError:
+        ver = None
+    if ver != version:
+        raise FormatError(f"expected attribute version = {version}, found "
+                          f"{shown_attr(f, 'version')}", source, "attrs/version")

@@ -86,17 +86,7 @@ def read_histograms(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np
     path = Path(path)
     source = str(path)
     with h5.open_h5(path) as f:
-        fmt = h5.attr_str(f, "format", source)
-        if fmt != FORMAT_NAME:
-            raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found {fmt!r}",
-                              source=source, field="format")
-        try:
-            version = h5.attr_int(f, "version", source)
-        except FormatError:
-            version = None
-        if version != FORMAT_VERSION:
-            raise FormatError(f"expected version {FORMAT_VERSION}, found "
-                              f"{f.attrs.get('version')!r}"[:120], source=source, field="version")
+        h5.require_format(f, FORMAT_NAME, FORMAT_VERSION, source)
         out = []
         for n in DATASETS:
             ds = h5.dataset(f, f"/{n}", source, whole=True)

@@ -129,17 +129,7 @@ def validate_header(f: h5py.File, source: str, scan_axes: int = 1) -> System:
     ``scan_axes`` : 1 (FORMAT v1; the attribute absent or 1) or 2 (the
     two-axis extension, :mod:`mems_stereo.io.recording2d`; the attribute 2).
     """
-    fmt = h5.attr_str(f, "format", source)
-    if fmt != FORMAT_NAME:
-        raise FormatError(f"expected attribute format = {FORMAT_NAME!r}, found "
-                          f"{_shown_attr(f, 'format')}", source, "attrs/format")
-    try:
-        ver = h5.attr_int(f, "version", source)
-    except FormatError:
-        ver = None
-    if ver != FORMAT_VERSION:
-        raise FormatError(f"expected attribute version = {FORMAT_VERSION}, found "
-                          f"{_shown_attr(f, 'version')}", source, "attrs/version")
+    h5.require_format(f, FORMAT_NAME, FORMAT_VERSION, source)
     if "scan_axes" in f.attrs or scan_axes != 1:  # the two-axis extension (formats.md §5)
         try:
             axes = h5.attr_int(f, "scan_axes", source)
@@ -152,7 +142,7 @@ def validate_header(f: h5py.File, source: str, scan_axes: int = 1) -> System:
                               "attrs/scan_axes")
         if axes != scan_axes:
             raise FormatError(f"expected attribute scan_axes = {scan_axes}, found "
-                              f"{_shown_attr(f, 'scan_axes')}", source, "attrs/scan_axes")
+                              f"{h5.shown_attr(f, 'scan_axes')}", source, "attrs/scan_axes")
     ds = _need(f, "/system", source)
     if ds.shape != () or ds.dtype.kind not in "OSU":
         raise FormatError(f"expected a scalar JSON string, found {ds.dtype} {ds.shape}", source,
@@ -168,14 +158,6 @@ def validate_header(f: h5py.File, source: str, scan_axes: int = 1) -> System:
         raise FormatError(f"expected a JSON string, found {type(raw).__name__}", source,
                           "/system")
     return system_from_json(raw, source=f"{source}:/system")
-
-
-def _shown_attr(f: h5py.File, key: str) -> str:
-    try:
-        v = f.attrs[key] if key in f.attrs else None
-    except Exception:  # noqa: BLE001 - only for the message
-        return "an unreadable value"
-    return repr(v)[:60]
 
 
 def check_crossing_frequency(zc: np.ndarray, rising: np.ndarray, f_mech: float,
