@@ -146,8 +146,34 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     fused estimates are corrected for the first-photon delay
     (:class:`~mems_stereo.pipeline.fusion.PeakAccumulator`).
     ``table`` : the run's interval table (default: a new one; only its grid is used).
+    ``own`` : (a, b) or None, see :meth:`PeakAccumulator.cloud`.
     """
+    acc = peak_sums_from_counts(system, peaks, counts, settings, shots_per_step, table)
+    return consistent_points(acc.cloud(settings.min_counts, own), settings.confidence)
 
+
+def accumulator_for_peaks(system: System, peaks: dict, settings: Settings,
+                          shots_per_step=None, table=None) -> PeakAccumulator:
+    """An empty :class:`PeakAccumulator` of the peaks (a mapping of (Q,) arrays
+    ``row``, ``col``, ``code``, optionally ``rate_hz``, ``step_lo``, ``step_hi``)."""
+    if table is None:
+        table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    return PeakAccumulator(system, peaks["row"], peaks["col"], peaks["code"],
+                           confidence=settings.confidence, shots_per_step=shots_per_step,
+                           step_grid=(table.theta_min, table.step),
+                           rate_hz=peaks.get("rate_hz"),
+                           step_window=(peaks["step_lo"], peaks["step_hi"])
+                           if peaks.get("step_lo") is not None else None,
+                           accept=_acceptance(system, table, peaks))
+
+
+def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
+                          shots_per_step=None, table=None) -> PeakAccumulator:
+    """The :class:`PeakAccumulator` of the peaks after both sub-passes over their
+    counted entries (arguments as :func:`points_from_counts`, whose cloud is
+    ``acc.cloud(settings.min_counts)``).  The sums of a peak are its entries'
+    alone: the accumulators of blocks of peaks joined
+    (:meth:`PeakAccumulator.joined`) are the whole's, bit for bit."""
     if table is None:
         table = interval_table(system, settings.confidence, min_range=settings.min_range)
     S, nb = table.n_steps, system.tdc.n_bins + 1
@@ -180,19 +206,9 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
         background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
         weight = np.concatenate([weight, -bgs.ravel()[keep]])
 
-    cloud = points_from_peak_detections(system, np.arange(q_all.size), q_all, code_all, theta_all,
-                                        peaks["row"],
-                                        peaks["col"], peaks["code"],
-                                        min_counts=settings.min_counts,
-                                        confidence=settings.confidence, weight=weight,
-                                        background=background,
-                                        shots_per_step=shots_per_step,
-                                        step_grid=(table.theta_min, table.step), rate_hz=rate,
-                                        step_window=(peaks["step_lo"], peaks["step_hi"])
-                                        if peaks.get("step_lo") is not None else None,
-                                        accept=_acceptance(system, table, peaks),
-                                        own=own)
-    return consistent_points(cloud, settings.confidence)
+    acc = accumulator_for_peaks(system, peaks, settings, shots_per_step, table)
+    return accumulate_entries(acc, np.arange(q_all.size), q_all, code_all, theta_all,
+                              weight=weight, background=background)
 
 
 def _acceptance(system: System, table, peaks):
@@ -326,6 +342,21 @@ class PeakAccumulator:
         new.sums = self.sums + other.sums
         new.band = (np.minimum(self.band[0], other.band[0]),
                     np.maximum(self.band[1], other.band[1]))
+        return new
+
+    def joined(self, parts) -> PeakAccumulator:
+        """This accumulator's peaks with the state of ``parts``, accumulators of
+        consecutive blocks of its peaks (in order, covering all of them) after
+        their sub-passes: centres, inlier bounds, angle bands and sums are per
+        peak, so the result is the one accumulator of every entry, bit for bit."""
+        new = self.empty_copy()
+        if sum(p.Q for p in parts) != self.Q:
+            raise GeometryError(f"joined: the parts hold {sum(p.Q for p in parts)} peaks, "
+                                f"expected {self.Q}")
+        new.centre = np.concatenate([p.centre for p in parts])
+        new.halfwidth = np.concatenate([p.halfwidth for p in parts])
+        new.band = tuple(np.concatenate([p.band[i] for p in parts]) for i in (0, 1))
+        new.sums = PeakSums.concat([p.sums for p in parts])
         return new
 
     def _points(self, shot, peak, code, theta, weight):
@@ -816,6 +847,16 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                           shots_per_step=shots_per_step, step_grid=step_grid,
                           first_photon=first_photon, rate_hz=rate_hz,
                           step_window=step_window, accept=accept, spot_sigma=spot_sigma)
+    return accumulate_entries(acc, shot, peak, code, theta, weight, background).cloud(
+        min_counts, own)
+
+
+def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=None,
+                       background=None) -> PeakAccumulator:
+    """Both sub-passes of ``acc`` over the entries (arguments as
+    :func:`points_from_peak_detections`); returns ``acc``, its centres fixed and its
+    sums added."""
+    system = acc.system
     shot = np.asarray(shot, dtype=np.int64).ravel()
     M = shot.size
     if M <= ENTRY_BLOCK:  # the entries' points computed once, used by both sub-passes
@@ -823,7 +864,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         acc._add_mode_points(pts)
         acc.finish_mode()
         acc._add_inliers_points(pts, shot, theta, background)
-        return acc.cloud(min_counts, own)
+        return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
     # keeps each entry's fused range, its σ and ok (17 bytes an entry); sub-pass 2
     # computes the points of the inliers alone
@@ -849,7 +890,7 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
 
         acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
                               None if bg is None else bg[e])
-    return acc.cloud(min_counts, own)
+    return acc
 
 
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by

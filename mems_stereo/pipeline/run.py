@@ -39,7 +39,13 @@ from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
-from mems_stereo.pipeline.fusion import FP_BLOCK, points_from_counts
+from mems_stereo.pipeline.fusion import (
+    FP_BLOCK,
+    accumulator_for_peaks,
+    consistent_points,
+    peak_sums_from_counts,
+    points_from_counts,
+)
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import (
     Counts,
@@ -318,8 +324,9 @@ FUSE_ENTRIES = 1 << 16
 def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_step,
                    table: IntervalTable, max_entries: int | None = None):
     """:func:`points_from_counts` over blocks of peaks of at most about ``max_entries``
-    distinct (peak, step, code) entries each, joined: the same cloud bit for
-    bit (the blocks cut at multiples of ``FP_BLOCK`` peaks), with the fusion's
+    distinct (peak, step, code) entries each: each block's per-peak sums
+    (:func:`~mems_stereo.pipeline.fusion.peak_sums_from_counts`), joined into one
+    accumulator whose cloud is the whole's bit for bit, with the fusion's
     per-entry arrays (≈ 200 bytes an entry) bounded by the block instead of
     growing with the recording's distinct entries (default :data:`FUSE_ENTRIES`)."""
     cap = FUSE_ENTRIES if max_entries is None else max_entries
@@ -327,11 +334,15 @@ def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_
     if n_blocks == 1:
         return points_from_counts(system, peaks, counts, settings, shots_per_step=n_per_step,
                                   table=table)
-    light = {k: v for k, v in peaks.items() if k != "background_by_step"}
+    # each block's sums (a peak's are its entries' alone), joined, then one cloud: no
+    # halo of neighbours to fuse twice (the Dask runner's blocks need one)
+    light = {k: v for k, v in peaks.items() if k != "background_by_step" and v is not None}
     blocks = split_peak_counts(counts, len(light["row"]), table.n_steps,
                                system.tdc.n_bins + 1, n_blocks)
-    return join_clouds([points_block(system, light, blocks, i, settings, n_per_step, table)
-                        for i in range(len(blocks))])
+    parts = [peak_sums_from_counts(system, {k: np.asarray(v)[q0:q1] for k, v in light.items()},
+                                   c, settings, n_per_step, table) for q0, q1, c in blocks]
+    acc = accumulator_for_peaks(system, light, settings, n_per_step, table).joined(parts)
+    return consistent_points(acc.cloud(settings.min_counts), settings.confidence)
 
 
 def block_with_halo(system, peaks, blocks, i: int, n_steps: int):

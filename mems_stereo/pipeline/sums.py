@@ -108,6 +108,15 @@ class EstimateSums:
         return EstimateSums(self.W + other.W, self.X + other.X, self.C + other.C,
                             add(self.D, other.D), add(self.G, other.G))
 
+    @classmethod
+    def concat(cls, parts) -> EstimateSums:
+        """The sums of consecutive blocks of peaks as one (rows concatenated)."""
+        def cat(name):
+            vals = [getattr(p, name) for p in parts]
+            return None if vals[0] is None else np.concatenate(vals)
+
+        return cls(*(cat(k) for k in ("W", "X", "C", "D", "G")))
+
     def add(self, q, x, C, m, g=None) -> None:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
@@ -174,6 +183,14 @@ class PeakSums:
         return PeakSums(*(getattr(self, k) + getattr(other, k) for k in _SCALARS),
                         self.loglik + other.loglik, self.fused + other.fused,
                         self.stereo + other.stereo, self.tof + other.tof)
+
+    @classmethod
+    def concat(cls, parts) -> PeakSums:
+        """The sums of consecutive blocks of peaks as one (rows concatenated)."""
+        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in _SCALARS),
+                   np.concatenate([p.loglik for p in parts]),
+                   *(EstimateSums.concat([getattr(p, k) for p in parts])
+                     for k in ("fused", "stereo", "tof")))
 
     def estimate(self, name: str) -> EstimateSums:
         return getattr(self, name)
