@@ -48,6 +48,7 @@ from mems_stereo.pipeline.fusion import (
 )
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import (
+    COMPILE_SLOTS,
     Counts,
     RangeAccumulation,
     _pack,
@@ -57,6 +58,7 @@ from mems_stereo.pipeline.pass1 import (
 )
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.signal_store import SignalStore, peak_counts_from_store
 from mems_stereo.util.atomic import atomic_output
 
 
@@ -207,19 +209,31 @@ def process_recording(path, system: System | None = None,
         table.load_cache()
     timings = {"read_header": time.perf_counter() - t0}
 
-    t1 = time.perf_counter()
-    if labels_path is not None:
-        with _labels_file(labels_path, K, (H, W)) as (f, ds):
-            acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
-                                   progress=progress, table=table)
-            f.create_dataset("theta", data=np.where(valid, theta, np.nan))
-    else:
-        acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table)
-    if own_table:
-        table.save_cache()
-    timings["classify_histogram"] = time.perf_counter() - t1
-    res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                            progress=progress, table=table)
+    # compiled ranges keep pass 1's signal detections, so that pass 2 needs no second
+    # read of the shots (small recordings: reading them again costs less)
+    with SignalStore() as store:
+        keep = store if K * H * W >= COMPILE_SLOTS else None
+        t1 = time.perf_counter()
+        if labels_path is not None:
+            with _labels_file(labels_path, K, (H, W)) as (f, ds):
+                acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
+                                       progress=progress, table=table, signal_store=keep)
+                f.create_dataset("theta", data=np.where(valid, theta, np.nan))
+        else:
+            acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table,
+                                   signal_store=keep)
+        if own_table:
+            table.save_cache()
+        timings["classify_histogram"] = time.perf_counter() - t1
+        count_peaks = None
+        if keep is not None and store.complete:
+            def count_peaks(peaks):
+                pc = peak_counts_from_store(store, sysm, peaks, table.n_steps)
+                if progress is not None:
+                    progress(K)
+                return pc
+        res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                                count_peaks=count_peaks, progress=progress, table=table)
     if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
         table.save_cache()
     return res
