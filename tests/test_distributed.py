@@ -161,19 +161,20 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
 
 def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
-    (cut at multiples of FP_BLOCK peaks) gives the cloud of one block, bit for bit."""
+    (each block's per-peak sums, joined into one accumulator) gives the cloud of one
+    block, bit for bit."""
     from mems_stereo.pipeline import run as R
 
     one = process_recording(SAMPLES / "room.h5")
     calls = []
-    orig = R.points_from_counts
+    orig = R.peak_sums_from_counts
 
     def count(*a, **k):
         calls.append(1)
         return orig(*a, **k)
 
     monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
-    monkeypatch.setattr(R, "points_from_counts", count)
+    monkeypatch.setattr(R, "peak_sums_from_counts", count)
     blocked = process_recording(SAMPLES / "room.h5")
     assert len(calls) >= 2
     _same(one, blocked)
