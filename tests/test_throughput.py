@@ -318,3 +318,24 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
         want[i, lo[i]:hi[i] + 1] = B[q[i], lo[i]:hi[i] + 1]
     assert got.nnz == 5 + 40 + 1
     assert np.array_equal(got.toarray(), want)
+
+
+def test_add_rows_equals_add_at():
+    """sums.add_rows (one bincount per column) against np.add.at, bit for bit, over
+    random shapes, signs and magnitudes, onto non-zero sums, repeated."""
+    from mems_stereo.pipeline.sums import add_rows
+
+    rng = np.random.default_rng(1415)
+    for _ in range(40):
+        Q = int(rng.integers(1, 50))
+        shape = [(), (3,), (3, 3), (5,)][int(rng.integers(0, 4))]
+        A = np.zeros((Q,) + shape)
+        B = A.copy()
+        for _ in range(3):
+            N = int(rng.integers(0, 2000))
+            q = rng.integers(0, Q, N)
+            V = rng.normal(size=(N,) + shape) * 10.0 ** rng.uniform(-12, 6, (N,) + shape)
+            np.add.at(A, q, V)
+            add_rows(B, q, V)
+        assert np.array_equal(A, B)
+        assert not np.any(np.signbit(B) & (B == 0))

@@ -15,6 +15,25 @@ from mems_stereo.physics.first_photon import (
 )
 
 
+def add_rows(A, q, V) -> None:
+    """``np.add.at(A, q, V)`` for A (Q, ...) float64 and V (N, ...), the same bits,
+    one ``np.bincount`` per column instead of the slow multi-dimensional ``add.at``:
+    bincount adds the weights one after the other in entry order, starting here
+    from the row's current value (a sum that starts from +0 never holds −0, so
+    ``0 + A`` is ``A``)."""
+    q = np.asarray(q, np.int64)
+    Q = A.shape[0]
+    Af = A.reshape(Q, -1)
+    if Af.shape[1] == 1 or q.size == 0 or not A.flags.c_contiguous:
+        np.add.at(A, q, V)
+        return
+    Vf = np.asarray(V, np.float64).reshape(q.size, -1)
+    idx = np.concatenate([np.arange(Q), q])
+    for j in range(Af.shape[1]):
+        Af[:, j] = np.bincount(idx, weights=np.concatenate([Af[:, j], Vf[:, j]]),
+                               minlength=Q)
+
+
 class RangeMode:
     """The centre range of each of Q peaks: the mode of its detections' range intervals.
 
@@ -121,11 +140,11 @@ class EstimateSums:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
         np.add.at(self.W, q, m)
-        np.add.at(self.X, q, x * m[:, None])
-        np.add.at(self.C, q, C * np.abs(m)[:, None, None])
+        add_rows(self.X, q, x * m[:, None])
+        add_rows(self.C, q, C * np.abs(m)[:, None, None])
         if self.D is not None and g is not None:
-            np.add.at(self.D, q, g * m[:, None])
-            np.add.at(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
+            add_rows(self.D, q, g * m[:, None])
+            add_rows(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
 
     def mean(self):
         """(x̄ (Q, 3), covariance (Q, 3, 3)) = (X / W, C / W²)."""
