@@ -22,9 +22,9 @@ from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.peaks import Peaks
 
 #: signal keys held in memory before the store spills to a temporary file (bytes)
-STORE_MEMORY_BYTES = 32 << 20
+STORE_MEMORY_BYTES = 8 << 20
 #: keys read back from the file at a time
-READ_KEYS = 1 << 22
+READ_KEYS = 1 << 18
 
 
 class SignalStore:
