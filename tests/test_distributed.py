@@ -223,3 +223,40 @@ def test_trimming_the_heap_between_stages_changes_nothing(monkeypatch):
     monkeypatch.setattr(R, "release_freed_memory", spy)
     _same(one, process_recording(SAMPLES / "room.h5"))
     assert len(calls) == 4
+
+
+def test_split_with_signal_stores_equals_one_process(monkeypatch):
+    """process_split whose parts keep their signal detections for pass 2 (forced on
+    the small sample; threads, so the forcing reaches the workers) gives the one
+    process's result, bit for bit; a store pickled between processes keeps its keys."""
+    import pickle
+
+    from distributed import Client, LocalCluster
+
+    import mems_stereo.pipeline.distributed as D
+    import mems_stereo.pipeline.pass1 as pass1
+    from mems_stereo.pipeline.signal_store import SignalStore
+
+    one = process_recording(SAMPLES / "floodlight.h5")
+    used = []
+    orig = D.peak_counts_from_store
+
+    def spy(*a, **k):
+        used.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(D, "peak_counts_from_store", spy)
+    monkeypatch.setattr(D, "COMPILE_SLOTS", 0)
+    monkeypatch.setattr(pass1, "COMPILE_SLOTS", 0)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as c:
+        split = process_split(SAMPLES / "floodlight.h5", scheduler=c, n_parts=3)
+    assert len(used) == 3
+    _same(one, split)
+    st = SignalStore(memory_bytes=16)
+    st.append(np.arange(10))
+    st.append(np.arange(5))
+    back = pickle.loads(pickle.dumps(st))
+    np.testing.assert_array_equal(np.concatenate(list(back.blocks())),
+                                  np.r_[np.arange(10), np.arange(5)])
+    assert back.n_keys == 15 and back.complete

@@ -20,6 +20,9 @@ What keeps the client's serial share small (``docs/throughput.md``):
   :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
   whatever the number of parts; the pass-1 counts travel
   as uint32, as their non-zero entries where that is smaller;
+* each part keeps its signal detections on its worker
+  (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
+  counts from them instead of reading the shots again;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
   (:func:`split_peak_counts`) and each block is fused on a worker; the
   client receives the blocks' clouds only.
@@ -33,6 +36,7 @@ address of an existing scheduler (``tcp://host:8786``), or a ready
 from __future__ import annotations
 
 import contextlib
+import operator
 import os
 import time
 from collections.abc import Sequence
@@ -44,7 +48,7 @@ from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.fusion import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
-from mems_stereo.pipeline.pass1 import accumulate_range
+from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
@@ -56,6 +60,7 @@ from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this
     split_peak_counts,
 )
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.signal_store import SignalStore, peak_counts_from_store
 
 #: parts summed per task of the reduction tree
 FAN_IN = 4
@@ -235,9 +240,15 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
-        accs = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
-                for ang, (a, b) in zip(angle_f, parts)]
+        # each part keeps its signal detections on its worker for its pass 2
+        # (SignalStore: no second read of the shots; compiled-size parts only)
+        p1 = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
+              for ang, (a, b) in zip(angle_f, parts)]
+        accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
+        stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
+        del p1
         acc = waits(tree_sum(client, accs).result)
+        del accs
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
@@ -247,7 +258,9 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
             shared["peaks"] = client.scatter(light, broadcast=True)
             pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, shared["peaks"], a, b,
-                                 table_f, pure=False) for ang, (a, b) in zip(angle_f, parts)]
+                                 table_f, store, pure=False)
+                   for ang, (a, b), store in zip(angle_f, parts, stores)]
+            stores.clear()  # released once their pass 2 has run
             return tree_sum(client, pcs)  # stays on the workers
 
         def make_points(peaks, total_f):
@@ -291,12 +304,20 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
 
 def _pass1_part(path, system, angles, settings, start, stop, table):
+    """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``."""
     theta, valid = angles
-    return accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
-                            angle_offset=start)
+    P = system.receiver.width * system.receiver.height
+    store = SignalStore() if (stop - start) * P >= COMPILE_SLOTS else None
+    acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
+                           angle_offset=start, signal_store=store)
+    return acc, (store if store is not None and store.complete else None)
 
 
-def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
+def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store=None):
+    """Pass 2 of shots [start, stop): from the part's stored signal detections, else
+    reading its shots again."""
+    if store is not None:
+        return peak_counts_from_store(store, system, peaks, table.n_steps)
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)

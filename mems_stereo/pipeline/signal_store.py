@@ -74,6 +74,19 @@ class SignalStore:
             left -= k.size
             yield k
 
+    def __sizeof__(self) -> int:  # what Dask sees: the keys (it keeps a task near them)
+        return object.__sizeof__(self) + 8 * self.n_keys
+
+    def __getstate__(self):  # between processes (Dask): the keys themselves
+        d = dict(self.__dict__)
+        d["_held"] = [np.concatenate(list(self.blocks()))] if self.n_keys else []
+        d["_held_bytes"] = 8 * self.n_keys
+        d["_file"] = None
+        return d
+
+    def __setstate__(self, d):
+        self.__dict__.update(d)
+
     def close(self) -> None:
         if self._file is not None:
             self._file.close()
