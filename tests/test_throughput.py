@@ -356,7 +356,7 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
 def test_add_rows_equals_add_at():
     """sums.add_rows (one bincount per column) against np.add.at, bit for bit, over
     random shapes, signs and magnitudes, onto non-zero sums, repeated."""
-    from mems_stereo.pipeline.sums import add_rows
+    from mems_stereo.pipeline.sums import add_rows, add_rows_gathered
 
     rng = np.random.default_rng(1415)
     for _ in range(40):
@@ -372,3 +372,13 @@ def test_add_rows_equals_add_at():
             add_rows(B, q, V)
         assert np.array_equal(A, B)
         assert not np.any(np.signbit(B) & (B == 0))
+    for _ in range(20):  # add_rows_gathered: rows of a table gathered per entry, scaled
+        Q, R, J, N = (int(rng.integers(1, 40)), int(rng.integers(1, 300)), 41,
+                      int(rng.integers(0, 3000)))
+        A = rng.normal(size=(Q, J))
+        B = A.copy()
+        q, run, m = rng.integers(0, Q, N), rng.integers(0, R, N), rng.normal(size=N)
+        rows = rng.normal(size=(R, J)) * 10.0 ** rng.uniform(-8, 4, (R, J))
+        np.add.at(A, q, rows[run] * m[:, None])
+        add_rows_gathered(B, q, rows, run, m)
+        assert np.array_equal(A, B)

@@ -59,7 +59,7 @@ from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.pipeline.sums import PeakSums, RangeMode
+from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
 
 #: segments of each (peak, step)'s accepted code interval over which its expected
 #: background is spread (as negative-weight entries at the segments' centroids)
@@ -497,7 +497,7 @@ class PeakAccumulator:
             f = spot_fraction(self.system, self.rows[ps], self.cols[ps], th[start],
                               self.centre[ps], self.spot_sigma)
             run = np.cumsum(new) - 1
-            np.add.at(s.loglik, peak, _detection_log_odds(f)[run] * m_all[:, None])
+            add_rows_gathered(s.loglik, peak, _detection_log_odds(f), run, m_all)
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
         np.add.at(s.theta, q, m * th_e)

@@ -34,6 +34,24 @@ def add_rows(A, q, V) -> None:
                                minlength=Q)
 
 
+def add_rows_gathered(A, q, rows, run, m) -> None:
+    """``np.add.at(A, q, rows[run] * m[:, None])`` without the (N, J) temporaries, the
+    same bits: A (Q, J), q (N,) row of A, rows (R, J), run (N,) row of ``rows``, m (N,);
+    one contiguous gather and ``np.bincount`` per column (see :func:`add_rows`)."""
+    q = np.asarray(q, np.int64)
+    Q = A.shape[0]
+    if q.size == 0:
+        return
+    if not A.flags.c_contiguous:  # pragma: no cover - the sums are contiguous
+        np.add.at(A, q, rows[run] * m[:, None])
+        return
+    cols = np.ascontiguousarray(np.asarray(rows, np.float64).T)
+    idx = np.concatenate([np.arange(Q), q])
+    for j in range(A.shape[1]):
+        A[:, j] = np.bincount(idx, weights=np.concatenate([A[:, j], cols[j][run] * m]),
+                              minlength=Q)
+
+
 class RangeMode:
     """The centre range of each of Q peaks: the mode of its detections' range intervals.
 
