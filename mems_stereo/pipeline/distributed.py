@@ -8,7 +8,7 @@ are integers), so the outcome is identical to one process, bit for bit.
 * :func:`process_split` — one recording split into shot ranges: pass 1
   (classify + histograms) per range, peaks on the client, pass 2 (peak
   counts) per range, the fusion per block of peaks on the workers; the
-  client joins the blocks' clouds.
+  client joins the blocks' peak means and makes the cloud.
 
 What keeps the client's serial share small (``docs/throughput.md``):
 
@@ -24,8 +24,9 @@ What keeps the client's serial share small (``docs/throughput.md``):
   (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
   counts from them instead of reading the shots again;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
-  (:func:`split_peak_counts`) and each block is fused on a worker; the
-  client receives the blocks' clouds only.
+  (:func:`split_peak_counts`) and each block is fused on a worker, without
+  a halo, up to each peak's means (``PeakMeans``); the client joins the
+  means and makes the cloud (the depth edges look across blocks).
 
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
@@ -52,8 +53,10 @@ from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
+    cloud_of_means,
     finish_processing,
     join_clouds,
+    means_block,
     peak_blocks,
     points_block,
     process_recording,
@@ -270,18 +273,18 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                                      pure=False)
             # at most this many blocks (no round trip to ask how many there are)
             n_blocks = min(4 * n_w, -(-Q // FP_BLOCK))
-            clouds_f = [client.submit(_points_nth_block, sysm, shared["peaks"], blocks_f, i,
-                                      st, nps_f, table_f, pure=False) for i in range(n_blocks)]
-            clouds = [c for c in waits(client.gather, clouds_f) if c is not None]
-            if not clouds:  # no peaks: the (empty) cloud of the whole
+            means_f = [client.submit(_means_nth_block, sysm, shared["peaks"], blocks_f, i,
+                                     st, nps_f, table_f, pure=False) for i in range(n_blocks)]
+            means = [m for m in waits(client.gather, means_f) if m is not None]
+            if not means:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
                                     [(0, 0, PeakCounts())], 0, st, acc.n_per_step, table)
-            make_points.nbytes = sum(c.points.nbytes + sum(v.nbytes for v in
-                                                           c.attributes.values())
-                                     for c in clouds)
-            make_points.blocks = len(clouds)
-            return join_clouds(clouds)
+            make_points.nbytes = sum(_nbytes(m) for m in means)
+            make_points.blocks = len(means)
+            # the depth edges look at row neighbours across blocks: made here, on
+            # the joined means (milliseconds)
+            return cloud_of_means(means, st)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table)
@@ -323,8 +326,14 @@ def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store
                              table=table, angle_offset=start)
 
 
-def _points_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
-    """The cloud of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past the end."""
+def _means_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
+    """The peak means of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past
+    the end."""
     if i >= len(blocks):
         return None
-    return points_block(system, peaks, blocks, i, settings, n_per_step, table)
+    return means_block(system, peaks, blocks, i, settings, n_per_step, table)
+
+
+def _nbytes(means) -> int:
+    return sum(v.nbytes for v in vars(means).values() if isinstance(v, np.ndarray)) + sum(
+        a.nbytes for t in (means.stereo, means.tof) for a in t)

@@ -518,6 +518,15 @@ class PeakAccumulator:
         ``own`` : (a, b) or None — points of peaks a..b−1 only; the others are the
         block's halo, fused so that the depth edges of its own peaks see every
         neighbour (:func:`mems_stereo.pipeline.run.points_block`)."""
+        return self.peak_means().cloud(min_counts, own)
+
+    def peak_means(self) -> PeakMeans:
+        """Each peak's stereo and ToF means with every term of their σ (scatter,
+        pixel location, background, first-photon model): all of :meth:`cloud` that
+        is the peak's own (the first-photon step by blocks of :data:`FP_BLOCK`
+        peaks by index); the depth edges, which look at the row neighbours, are
+        :meth:`PeakMeans.cloud`'s.  The means of blocks of peaks cut at multiples
+        of ``FP_BLOCK``, joined (:meth:`PeakMeans.concat`), are the whole's."""
         s = self.sums
         n = s.n
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -555,80 +564,10 @@ class PeakAccumulator:
         # their range variances (a stereo mean near the beam's vanishing point,
         # σ of metres, then leaves the ToF alone instead of dragging the mean)
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        # the detections (not their background-subtracted sum: 3 detections over an
-        # expected background of 0.01 are 3 detections) set the fewest counts
-        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
-                & np.all(np.isfinite(mean["fused"][0]), axis=1))
-        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
-        if c_pix is not None and np.any(edge):
-            J = self._range_per_px[edge]
-            x, C = mean["stereo"]
-            C = C.copy()
-            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
-            mean["stereo"] = (x, C)
-            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        w_mean = mean["fused"][2]
-        xf, Cf = mean["fused"][:2]
-        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
-        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            code_mean = s.code / n
-        attrs = {
-            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
-            "row": self.rows.astype(np.int32),
-            "code": self.peak_code if self.peak_code is not None else code_mean,
-            "range": r, "sigma_r": sr, "sigma_phi": sphi,
-            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
-            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
-            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": np.rint(s.window).astype(np.int32),
-        }
-        if fp is not None:
-            attrs["tof_delay"] = fp["delay"]
-            attrs["signal_photons"] = fp["mu"]
-        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
-        # their difference (see :func:`consistent_points`)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
-        if own is not None:
-            q = np.arange(self.Q)
-            keep = keep & (q >= own[0]) & (q < own[1])
-        return PointCloud(xf, attrs).select(keep)
-
-    def _depth_edges(self, x, C, keep) -> np.ndarray:
-        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
-
-        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
-        point whose range differs by more than k·σ of the difference (an object's
-        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
-        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
-        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
-        """
-        Q = self.Q
-        edge = np.zeros(Q, bool)
-        if Q == 0 or not np.any(keep):
-            return edge
-        r, _, sr, _ = polar_from_cartesian(x, C)
-        H = int(self.rows.max()) + 1
-        W = self.system.receiver.width
-        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
-        idx = np.flatnonzero(keep)
-        at[self.rows[idx], self.cols[idx] + 1] = idx
-        present = []
-        for dc in (-1, 1):
-            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
-            has = j >= 0
-            jj = np.where(has, j, 0)
-            with np.errstate(invalid="ignore"):
-                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
-            edge[idx[jump]] = True
-            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
-            present.append(has | ~inside)  # the sensor's border is not an edge
-        if EDGE_RUN_ENDS:
-            edge[idx[present[0] ^ present[1]]] = True
-        return edge
+        return PeakMeans(self.system, self.k, self.rows, self.cols, self.peak_code,
+                         mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
+                         birge, self._range_per_px if c_pix is not None else None,
+                         None if fp is None else fp["delay"], None if fp is None else fp["mu"])
 
     def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
         """Stereo point of each peak at its detections' mean scan angle (in place).
@@ -752,6 +691,141 @@ class PeakAccumulator:
         x, C = mean["tof"]
         mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
         return out
+
+
+class PeakMeans:
+    """What :meth:`PeakAccumulator.peak_means` gives for Q peaks (each row its peak's
+    own), and the cloud from it.
+
+    stereo, tof : (x (Q, 3) m, C (Q, 3, 3) m²) means with every term of their σ;
+    n, detections, window, code : (Q,) sums of the inliers (see
+    :class:`~mems_stereo.pipeline.sums.PeakSums`); birge : (Q,) reduced χ²
+    scale; range_per_px : (Q, 3) m per pixel at the mean angle (None: no peak
+    had a mean angle); delay, mu : (Q,) first-photon delay (s) and μ0 (None:
+    not corrected).  Means of consecutive blocks of peaks join with
+    :meth:`concat` (the Dask runner fuses blocks on its workers and the client
+    makes the cloud of the whole).
+    """
+
+    def __init__(self, system, k, rows, cols, peak_code, stereo, tof, n, detections, window,
+                 code, birge, range_per_px, delay, mu):
+        self.system, self.k = system, k
+        self.rows, self.cols, self.peak_code = rows, cols, peak_code
+        self.stereo, self.tof = stereo, tof
+        self.n, self.detections, self.window, self.code = n, detections, window, code
+        self.birge, self.range_per_px, self.delay, self.mu = birge, range_per_px, delay, mu
+        self.Q = rows.size
+
+    @classmethod
+    def concat(cls, parts) -> PeakMeans:
+        """The means of consecutive blocks of peaks as one: a block without
+        ``range_per_px`` (no mean angle) gets zeros, as the whole run gives such
+        peaks, and one without first-photon figures (no band) NaN."""
+        parts = list(parts)
+        p0 = parts[0]
+
+        def cat(get):
+            return np.concatenate([get(p) for p in parts])
+
+        def opt(name, fill):
+            if all(getattr(p, name) is None for p in parts):
+                return None
+            return cat(lambda p: getattr(p, name) if getattr(p, name) is not None
+                       else fill(p))
+
+        codes = [p.peak_code for p in parts]
+        return cls(p0.system, p0.k, cat(lambda p: p.rows), cat(lambda p: p.cols),
+                   None if any(c is None for c in codes) else np.concatenate(codes),
+                   (cat(lambda p: p.stereo[0]), cat(lambda p: p.stereo[1])),
+                   (cat(lambda p: p.tof[0]), cat(lambda p: p.tof[1])),
+                   cat(lambda p: p.n), cat(lambda p: p.detections), cat(lambda p: p.window),
+                   cat(lambda p: p.code), cat(lambda p: p.birge),
+                   opt("range_per_px", lambda p: np.zeros((p.Q, 3))),
+                   opt("delay", lambda p: np.full(p.Q, np.nan)),
+                   opt("mu", lambda p: np.full(p.Q, np.nan)))
+
+    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
+        """The cloud (see :meth:`PeakAccumulator.cloud`): the depth edges, the
+        fused point and the attributes of every kept peak."""
+        n = self.n
+        mean = {"stereo": self.stereo, "tof": self.tof}
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        birge = self.birge
+        fp = None if self.delay is None else {"delay": self.delay, "mu": self.mu}
+        # the detections (not their background-subtracted sum: 3 detections over an
+        # expected background of 0.01 are 3 detections) set the fewest counts
+        keep = ((self.detections >= max(1, int(min_counts))) & (n > 0)
+                & np.all(np.isfinite(mean["fused"][0]), axis=1))
+        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
+        if self.range_per_px is not None and np.any(edge):
+            J = self.range_per_px[edge]
+            x, C = mean["stereo"]
+            C = C.copy()
+            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+            mean["stereo"] = (x, C)
+            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        w_mean = mean["fused"][2]
+        xf, Cf = mean["fused"][:2]
+        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
+        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
+        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            code_mean = self.code / n
+        attrs = {
+            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
+            "row": self.rows.astype(np.int32),
+            "code": self.peak_code if self.peak_code is not None else code_mean,
+            "range": r, "sigma_r": sr, "sigma_phi": sphi,
+            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
+            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
+            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
+            "counts_window": np.rint(self.window).astype(np.int32),
+        }
+        if fp is not None:
+            attrs["tof_delay"] = fp["delay"]
+            attrs["signal_photons"] = fp["mu"]
+        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
+        # their difference (see :func:`consistent_points`)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
+        if own is not None:
+            q = np.arange(self.Q)
+            keep = keep & (q >= own[0]) & (q < own[1])
+        return PointCloud(xf, attrs).select(keep)
+
+    def _depth_edges(self, x, C, keep) -> np.ndarray:
+        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
+
+        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
+        point whose range differs by more than k·σ of the difference (an object's
+        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
+        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
+        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
+        """
+        Q = self.Q
+        edge = np.zeros(Q, bool)
+        if Q == 0 or not np.any(keep):
+            return edge
+        r, _, sr, _ = polar_from_cartesian(x, C)
+        H = int(self.rows.max()) + 1
+        W = self.system.receiver.width
+        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
+        idx = np.flatnonzero(keep)
+        at[self.rows[idx], self.cols[idx] + 1] = idx
+        present = []
+        for dc in (-1, 1):
+            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
+            has = j >= 0
+            jj = np.where(has, j, 0)
+            with np.errstate(invalid="ignore"):
+                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
+            edge[idx[jump]] = True
+            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
+            present.append(has | ~inside)  # the sensor's border is not an edge
+        if EDGE_RUN_ENDS:
+            edge[idx[present[0] ^ present[1]]] = True
+        return edge
 
 
 #: peaks per block of the first-photon correction (by peak index; see

@@ -41,6 +41,7 @@ from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
 from mems_stereo.pipeline.fusion import (
     FP_BLOCK,
+    PeakMeans,
     accumulator_for_peaks,
     consistent_points,
     peak_sums_from_counts,
@@ -403,6 +404,23 @@ def points_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, 
     sub = {k: np.asarray(v)[sel] for k, v in peaks.items() if v is not None}
     return points_from_counts(system, sub, counts, settings, shots_per_step=n_per_step,
                               table=table, own=own)
+
+
+def means_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, table):
+    """The :class:`~mems_stereo.pipeline.fusion.PeakMeans` of the peaks of block ``i``
+    of ``blocks`` (:func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays),
+    no halo: the blocks' means joined (``PeakMeans.concat``) give the whole's cloud,
+    bit for bit (:func:`cloud_of_means`)."""
+    q0, q1, counts = blocks[i]
+    sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
+    return peak_sums_from_counts(system, sub, counts, settings, n_per_step,
+                                 table).peak_means()
+
+
+def cloud_of_means(means, settings: Settings):
+    """The cloud of the joined means of consecutive peak blocks (consistent points)."""
+    return consistent_points(PeakMeans.concat(means).cloud(settings.min_counts),
+                             settings.confidence)
 
 
 def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[tuple[int, int]]:
