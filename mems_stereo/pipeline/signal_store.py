@@ -17,6 +17,7 @@ import tempfile
 
 import numpy as np
 
+from mems_stereo.errors import OptionError
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.peaks import Peaks
@@ -132,7 +133,8 @@ def peak_counts_from_store(store: SignalStore, system: System, peaks: Peaks,
     :func:`~mems_stereo.pipeline.pass2.peak_counts_range` over the shots that filled
     ``store`` (exact integer counts: the order of the keys does not matter)."""
     if not store.complete:
-        raise ValueError("signal store is incomplete: pass 2 must read the shots")
+        raise OptionError("signal store is incomplete: pass 2 must read the shots",
+                          field="store")
     W, H = system.receiver.width, system.receiver.height
     peaks = Peaks.coerce(peaks)
     pix = peaks.pixel(W)
