@@ -112,3 +112,17 @@ def test_process_recording_with_the_store_is_identical(monkeypatch):
     np.testing.assert_array_equal(a.cloud.points, b.cloud.points)
     for k, v in a.cloud.attributes.items():
         np.testing.assert_array_equal(v, b.cloud.attributes[k])
+
+
+def test_store_only_where_reading_again_decompresses(tmp_path):
+    """The store is kept for gzip'd bins only: an uncompressed file is read again
+    faster than its signal keys are written and read back; a Recording in memory
+    needs no reading."""
+    from mems_stereo.io.recording import read_recording
+    from mems_stereo.pipeline.signal_store import rereading_decompresses
+
+    assert rereading_decompresses(SAMPLES / "floodlight.h5")
+    assert not rereading_decompresses(read_recording(SAMPLES / "room.h5"))
+    with h5py.File(tmp_path / "plain.h5", "w") as f:
+        f.create_dataset("/shots/bins", data=np.zeros((4, 1, 3), np.uint16))
+    assert not rereading_decompresses(tmp_path / "plain.h5")

@@ -63,7 +63,11 @@ from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this
     split_peak_counts,
 )
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.pipeline.signal_store import SignalStore, peak_counts_from_store
+from mems_stereo.pipeline.signal_store import (
+    SignalStore,
+    peak_counts_from_store,
+    rereading_decompresses,
+)
 
 #: parts summed per task of the reduction tree
 FAN_IN = 4
@@ -310,7 +314,8 @@ def _pass1_part(path, system, angles, settings, start, stop, table):
     """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``."""
     theta, valid = angles
     P = system.receiver.width * system.receiver.height
-    store = SignalStore() if (stop - start) * P >= COMPILE_SLOTS else None
+    store = (SignalStore() if (stop - start) * P >= COMPILE_SLOTS
+             and rereading_decompresses(path) else None)
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
     return acc, (store if store is not None and store.complete else None)

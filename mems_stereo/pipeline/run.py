@@ -59,7 +59,11 @@ from mems_stereo.pipeline.pass1 import (
 )
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.pipeline.signal_store import SignalStore, peak_counts_from_store
+from mems_stereo.pipeline.signal_store import (
+    SignalStore,
+    peak_counts_from_store,
+    rereading_decompresses,
+)
 from mems_stereo.util.atomic import atomic_output
 
 
@@ -210,10 +214,12 @@ def process_recording(path, system: System | None = None,
         table.load_cache()
     timings = {"read_header": time.perf_counter() - t0}
 
-    # compiled ranges keep pass 1's signal detections, so that pass 2 needs no second
-    # read of the shots (small recordings: reading them again costs less)
+    # compiled ranges of compressed files keep pass 1's signal detections, so that
+    # pass 2 needs no second decompression of the shots (small recordings and
+    # uncompressed files: reading them again costs less)
     with SignalStore() as store:
-        keep = store if K * H * W >= COMPILE_SLOTS else None
+        keep = (store if K * H * W >= COMPILE_SLOTS and rereading_decompresses(path)
+                else None)
         t1 = time.perf_counter()
         if labels_path is not None:
             with _labels_file(labels_path, K, (H, W)) as (f, ds):
