@@ -181,7 +181,8 @@ def main():
             t0 = time.perf_counter()
             with dask_client("local", n_workers=n) as client:
                 t_start = time.perf_counter() - t0
-                client.run(process_recording, str(ROOT / "samples" / "room.h5"))  # warm up
+                # warm up: a dense recording loads the compiled kernels (small ones do not)
+                client.run(process_recording, str(paths[0]))
                 w0 = client.run(_cpu_seconds)
                 t0 = time.perf_counter()
                 sp = process_split(big, scheduler=client)

@@ -125,7 +125,7 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
     ends counted as edges nearly every cut separates two neighbours)."""
     from mems_stereo.pipeline import fusion
     from mems_stereo.pipeline import run as R
-    from mems_stereo.pipeline.distributed import points_block
+    from mems_stereo.pipeline.distributed import cloud_of_means, means_block, points_block
 
     monkeypatch.setattr(fusion, "EDGE_RUN_ENDS", run_ends)
 
@@ -153,27 +153,34 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
             j = join_clouds([points_block(seen["system"], light, blocks, i, seen["st"],
                                            seen["sps"], seen["table"])
                              for i in range(len(blocks))])
-            assert list(j.attributes) == list(whole.attributes)
-            np.testing.assert_array_equal(j.points, whole.points)
-            for k in whole.attributes:
-                np.testing.assert_array_equal(j[k], whole[k], err_msg=k)
+            # the Dask runner's form: each block's peak means without a halo, joined,
+            # and the cloud (depth edges) made from them
+            m = cloud_of_means([means_block(seen["system"], light, blocks, i, seen["st"],
+                                            seen["sps"], seen["table"])
+                                for i in range(len(blocks))], seen["st"])
+            for c in (j, m):
+                assert list(c.attributes) == list(whole.attributes)
+                np.testing.assert_array_equal(c.points, whole.points)
+                for k in whole.attributes:
+                    np.testing.assert_array_equal(c[k], whole[k], err_msg=k)
 
 
 def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
-    (cut at multiples of FP_BLOCK peaks) gives the cloud of one block, bit for bit."""
+    (each block's per-peak sums, joined into one accumulator) gives the cloud of one
+    block, bit for bit."""
     from mems_stereo.pipeline import run as R
 
     one = process_recording(SAMPLES / "room.h5")
     calls = []
-    orig = R.points_from_counts
+    orig = R.peak_sums_from_counts
 
     def count(*a, **k):
         calls.append(1)
         return orig(*a, **k)
 
     monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
-    monkeypatch.setattr(R, "points_from_counts", count)
+    monkeypatch.setattr(R, "peak_sums_from_counts", count)
     blocked = process_recording(SAMPLES / "room.h5")
     assert len(calls) >= 2
     _same(one, blocked)
@@ -222,3 +229,40 @@ def test_trimming_the_heap_between_stages_changes_nothing(monkeypatch):
     monkeypatch.setattr(R, "release_freed_memory", spy)
     _same(one, process_recording(SAMPLES / "room.h5"))
     assert len(calls) == 4
+
+
+def test_split_with_signal_stores_equals_one_process(monkeypatch):
+    """process_split whose parts keep their signal detections for pass 2 (forced on
+    the small sample; threads, so the forcing reaches the workers) gives the one
+    process's result, bit for bit; a store pickled between processes keeps its keys."""
+    import pickle
+
+    from distributed import Client, LocalCluster
+
+    import mems_stereo.pipeline.distributed as D
+    import mems_stereo.pipeline.pass1 as pass1
+    from mems_stereo.pipeline.signal_store import SignalStore
+
+    one = process_recording(SAMPLES / "floodlight.h5")
+    used = []
+    orig = D.peak_counts_from_store
+
+    def spy(*a, **k):
+        used.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(D, "peak_counts_from_store", spy)
+    monkeypatch.setattr(D, "COMPILE_SLOTS", 0)
+    monkeypatch.setattr(pass1, "COMPILE_SLOTS", 0)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
+                      dashboard_address=None) as cluster, Client(cluster) as c:
+        split = process_split(SAMPLES / "floodlight.h5", scheduler=c, n_parts=3)
+    assert len(used) == 3
+    _same(one, split)
+    st = SignalStore(memory_bytes=16)
+    st.append(np.arange(10))
+    st.append(np.arange(5))
+    back = pickle.loads(pickle.dumps(st))
+    np.testing.assert_array_equal(np.concatenate(list(back.blocks())),
+                                  np.r_[np.arange(10), np.arange(5)])
+    assert back.n_keys == 15 and back.complete

@@ -293,15 +293,48 @@ def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     from mems_stereo.pipeline.run import process_recording
 
     clouds = []
-    for block in (1 << 17, 97):
+    # one block; blocks of 97 keeping sub-pass 1's points; recomputing the inliers'
+    for block, keep in ((1 << 17, 1 << 17), (97, 1 << 17), (97, 0)):
         monkeypatch.setattr(fusion, "ENTRY_BLOCK", block)
+        monkeypatch.setattr(fusion, "KEEP_ENTRIES", keep)
         clouds.append(process_recording(SAMPLES / "room.h5").cloud)
-    a, b = clouds
+    a = clouds[0]
     assert len(a) > 10
-    assert np.array_equal(a.points, b.points)
-    assert a.attributes.keys() == b.attributes.keys()
-    for k in a.attributes:
-        assert np.array_equal(a[k], b[k], equal_nan=True), k
+    for b in clouds[1:]:
+        assert np.array_equal(a.points, b.points)
+        assert a.attributes.keys() == b.attributes.keys()
+        for k in a.attributes:
+            assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+def test_detection_points_in_runs_equal_reference():
+    """detection_points on entries in runs of equal (u, v, θ) with different codes (the
+    fusion's (peak, step) groups: the stereo geometry evaluated once per run) equals
+    the reference, NaN rows included."""
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.pipeline.detections import (
+        _detection_points_reference,
+        _runs,
+        detection_points,
+    )
+
+    s = burkard2022()
+    rng = np.random.default_rng(1416)
+    for _ in range(5):
+        R = int(rng.integers(1, 400))
+        length = rng.integers(1, 30, R)
+        shot = np.repeat(rng.integers(0, 200, R), length)
+        row = np.repeat(rng.integers(0, s.receiver.height, R), length)
+        col = np.repeat(rng.integers(0, s.receiver.width, R), length)
+        code = rng.uniform(0.5, s.tdc.n_bins, shot.size)
+        theta = rng.uniform(-0.35, 0.35, 200)
+        first, run = _runs(col.astype(float), row.astype(float), theta[shot])
+        assert run is not None and first.size < shot.size
+        a = detection_points(s, shot, row, col, code, theta)
+        b = _detection_points_reference(s, shot, row, col, code, theta)
+        for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused",
+                  "weight_stereo", "ok", "dtof_dL"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
 
 
 def test_background_by_step_is_stored_over_the_counted_steps_only():
@@ -318,3 +351,34 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
         want[i, lo[i]:hi[i] + 1] = B[q[i], lo[i]:hi[i] + 1]
     assert got.nnz == 5 + 40 + 1
     assert np.array_equal(got.toarray(), want)
+
+
+def test_add_rows_equals_add_at():
+    """sums.add_rows (one bincount per column) against np.add.at, bit for bit, over
+    random shapes, signs and magnitudes, onto non-zero sums, repeated."""
+    from mems_stereo.pipeline.sums import add_rows, add_rows_gathered
+
+    rng = np.random.default_rng(1415)
+    for _ in range(40):
+        Q = int(rng.integers(1, 50))
+        shape = [(), (3,), (3, 3), (5,)][int(rng.integers(0, 4))]
+        A = np.zeros((Q,) + shape)
+        B = A.copy()
+        for _ in range(3):
+            N = int(rng.integers(0, 2000))
+            q = rng.integers(0, Q, N)
+            V = rng.normal(size=(N,) + shape) * 10.0 ** rng.uniform(-12, 6, (N,) + shape)
+            np.add.at(A, q, V)
+            add_rows(B, q, V)
+        assert np.array_equal(A, B)
+        assert not np.any(np.signbit(B) & (B == 0))
+    for _ in range(20):  # add_rows_gathered: rows of a table gathered per entry, scaled
+        Q, R, J, N = (int(rng.integers(1, 40)), int(rng.integers(1, 300)), 41,
+                      int(rng.integers(0, 3000)))
+        A = rng.normal(size=(Q, J))
+        B = A.copy()
+        q, run, m = rng.integers(0, Q, N), rng.integers(0, R, N), rng.normal(size=N)
+        rows = rng.normal(size=(R, J)) * 10.0 ** rng.uniform(-8, 4, (R, J))
+        np.add.at(A, q, rows[run] * m[:, None])
+        add_rows_gathered(B, q, rows, run, m)
+        assert np.array_equal(A, B)

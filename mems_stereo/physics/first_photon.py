@@ -205,6 +205,26 @@ def _firing_probability(f):
     return np.minimum(e + (1 - e) * pf, 1.0 - 1e-12)
 
 
+def _band_lookup(a, lm, f_band):
+    """:func:`_table_lookup` of ``a`` (Q,) against ``lm`` (Q, J, B), the same numbers:
+    where the spot share ``f_band`` (Q, B) is 0 (the padding around a band, steps
+    without shots), ``lm`` is the grid's floor for every μ0 and the look-up is
+    one value per peak, broadcast; the others are looked up entry by entry."""
+    zero = f_band == 0
+    if not np.any(zero):
+        return _table_lookup(a[:, None, None], lm)
+    lz = np.log(np.clip(np.zeros(1), 1e-4, MU_MAX))  # lm where μ0·f = 0
+    d0, v0 = _table_lookup(a[:, None], lz[None, :])  # (Q, 1)
+    d = np.broadcast_to(d0[:, :, None], lm.shape).copy()
+    v = np.broadcast_to(v0[:, :, None], lm.shape).copy()
+    qi, bi = np.nonzero(~zero)
+    if qi.size:
+        dd, vv = _table_lookup(a[qi, None], lm[qi, :, bi])  # (N, J)
+        d[qi, :, bi] = dd
+        v[qi, :, bi] = vv
+    return d, v
+
+
 def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
     """Posterior first-photon delay of peaks from their spot-profile likelihood.
 
@@ -239,7 +259,7 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
     w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)
     lm = np.log(np.clip(mu_s, 1e-4, MU_MAX))
     a = -np.asarray(tau0, dtype=np.float64) / sigma
-    d, v = _table_lookup(a[:, None, None], lm)
+    d, v = _band_lookup(a, lm, f_band)
     dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0
     vj = np.sum(w * (v + d * d), axis=2) - dj * dj  # mixture variance
     dm = np.sum(post * dj, axis=1)

@@ -123,8 +123,13 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     evaluation of the stereo geometry per (u, v, θ) variant of the central
     differences (7) and of the time-of-flight geometry per (L, θ) variant (5),
     instead of 35 evaluations: the stereo estimate ignores L, the ToF one u
-    and v, so their other differences are ``(x0 − x0) / 2h``.  With a
-    calibration covariance (``spreads.param_names``) it is the reference.
+    and v, so their other differences are ``(x0 − x0) / 2h`` = 0 (their terms
+    of the covariances are left out: adding a zero changes no bit).  The
+    stereo geometry (with its covariance) is evaluated once per run of
+    consecutive detections with equal (u, v, θ) — the codes of one
+    (peak, angle step) in the fusion's entries — and gathered: every value is
+    a function of its own row, so this too changes no bit.  With a calibration
+    covariance (``spreads.param_names``) it is the reference.
 
     Parameters
     ----------
@@ -139,74 +144,93 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
     x_in = _as_inputs(u, v, L, th)
     p = np.asarray(system.scanner.position)
-    dirs, rays, E, T = {}, {}, {}, {}
-
-    def direction(key, t):
-        if key not in dirs:
-            dirs[key] = scan_direction(t, system.scanner)
-        return dirs[key]
-
-    def stereo(key, uu, vv, tt, ray_key, dir_key):  # (point (N, 3), s (N,))
-        if ray_key not in rays:
-            rays[ray_key] = _rays(system, uu, vv)
-        E[key] = epipolar_stereo_point(system.scanner.position, direction(dir_key, tt),
-                                       rays[ray_key])[:2]
-
-    def tof(key, LL, tt, dir_key):
-        T[key] = tof_on_scanner_ray(system.scanner.position, direction(dir_key, tt), LL)
-
     U, V, Lx, TH = x_in["u"], x_in["v"], x_in["L"], x_in["theta"]
     hu, hv, hL, ht = (_STEPS[n] for n in INPUTS)
-    stereo("0", U, V, TH, "0", "0")
-    stereo("u+", U + hu, V, TH, "u+", "0")
-    stereo("u-", U - hu, V, TH, "u-", "0")
-    stereo("v+", U, V + hv, TH, "v+", "0")
-    stereo("v-", U, V - hv, TH, "v-", "0")
-    stereo("t+", U, V, TH + ht, "0", "t+")
-    stereo("t-", U, V, TH - ht, "0", "t-")
-    tof("0", Lx, TH, "0")
-    tof("L+", Lx + hL, TH, "0")
-    tof("L-", Lx - hL, TH, "0")
-    tof("t+", Lx, TH + ht, "t+")
-    tof("t-", Lx, TH - ht, "t-")
     sig = sp.input_sigmas(system)
-    var_in = np.array([sig[n] ** 2 for n in INPUTS])
+    var_in = [sig[n] ** 2 for n in INPUTS]
+    first, run = _runs(U, V, TH)
+    Ur, Vr, Tr = U[first], V[first], TH[first]
 
-    def cov_of(cols):  # as :func:`propagate`
-        J = np.stack(cols, axis=-1)
-        return np.einsum("nik,k,njk->nij", J, var_in, J)
+    def gather(a):  # per run -> per detection
+        return a if run is None else a[run]
+
+    # per run of equal (u, v, θ): scan directions and the stereo geometry
+    dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
+          "t-": scan_direction(Tr - ht, system.scanner)}
+    ray0 = _rays(system, Ur, Vr)
+    E = {}  # (point (R, 3), s (R,)) of each variant
+    for key, ray, dk in (("0", ray0, "0"), ("u+", _rays(system, Ur + hu, Vr), "0"),
+                         ("u-", _rays(system, Ur - hu, Vr), "0"),
+                         ("v+", _rays(system, Ur, Vr + hv), "0"),
+                         ("v-", _rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
+                         ("t-", ray0, "t-")):
+        E[key] = epipolar_stereo_point(system.scanner.position, dr[dk], ray)[:2]
 
     def diff(a, b, h):
         return (a - b) / (2.0 * h)
 
-    x_st = E["0"][0]
-    c_st = cov_of([diff(E["u+"][0], E["u-"][0], hu), diff(E["v+"][0], E["v-"][0], hv),
-                   diff(x_st, x_st, hL), diff(E["t+"][0], E["t-"][0], ht)])
+    x_st0 = E["0"][0]
+    # the L column is (x0 − x0)/2h = 0 where x0 is finite (NaN rows stay NaN below)
+    c_st = gather(_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
+                        (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
+                        (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0]))
+    # conditional (given θ) along-ray variance of the stereo: the s of the pixel variants
+    ds_u = diff(E["u+"][1], E["u-"][1], hu)
+    ds_v = diff(E["v+"][1], E["v-"][1], hv)
+    var_st = gather(ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2)
+    x_st = gather(x_st0)
+    s_st = {k: gather(E[k][1]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
+    dirs = {k: gather(d) for k, d in dr.items()}
+    # per detection: the time-of-flight geometry
+    T = {"0": tof_on_scanner_ray(p, dirs["0"], Lx), "L+": tof_on_scanner_ray(p, dirs["0"], Lx + hL),
+         "L-": tof_on_scanner_ray(p, dirs["0"], Lx - hL),
+         "t+": tof_on_scanner_ray(p, dirs["t+"], Lx), "t-": tof_on_scanner_ray(p, dirs["t-"], Lx)}
     x_tf = T["0"][0]
-    c_tf = cov_of([diff(x_tf, x_tf, hu), diff(x_tf, x_tf, hv), diff(T["L+"][0], T["L-"][0], hL),
-                   diff(T["t+"][0], T["t-"][0], ht)])
-
-    def s3(s):  # as _s_stereo / _s_tof: (N, 3) with the along-ray distance first
-        return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
-
-    J_st = np.stack([diff(s3(E["u+"][1]), s3(E["u-"][1]), hu),
-                     diff(s3(E["v+"][1]), s3(E["v-"][1]), hv)], axis=-1)
-    J_tf = np.stack([diff(s3(T["L+"][1]), s3(T["L-"][1]), hL)], axis=-1)
-    var_st = J_st[:, 0, 0] ** 2 * sp.sigma_u ** 2 + J_st[:, 0, 1] ** 2 * sp.sigma_v ** 2
-    var_tf = J_tf[:, 0, 0] ** 2 * sp.sigma_L(system) ** 2
+    # the u and v columns are 0 where x_tf is finite
+    c_tf = _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
+                 (diff(T["t+"][0], T["t-"][0], ht), var_in[3])], x_tf.shape[0])
+    dsdL = diff(T["L+"][1], T["L-"][1], hL)
+    var_tf = dsdL ** 2 * sp.sigma_L(system) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
 
     def fused(e, t, d):
-        s = w * E[e][1] + (1.0 - w) * T[t][1]
+        s = w * s_st[e] + (1.0 - w) * T[t][1]
         return p + s[:, None] * dirs[d]
 
     x_f = fused("0", "0", "0")
-    c_f = cov_of([diff(fused("u+", "0", "0"), fused("u-", "0", "0"), hu),
-                  diff(fused("v+", "0", "0"), fused("v-", "0", "0"), hv),
-                  diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL),
-                  diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht)])
-    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, dirs["0"])
+    c_f = _cov([(diff(fused("u+", "0", "0"), fused("u-", "0", "0"), hu), var_in[0]),
+                (diff(fused("v+", "0", "0"), fused("v-", "0", "0"), hv), var_in[1]),
+                (diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL), var_in[2]),
+                (diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht), var_in[3])],
+               x_f.shape[0])
+    ok_st = gather(np.all(np.isfinite(x_st0), 1))
+    ok = ok_st & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
+    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, dsdL[:, None, None],
+                             dirs["0"], ok)
+
+
+def _runs(u, v, th):
+    """``(first (R,) index of each run of equal consecutive (u, v, θ), run (M,) its run
+    per row)``; ``run`` None where every row is its own run."""
+    M = u.size
+    new = np.ones(M, bool)
+    if M > 1:
+        new[1:] = (u[1:] != u[:-1]) | (v[1:] != v[:-1]) | (th[1:] != th[:-1])
+    first = np.flatnonzero(new)
+    if first.size == M:
+        return first, None
+    return first, np.cumsum(new) - 1
+
+
+def _cov(terms, n: int) -> np.ndarray:
+    """Σ_k var_k·J_k J_kᵀ (n, 3, 3) of the columns ``terms`` = [(J_k (n, 3), var_k)], in
+    the order given: as ``einsum("nik,k,njk->nij")`` over these columns, bit for bit
+    (the same products ``(J_i·var)·J_j`` added one column after the other from 0)."""
+    C = np.zeros((n, 3, 3))
+    for J, var in terms:
+        C += (J * var)[:, :, None] * J[:, None, :]
+    return C
 
 
 def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):
@@ -224,8 +248,9 @@ def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):
     return u, v, L, th
 
 
-def _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, d):
-    ok = np.all(np.isfinite(x_st), 1) & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
+def _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, d, ok=None):
+    if ok is None:
+        ok = np.all(np.isfinite(x_st), 1) & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
     nan3 = np.where(ok[:, None], 0.0, np.nan)
     nan33 = nan3[:, :, None]
     dxdL = d * J_tf[:, 0, 0][:, None] + nan3

@@ -8,7 +8,7 @@ are integers), so the outcome is identical to one process, bit for bit.
 * :func:`process_split` — one recording split into shot ranges: pass 1
   (classify + histograms) per range, peaks on the client, pass 2 (peak
   counts) per range, the fusion per block of peaks on the workers; the
-  client joins the blocks' clouds.
+  client joins the blocks' peak means and makes the cloud.
 
 What keeps the client's serial share small (``docs/throughput.md``):
 
@@ -20,9 +20,13 @@ What keeps the client's serial share small (``docs/throughput.md``):
   :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
   whatever the number of parts; the pass-1 counts travel
   as uint32, as their non-zero entries where that is smaller;
+* each part keeps its signal detections on its worker
+  (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
+  counts from them instead of reading the shots again;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
-  (:func:`split_peak_counts`) and each block is fused on a worker; the
-  client receives the blocks' clouds only.
+  (:func:`split_peak_counts`) and each block is fused on a worker, without
+  a halo, up to each peak's means (``PeakMeans``); the client joins the
+  means and makes the cloud (the depth edges look across blocks).
 
 ``scheduler`` is ``"local"`` (a :class:`distributed.LocalCluster` of
 ``n_workers`` single-threaded processes, started and closed here) or the
@@ -33,6 +37,7 @@ address of an existing scheduler (``tcp://host:8786``), or a ready
 from __future__ import annotations
 
 import contextlib
+import operator
 import os
 import time
 from collections.abc import Sequence
@@ -44,18 +49,25 @@ from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.fusion import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
-from mems_stereo.pipeline.pass1 import accumulate_range
+from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
+    cloud_of_means,
     finish_processing,
     join_clouds,
+    means_block,
     peak_blocks,
     points_block,
     process_recording,
     split_peak_counts,
 )
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.signal_store import (
+    SignalStore,
+    peak_counts_from_store,
+    rereading_decompresses,
+)
 
 #: parts summed per task of the reduction tree
 FAN_IN = 4
@@ -235,9 +247,15 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
-        accs = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
-                for ang, (a, b) in zip(angle_f, parts)]
+        # each part keeps its signal detections on its worker for its pass 2
+        # (SignalStore: no second read of the shots; compiled-size parts only)
+        p1 = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
+              for ang, (a, b) in zip(angle_f, parts)]
+        accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
+        stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
+        del p1
         acc = waits(tree_sum(client, accs).result)
+        del accs
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
@@ -247,7 +265,9 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
             shared["peaks"] = client.scatter(light, broadcast=True)
             pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, shared["peaks"], a, b,
-                                 table_f, pure=False) for ang, (a, b) in zip(angle_f, parts)]
+                                 table_f, store, pure=False)
+                   for ang, (a, b), store in zip(angle_f, parts, stores)]
+            stores.clear()  # released once their pass 2 has run
             return tree_sum(client, pcs)  # stays on the workers
 
         def make_points(peaks, total_f):
@@ -257,18 +277,18 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                                      pure=False)
             # at most this many blocks (no round trip to ask how many there are)
             n_blocks = min(4 * n_w, -(-Q // FP_BLOCK))
-            clouds_f = [client.submit(_points_nth_block, sysm, shared["peaks"], blocks_f, i,
-                                      st, nps_f, table_f, pure=False) for i in range(n_blocks)]
-            clouds = [c for c in waits(client.gather, clouds_f) if c is not None]
-            if not clouds:  # no peaks: the (empty) cloud of the whole
+            means_f = [client.submit(_means_nth_block, sysm, shared["peaks"], blocks_f, i,
+                                     st, nps_f, table_f, pure=False) for i in range(n_blocks)]
+            means = [m for m in waits(client.gather, means_f) if m is not None]
+            if not means:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
                                     [(0, 0, PeakCounts())], 0, st, acc.n_per_step, table)
-            make_points.nbytes = sum(c.points.nbytes + sum(v.nbytes for v in
-                                                           c.attributes.values())
-                                     for c in clouds)
-            make_points.blocks = len(clouds)
-            return join_clouds(clouds)
+            make_points.nbytes = sum(_nbytes(m) for m in means)
+            make_points.blocks = len(means)
+            # the depth edges look at row neighbours across blocks: made here, on
+            # the joined means (milliseconds)
+            return cloud_of_means(means, st)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table)
@@ -291,19 +311,34 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
 
 def _pass1_part(path, system, angles, settings, start, stop, table):
+    """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``."""
     theta, valid = angles
-    return accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
-                            angle_offset=start)
+    P = system.receiver.width * system.receiver.height
+    store = (SignalStore() if (stop - start) * P >= COMPILE_SLOTS
+             and rereading_decompresses(path) else None)
+    acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
+                           angle_offset=start, signal_store=store)
+    return acc, (store if store is not None and store.complete else None)
 
 
-def _pass2_part(path, system, angles, settings, peaks, start, stop, table):
+def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store=None):
+    """Pass 2 of shots [start, stop): from the part's stored signal detections, else
+    reading its shots again."""
+    if store is not None:
+        return peak_counts_from_store(store, system, peaks, table.n_steps)
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)
 
 
-def _points_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
-    """The cloud of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past the end."""
+def _means_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
+    """The peak means of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past
+    the end."""
     if i >= len(blocks):
         return None
-    return points_block(system, peaks, blocks, i, settings, n_per_step, table)
+    return means_block(system, peaks, blocks, i, settings, n_per_step, table)
+
+
+def _nbytes(means) -> int:
+    return sum(v.nbytes for v in vars(means).values() if isinstance(v, np.ndarray)) + sum(
+        a.nbytes for t in (means.stereo, means.tof) for a in t)

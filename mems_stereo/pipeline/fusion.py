@@ -59,7 +59,7 @@ from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.pipeline.sums import PeakSums, RangeMode
+from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
 
 #: segments of each (peak, step)'s accepted code interval over which its expected
 #: background is spread (as negative-weight entries at the segments' centroids)
@@ -146,8 +146,34 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
     fused estimates are corrected for the first-photon delay
     (:class:`~mems_stereo.pipeline.fusion.PeakAccumulator`).
     ``table`` : the run's interval table (default: a new one; only its grid is used).
+    ``own`` : (a, b) or None, see :meth:`PeakAccumulator.cloud`.
     """
+    acc = peak_sums_from_counts(system, peaks, counts, settings, shots_per_step, table)
+    return consistent_points(acc.cloud(settings.min_counts, own), settings.confidence)
 
+
+def accumulator_for_peaks(system: System, peaks: dict, settings: Settings,
+                          shots_per_step=None, table=None) -> PeakAccumulator:
+    """An empty :class:`PeakAccumulator` of the peaks (a mapping of (Q,) arrays
+    ``row``, ``col``, ``code``, optionally ``rate_hz``, ``step_lo``, ``step_hi``)."""
+    if table is None:
+        table = interval_table(system, settings.confidence, min_range=settings.min_range)
+    return PeakAccumulator(system, peaks["row"], peaks["col"], peaks["code"],
+                           confidence=settings.confidence, shots_per_step=shots_per_step,
+                           step_grid=(table.theta_min, table.step),
+                           rate_hz=peaks.get("rate_hz"),
+                           step_window=(peaks["step_lo"], peaks["step_hi"])
+                           if peaks.get("step_lo") is not None else None,
+                           accept=_acceptance(system, table, peaks))
+
+
+def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
+                          shots_per_step=None, table=None) -> PeakAccumulator:
+    """The :class:`PeakAccumulator` of the peaks after both sub-passes over their
+    counted entries (arguments as :func:`points_from_counts`, whose cloud is
+    ``acc.cloud(settings.min_counts)``).  The sums of a peak are its entries'
+    alone: the accumulators of blocks of peaks joined
+    (:meth:`PeakAccumulator.joined`) are the whole's, bit for bit."""
     if table is None:
         table = interval_table(system, settings.confidence, min_range=settings.min_range)
     S, nb = table.n_steps, system.tdc.n_bins + 1
@@ -180,19 +206,9 @@ def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings
         background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
         weight = np.concatenate([weight, -bgs.ravel()[keep]])
 
-    cloud = points_from_peak_detections(system, np.arange(q_all.size), q_all, code_all, theta_all,
-                                        peaks["row"],
-                                        peaks["col"], peaks["code"],
-                                        min_counts=settings.min_counts,
-                                        confidence=settings.confidence, weight=weight,
-                                        background=background,
-                                        shots_per_step=shots_per_step,
-                                        step_grid=(table.theta_min, table.step), rate_hz=rate,
-                                        step_window=(peaks["step_lo"], peaks["step_hi"])
-                                        if peaks.get("step_lo") is not None else None,
-                                        accept=_acceptance(system, table, peaks),
-                                        own=own)
-    return consistent_points(cloud, settings.confidence)
+    acc = accumulator_for_peaks(system, peaks, settings, shots_per_step, table)
+    return accumulate_entries(acc, np.arange(q_all.size), q_all, code_all, theta_all,
+                              weight=weight, background=background)
 
 
 def _acceptance(system: System, table, peaks):
@@ -326,6 +342,21 @@ class PeakAccumulator:
         new.sums = self.sums + other.sums
         new.band = (np.minimum(self.band[0], other.band[0]),
                     np.maximum(self.band[1], other.band[1]))
+        return new
+
+    def joined(self, parts) -> PeakAccumulator:
+        """This accumulator's peaks with the state of ``parts``, accumulators of
+        consecutive blocks of its peaks (in order, covering all of them) after
+        their sub-passes: centres, inlier bounds, angle bands and sums are per
+        peak, so the result is the one accumulator of every entry, bit for bit."""
+        new = self.empty_copy()
+        if sum(p.Q for p in parts) != self.Q:
+            raise GeometryError(f"joined: the parts hold {sum(p.Q for p in parts)} peaks, "
+                                f"expected {self.Q}")
+        new.centre = np.concatenate([p.centre for p in parts])
+        new.halfwidth = np.concatenate([p.halfwidth for p in parts])
+        new.band = tuple(np.concatenate([p.band[i] for p in parts]) for i in (0, 1))
+        new.sums = PeakSums.concat([p.sums for p in parts])
         return new
 
     def _points(self, shot, peak, code, theta, weight):
@@ -466,7 +497,7 @@ class PeakAccumulator:
             f = spot_fraction(self.system, self.rows[ps], self.cols[ps], th[start],
                               self.centre[ps], self.spot_sigma)
             run = np.cumsum(new) - 1
-            np.add.at(s.loglik, peak, _detection_log_odds(f)[run] * m_all[:, None])
+            add_rows_gathered(s.loglik, peak, _detection_log_odds(f), run, m_all)
         w = 1.0 / sr[inl] ** 2  # for the scatter test: residuals in units of their σ
         th_e = np.asarray(theta, dtype=np.float64)[np.asarray(shot, np.int64).ravel()][inl]
         np.add.at(s.theta, q, m * th_e)
@@ -487,6 +518,15 @@ class PeakAccumulator:
         ``own`` : (a, b) or None — points of peaks a..b−1 only; the others are the
         block's halo, fused so that the depth edges of its own peaks see every
         neighbour (:func:`mems_stereo.pipeline.run.points_block`)."""
+        return self.peak_means().cloud(min_counts, own)
+
+    def peak_means(self) -> PeakMeans:
+        """Each peak's stereo and ToF means with every term of their σ (scatter,
+        pixel location, background, first-photon model): all of :meth:`cloud` that
+        is the peak's own (the first-photon step by blocks of :data:`FP_BLOCK`
+        peaks by index); the depth edges, which look at the row neighbours, are
+        :meth:`PeakMeans.cloud`'s.  The means of blocks of peaks cut at multiples
+        of ``FP_BLOCK``, joined (:meth:`PeakMeans.concat`), are the whole's."""
         s = self.sums
         n = s.n
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -524,80 +564,10 @@ class PeakAccumulator:
         # their range variances (a stereo mean near the beam's vanishing point,
         # σ of metres, then leaves the ToF alone instead of dragging the mean)
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        # the detections (not their background-subtracted sum: 3 detections over an
-        # expected background of 0.01 are 3 detections) set the fewest counts
-        keep = ((s.detections >= max(1, int(min_counts))) & (n > 0)
-                & np.all(np.isfinite(mean["fused"][0]), axis=1))
-        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
-        if c_pix is not None and np.any(edge):
-            J = self._range_per_px[edge]
-            x, C = mean["stereo"]
-            C = C.copy()
-            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
-            mean["stereo"] = (x, C)
-            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        w_mean = mean["fused"][2]
-        xf, Cf = mean["fused"][:2]
-        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
-        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            code_mean = s.code / n
-        attrs = {
-            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
-            "row": self.rows.astype(np.int32),
-            "code": self.peak_code if self.peak_code is not None else code_mean,
-            "range": r, "sigma_r": sr, "sigma_phi": sphi,
-            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
-            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
-            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": np.rint(s.window).astype(np.int32),
-        }
-        if fp is not None:
-            attrs["tof_delay"] = fp["delay"]
-            attrs["signal_photons"] = fp["mu"]
-        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
-        # their difference (see :func:`consistent_points`)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
-        if own is not None:
-            q = np.arange(self.Q)
-            keep = keep & (q >= own[0]) & (q < own[1])
-        return PointCloud(xf, attrs).select(keep)
-
-    def _depth_edges(self, x, C, keep) -> np.ndarray:
-        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
-
-        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
-        point whose range differs by more than k·σ of the difference (an object's
-        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
-        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
-        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
-        """
-        Q = self.Q
-        edge = np.zeros(Q, bool)
-        if Q == 0 or not np.any(keep):
-            return edge
-        r, _, sr, _ = polar_from_cartesian(x, C)
-        H = int(self.rows.max()) + 1
-        W = self.system.receiver.width
-        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
-        idx = np.flatnonzero(keep)
-        at[self.rows[idx], self.cols[idx] + 1] = idx
-        present = []
-        for dc in (-1, 1):
-            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
-            has = j >= 0
-            jj = np.where(has, j, 0)
-            with np.errstate(invalid="ignore"):
-                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
-            edge[idx[jump]] = True
-            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
-            present.append(has | ~inside)  # the sensor's border is not an edge
-        if EDGE_RUN_ENDS:
-            edge[idx[present[0] ^ present[1]]] = True
-        return edge
+        return PeakMeans(self.system, self.k, self.rows, self.cols, self.peak_code,
+                         mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
+                         birge, self._range_per_px if c_pix is not None else None,
+                         None if fp is None else fp["delay"], None if fp is None else fp["mu"])
 
     def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
         """Stereo point of each peak at its detections' mean scan angle (in place).
@@ -723,6 +693,141 @@ class PeakAccumulator:
         return out
 
 
+class PeakMeans:
+    """What :meth:`PeakAccumulator.peak_means` gives for Q peaks (each row its peak's
+    own), and the cloud from it.
+
+    stereo, tof : (x (Q, 3) m, C (Q, 3, 3) m²) means with every term of their σ;
+    n, detections, window, code : (Q,) sums of the inliers (see
+    :class:`~mems_stereo.pipeline.sums.PeakSums`); birge : (Q,) reduced χ²
+    scale; range_per_px : (Q, 3) m per pixel at the mean angle (None: no peak
+    had a mean angle); delay, mu : (Q,) first-photon delay (s) and μ0 (None:
+    not corrected).  Means of consecutive blocks of peaks join with
+    :meth:`concat` (the Dask runner fuses blocks on its workers and the client
+    makes the cloud of the whole).
+    """
+
+    def __init__(self, system, k, rows, cols, peak_code, stereo, tof, n, detections, window,
+                 code, birge, range_per_px, delay, mu):
+        self.system, self.k = system, k
+        self.rows, self.cols, self.peak_code = rows, cols, peak_code
+        self.stereo, self.tof = stereo, tof
+        self.n, self.detections, self.window, self.code = n, detections, window, code
+        self.birge, self.range_per_px, self.delay, self.mu = birge, range_per_px, delay, mu
+        self.Q = rows.size
+
+    @classmethod
+    def concat(cls, parts) -> PeakMeans:
+        """The means of consecutive blocks of peaks as one: a block without
+        ``range_per_px`` (no mean angle) gets zeros, as the whole run gives such
+        peaks, and one without first-photon figures (no band) NaN."""
+        parts = list(parts)
+        p0 = parts[0]
+
+        def cat(get):
+            return np.concatenate([get(p) for p in parts])
+
+        def opt(name, fill):
+            if all(getattr(p, name) is None for p in parts):
+                return None
+            return cat(lambda p: getattr(p, name) if getattr(p, name) is not None
+                       else fill(p))
+
+        codes = [p.peak_code for p in parts]
+        return cls(p0.system, p0.k, cat(lambda p: p.rows), cat(lambda p: p.cols),
+                   None if any(c is None for c in codes) else np.concatenate(codes),
+                   (cat(lambda p: p.stereo[0]), cat(lambda p: p.stereo[1])),
+                   (cat(lambda p: p.tof[0]), cat(lambda p: p.tof[1])),
+                   cat(lambda p: p.n), cat(lambda p: p.detections), cat(lambda p: p.window),
+                   cat(lambda p: p.code), cat(lambda p: p.birge),
+                   opt("range_per_px", lambda p: np.zeros((p.Q, 3))),
+                   opt("delay", lambda p: np.full(p.Q, np.nan)),
+                   opt("mu", lambda p: np.full(p.Q, np.nan)))
+
+    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
+        """The cloud (see :meth:`PeakAccumulator.cloud`): the depth edges, the
+        fused point and the attributes of every kept peak."""
+        n = self.n
+        mean = {"stereo": self.stereo, "tof": self.tof}
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        birge = self.birge
+        fp = None if self.delay is None else {"delay": self.delay, "mu": self.mu}
+        # the detections (not their background-subtracted sum: 3 detections over an
+        # expected background of 0.01 are 3 detections) set the fewest counts
+        keep = ((self.detections >= max(1, int(min_counts))) & (n > 0)
+                & np.all(np.isfinite(mean["fused"][0]), axis=1))
+        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
+        if self.range_per_px is not None and np.any(edge):
+            J = self.range_per_px[edge]
+            x, C = mean["stereo"]
+            C = C.copy()
+            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+            mean["stereo"] = (x, C)
+            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        w_mean = mean["fused"][2]
+        xf, Cf = mean["fused"][:2]
+        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
+        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
+        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            code_mean = self.code / n
+        attrs = {
+            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
+            "row": self.rows.astype(np.int32),
+            "code": self.peak_code if self.peak_code is not None else code_mean,
+            "range": r, "sigma_r": sr, "sigma_phi": sphi,
+            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
+            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
+            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
+            "counts_window": np.rint(self.window).astype(np.int32),
+        }
+        if fp is not None:
+            attrs["tof_delay"] = fp["delay"]
+            attrs["signal_photons"] = fp["mu"]
+        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
+        # their difference (see :func:`consistent_points`)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
+        if own is not None:
+            q = np.arange(self.Q)
+            keep = keep & (q >= own[0]) & (q < own[1])
+        return PointCloud(xf, attrs).select(keep)
+
+    def _depth_edges(self, x, C, keep) -> np.ndarray:
+        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
+
+        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
+        point whose range differs by more than k·σ of the difference (an object's
+        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
+        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
+        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
+        """
+        Q = self.Q
+        edge = np.zeros(Q, bool)
+        if Q == 0 or not np.any(keep):
+            return edge
+        r, _, sr, _ = polar_from_cartesian(x, C)
+        H = int(self.rows.max()) + 1
+        W = self.system.receiver.width
+        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
+        idx = np.flatnonzero(keep)
+        at[self.rows[idx], self.cols[idx] + 1] = idx
+        present = []
+        for dc in (-1, 1):
+            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
+            has = j >= 0
+            jj = np.where(has, j, 0)
+            with np.errstate(invalid="ignore"):
+                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
+            edge[idx[jump]] = True
+            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
+            present.append(has | ~inside)  # the sensor's border is not an edge
+        if EDGE_RUN_ENDS:
+            edge[idx[present[0] ^ present[1]]] = True
+        return edge
+
+
 #: peaks per block of the first-photon correction (by peak index; see
 #: :meth:`PeakAccumulator._first_photon`): a split of the peaks at multiples of it
 #: gives the same bits as the whole
@@ -816,6 +921,16 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
                           shots_per_step=shots_per_step, step_grid=step_grid,
                           first_photon=first_photon, rate_hz=rate_hz,
                           step_window=step_window, accept=accept, spot_sigma=spot_sigma)
+    return accumulate_entries(acc, shot, peak, code, theta, weight, background).cloud(
+        min_counts, own)
+
+
+def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=None,
+                       background=None) -> PeakAccumulator:
+    """Both sub-passes of ``acc`` over the entries (arguments as
+    :func:`points_from_peak_detections`); returns ``acc``, its centres fixed and its
+    sums added."""
+    system = acc.system
     shot = np.asarray(shot, dtype=np.int64).ravel()
     M = shot.size
     if M <= ENTRY_BLOCK:  # the entries' points computed once, used by both sub-passes
@@ -823,10 +938,13 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         acc._add_mode_points(pts)
         acc.finish_mode()
         acc._add_inliers_points(pts, shot, theta, background)
-        return acc.cloud(min_counts, own)
+        return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
-    # keeps each entry's fused range, its σ and ok (17 bytes an entry); sub-pass 2
+    # keeps each entry's fused range, its σ and ok (17 bytes an entry) and, up to
+    # KEEP_ENTRIES entries, its points (≈ 330 bytes); sub-pass 2 uses those, or
     # computes the points of the inliers alone
+    keep = M <= KEEP_ENTRIES
+    kept = []
     peak = np.asarray(peak, dtype=np.int64).ravel()
     code = np.asarray(code, dtype=np.float64).ravel()
     m = (np.ones(M) if weight is None else np.asarray(weight, dtype=np.float64).ravel())
@@ -837,25 +955,32 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
         pts = acc._points(shot[e], peak[e], code[e], theta, m[e])
         acc._add_mode_points(pts)
         r[e], sr[e], ok[e] = pts[3], pts[4], pts[5]
+        if keep:
+            kept.append(pts[2])
         del pts
     acc.finish_mode()
-    for a in range(0, M, ENTRY_BLOCK):
+    for i, a in enumerate(range(0, M, ENTRY_BLOCK)):
         e = slice(a, a + ENTRY_BLOCK)
         pe, ce, se = peak[e], code[e], shot[e]
 
-        def dp_of(inl, pe=pe, ce=ce, se=se):
+        def dp_of(inl, pe=pe, ce=ce, se=se, i=i):
+            if keep:  # each entry's points are its own: the same bits as recomputing
+                return kept[i].subset(inl)
             return detection_points(system, se[inl], acc.rows[pe[inl]], acc.cols[pe[inl]],
                                     ce[inl], theta, acc.spreads)
 
         acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
                               None if bg is None else bg[e])
-    return acc.cloud(min_counts, own)
+    return acc
 
 
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by
 #: :func:`points_from_peak_detections`; sums are sequential in entry order, so the
 #: blocks change no bit of the result
 ENTRY_BLOCK = 1 << 15
+#: inputs of at most this many entries keep sub-pass 1's points for sub-pass 2 (≈ 330
+#: bytes an entry: 43 MB) instead of computing the inliers' again
+KEEP_ENTRIES = 1 << 17
 
 
 def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointCloud:

@@ -71,6 +71,37 @@ def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle):
                 hist_angle[p, j] += 1
 
 
+def _kernel_keys_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle, n_steps, nb,
+                    keys):
+    """As :func:`_kernel_nolabels_py`, also writing the key ``(p·n_steps + j)·nb + c``
+    of every signal detection (pixel p, angle step j, code c) to ``keys`` (room
+    for K·P); returns how many (see :func:`signal_keys`)."""
+    K, P = bins.shape
+    n = 0
+    for k in range(K):
+        j = rows[k]
+        if j < 0:
+            continue
+        for p in range(P):
+            c = np.int64(bins[k, p])
+            hist_raw[p, c] += 1
+            if (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p])):
+                hist_signal[p, c] += 1
+                hist_angle[p, j] += 1
+                keys[n] = (p * n_steps + j) * nb + c
+                n += 1
+    return n
+
+
+def signal_keys(bins, rows, labels, n_steps: int, nb: int) -> np.ndarray:
+    """Keys ``(p·n_steps + j)·nb + c`` (int64, in shot order) of the detections
+    labelled signal: ``bins`` (K, P) codes, ``rows`` (K,) angle steps, ``labels``
+    (K, P) (1 = signal); the same keys as :func:`_kernel_keys_py` writes."""
+    k, p = np.nonzero(np.asarray(labels).reshape(bins.shape) == 1)
+    return ((p.astype(np.int64) * n_steps + rows[k]) * nb
+            + bins[k, p].astype(np.int64))
+
+
 def _kernel_numpy(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
     """The kernel's semantics in vectorised NumPy (``labels`` None: not written).
 
@@ -102,14 +133,15 @@ _COMPILED: dict = {}
 
 
 def _compiled():
-    """The numba kernels ``(labels, no labels)``, compiled (or loaded from numba's
+    """The numba kernels ``(labels, no labels, signal keys)``, compiled (or loaded from numba's
     disk cache) on first use; None when numba is absent."""
     if "k" not in _COMPILED:
         try:  # pragma: no cover - numba is a declared dependency
             import numba
 
             jit = numba.njit(cache=True, nogil=True, boundscheck=False)
-            _COMPILED["k"] = (jit(_kernel_py), jit(_kernel_nolabels_py))
+            _COMPILED["k"] = (jit(_kernel_py), jit(_kernel_nolabels_py),
+                              jit(_kernel_keys_py))
         except ImportError:  # pragma: no cover
             _COMPILED["k"] = None
     return _COMPILED["k"]
@@ -118,7 +150,7 @@ def _compiled():
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
                             hist_raw=None, hist_signal=None, want_labels: bool = True,
                             hist_angle=None, rows=None, compiled: bool | None = None,
-                            codes_checked: bool = False):
+                            codes_checked: bool = False, keys_out=None):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -141,6 +173,10 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         numba for blocks of at least :data:`COMPILE_SLOTS` pixel-slots.
     codes_checked : the caller has checked every code <= n_bins already
         (:func:`~mems_stereo.io.recording.iter_shot_chunks` does).
+    keys_out : a list to append the block's signal keys to (:func:`signal_keys`:
+        (pixel, angle step, code), int64), for pass 2 to count from instead of
+        reading the shots again; only on the compiled path (the list is left
+        untouched otherwise, and the caller reads the shots).
 
     Returns
     -------
@@ -173,6 +209,13 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         _kernel_numpy(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
     elif want_labels:
         kernels[0](b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+        if keys_out is not None:
+            keys_out.append(signal_keys(b2, rows, labels, table.n_steps, n_bins + 1))
+    elif keys_out is not None:
+        buf = np.empty(b2.size, np.int64)
+        n = kernels[2](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle,
+                       table.n_steps, n_bins + 1, buf)
+        keys_out.append(buf[:n].copy())
     else:
         kernels[1](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
@@ -272,7 +315,7 @@ def sum_accumulations(parts) -> RangeAccumulation:
 def accumulate_range(path, system: System, theta, valid, settings: Settings,
                      start: int = 0, stop: int | None = None, labels_out=None,
                      progress=None, table: IntervalTable | None = None,
-                     angle_offset: int = 0) -> RangeAccumulation:
+                     angle_offset: int = 0, signal_store=None) -> RangeAccumulation:
     """Pass 1 over shots [start, stop): labels and histograms.
 
     ``theta``, ``valid`` : scan angles and validity of the shots from shot
@@ -280,6 +323,9 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     ``labels_out`` : an h5py dataset (K, H, W) uint8 to write labels into, or None.
     ``table`` : the run's :class:`IntervalTable` (rows filled here as needed;
     default: a new one from ``settings``).
+    ``signal_store`` : a :class:`~mems_stereo.pipeline.signal_store.SignalStore` to
+    keep the signal detections in for pass 2 (compiled ranges only: it is
+    marked incomplete, and stays empty, for small ones).
     """
     P = system.receiver.width * system.receiver.height
     n_bins = system.tdc.n_bins
@@ -312,9 +358,16 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
                               f"recording's own system has n_bins = {file_bins})",
                               str(getattr(path, "source", path)), "/shots/bins")
         want = labels_out is not None or truth is not None
+        keys = [] if signal_store is not None and compiled else None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
                                                want_labels=want, hist_angle=angle, rows=rows,
-                                               compiled=compiled, codes_checked=checked)
+                                               compiled=compiled, codes_checked=checked,
+                                               keys_out=keys)
+        if signal_store is not None:
+            if keys:
+                signal_store.append(keys[0])
+            else:
+                signal_store.complete = False
         n_per_step += np.bincount(rows[rows >= 0], minlength=table.n_steps)
         if labels_out is not None:
             labels_out[s0:s1] = labels

@@ -39,9 +39,17 @@ from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
-from mems_stereo.pipeline.fusion import FP_BLOCK, points_from_counts
+from mems_stereo.pipeline.fusion import (
+    FP_BLOCK,
+    PeakMeans,
+    accumulator_for_peaks,
+    consistent_points,
+    peak_sums_from_counts,
+    points_from_counts,
+)
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import (
+    COMPILE_SLOTS,
     Counts,
     RangeAccumulation,
     _pack,
@@ -51,6 +59,11 @@ from mems_stereo.pipeline.pass1 import (
 )
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.signal_store import (
+    SignalStore,
+    peak_counts_from_store,
+    rereading_decompresses,
+)
 from mems_stereo.util.atomic import atomic_output
 
 
@@ -201,19 +214,33 @@ def process_recording(path, system: System | None = None,
         table.load_cache()
     timings = {"read_header": time.perf_counter() - t0}
 
-    t1 = time.perf_counter()
-    if labels_path is not None:
-        with _labels_file(labels_path, K, (H, W)) as (f, ds):
-            acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
-                                   progress=progress, table=table)
-            f.create_dataset("theta", data=np.where(valid, theta, np.nan))
-    else:
-        acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table)
-    if own_table:
-        table.save_cache()
-    timings["classify_histogram"] = time.perf_counter() - t1
-    res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                            progress=progress, table=table)
+    # compiled ranges of compressed files keep pass 1's signal detections, so that
+    # pass 2 needs no second decompression of the shots (small recordings and
+    # uncompressed files: reading them again costs less)
+    with SignalStore() as store:
+        keep = (store if K * H * W >= COMPILE_SLOTS and rereading_decompresses(path)
+                else None)
+        t1 = time.perf_counter()
+        if labels_path is not None:
+            with _labels_file(labels_path, K, (H, W)) as (f, ds):
+                acc = accumulate_range(path, sysm, theta, valid, st, labels_out=ds,
+                                       progress=progress, table=table, signal_store=keep)
+                f.create_dataset("theta", data=np.where(valid, theta, np.nan))
+        else:
+            acc = accumulate_range(path, sysm, theta, valid, st, progress=progress, table=table,
+                                   signal_store=keep)
+        if own_table:
+            table.save_cache()
+        timings["classify_histogram"] = time.perf_counter() - t1
+        count_peaks = None
+        if keep is not None and store.complete:
+            def count_peaks(peaks):
+                pc = peak_counts_from_store(store, sysm, peaks, table.n_steps)
+                if progress is not None:
+                    progress(K)
+                return pc
+        res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
+                                count_peaks=count_peaks, progress=progress, table=table)
     if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
         table.save_cache()
     return res
@@ -318,8 +345,9 @@ FUSE_ENTRIES = 1 << 16
 def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_step,
                    table: IntervalTable, max_entries: int | None = None):
     """:func:`points_from_counts` over blocks of peaks of at most about ``max_entries``
-    distinct (peak, step, code) entries each, joined: the same cloud bit for
-    bit (the blocks cut at multiples of ``FP_BLOCK`` peaks), with the fusion's
+    distinct (peak, step, code) entries each: each block's per-peak sums
+    (:func:`~mems_stereo.pipeline.fusion.peak_sums_from_counts`), joined into one
+    accumulator whose cloud is the whole's bit for bit, with the fusion's
     per-entry arrays (≈ 200 bytes an entry) bounded by the block instead of
     growing with the recording's distinct entries (default :data:`FUSE_ENTRIES`)."""
     cap = FUSE_ENTRIES if max_entries is None else max_entries
@@ -327,11 +355,15 @@ def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_
     if n_blocks == 1:
         return points_from_counts(system, peaks, counts, settings, shots_per_step=n_per_step,
                                   table=table)
-    light = {k: v for k, v in peaks.items() if k != "background_by_step"}
+    # each block's sums (a peak's are its entries' alone), joined, then one cloud: no
+    # halo of neighbours to fuse twice (the Dask runner's blocks need one)
+    light = {k: v for k, v in peaks.items() if k != "background_by_step" and v is not None}
     blocks = split_peak_counts(counts, len(light["row"]), table.n_steps,
                                system.tdc.n_bins + 1, n_blocks)
-    return join_clouds([points_block(system, light, blocks, i, settings, n_per_step, table)
-                        for i in range(len(blocks))])
+    parts = [peak_sums_from_counts(system, {k: np.asarray(v)[q0:q1] for k, v in light.items()},
+                                   c, settings, n_per_step, table) for q0, q1, c in blocks]
+    acc = accumulator_for_peaks(system, light, settings, n_per_step, table).joined(parts)
+    return consistent_points(acc.cloud(settings.min_counts), settings.confidence)
 
 
 def block_with_halo(system, peaks, blocks, i: int, n_steps: int):
@@ -378,6 +410,23 @@ def points_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, 
     sub = {k: np.asarray(v)[sel] for k, v in peaks.items() if v is not None}
     return points_from_counts(system, sub, counts, settings, shots_per_step=n_per_step,
                               table=table, own=own)
+
+
+def means_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, table):
+    """The :class:`~mems_stereo.pipeline.fusion.PeakMeans` of the peaks of block ``i``
+    of ``blocks`` (:func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays),
+    no halo: the blocks' means joined (``PeakMeans.concat``) give the whole's cloud,
+    bit for bit (:func:`cloud_of_means`)."""
+    q0, q1, counts = blocks[i]
+    sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
+    return peak_sums_from_counts(system, sub, counts, settings, n_per_step,
+                                 table).peak_means()
+
+
+def cloud_of_means(means, settings: Settings):
+    """The cloud of the joined means of consecutive peak blocks (consistent points)."""
+    return consistent_points(PeakMeans.concat(means).cloud(settings.min_counts),
+                             settings.confidence)
 
 
 def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[tuple[int, int]]:

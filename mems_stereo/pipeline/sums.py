@@ -15,6 +15,43 @@ from mems_stereo.physics.first_photon import (
 )
 
 
+def add_rows(A, q, V) -> None:
+    """``np.add.at(A, q, V)`` for A (Q, ...) float64 and V (N, ...), the same bits,
+    one ``np.bincount`` per column instead of the slow multi-dimensional ``add.at``:
+    bincount adds the weights one after the other in entry order, starting here
+    from the row's current value (a sum that starts from +0 never holds −0, so
+    ``0 + A`` is ``A``)."""
+    q = np.asarray(q, np.int64)
+    Q = A.shape[0]
+    Af = A.reshape(Q, -1)
+    if Af.shape[1] == 1 or q.size == 0 or not A.flags.c_contiguous:
+        np.add.at(A, q, V)
+        return
+    Vf = np.asarray(V, np.float64).reshape(q.size, -1)
+    idx = np.concatenate([np.arange(Q), q])
+    for j in range(Af.shape[1]):
+        Af[:, j] = np.bincount(idx, weights=np.concatenate([Af[:, j], Vf[:, j]]),
+                               minlength=Q)
+
+
+def add_rows_gathered(A, q, rows, run, m) -> None:
+    """``np.add.at(A, q, rows[run] * m[:, None])`` without the (N, J) temporaries, the
+    same bits: A (Q, J), q (N,) row of A, rows (R, J), run (N,) row of ``rows``, m (N,);
+    one contiguous gather and ``np.bincount`` per column (see :func:`add_rows`)."""
+    q = np.asarray(q, np.int64)
+    Q = A.shape[0]
+    if q.size == 0:
+        return
+    if not A.flags.c_contiguous:  # pragma: no cover - the sums are contiguous
+        np.add.at(A, q, rows[run] * m[:, None])
+        return
+    cols = np.ascontiguousarray(np.asarray(rows, np.float64).T)
+    idx = np.concatenate([np.arange(Q), q])
+    for j in range(A.shape[1]):
+        A[:, j] = np.bincount(idx, weights=np.concatenate([A[:, j], cols[j][run] * m]),
+                              minlength=Q)
+
+
 class RangeMode:
     """The centre range of each of Q peaks: the mode of its detections' range intervals.
 
@@ -108,15 +145,24 @@ class EstimateSums:
         return EstimateSums(self.W + other.W, self.X + other.X, self.C + other.C,
                             add(self.D, other.D), add(self.G, other.G))
 
+    @classmethod
+    def concat(cls, parts) -> EstimateSums:
+        """The sums of consecutive blocks of peaks as one (rows concatenated)."""
+        def cat(name):
+            vals = [getattr(p, name) for p in parts]
+            return None if vals[0] is None else np.concatenate(vals)
+
+        return cls(*(cat(k) for k in ("W", "X", "C", "D", "G")))
+
     def add(self, q, x, C, m, g=None) -> None:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
         np.add.at(self.W, q, m)
-        np.add.at(self.X, q, x * m[:, None])
-        np.add.at(self.C, q, C * np.abs(m)[:, None, None])
+        add_rows(self.X, q, x * m[:, None])
+        add_rows(self.C, q, C * np.abs(m)[:, None, None])
         if self.D is not None and g is not None:
-            np.add.at(self.D, q, g * m[:, None])
-            np.add.at(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
+            add_rows(self.D, q, g * m[:, None])
+            add_rows(self.G, q, g[:, :, None] * g[:, None, :] * np.abs(m)[:, None, None])
 
     def mean(self):
         """(x̄ (Q, 3), covariance (Q, 3, 3)) = (X / W, C / W²)."""
@@ -174,6 +220,14 @@ class PeakSums:
         return PeakSums(*(getattr(self, k) + getattr(other, k) for k in _SCALARS),
                         self.loglik + other.loglik, self.fused + other.fused,
                         self.stereo + other.stereo, self.tof + other.tof)
+
+    @classmethod
+    def concat(cls, parts) -> PeakSums:
+        """The sums of consecutive blocks of peaks as one (rows concatenated)."""
+        return cls(*(np.concatenate([getattr(p, k) for p in parts]) for k in _SCALARS),
+                   np.concatenate([p.loglik for p in parts]),
+                   *(EstimateSums.concat([getattr(p, k) for p in parts])
+                     for k in ("fused", "stereo", "tof")))
 
     def estimate(self, name: str) -> EstimateSums:
         return getattr(self, name)
