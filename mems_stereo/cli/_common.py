@@ -206,11 +206,16 @@ def _check_polarities(command: str, args) -> None:
     from mems_stereo.cli._crosscheck import check_polarity
     from mems_stereo.io.recording2d import is_two_axis_recording
 
-    system = None
-    if command == "process" and getattr(args, "system", None):
-        from mems_stereo.model.system import resolve_system
+    system = settings = None
+    if command == "process":
+        from mems_stereo.pipeline.settings import Settings
 
-        system = resolve_system(args.system)
+        # the run's consistency settings: the check shares the run's interval table
+        settings = Settings(confidence=args.confidence, min_range=args.min_range)
+        if getattr(args, "system", None):
+            from mems_stereo.model.system import resolve_system
+
+            system = resolve_system(args.system)
     quiet = bool(getattr(args, "quiet", False))
 
     def warn(text: str) -> None:
@@ -219,4 +224,4 @@ def _check_polarities(command: str, args) -> None:
 
     for r in args.recordings:
         if not is_two_axis_recording(r):
-            check_polarity(r, system, warn)
+            check_polarity(r, system, warn, settings)

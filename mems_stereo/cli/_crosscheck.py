@@ -5,8 +5,9 @@ the format: inverting every flag shifts the interpolated phase by π, so the
 scan angle θ = θ0 + θ_mech becomes θ0 − θ_mech, with crossings that are
 still alternating and spaced for ``f_mech``.  The detections tell which is
 right: a laser return at pixel u in a shot of angle θ has a code inside the
-interval that triangulation accepts for (θ, u)
-(:func:`mems_stereo.pipeline.consistency.accepted_code_intervals`), while the
+interval that triangulation accepts for (θ, u) (the run's own
+:class:`~mems_stereo.pipeline.intervals.IntervalTable`, angles on its grid,
+rows shared with the run through the table's disk cache), while the
 background's codes do not depend on θ.  :func:`polarity_evidence` counts the
 detections of a sample of shots inside the accepted intervals for the
 recorded angles (``I_rec``) and for the mirrored ones θ0 − (θ − θ0)
@@ -80,17 +81,31 @@ def _sample_shots(n_shots: int, valid: np.ndarray, seed: int = 0) -> list[slice]
     return out
 
 
-def polarity_evidence(path, system=None) -> PolarityEvidence:
+def _intervals(table, theta) -> tuple[np.ndarray, np.ndarray]:
+    """Accepted code intervals ``(lo, hi)`` (K, P) int64 of the angles ``theta`` (K,)
+    on the table's grid (nothing accepted off the grid)."""
+    rows = table.rows(theta, np.ones(theta.shape, bool))
+    table.ensure(rows)
+    on = (rows >= 0)[:, None]
+    lo = np.where(on, table.lo[rows].astype(np.int64), 1)
+    hi = np.where(on, table.hi[rows].astype(np.int64), 0)
+    return lo, hi
+
+
+def polarity_evidence(path, system=None, settings=None) -> PolarityEvidence:
     """Evidence on the crossing polarity of a FORMAT v1 recording (one-axis).
 
     ``path`` : the recording; ``system`` : the system it is processed with
-    (default: its ``/system``).  Reads the header and a sample of
+    (default: its ``/system``); ``settings`` : the run's
+    :class:`~mems_stereo.pipeline.settings.Settings` (confidence, min_range;
+    default ``Settings()``).  Reads the header and a sample of
     :data:`SAMPLE_BLOCKS` × :data:`SAMPLE_BLOCK_SHOTS` shots.
     """
     from mems_stereo.io import hdf5 as h5
     from mems_stereo.io.recording import read_header
     from mems_stereo.pipeline.angles import shot_angles
-    from mems_stereo.pipeline.consistency import accepted_code_intervals
+    from mems_stereo.pipeline.intervals import IntervalTable
+    from mems_stereo.pipeline.settings import Settings
 
     head = read_header(path)
     s = system if system is not None else head.system
@@ -117,12 +132,13 @@ def polarity_evidence(path, system=None) -> PolarityEvidence:
         np.add.at(hist, (pix[b > 0], np.minimum(b[b > 0], N)), 1)
     cum = np.cumsum(hist, axis=1) / n
     pix = np.arange(P)[None, :]
+    table = IntervalTable.for_settings(s, Settings() if settings is None else settings)
+    table.load_cache()
     counts, only, expected = [0, 0], [0, 0], 0.0
     for b, th in blocks:
         inside = []
         for k, angle in enumerate((th, 2 * s.scanner.theta0 - th)):
-            lo, hi = accepted_code_intervals(s, angle)
-            lo, hi = lo.reshape(len(th), P), hi.reshape(len(th), P)
+            lo, hi = _intervals(table, angle)
             inside.append((b > 0) & (b >= lo) & (b <= hi))
             counts[k] += int(inside[k].sum())
             if k == 0:
@@ -130,15 +146,16 @@ def polarity_evidence(path, system=None) -> PolarityEvidence:
                 expected += float(np.where(hi >= lo, e, 0.0).sum())
         only[0] += int((inside[0] & ~inside[1]).sum())
         only[1] += int((inside[1] & ~inside[0]).sum())
+    table.save_cache()
     return PolarityEvidence(n, counts[0], counts[1], expected, only[0], only[1])
 
 
-def check_polarity(path, system=None, warn=None) -> PolarityEvidence:
+def check_polarity(path, system=None, warn=None, settings=None) -> PolarityEvidence:
     """Refuse a recording whose crossing polarity is inverted (FormatError naming
     ``/scanner/rising``); call ``warn(text)`` where it is only probably inverted."""
     from mems_stereo.errors import FormatError
 
-    ev = polarity_evidence(path, system)
+    ev = polarity_evidence(path, system, settings)
     if ev.z >= REFUSE_Z:
         raise FormatError("the zero-crossing polarity looks inverted: " + ev.text(),
                           str(path), "/scanner/rising")
