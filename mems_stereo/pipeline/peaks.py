@@ -315,14 +315,11 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     B = expected_background_by_angle(table, n_per_step, rate)
     Hs = np.asarray(signal_angle, dtype=np.float64).reshape(P, table.n_steps)
     def log_range_of(j):  # each pixel's stereo range at its window's angle (support)
-        u = (np.arange(P) % W).astype(np.float64)
-        v = (np.arange(P) // W).astype(np.float64)
-        x = stereo_point_est(system, u, v, np.zeros(P), table.theta_min + j * table.step)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.log(np.linalg.norm(x, axis=1))
+        return pixel_log_range(system, table, np.arange(P), j)
 
     j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings,
                                         support_pixels=(W, P, log_range_of))
+    keep_first = keep.copy()
     keep &= np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
     # inside it) sees only part of its surface: its stereo mean is biased
@@ -348,13 +345,48 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
+    # near misses of this stage, for the matched filter over angle × code
+    # (:mod:`mems_stereo.pipeline.matched`): counted over j ± (width + half)
+    from scipy.special import pdtrc
+
+    n_windows = np.maximum(1.0, np.count_nonzero(B > 0, axis=1) / width)
+    ok = np.isfinite(rate.reshape(-1)) & (cnt >= settings.min_counts)
+    if scanned.size:
+        ok &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
+    with np.errstate(invalid="ignore"):
+        p_adj = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
+    from mems_stereo.pipeline.matched import candidate_rows
+
+    qc = candidate_rows(p_adj, keep_first, ok)
+    c_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
+    c_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
+    candidates = Peaks(
+        row=(qc // W).astype(np.int64), col=(qc % W).astype(np.int64),
+        code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
+        code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
+        counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
+        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, c_lo, c_hi))
+    candidates.n_windows = n_windows[qc]
+    candidates.width = width
     peaks = Peaks(
         row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
         step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
         rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
+    peaks.candidates = candidates
     return peaks, rate.reshape(H, W)
+
+
+def pixel_log_range(system: System, table, pix, j) -> np.ndarray:
+    """(N,) log of the stereo range of flat pixels ``pix`` (N,) at the angles of steps
+    ``j`` (N,) of ``table`` (NaN where the rays do not meet in front)."""
+    pix = np.asarray(pix, np.int64)
+    W = system.receiver.width
+    x = stereo_point_est(system, (pix % W).astype(np.float64), (pix // W).astype(np.float64),
+                         np.zeros(pix.size), table.theta_min + np.asarray(j) * table.step)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.log(np.linalg.norm(x, axis=1))
 
 
 def window_rows(B, q, lo, hi):
