@@ -4,10 +4,10 @@ short-baseline surfaces whose accepted code intervals are wide)."""
 from __future__ import annotations
 
 import numpy as np
+from test_generalise import _error, _sweep_case
 
 from mems_stereo.pipeline.matched import _box_sums, merge_peaks
 from mems_stereo.pipeline.peaks import Peaks
-from test_generalise import _error, _sweep_case
 
 
 def test_box_sums_equal_brute_force(rng):

@@ -81,6 +81,7 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     S = table.n_steps
     bw = system.tdc.bin_width
     m = max(1, int(round(system.laser.pulse_fwhm / bw)))
+    cell = max(1, m // 4)
     n_per_step = np.asarray(n_per_step, np.float64)
     q, step, code = decode_peak_keys(counts.keys, S, n_bins + 1)
     cnt = counts.counts.astype(np.float64)
@@ -94,25 +95,38 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     pix = cands.pixel(W)
     for i in range(C):
         a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
-        steps = np.arange(a, b + 1)
-        table.ensure(steps)
-        lo = table.lo[steps, pix[i]].astype(np.int64)
-        hi = table.hi[steps, pix[i]].astype(np.int64)
-        okj = lo <= hi
-        if not np.any(okj) or start[i + 1] <= start[i]:
+        if start[i + 1] <= start[i]:
             continue
-        c_lo, c_hi = int(lo[okj].min()), int(hi[okj].max())
-        ncod = c_hi - c_lo + 1
+        steps = np.arange(a, b + 1)
+        shot = n_per_step[steps] > 0  # steps without valid shots hold nothing
+        table.ensure(steps[shot])
+        lo = np.where(shot, table.lo[steps, pix[i]], 1).astype(np.int64)
+        hi = np.where(shot, table.hi[steps, pix[i]], 0).astype(np.int64)
+        okj = lo <= hi
+        if not np.any(okj):
+            continue
         sl = slice(start[i], start[i + 1])
-        D = np.zeros((steps.size, ncod))
-        np.add.at(D, (step[sl] - a, code[sl] - c_lo), cnt[sl])
+        # codes: the accepted ones within one box of a counted detection (elsewhere
+        # no box reaches min_counts)
+        c_lo = max(int(lo[okj].min()), int(code[sl].min()) - m)
+        c_hi = min(int(hi[okj].max()), int(code[sl].max()) + m)
+        # codes in cells of ``cell`` (a quarter of the box's half-width): the box is
+        # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
+        n_cell = (c_hi - c_lo) // cell + 1
+        D = np.zeros((steps.size, n_cell))
+        np.add.at(D, (step[sl] - a, (code[sl] - c_lo) // cell), cnt[sl])
         h = -np.expm1(-float(np.nan_to_num(cands.rate_hz[i])) * bw)
-        cc = np.arange(c_lo, c_hi + 1)
-        pc = h * np.exp((cc - 1.0) * np.log1p(-min(h, 1 - 1e-15)))  # first photon in code c
-        inside = (cc[None, :] >= lo[:, None]) & (cc[None, :] <= hi[:, None])
-        B = np.where(inside, n_per_step[steps][:, None] * pc[None, :], 0.0)
-        N_box = _box_sums(D, width, 2 * m + 1)
-        B_box = _box_sums(B, width, 2 * m + 1)
+        log1mh = np.log1p(-min(h, 1 - 1e-15))
+        # background of cell k at step j: the valid shots times P(first photon in the
+        # cell's codes ∩ [lo_j, hi_j]), F(c) = 1 − (1 − h)^c the chance it came by code c
+        e_lo = c_lo + cell * np.arange(n_cell)
+        a_c = np.maximum(e_lo[None, :], lo[:, None])
+        b_c = np.minimum(e_lo[None, :] + cell - 1, hi[:, None])
+        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * log1mh) - np.exp(b_c * log1mh), 0.0)
+        B = n_per_step[steps][:, None] * pr
+        half_c = m // cell
+        N_box = _box_sums(D, width, 2 * half_c + 1)
+        B_box = _box_sums(B, width, 2 * half_c + 1)
         # whole boxes only: the box's steps inside the counted band
         half = width // 2
         valid = np.zeros(N_box.shape, bool)
@@ -124,11 +138,11 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         with np.errstate(invalid="ignore"):
             p = np.where(valid, pdtrc(np.maximum(N_box - 1, 0), np.maximum(B_box, 1e-12)), 1.0)
         k = int(np.argmin(p))
-        jj, ci = divmod(k, ncod)
-        n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / (2 * m + 1))
+        jj, ci = divmod(k, n_cell)
+        n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / ((2 * half_c + 1) * cell))
         level[i] = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
         p_best[i] = p[jj, ci]
-        best[i] = (a + jj, c_lo + ci, N_box[jj, ci], B_box[jj, ci])
+        best[i] = (a + jj, c_lo + ci * cell + cell // 2, N_box[jj, ci], B_box[jj, ci])
         found[i] = p_best[i] < level[i]
     # support grows from the first stage's peaks only (a chain of confirmations may
     # extend a surface they found); a confirmation without it carries the
