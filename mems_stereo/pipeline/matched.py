@@ -11,7 +11,7 @@ hypothesis "a return at step j0 and code c0", the detections lie within one
 footprint of j0 in angle and within ± one pulse FWHM of c0 in code.
 
 For the pixels whose strongest footprint window missed the threshold but is
-not far from it (candidates, :func:`candidate_rows`), pass 2 counts the
+not far from it (candidates, :func:`mems_stereo.pipeline.peaks.candidate_rows`), pass 2 counts the
 accepted detections by (step, code) over a few footprints around the window
 (:func:`mems_stereo.pipeline.pass2.peak_counts_range`); :func:`confirm` slides
 the (footprint × 2·FWHM) box over them, compares each box count with its
@@ -43,19 +43,8 @@ from mems_stereo.pipeline.peaks import (
 )
 from mems_stereo.pipeline.settings import Settings
 
-#: candidates: pixels whose strongest window's p-value, times the number of window
-#: positions, is below this (a near miss of the first stage)
-CANDIDATE_P = 0.5
 #: share of ``false_alarm`` given to the matched-filter stage
 MATCHED_SHARE = 0.5
-
-
-def candidate_rows(p_adjusted, keep, ok) -> np.ndarray:
-    """(C,) int64 rows (pixels) that missed the first stage by little:
-    ``p_adjusted`` (P,) the strongest window's Poisson p-value times its number of
-    window positions, ``keep`` (P,) bool the first stage's peaks, ``ok`` (P,) bool
-    pixels that may hold a peak at all (known rate, footprint inside the scan)."""
-    return np.flatnonzero(~keep & ok & (p_adjusted < CANDIDATE_P)).astype(np.int64)
 
 
 def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,

@@ -355,8 +355,6 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
         ok &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     with np.errstate(invalid="ignore"):
         p_adj = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
-    from mems_stereo.pipeline.matched import candidate_rows
-
     qc = candidate_rows(p_adj, keep_first, ok)
     c_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
     c_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
@@ -376,6 +374,19 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
         rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
     peaks.candidates = candidates
     return peaks, rate.reshape(H, W)
+
+
+#: candidates: pixels whose strongest window's p-value, times the number of window
+#: positions, is below this (a near miss of the first stage)
+CANDIDATE_P = 0.5
+
+
+def candidate_rows(p_adjusted, keep, ok) -> np.ndarray:
+    """(C,) int64 rows (pixels) that missed the first stage by little:
+    ``p_adjusted`` (P,) the strongest window's Poisson p-value times its number of
+    window positions, ``keep`` (P,) bool the first stage's peaks, ``ok`` (P,) bool
+    pixels that may hold a peak at all (known rate, footprint inside the scan)."""
+    return np.flatnonzero(~keep & ok & (p_adjusted < CANDIDATE_P)).astype(np.int64)
 
 
 def pixel_log_range(system: System, table, pix, j) -> np.ndarray:
