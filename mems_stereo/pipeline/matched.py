@@ -45,6 +45,9 @@ from mems_stereo.pipeline.settings import Settings
 
 #: share of ``false_alarm`` given to the matched-filter stage
 MATCHED_SHARE = 0.5
+#: cells of codes per half box (the box is ± one FWHM to within a cell; coarser
+#: cells, 4 per half box, lost half the confirmations of sweep case 15015)
+CELLS_PER_HALF_BOX = 24
 
 
 def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
@@ -53,7 +56,8 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     """The candidates that the matched filter confirms, as :class:`Peaks`.
 
     ``cands`` : candidate peaks (their ``step_lo..step_hi`` the steps counted in
-    ``counts``, ``code`` unused); ``counts`` : their pass-2 counts; ``table`` :
+    ``counts``, ``code`` unused, ``background_by_step`` over a band that holds
+    every confirmed peak's); ``counts`` : their pass-2 counts; ``table`` :
     the run's interval table; ``n_per_step`` : (S,) valid shots per step;
     ``width`` : footprint in steps; ``n_windows`` : (C,) footprint-window
     positions of each candidate's scan (the first stage's); ``peak_pixels`` : (Q,)
@@ -70,7 +74,7 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     S = table.n_steps
     bw = system.tdc.bin_width
     m = max(1, int(round(system.laser.pulse_fwhm / bw)))
-    cell = max(1, m // 4)
+    cell = max(1, m // CELLS_PER_HALF_BOX)
     n_per_step = np.asarray(n_per_step, np.float64)
     q, step, code = decode_peak_keys(counts.keys, S, n_bins + 1)
     cnt = counts.counts.astype(np.float64)

@@ -346,7 +346,9 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
     # near misses of this stage, for the matched filter over angle × code
-    # (:mod:`mems_stereo.pipeline.matched`): counted over j ± (width + half)
+    # (:mod:`mems_stereo.pipeline.matched`): counted over j ± (width + width // 2) (box
+    # centres within a footprint of j), their background rows over j ± (width + half)
+    # (the band a confirmed peak counts)
     from scipy.special import pdtrc
 
     n_windows = np.maximum(1.0, np.count_nonzero(B > 0, axis=1) / width)
@@ -356,14 +358,16 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     with np.errstate(invalid="ignore"):
         p_adj = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
     qc = candidate_rows(p_adj, keep_first, ok)
-    c_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
-    c_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
+    c_lo = np.maximum(0, j[qc] - width - width // 2).astype(np.int64)
+    c_hi = np.minimum(table.n_steps - 1, j[qc] + width + width // 2).astype(np.int64)
+    b_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
+    b_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
     candidates = Peaks(
         row=(qc // W).astype(np.int64), col=(qc % W).astype(np.int64),
         code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
         code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
         counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
-        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, c_lo, c_hi))
+        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, b_lo, b_hi))
     candidates.n_windows = n_windows[qc]
     candidates.width = width
     peaks = Peaks(
