@@ -438,8 +438,9 @@ class PeakAccumulator:
         ``background`` (M,) : the expected background detections that were
         subtracted at each entry (its share of its angle step's expected
         background).  Their Poisson fluctuation is the uncertainty of the
-        subtraction; it adds ``Σ b_i w_i² (r_i − r̄)² / (Σ m_i w_i)²`` to the
-        range variance of the fused and stereo means.
+        subtraction; it adds ``Σ b_i (r_i − r̄)² / (Σ m_i)²`` to the range
+        variance of the stereo mean (r: the entries' fused ranges) and of the
+        time-of-flight mean (r: their ToF ranges).
         """
         if self.centre is None:
             raise RuntimeError("add_inliers before finish_mode")
@@ -511,6 +512,9 @@ class PeakAccumulator:
             np.add.at(s.b0, q, b)
             np.add.at(s.b1, q, b * r[inl])
             np.add.at(s.b2, q, b * r[inl] ** 2)
+            r_tof = np.linalg.norm(dp.tof, axis=1)
+            np.add.at(s.bt1, q, b * r_tof)
+            np.add.at(s.bt2, q, b * r_tof ** 2)
 
     def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring).
@@ -538,6 +542,10 @@ class PeakAccumulator:
             rbar_w = s.wr / s.w
             chi2 = (s.wrr - 2 * rbar_w * s.wr + rbar_w ** 2 * s.w) / np.maximum(n - 1, 1)
             rbar = np.linalg.norm(mean["fused"][0], axis=1)
+            x_tof = mean["tof"][0]  # before the first-photon correction: the entries' mean
+            rbar_t = np.linalg.norm(x_tof, axis=1)
+            var_bg_t = np.maximum(s.bt2 - 2 * rbar_t * s.bt1 + rbar_t ** 2 * s.b0, 0.0) / W ** 2
+            u_t = x_tof / rbar_t[:, None]
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
         c_pix = self._stereo_at_mean_angle(mean, n)
         # the first-photon correction needs the pulse's centre: from the peak-level
@@ -555,6 +563,11 @@ class PeakAccumulator:
             u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
         add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
         mean["stereo"] = (x0, mean["stereo"][1] + np.nan_to_num(add))
+        # the same for the time of flight: far away (stereo of no weight) a peak under
+        # strong background is its ToF, and the background's Poisson fluctuation
+        # across the accepted code interval (metres of range) is most of its error
+        add_t = np.nan_to_num(var_bg_t)[:, None, None] * u_t[:, :, None] * u_t[:, None, :]
+        mean["tof"] = (mean["tof"][0], mean["tof"][1] + np.nan_to_num(add_t))
         if fp is not None:  # the delay's posterior spread: systematic, not scaled
             D = s.tof.dL()[0]
             mean["tof"] = (mean["tof"][0], mean["tof"][1] + D[:, :, None] * D[:, None, :]

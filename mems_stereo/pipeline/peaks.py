@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mems_stereo.geometry.uncertainty import stereo_point_est
 from mems_stereo.model.system import System
 from mems_stereo.physics.background import (
     background_rate_from_noise,
@@ -66,7 +67,8 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
-def strongest_window(counts, background, width: int, support, settings: Settings):
+def strongest_window(counts, background, width: int, support, settings: Settings,
+                     support_pixels: tuple | None = None):
     """Per row, the window of ``width`` bins with the largest excess over the background.
 
     ``counts``, ``background`` : (P, B) observed and expected counts;
@@ -78,6 +80,18 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     background, see docs/pipeline.md).  Window sums are exact: integer counts,
     no rescaling at the ends of the rows (a float sum of 7 read as
     7.000000000000001 passed a threshold of 7).
+    ``support_pixels`` : ``(width, n_pixels)`` or ``(width, n_pixels, log_range_of)``
+    of the sensor whose pixels the rows are (flat ``row·width + col``;
+    ``log_range_of(j)`` : (P,) the log range of each row's peak at its window
+    centres ``j`` (P,)), or None.
+    With it a peak that no other peak supports (:func:`neighbour_support`: none
+    within :data:`SUPPORT_COLUMNS`, at a range within :data:`SUPPORT_RANGE_RATIO`)
+    must also pass the threshold at ``false_alarm / n_pixels``: a surface images onto
+    several neighbouring pixels, while a background false alarm is isolated, so
+    an isolated peak carries the look-elsewhere of the whole sensor (the
+    probability that background puts one anywhere on it stays ``false_alarm``;
+    per pixel ``false_alarm`` alone gave a false point in one recording in ten,
+    most of all in sparse clouds under strong background, docs/pipeline.md).
     Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
     count and expected background, and whether it passes the Poisson threshold
     and ``settings.min_counts``.
@@ -89,7 +103,61 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     cnt, mu = S_w[rows, j], B_w[rows, j]
     n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
     thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
-    return j, cnt, mu, (cnt > thr) & (cnt >= settings.min_counts)
+    keep = (cnt > thr) & (cnt >= settings.min_counts)
+    if support_pixels is not None:
+        # a peak with no other peak near it must be significant for the whole sensor
+        thr_iso = poisson_isf(settings.false_alarm / n_windows / support_pixels[1],
+                              np.maximum(mu, 1e-12))
+        lr = None if len(support_pixels) < 3 else support_pixels[2](j)
+        alone = keep & ~neighbour_support(keep, support_pixels[0], SUPPORT_COLUMNS, lr)
+        keep &= ~alone | (cnt > thr_iso)
+    return j, cnt, mu, keep
+
+
+#: columns either side of a peak (and rows either side, for an array sensor) in which
+#: another peak supports it (:func:`neighbour_support`): a surface that the detector
+#: sees in one pixel in several (weak returns, sparse coverage) still has a detected
+#: pixel within this reach, while background false alarms, at ~10⁻³ per pixel, are
+#: not expected within it (2·8·10⁻³ ≈ 0.02)
+SUPPORT_COLUMNS = 8
+#: the most by which the ranges of a peak and a supporting neighbour may differ (a
+#: factor; stereo range at each peak's window centre): one surface, or an object and
+#: the wall behind it, not a near-range background cluster under a far scene
+SUPPORT_RANGE_RATIO = 2.0
+
+
+def neighbour_support(keep, width: int, reach: int = SUPPORT_COLUMNS,
+                      log_range=None, ratio: float = None) -> np.ndarray:
+    """(P,) bool: pixels with another ``keep`` pixel within ``reach`` columns in their
+    row or, for an array sensor (P > width), within ``reach`` columns in the rows
+    ``reach`` above or below.  ``keep`` : (P,) bool over the pixels of rows of
+    ``width`` columns (flat index ``row·width + col``).  ``log_range`` : (P,)
+    optional log of each peak's range: then only a neighbour whose range is within
+    a factor ``ratio`` (default :data:`SUPPORT_RANGE_RATIO`) supports (a
+    non-finite range is compatible with any)."""
+    ratio = SUPPORT_RANGE_RATIO if ratio is None else float(ratio)
+    k = np.asarray(keep, bool).reshape(-1, int(width))
+    H, W = k.shape
+    R = int(reach)
+    lr = (np.zeros(k.shape) if log_range is None
+          else np.asarray(log_range, np.float64).reshape(H, W))
+    pad_k = np.zeros((H + 2 * R, W + 2 * R), bool)
+    pad_k[R:R + H, R:R + W] = k
+    pad_r = np.full(pad_k.shape, np.nan)
+    pad_r[R:R + H, R:R + W] = lr
+    tol = np.log(ratio)
+    out = np.zeros((H, W), bool)
+    rows = range(-R, R + 1) if H > 1 else (0,)
+    for dr in rows:
+        for dc in range(-R, R + 1):
+            if dr == 0 and dc == 0:
+                continue
+            nk = pad_k[R + dr:R + dr + H, R + dc:R + dc + W]
+            nr = pad_r[R + dr:R + dr + H, R + dc:R + dc + W]
+            with np.errstate(invalid="ignore"):
+                same = ~(np.abs(nr - lr) > tol)  # NaN (unknown range): compatible
+            out |= nk & same
+    return out.reshape(-1)
 
 
 def excess_band(counts, background, width: int, j, level: float = 0.5):
@@ -246,7 +314,12 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     width = footprint_steps(system, table)
     B = expected_background_by_angle(table, n_per_step, rate)
     Hs = np.asarray(signal_angle, dtype=np.float64).reshape(P, table.n_steps)
-    j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings)
+    def log_range_of(j):  # each pixel's stereo range at its window's angle (support)
+        return pixel_log_range(system, table, np.arange(P), j)
+
+    j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings,
+                                        support_pixels=(W, P, log_range_of))
+    keep_first = keep.copy()
     keep &= np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
     # inside it) sees only part of its surface: its stereo mean is biased
@@ -272,13 +345,63 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
+    # near misses of this stage, for the matched filter over angle × code
+    # (:mod:`mems_stereo.pipeline.matched`): counted over j ± (width + width // 2) (box
+    # centres within a footprint of j), their background rows over j ± (width + half)
+    # (the band a confirmed peak counts)
+    from scipy.special import pdtrc
+
+    n_windows = np.maximum(1.0, np.count_nonzero(B > 0, axis=1) / width)
+    ok = np.isfinite(rate.reshape(-1)) & (cnt >= settings.min_counts)
+    if scanned.size:
+        ok &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
+    with np.errstate(invalid="ignore"):
+        p_adj = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
+    qc = candidate_rows(p_adj, keep_first, ok)
+    c_lo = np.maximum(0, j[qc] - width - width // 2).astype(np.int64)
+    c_hi = np.minimum(table.n_steps - 1, j[qc] + width + width // 2).astype(np.int64)
+    b_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
+    b_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
+    candidates = Peaks(
+        row=(qc // W).astype(np.int64), col=(qc % W).astype(np.int64),
+        code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
+        code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
+        counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
+        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, b_lo, b_hi))
+    candidates.n_windows = n_windows[qc]
+    candidates.width = width
     peaks = Peaks(
         row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
         step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
         rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
+    peaks.candidates = candidates
     return peaks, rate.reshape(H, W)
+
+
+#: candidates: pixels whose strongest window's p-value, times the number of window
+#: positions, is below this (a near miss of the first stage)
+CANDIDATE_P = 0.5
+
+
+def candidate_rows(p_adjusted, keep, ok) -> np.ndarray:
+    """(C,) int64 rows (pixels) that missed the first stage by little:
+    ``p_adjusted`` (P,) the strongest window's Poisson p-value times its number of
+    window positions, ``keep`` (P,) bool the first stage's peaks, ``ok`` (P,) bool
+    pixels that may hold a peak at all (known rate, footprint inside the scan)."""
+    return np.flatnonzero(~keep & ok & (p_adjusted < CANDIDATE_P)).astype(np.int64)
+
+
+def pixel_log_range(system: System, table, pix, j) -> np.ndarray:
+    """(N,) log of the stereo range of flat pixels ``pix`` (N,) at the angles of steps
+    ``j`` (N,) of ``table`` (NaN where the rays do not meet in front)."""
+    pix = np.asarray(pix, np.int64)
+    W = system.receiver.width
+    x = stereo_point_est(system, (pix % W).astype(np.float64), (pix // W).astype(np.float64),
+                         np.zeros(pix.size), table.theta_min + np.asarray(j) * table.step)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.log(np.linalg.norm(x, axis=1))
 
 
 def window_rows(B, q, lo, hi):

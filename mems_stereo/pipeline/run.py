@@ -276,6 +276,7 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
                                    n_per_step=acc.n_per_step)
     if big:  # the detector's (P, S) temporaries are freed: give them back
         release_freed_memory()
+    peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
@@ -300,6 +301,24 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     source = path.source if isinstance(path, Recording) else str(path)
     return ProcessResult(sysm, source, {"raw": raw, "signal": sig, "noise": noise},
                          background, peaks, cloud, counts, truth, theta, valid, timings)
+
+
+def matched_stage(path, sysm, theta, valid, st: Settings, peaks, table, n_per_step):
+    """The first stage's peaks plus the near misses that the matched filter over
+    angle × code confirms (:mod:`mems_stereo.pipeline.matched`; their detections
+    are counted here, in one pass over the candidates' steps)."""
+    from mems_stereo.pipeline.matched import confirm, merge_peaks
+    from mems_stereo.pipeline.peaks import pixel_log_range
+
+    cands = getattr(peaks, "candidates", None)
+    if cands is None or len(cands) == 0:
+        return peaks
+    cc = peak_counts_range(path, sysm, theta, valid, st, cands, table=table)
+    W = sysm.receiver.width
+    new = confirm(sysm, cands, cc, table, n_per_step, st, cands.width, cands.n_windows,
+                  peaks.pixel(W), (peaks.step_lo + peaks.step_hi) // 2,
+                  log_range_of=lambda pix, j: pixel_log_range(sysm, table, pix, j))
+    return merge_peaks(peaks, new)
 
 
 # --------------------------------------------------------------------------

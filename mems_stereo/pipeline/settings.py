@@ -20,7 +20,9 @@ class Settings:
     smoothing_bins : width of the moving-average filter of the histograms
         (default: the laser pulse's FWHM in bins, at least 1).
     false_alarm : per-pixel probability that background alone crosses the
-        peak threshold.
+        peak threshold (first stage; the matched filter of near misses uses
+        half of it: ≤ 1.5·false_alarm per pixel in all; an isolated peak must
+        pass at false_alarm / pixels, docs/pipeline.md section 5).
     min_counts : fewest signal counts for a peak.
     """
 

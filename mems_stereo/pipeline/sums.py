@@ -23,8 +23,10 @@ def add_rows(A, q, V) -> None:
     ``0 + A`` is ``A``)."""
     q = np.asarray(q, np.int64)
     Q = A.shape[0]
+    if q.size == 0:  # nothing to add (also no peaks at all: A of shape (0, ...))
+        return
     Af = A.reshape(Q, -1)
-    if Af.shape[1] == 1 or q.size == 0 or not A.flags.c_contiguous:
+    if Af.shape[1] == 1 or not A.flags.c_contiguous:
         np.add.at(A, q, V)
         return
     Vf = np.asarray(V, np.float64).reshape(q.size, -1)
@@ -177,7 +179,7 @@ class EstimateSums:
 
 #: the scalar per-peak sums of :class:`PeakSums` (each (Q,))
 _SCALARS = ("n", "detections", "code", "weight", "theta", "w", "wr", "wrr", "window", "b0",
-            "b1", "b2")
+            "b1", "b2", "bt1", "bt2")
 
 
 @dataclass
@@ -189,7 +191,8 @@ class PeakSums:
     theta : Σ m·code, Σ m·stereo weight, Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ²,
     Σ m·r²/σ² (the scatter test);
     window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
-    subtracted background (its variance); loglik : (Q, J) the detections'
+    subtracted background (its variance; r the entries' fused ranges), bt1, bt2 :
+    Σ b·r_tof, Σ b·r_tof² (the same for the time-of-flight ranges); loglik : (Q, J) the detections'
     log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
     """
 
@@ -205,6 +208,8 @@ class PeakSums:
     b0: np.ndarray
     b1: np.ndarray
     b2: np.ndarray
+    bt1: np.ndarray
+    bt2: np.ndarray
     loglik: np.ndarray
     fused: EstimateSums
     stereo: EstimateSums
