@@ -232,15 +232,19 @@ def process_recording(path, system: System | None = None,
         if own_table:
             table.save_cache()
         timings["classify_histogram"] = time.perf_counter() - t1
-        count_peaks = None
+        count_peaks = count_candidates = None
         if keep is not None and store.complete:
+            def count_candidates(peaks):
+                return peak_counts_from_store(store, sysm, peaks, table.n_steps)
+
             def count_peaks(peaks):
-                pc = peak_counts_from_store(store, sysm, peaks, table.n_steps)
+                pc = count_candidates(peaks)
                 if progress is not None:
                     progress(K)
                 return pc
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                                count_peaks=count_peaks, progress=progress, table=table)
+                                count_peaks=count_peaks, progress=progress, table=table,
+                                count_candidates=count_candidates)
     if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
         table.save_cache()
     return res
@@ -248,7 +252,8 @@ def process_recording(path, system: System | None = None,
 
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
-                      table: IntervalTable | None = None, make_points=None) -> ProcessResult:
+                      table: IntervalTable | None = None, make_points=None,
+                      count_candidates=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
@@ -257,6 +262,9 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     ``make_points(peaks, counts) -> PointCloud`` runs the fusion (default:
     :func:`points_from_counts` here; the Dask runner fuses blocks of peaks on
     its workers).  ``table`` : the run's interval table (the one pass 1 filled).
+    ``count_candidates(peaks) -> PeakCounts`` counts the matched filter's
+    candidates (default: a pass over the recording's shots; a run with a
+    :class:`SignalStore` counts from the store, the same integers).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -276,7 +284,8 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
                                    n_per_step=acc.n_per_step)
     if big:  # the detector's (P, S) temporaries are freed: give them back
         release_freed_memory()
-    peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step)
+    peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step,
+                          count_candidates)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
@@ -303,17 +312,20 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
                          background, peaks, cloud, counts, truth, theta, valid, timings)
 
 
-def matched_stage(path, sysm, theta, valid, st: Settings, peaks, table, n_per_step):
+def matched_stage(path, sysm, theta, valid, st: Settings, peaks, table, n_per_step,
+                  count_candidates=None):
     """The first stage's peaks plus the near misses that the matched filter over
     angle × code confirms (:mod:`mems_stereo.pipeline.matched`; their detections
-    are counted here, in one pass over the candidates' steps)."""
+    are counted here, in one pass over the candidates' steps, or by
+    ``count_candidates(candidates) -> PeakCounts``)."""
     from mems_stereo.pipeline.matched import confirm, merge_peaks
     from mems_stereo.pipeline.peaks import pixel_log_range
 
     cands = getattr(peaks, "candidates", None)
     if cands is None or len(cands) == 0:
         return peaks
-    cc = peak_counts_range(path, sysm, theta, valid, st, cands, table=table)
+    cc = (peak_counts_range(path, sysm, theta, valid, st, cands, table=table)
+          if count_candidates is None else count_candidates(cands))
     W = sysm.receiver.width
     new = confirm(sysm, cands, cc, table, n_per_step, st, cands.width, cands.n_windows,
                   peaks.pixel(W), (peaks.step_lo + peaks.step_hi) // 2,
