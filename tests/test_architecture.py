@@ -15,8 +15,8 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
           "viz", "cli"]
 #: pipeline stages in data-flow order; a stage may import only stages before it
 STAGES = ["consistency", "intervals", "settings", "angles", "histograms", "pass1", "peaks",
-          "pass2", "matched", "signal_store", "cloud", "detections", "sums", "fusion", "run",
-          "distributed", "timetags", "twoaxis"]
+          "pass2", "matched", "signal_store", "cloud", "detections", "sums", "peak_means",
+          "fusion", "run", "distributed", "timetags", "twoaxis"]
 
 
 def _modules():

@@ -123,11 +123,11 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
     bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index, and
     each block fuses a halo of its row neighbours for the depth edges; with the run
     ends counted as edges nearly every cut separates two neighbours)."""
-    from mems_stereo.pipeline import fusion
+    from mems_stereo.pipeline import peak_means
     from mems_stereo.pipeline import run as R
     from mems_stereo.pipeline.distributed import cloud_of_means, means_block, points_block
 
-    monkeypatch.setattr(fusion, "EDGE_RUN_ENDS", run_ends)
+    monkeypatch.setattr(peak_means, "EDGE_RUN_ENDS", run_ends)
 
     for name in ("room.h5", "floodlight.h5"):
         seen = {}

@@ -21,7 +21,7 @@ import pytest
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import burkard2022
 from mems_stereo.pipeline.detections import TOF_LINEAR_BELOW, tof_on_scanner_ray
-from mems_stereo.pipeline.fusion import fuse_along_ray
+from mems_stereo.pipeline.peak_means import fuse_along_ray
 from mems_stereo.pipeline.peaks import strongest_window
 from mems_stereo.pipeline.run import process_recording
 from mems_stereo.pipeline.settings import Settings

@@ -58,6 +58,7 @@ from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
+from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
 
@@ -706,141 +707,6 @@ class PeakAccumulator:
         return out
 
 
-class PeakMeans:
-    """What :meth:`PeakAccumulator.peak_means` gives for Q peaks (each row its peak's
-    own), and the cloud from it.
-
-    stereo, tof : (x (Q, 3) m, C (Q, 3, 3) m²) means with every term of their σ;
-    n, detections, window, code : (Q,) sums of the inliers (see
-    :class:`~mems_stereo.pipeline.sums.PeakSums`); birge : (Q,) reduced χ²
-    scale; range_per_px : (Q, 3) m per pixel at the mean angle (None: no peak
-    had a mean angle); delay, mu : (Q,) first-photon delay (s) and μ0 (None:
-    not corrected).  Means of consecutive blocks of peaks join with
-    :meth:`concat` (the Dask runner fuses blocks on its workers and the client
-    makes the cloud of the whole).
-    """
-
-    def __init__(self, system, k, rows, cols, peak_code, stereo, tof, n, detections, window,
-                 code, birge, range_per_px, delay, mu):
-        self.system, self.k = system, k
-        self.rows, self.cols, self.peak_code = rows, cols, peak_code
-        self.stereo, self.tof = stereo, tof
-        self.n, self.detections, self.window, self.code = n, detections, window, code
-        self.birge, self.range_per_px, self.delay, self.mu = birge, range_per_px, delay, mu
-        self.Q = rows.size
-
-    @classmethod
-    def concat(cls, parts) -> PeakMeans:
-        """The means of consecutive blocks of peaks as one: a block without
-        ``range_per_px`` (no mean angle) gets zeros, as the whole run gives such
-        peaks, and one without first-photon figures (no band) NaN."""
-        parts = list(parts)
-        p0 = parts[0]
-
-        def cat(get):
-            return np.concatenate([get(p) for p in parts])
-
-        def opt(name, fill):
-            if all(getattr(p, name) is None for p in parts):
-                return None
-            return cat(lambda p: getattr(p, name) if getattr(p, name) is not None
-                       else fill(p))
-
-        codes = [p.peak_code for p in parts]
-        return cls(p0.system, p0.k, cat(lambda p: p.rows), cat(lambda p: p.cols),
-                   None if any(c is None for c in codes) else np.concatenate(codes),
-                   (cat(lambda p: p.stereo[0]), cat(lambda p: p.stereo[1])),
-                   (cat(lambda p: p.tof[0]), cat(lambda p: p.tof[1])),
-                   cat(lambda p: p.n), cat(lambda p: p.detections), cat(lambda p: p.window),
-                   cat(lambda p: p.code), cat(lambda p: p.birge),
-                   opt("range_per_px", lambda p: np.zeros((p.Q, 3))),
-                   opt("delay", lambda p: np.full(p.Q, np.nan)),
-                   opt("mu", lambda p: np.full(p.Q, np.nan)))
-
-    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
-        """The cloud (see :meth:`PeakAccumulator.cloud`): the depth edges, the
-        fused point and the attributes of every kept peak."""
-        n = self.n
-        mean = {"stereo": self.stereo, "tof": self.tof}
-        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        birge = self.birge
-        fp = None if self.delay is None else {"delay": self.delay, "mu": self.mu}
-        # the detections (not their background-subtracted sum: 3 detections over an
-        # expected background of 0.01 are 3 detections) set the fewest counts
-        keep = ((self.detections >= max(1, int(min_counts))) & (n > 0)
-                & np.all(np.isfinite(mean["fused"][0]), axis=1))
-        edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
-        if self.range_per_px is not None and np.any(edge):
-            J = self.range_per_px[edge]
-            x, C = mean["stereo"]
-            C = C.copy()
-            C[edge] += EDGE_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
-            mean["stereo"] = (x, C)
-            mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        w_mean = mean["fused"][2]
-        xf, Cf = mean["fused"][:2]
-        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
-        sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            code_mean = self.code / n
-        attrs = {
-            "counts": np.rint(n).astype(np.int32), "pixel": self.cols.astype(np.int32),
-            "row": self.rows.astype(np.int32),
-            "code": self.peak_code if self.peak_code is not None else code_mean,
-            "range": r, "sigma_r": sr, "sigma_phi": sphi,
-            "sigma_x": sx[:, 0], "sigma_y": sx[:, 1], "sigma_z": sx[:, 2],
-            "range_stereo": r_st, "sigma_r_stereo": sr_st, "range_tof": r_tf,
-            "sigma_r_tof": sr_tf, "weight_stereo": w_mean, "scatter_ratio": np.sqrt(birge),
-            "counts_window": np.rint(self.window).astype(np.int32),
-        }
-        if fp is not None:
-            attrs["tof_delay"] = fp["delay"]
-            attrs["signal_photons"] = fp["mu"]
-        # how far the stereo and time-of-flight ranges of the peak disagree, in σ of
-        # their difference (see :func:`consistent_points`)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            attrs["stereo_tof_z"] = np.abs(r_st - r_tf) / np.sqrt(sr_st ** 2 + sr_tf ** 2)
-        if own is not None:
-            q = np.arange(self.Q)
-            keep = keep & (q >= own[0]) & (q < own[1])
-        return PointCloud(xf, attrs).select(keep)
-
-    def _depth_edges(self, x, C, keep) -> np.ndarray:
-        """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
-
-        A kept peak is at an edge when a neighbour in its row (column ± 1) holds a
-        point whose range differs by more than k·σ of the difference (an object's
-        silhouette, a shadow), or, with :data:`EDGE_RUN_ENDS`, when one neighbour
-        holds a point and the other none (the end of a run of points).  ``x`` (Q, 3),
-        ``C`` (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
-        """
-        Q = self.Q
-        edge = np.zeros(Q, bool)
-        if Q == 0 or not np.any(keep):
-            return edge
-        r, _, sr, _ = polar_from_cartesian(x, C)
-        H = int(self.rows.max()) + 1
-        W = self.system.receiver.width
-        at = np.full((H, W + 2), -1, np.int64)  # padded: columns −1 and W are empty
-        idx = np.flatnonzero(keep)
-        at[self.rows[idx], self.cols[idx] + 1] = idx
-        present = []
-        for dc in (-1, 1):
-            j = at[self.rows[idx], self.cols[idx] + 1 + dc]
-            has = j >= 0
-            jj = np.where(has, j, 0)
-            with np.errstate(invalid="ignore"):
-                jump = has & (np.abs(r[idx] - r[jj]) > self.k * np.hypot(sr[idx], sr[jj]))
-            edge[idx[jump]] = True
-            inside = (self.cols[idx] + dc >= 0) & (self.cols[idx] + dc < W)
-            present.append(has | ~inside)  # the sensor's border is not an edge
-        if EDGE_RUN_ENDS:
-            edge[idx[present[0] ^ present[1]]] = True
-        return edge
-
-
 #: peaks per block of the first-photon correction (by peak index; see
 #: :meth:`PeakAccumulator._first_photon`): a split of the peaks at multiples of it
 #: gives the same bits as the whole
@@ -848,14 +714,6 @@ FP_BLOCK = 16
 #: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
 #: (:meth:`PeakAccumulator._footprint_halfwidth`)
 INLIER_FOOTPRINT_PX = 1.0
-#: systematic uncertainty, in pixels, of the stereo of a peak at a depth edge of the cloud
-#: (:meth:`PeakAccumulator._depth_edges`): the pixel sees part of the spot on one
-#: surface, its image off the pixel's centre by up to the spot's size
-EDGE_PIXEL_SIGMA = 0.25
-#: whether the end of a run of points (one row neighbour with a point, the other
-#: without) also counts as a depth edge (off: in sparse clouds it flags most points
-#: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
-EDGE_RUN_ENDS = False
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.05
 #: relative systematic uncertainty of the first-photon delay the correction removes
@@ -863,34 +721,6 @@ MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
-
-
-def fuse_along_ray(stereo, tof):
-    """Peak-level fusion of the stereo and ToF means: ``(x (Q, 3), C (Q, 3, 3), w (Q,))``.
-
-    ``stereo``, ``tof`` : (x (Q, 3), C (Q, 3, 3)) means and covariances (both
-    on the scanner ray at the peak's angle).  ``x = w·x_st + (1 − w)·x_tof`` with
-    ``w = σ_r,tof² / (σ_r,st² + σ_r,tof²)`` (range variances: inverse-variance
-    weights), ``C = w²·C_st + (1 − w)²·C_tof`` (independent given θ: pixel vs
-    timing).  One estimate missing (NaN), the other alone.
-    """
-    xs, Cs = stereo[0], stereo[1]
-    xt, Ct = tof[0], tof[1]
-    _, _, ss, _ = polar_from_cartesian(xs, Cs)
-    _, _, st, _ = polar_from_cartesian(xt, Ct)
-    vs, vt = ss ** 2, st ** 2
-    ok_s = np.all(np.isfinite(xs), axis=1) & np.isfinite(vs)
-    ok_t = np.all(np.isfinite(xt), axis=1) & np.isfinite(vt)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(vs + vt > 0, vt / (vs + vt), 0.5)
-    w = np.where(ok_s & ok_t, w, np.where(ok_s, 1.0, 0.0))
-    x = w[:, None] * np.nan_to_num(xs) + (1 - w)[:, None] * np.nan_to_num(xt)
-    C = ((w ** 2)[:, None, None] * np.nan_to_num(Cs)
-         + ((1 - w) ** 2)[:, None, None] * np.nan_to_num(Ct))
-    bad = ~(ok_s | ok_t)
-    x[bad] = np.nan
-    C[bad] = np.nan
-    return x, C, w
 
 
 def _empty_band(Q: int):

@@ -41,7 +41,6 @@ from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
 from mems_stereo.pipeline.fusion import (
     FP_BLOCK,
-    PeakMeans,
     accumulator_for_peaks,
     consistent_points,
     peak_sums_from_counts,
@@ -58,6 +57,7 @@ from mems_stereo.pipeline.pass1 import (
     truth_scores,
 )
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.peak_means import PeakMeans
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.signal_store import (
     SignalStore,
@@ -444,7 +444,7 @@ def points_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, 
 
 
 def means_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, table):
-    """The :class:`~mems_stereo.pipeline.fusion.PeakMeans` of the peaks of block ``i``
+    """The :class:`~mems_stereo.pipeline.peak_means.PeakMeans` of the peaks of block ``i``
     of ``blocks`` (:func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays),
     no halo: the blocks' means joined (``PeakMeans.concat``) give the whole's cloud,
     bit for bit (:func:`cloud_of_means`)."""
