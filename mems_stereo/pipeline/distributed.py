@@ -290,8 +290,18 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             # the joined means (milliseconds)
             return cloud_of_means(means, st)
 
+        def count_candidates(cands):
+            # the matched filter's candidates, counted on the workers (their stores or
+            # their shots) and summed there: the client gets one PeakCounts
+            c_f = client.scatter(cands, broadcast=True)
+            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, c_f, a, b, table_f,
+                                 store, pure=False)
+                   for ang, (a, b), store in zip(angle_f, parts, stores)]
+            return waits(tree_sum(client, pcs).result)
+
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
-                                count_peaks=count_peaks, make_points=make_points, table=table)
+                                count_peaks=count_peaks, make_points=make_points, table=table,
+                                count_candidates=count_candidates)
         t_end = time.perf_counter()
         c_end = time.process_time()
         m_end = time.thread_time()
