@@ -204,15 +204,16 @@ def cloud_accuracy(cloud, scene, illuminated) -> dict:
 
 
 # --------------------------------------------------------------------------- one sample
-def evaluate(name: str, path: Path, scene_path: Path, variants=()) -> dict:
-    """Process one sample and measure every figure; returns a dict of results."""
+def evaluate(name: str, path: Path, scene_path: Path, variants=(), system=None) -> dict:
+    """Process one sample with ``system`` (default: the file's /system) and measure
+    every figure; returns a dict of results.  The alternatives use the same system."""
     from mems_stereo.sim.scene import load_scene
 
     t0 = time.perf_counter()
-    res = process_recording(path)
+    res = process_recording(path, system=system)
     t_process = time.perf_counter() - t0
     rec = read_recording(path)
-    system = rec.system
+    system = rec.system if system is None else system
     truth = rec.truth["label"]
     K, H, W = rec.bins.shape
     n_bins = system.tdc.n_bins
@@ -279,7 +280,7 @@ def evaluate(name: str, path: Path, scene_path: Path, variants=()) -> dict:
     out["t_truth"] = time.perf_counter() - t
     out["variants"] = []
     for st in variants:
-        rv = process_recording(path, settings=st)
+        rv = process_recording(path, system=system, settings=st)
         out["variants"].append((st, rv.truth, rv.counts, cloud_accuracy(rv.cloud, scene, illum)))
     return out
 
@@ -411,18 +412,31 @@ def main(argv=None) -> int:
     ap.add_argument("--samples", type=Path, default=ROOT / "samples",
                     help="directory holding room.h5, floodlight.h5, room_scene.json")
     ap.add_argument("--only", choices=[s[0] for s in SAMPLES], default=None)
+    ap.add_argument("--system", default=None,
+                    help="system JSON to process with (default: the samples' true system, "
+                         "calib_true_system.json, where present: the recordings' /system is "
+                         "the nominal one, which calibration corrects; 'nominal': the files')")
     args = ap.parse_args(argv)
+    from mems_stereo.model.system import load_system
+
+    true_file = args.samples / "calib_true_system.json"
+    if args.system == "nominal" or (args.system is None and not true_file.exists()):
+        system, which = None, "each recording's /system (nominal)"
+    else:
+        f = Path(args.system) if args.system else true_file
+        system, which = load_system(f), str(f)
     t0 = time.perf_counter()
     results = []
     for name, rec_file, scene_file in SAMPLES:
         if args.only and name != args.only:
             continue
         r = evaluate(name, args.samples / rec_file, args.samples / scene_file,
-                     VARIANTS.get(name, ()))
+                     VARIANTS.get(name, ()), system)
         r["settings"] = None
         results.append(r)
     print(f"machine: {platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}, NumPy {np.__version__}")
+    print(f"processed with: {which}")
     print_tables(results)
     print(f"\ntotal run time of this script: {time.perf_counter() - t0:.1f} s")
     return 0
