@@ -173,6 +173,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1000, help="first trial's seed")
+    ap.add_argument("--seeds", type=str, default=None,
+                    help="comma-separated trial seeds to run instead of a range "
+                         "(e.g. the failing seeds of a logged run)")
     ap.add_argument("--shot-scale", type=float, default=None,
                     help="divide each wall's shot count by this (default 1; --fast: 8)")
     ap.add_argument("--fast", action="store_true", help="12 trials, shots / 8")
@@ -182,12 +185,17 @@ def main(argv=None) -> int:
     ap.add_argument("--verbose", action="store_true", help="one line per trial")
     args = ap.parse_args(argv)
     trials = 12 if args.fast and args.trials == 100 else args.trials
+    seeds = ([int(x) for x in args.seeds.split(",") if x.strip()] if args.seeds
+             else list(range(args.seed, args.seed + trials)))
+    trials = len(seeds)
     scale = args.shot_scale if args.shot_scale is not None else (8.0 if args.fast else 1.0)
-    print(f"calibration Monte-Carlo: {trials} trials, seeds {args.seed}..{args.seed + trials - 1}"
+    span = (f"seeds {seeds[0]}..{seeds[-1]}" if seeds == list(range(seeds[0], seeds[0] + trials))
+            else "seeds " + ",".join(map(str, seeds)))
+    print(f"calibration Monte-Carlo: {trials} trials, {span}"
           + (f", shot counts divided by {scale:g} (REDUCED family: {FAMILY['shots'][0] / scale:.0f}"
              f"–{FAMILY['shots'][1] / scale:.0f} shots per wall)" if scale != 1 else
              ", full family shot counts"), flush=True)
-    jobs = [(args.seed + i, scale, not args.no_fisher) for i in range(trials)]
+    jobs = [(s, scale, not args.no_fisher) for s in seeds]
     t0 = time.perf_counter()
     results = []
     if args.jobs > 1:
