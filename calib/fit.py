@@ -1,15 +1,22 @@
-"""The calibration fit: start values, the likelihood fit, checks, the outcome.
+"""The calibration: start values, the likelihood fit, checks, the outcome.
 
-:func:`fit_walls` runs
+:func:`fit_walls` runs, each step in its own module:
 
-1. :func:`mems_stereo.calib.initialisation.initialise` — start values from the
-   beam's track on the sensor, a grid over θ0 (not the nominal system);
-2. rounds of a damped Newton (BHHH) ascent of the exact first-photon
-   likelihood of :mod:`mems_stereo.calib.problem` on the cells of
-   :mod:`mems_stereo.calib.association`, the cells re-centred on the beam's image
-   between rounds;
-3. the covariance from the information matrix, the observability verdict
-   and the consistency checks (:mod:`mems_stereo.calib.observability`);
+1. start values — :func:`mems_stereo.calib.initialisation.initialise`: the
+   beam's track on the sensor (per phase bin, or for a weak wall a pose search
+   over the whole recording), a grid over θ0 (not the nominal system);
+2. the likelihood fit — :func:`mems_stereo.calib.solver.solve`: rounds of a
+   damped Newton (BHHH) ascent of the exact first-photon likelihood of
+   :mod:`mems_stereo.calib.problem` on the cells of
+   :mod:`mems_stereo.calib.association`; a wall the fit loses is left out;
+3. missed walls — :mod:`mems_stereo.calib.missed`: walls without a start
+   searched with the system the others fix, then all fitted together;
+4. observability — :mod:`mems_stereo.calib.observability`: the covariance, a
+   parameter the data do not determine named (refusal or warning);
+5. plausibility — :mod:`mems_stereo.calib.checks`: poses, signal share, the
+   flat-wall consistency test, measured distances; a wall off its track or
+   with a collapsed spot gets one more fit, walls found only by the guided
+   search are dropped when they alone fail;
 
 and returns a :class:`~mems_stereo.calib.result.CalibrationResult` or, when any
 step fails, a :class:`~mems_stereo.calib.result.CalibrationFailure` saying why
