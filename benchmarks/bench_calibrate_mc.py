@@ -29,6 +29,7 @@ by the association; not converged; implausible).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -183,7 +184,22 @@ def main(argv=None) -> int:
     ap.add_argument("--no-fisher", action="store_true",
                     help="skip the Fisher check at the truth for refusals")
     ap.add_argument("--verbose", action="store_true", help="one line per trial")
+    ap.add_argument("--records", type=str, default=None,
+                    help="append each finished trial as a JSON line to this file")
+    ap.add_argument("--summarise", type=str, default=None, metavar="RECORDS",
+                    help="print the summary of a records file (e.g. of a run cut short) "
+                         "and exit")
     args = ap.parse_args(argv)
+    if args.summarise:
+        results = [json.loads(line) for line in Path(args.summarise).read_text().splitlines()
+                   if line.strip()]
+        results.sort(key=lambda r: r["seed"])
+        print(f"summary of {len(results)} trial records from {args.summarise}, seeds "
+              f"{results[0]['seed']}..{results[-1]['seed']}")
+        for mode in ("free", "dist"):
+            for line in summarise(results, mode):
+                print(line)
+        return 0
     trials = 12 if args.fast and args.trials == 100 else args.trials
     seeds = ([int(x) for x in args.seeds.split(",") if x.strip()] if args.seeds
              else list(range(args.seed, args.seed + trials)))
@@ -198,16 +214,21 @@ def main(argv=None) -> int:
     jobs = [(s, scale, not args.no_fisher) for s in seeds]
     t0 = time.perf_counter()
     results = []
+
+    def done(r):
+        results.append(r)
+        _trial_line(r, args.verbose)
+        if args.records:
+            with open(args.records, "a", encoding="utf-8") as f:
+                f.write(json.dumps(r, default=float) + "\n")
+
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             for r in ex.map(run_trial, jobs):
-                results.append(r)
-                _trial_line(r, args.verbose)
+                done(r)
     else:
         for j in jobs:
-            r = run_trial(j)
-            results.append(r)
-            _trial_line(r, args.verbose)
+            done(run_trial(j))
     for mode in ("free", "dist"):
         for line in summarise(results, mode):
             print(line)
