@@ -29,6 +29,7 @@ by the association; not converged; implausible).
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -173,6 +174,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1000, help="first trial's seed")
+    ap.add_argument("--seeds", type=str, default=None,
+                    help="comma-separated trial seeds to run instead of a range "
+                         "(e.g. the failing seeds of a logged run)")
     ap.add_argument("--shot-scale", type=float, default=None,
                     help="divide each wall's shot count by this (default 1; --fast: 8)")
     ap.add_argument("--fast", action="store_true", help="12 trials, shots / 8")
@@ -180,26 +184,51 @@ def main(argv=None) -> int:
     ap.add_argument("--no-fisher", action="store_true",
                     help="skip the Fisher check at the truth for refusals")
     ap.add_argument("--verbose", action="store_true", help="one line per trial")
+    ap.add_argument("--records", type=str, default=None,
+                    help="append each finished trial as a JSON line to this file")
+    ap.add_argument("--summarise", type=str, default=None, metavar="RECORDS",
+                    help="print the summary of a records file (e.g. of a run cut short) "
+                         "and exit")
     args = ap.parse_args(argv)
+    if args.summarise:
+        results = [json.loads(line) for line in Path(args.summarise).read_text().splitlines()
+                   if line.strip()]
+        results.sort(key=lambda r: r["seed"])
+        print(f"summary of {len(results)} trial records from {args.summarise}, seeds "
+              f"{results[0]['seed']}..{results[-1]['seed']}")
+        for mode in ("free", "dist"):
+            for line in summarise(results, mode):
+                print(line)
+        return 0
     trials = 12 if args.fast and args.trials == 100 else args.trials
+    seeds = ([int(x) for x in args.seeds.split(",") if x.strip()] if args.seeds
+             else list(range(args.seed, args.seed + trials)))
+    trials = len(seeds)
     scale = args.shot_scale if args.shot_scale is not None else (8.0 if args.fast else 1.0)
-    print(f"calibration Monte-Carlo: {trials} trials, seeds {args.seed}..{args.seed + trials - 1}"
+    span = (f"seeds {seeds[0]}..{seeds[-1]}" if seeds == list(range(seeds[0], seeds[0] + trials))
+            else "seeds " + ",".join(map(str, seeds)))
+    print(f"calibration Monte-Carlo: {trials} trials, {span}"
           + (f", shot counts divided by {scale:g} (REDUCED family: {FAMILY['shots'][0] / scale:.0f}"
              f"–{FAMILY['shots'][1] / scale:.0f} shots per wall)" if scale != 1 else
              ", full family shot counts"), flush=True)
-    jobs = [(args.seed + i, scale, not args.no_fisher) for i in range(trials)]
+    jobs = [(s, scale, not args.no_fisher) for s in seeds]
     t0 = time.perf_counter()
     results = []
+
+    def done(r):
+        results.append(r)
+        _trial_line(r, args.verbose)
+        if args.records:
+            with open(args.records, "a", encoding="utf-8") as f:
+                f.write(json.dumps(r, default=float) + "\n")
+
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as ex:
             for r in ex.map(run_trial, jobs):
-                results.append(r)
-                _trial_line(r, args.verbose)
+                done(r)
     else:
         for j in jobs:
-            r = run_trial(j)
-            results.append(r)
-            _trial_line(r, args.verbose)
+            done(run_trial(j))
     for mode in ("free", "dist"):
         for line in summarise(results, mode):
             print(line)

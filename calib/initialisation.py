@@ -250,15 +250,21 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     for j, w in enumerate(walls):
         try:
             tr = find_track(w, sigma)
+            why = ""
         except NotObservableError as e:
-            skipped.append(str(e))
+            tr, why = None, str(e)
+        if tr is not None and tr.u.size < MIN_TRACK_POINTS:
+            why = (f"{w.source}: the beam's track on the sensor could not be followed "
+                   f"({tr.u.size} phase bins with a significant return, need "
+                   f"{MIN_TRACK_POINTS}): record more shots, or use a brighter wall")
+            tr = None
+        if tr is None:  # too weak for one phase bin: the whole recording at once
+            tr = track_from_pose(w, system, sigma)
+        if tr is None:
+            skipped.append(why)
             continue
-        if tr.u.size < MIN_TRACK_POINTS:
-            skipped.append(
-                f"{w.source}: the beam's track on the sensor could not be followed "
-                f"({tr.u.size} phase bins with a significant return, need "
-                f"{MIN_TRACK_POINTS}): record more shots, or use a brighter wall")
-            continue
+        if progress and why:
+            progress(f"{w.source}: track found by the pose search with the nominal system")
         tracks.append(tr)
         used.append(j)
     if not used:
@@ -404,3 +410,81 @@ def find_wall(w: WallData, system: System, values: dict, sigma: float,
     a, d, frac = best[1]
     mu = -math.log(max(1.0 - min(max(frac, 1e-3) / 0.8, 0.95), 1e-3))
     return a, d, mu, best[0]
+
+
+def track_from_pose(w: WallData, system: System, sigma: float) -> Track | None:
+    """Track points of a wall too weak for the per-phase-bin search (:func:`find_track`).
+
+    The pose search of :func:`find_wall` with the nominal system uses the whole
+    recording coherently; the system's tolerances shift the beam's image by a
+    few pixels and its returns by a few ns, which the pose (distance, tilt) and
+    the pulse-wide time gate absorb.  Around the best pose's predicted image
+    (±``POSE_COLUMNS`` columns, ±2σ of the pulse in time), the detections in
+    each phase bin give a track point: the excess-weighted column centroid
+    (measured, not the prediction's) and the median time.  Returns None when
+    no pose is significant or fewer than ``MIN_TRACK_POINTS`` bins hold a return.
+    """
+    values = {n: system.get_param(n) for n in ("theta0", "theta_mech_max", "phase_offset",
+                                               "tdc_offset", "baseline_x", "baseline_y",
+                                               "baseline_z")}
+    f = find_wall(w, system, values, sigma)
+    if f is None:
+        return None
+    a, d, mu, z = f
+    K, H, W = w.bins.shape
+    h = beam_hits(system, values, w.phase, plane_normal(a), d)
+    u_p = h.pixel[:, 0]
+    tau = h.path / system.speed_of_light + values["tdc_offset"]
+    good = h.ok & (u_p > -0.5) & (u_p < W - 0.5)
+    lam = w.background.sum(axis=0)
+    off = np.arange(-POSE_COLUMNS, POSE_COLUMNS + 1)
+    k = np.flatnonzero(good)
+    cols = np.rint(u_p[k])[:, None] + off[None, :]
+    inside = (cols >= 0) & (cols < W)
+    ci = np.clip(cols, 0, W - 1).astype(np.int64)
+    code = w.bins[k[:, None], 0, ci]
+    t = (code.astype(np.float64) - 0.5) * w.bin_width
+    hit = inside & (code > 0) & (np.abs(t - tau[k, None]) < 2.0 * sigma)
+    lo = np.maximum(tau[k, None] - 2.0 * sigma, 0.0)
+    lu = lam[ci]
+    pb = np.where(inside, np.exp(-lu * lo) * -np.expm1(-lu * (tau[k, None] + 2.0 * sigma - lo)),
+                  0.0)
+    excess = float(hit.sum() - pb.sum())
+    n_half = int(np.clip(2 ** np.floor(np.log2(max(excess / 20.0, 1.0))), 4, 64))
+    ph = w.phase[k]
+    sweep = (np.sin(ph) >= 0).astype(np.int64)
+    b = (np.minimum(((np.cos(ph) + 1.0) / 2.0 * n_half).astype(np.int64), n_half - 1)
+         + n_half * sweep)
+    P = [[], [], [], [], []]
+    for i in range(2 * n_half):
+        m = b == i
+        if np.count_nonzero(m) < 3:
+            continue
+        ex_c = hit[m].sum(axis=0) - pb[m].sum(axis=0)  # excess per column offset
+        n_ex = float(ex_c.sum())
+        # a significant excess in this bin: at least 3 counts and 3σ over the background
+        if n_ex < 3.0 or n_ex < 3.0 * math.sqrt(max(pb[m].sum(), 1.0)):
+            continue
+        wts = np.maximum(ex_c, 0.0)
+        du = float(np.sum(off * wts) / max(wts.sum(), 1e-9))
+        P[0].append(float(np.angle(np.mean(np.exp(1j * ph[m])))))
+        P[1].append(float(np.mean(u_p[k[m]])) + du)
+        P[2].append(float(np.median(t[m][hit[m]])))
+        P[3].append(n_ex)
+        P[4].append(max(0.5, 1.0 / math.sqrt(n_ex)) + 0.3 * W / n_half / 6.0)
+    if len(P[0]) < MIN_TRACK_POINTS:
+        return None
+    tr = Track(np.array(P[0]), np.array(P[1]), np.array(P[2]), np.array(P[3]),
+               (0.0, T_SEARCH), 0.0, 0.0, z, np.array(P[4]))
+    tr = _clean_track(tr)
+    if tr.u.size < MIN_TRACK_POINTS:
+        return None
+    tr.mu = mu
+    _, mean, _ = first_photon_timing(np.array([float(np.median(tr.t))]), mu, sigma,
+                                     float(np.mean(w.background)))
+    tr.bias = float(mean[0]) if np.isfinite(mean[0]) else 0.0
+    return tr
+
+
+#: columns either side of the predicted image that a pose-found track collects
+POSE_COLUMNS = 2

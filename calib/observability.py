@@ -23,7 +23,7 @@ from scipy.stats import chi2, norm
 #: a free parameter with a σ above this is "not observable" (SI units)
 #: (a σ this large means the data add nothing to a mechanical tolerance of that size)
 DEFAULT_MAX_STD = {"theta0": 10e-3, "theta_mech_max": 10e-3, "phase_offset": 20e-3,
-                   "tdc_offset": 1e-9, "baseline_x": 20e-3, "baseline_y": 20e-3,
+                   "tdc_offset": 3e-9, "baseline_x": 20e-3, "baseline_y": 20e-3,
                    "baseline_z": 20e-3, "fx": 5.0, "cx": 2.0}
 CORRELATION_REPORT = 0.9
 #: consistency: a wall fails when its score statistic's one-sided p-value is
@@ -31,6 +31,23 @@ CORRELATION_REPORT = 0.9
 P_INCONSISTENT = 1e-12
 SHIFT_TIME = 1e-9
 SHIFT_PIXEL = 0.3
+#: ... and at least this share of the pulse σ: the first-photon time model holds to a
+#: fraction of the pulse width (a strong, piled-up wall's leading edge), not to 1 ns
+SHIFT_TIME_PULSE = 0.5
+#: ... and a shift that large counts only where it is itself this significant
+#: (shift / its σ): the outer-product information of the few signal cells of a weak
+#: wall is overdispersed (correct fits show p ~ 1e-3 routinely), and a genuine
+#: non-flat wall or a wrong geometry shows shifts at tens of σ
+SHIFT_Z = 8.0
+
+
+def big_shift(dt_q: np.ndarray, du_q: np.ndarray, z: np.ndarray, sigma: float) -> bool:
+    """A quarter of the sensor whose returns sit off the model by more than
+    max(``SHIFT_TIME``, ``SHIFT_TIME_PULSE`` × the pulse σ ``sigma``) or
+    ``SHIFT_PIXEL``, at a significance above ``SHIFT_Z``."""
+    size = np.concatenate([np.abs(dt_q) > max(SHIFT_TIME, SHIFT_TIME_PULSE * sigma),
+                           np.abs(du_q) > SHIFT_PIXEL])
+    return bool(np.any(size & (np.abs(z) > SHIFT_Z)))
 
 
 def covariance(H: np.ndarray, scales: np.ndarray):
@@ -91,9 +108,11 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
     S_cells : (N, P) the cells' scores of the fitted parameters (the nuisance).
     col : (N,) column of each cell (the quarter of the sensor it belongs to).
 
-    Returns (p_value, time shifts (4,) s, column shifts (4,) px): the shifts
-    the data ask for, each beyond the fitted model.
+    Returns (p_value, time shifts (4,) s, column shifts (4,) px, and the
+    significance of each shift (8,): shift / its σ, time shifts first): the
+    shifts the data ask for, each beyond the fitted model.
     """
+    none = (1.0, np.zeros(4), np.zeros(4), np.zeros(8))
     q = np.clip((col / width * 4).astype(np.int64), 0, 3)
     E = np.zeros((col.size, 8))
     for i in range(4):
@@ -103,7 +122,7 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
     used = np.any(E != 0, axis=0)
     E = E[:, used]
     if E.shape[1] == 0:
-        return 1.0, np.zeros(4), np.zeros(4)
+        return none
     unit = np.sqrt(np.maximum(np.einsum("ij,ij->j", E, E), 1e-300))
     E = E / unit  # columns in units of their own σ
     S_cells = S_cells / np.sqrt(np.maximum(np.einsum("ij,ij->j", S_cells, S_cells), 1e-300))
@@ -115,19 +134,23 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
         adj = Iee - Ies @ np.linalg.pinv(Iss, rcond=1e-10, hermitian=True) @ Ies.T
         ev, V = np.linalg.eigh(0.5 * (adj + adj.T))
     except np.linalg.LinAlgError:
-        return 1.0, np.zeros(4), np.zeros(4)
+        return none
     # directions the fitted parameters already span (e.g. the sum of the quarter
     # time shifts is the TDC offset) carry no test: keep the well-conditioned rest
     keep = ev > 1e-6
     if not keep.any():
-        return 1.0, np.zeros(4), np.zeros(4)
+        return none
     proj = V[:, keep].T @ g
     stat = float(np.sum(proj * proj / ev[keep]))
     p = float(chi2.sf(stat, int(keep.sum())))
     shift = V[:, keep] @ (proj / ev[keep]) / unit
+    # σ of each shift (in its own units): the diagonal of the adjusted inverse
+    var = np.einsum("ik,k,ik->i", V[:, keep], 1.0 / ev[keep], V[:, keep]) / unit ** 2
     full = np.zeros(8)
     full[used] = shift
-    return p, full[:4], full[4:]
+    z = np.zeros(8)
+    z[used] = shift / np.sqrt(np.maximum(var, 1e-300))
+    return p, full[:4], full[4:], z
 
 
 def sigma_of_p(p: float) -> float:

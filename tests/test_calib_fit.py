@@ -155,3 +155,27 @@ def test_collapsed_spot_is_not_written_with_an_overconfident_sigma(nominal):
         assert all(t["spot_px"] > 1.05 * SPOT_MIN for t in res.targets)
     else:
         assert res.reason
+
+
+def test_consistency_needs_a_large_and_significant_shift():
+    """Issue 12 (family seeds 1064, 1098: correct fits refused as "not a flat wall"):
+    a quarter's shift counts only when it is large (beyond 1 ns and half the pulse σ,
+    or 0.3 px) and significant on its own (> SHIFT_Z σ)."""
+    from mems_stereo.calib import observability as obs
+
+    sig = 6.3e-9
+    z4 = np.zeros(4)
+
+    def big(dt, du, z):
+        return obs.big_shift(np.asarray(dt, float), np.asarray(du, float), np.asarray(z, float),
+                             sig)
+
+    # a weak wall's lightly lit quarter: 10 ns, but only 7σ
+    assert not big([0, 0, 0, -10e-9], z4, [0, 0, 0, -7.3, 0, 0, 0, 0])
+    # a piled-up wall: 2.2 ns at 9.5σ, within half the pulse σ
+    assert not big([0, 0, 0, 2.2e-9], z4, [0, 0, 0, 9.5, 0, 0, 0, 0])
+    # a real step in depth: 5 ns at 30σ, or a column shift of 0.6 px at 20σ
+    assert big([0, 5e-9, 0, 0], z4, [0, 30, 0, 0, 0, 0, 0, 0])
+    assert big(z4, [0, 0, 0.6, 0], [0, 0, 0, 0, 0, 0, 20, 0])
+    # significant but tiny shifts are the model's precision, not a failure
+    assert not big([0.5e-9, 0, 0, 0], [0.1, 0, 0, 0], [50, 0, 0, 0, 50, 0, 0, 0])

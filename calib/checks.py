@@ -1,0 +1,220 @@
+"""Plausibility checks of a converged calibration fit.
+
+:func:`check_walls` — per wall: the fitted beam follows the returns found on
+the sensor, the distance and tilt are those of a calibration target, the fit
+explains the excess over the background, the flat-wall consistency test
+(:func:`mems_stereo.calib.observability.consistency_scores`), a spot not
+collapsed onto its bound; and the fitted baseline's length.
+:func:`check_distances` — each measured distance against a fit without it.
+Both fill a :class:`Checks`: the per-wall ``targets`` of the report, the
+``checks`` table, and ``bad`` (reasons) / ``bad_walls`` for a refusal.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from mems_stereo.calib import observability as obs
+from mems_stereo.calib.model import plane_normal
+from mems_stereo.calib.problem import (
+    SPOT_MIN,
+    cell_terms,
+    distance_model,
+    shot_model,
+    spot_share,
+)
+from mems_stereo.calib.solver import leave_one_out
+from scipy.special import ndtr
+
+#: wall plausibility: incidence of the beam on a wall beyond this is not a calibration target
+MAX_TILT = math.radians(60.0)
+#: a wall closer than this (m) along the optical axis is a degenerate fit
+MIN_DISTANCE = 0.2
+#: share of the sensor's analysed cells the fitted signal must explain: at least
+MIN_SIGNAL_SHARE = 0.5
+#: a measured distance farther than this many σ from the data is named
+DISTANCE_PULL = 5.0
+#: the fitted track must pass within this many pixels (or 3σ of a point's column,
+#: when larger) of this share of the track points
+TRACK_GATE = 2.0
+MIN_ON_TRACK = 0.6
+
+
+@dataclass
+class Checks:
+    """What the checks found: per-wall report entries (``targets``), the checks
+    table (name → (value, limit, passed)), the reasons to refuse (``bad``) and
+    the walls they name, and the signal-weighted residual sums (pixel², s²,
+    weight) with the expected signal count."""
+
+    targets: list = field(default_factory=list)
+    checks: dict = field(default_factory=dict)
+    bad: list = field(default_factory=list)
+    bad_walls: set = field(default_factory=set)
+    rms_u: float = 0.0
+    rms_t: float = 0.0
+    wsum: float = 0.0
+    n_sig: float = 0.0
+
+
+def check_walls(prob, x, cov, walls, tracks, system, values, sigma, two_d,
+                warns: list) -> Checks:
+    """The checks of each fitted wall and of the baseline (see the module).
+
+    prob, x : the converged problem and its parameter vector; cov : (P, P) SI
+    covariance; tracks : each wall's :class:`~mems_stereo.calib.initialisation.Track`
+    or None (found by the pose search), or None for all; values : fitted system
+    values; sigma : pulse σ, s.  A collapsed spot's warning goes to ``warns``.
+    """
+    lay = prob.layout
+    _, wall_p = lay.unpack(x)
+    checks = {}
+    targets = []
+    rms_u, rms_t, wsum, n_sig = 0.0, 0.0, 0.0, 0.0
+    bad = []
+    bad_walls = set()
+    checks = {}
+    targets = []
+    rms_u, rms_t, wsum, n_sig = 0.0, 0.0, 0.0, 0.0
+    bad = []
+    bad_walls = set()
+    for j, w in enumerate(walls):
+        ws = lay.wall_slice(j)
+        wall = wall_p[j]
+        n_z = plane_normal(wall[0], wall[1])[2]
+        z_axis = wall[2] / n_z
+        gz = np.zeros(lay.size)
+        for i, pn in enumerate(lay.wall_names):
+            if pn in ("alpha", "beta", "dist"):
+                wp = wall.copy()
+                col = {"alpha": 0, "beta": 1, "dist": 2}[pn]
+                wp[col] += 1e-7
+                gz[ws.start + i] = (distance_model(wp) - z_axis) / 1e-7
+        z_std = math.sqrt(max(float(gz @ np.where(np.isfinite(cov), cov, 0.0) @ gz), 0.0))
+        c = prob.cells[j]
+        pred, ok, jac = prob.predictions(x, j, c.shots, steps=True)
+        pos = np.searchsorted(c.shots, c.shot)
+        ll_c, d_c = cell_terms(c, np.where(ok[pos, None], pred[pos], [0, -1e6, -1e6, 0]),
+                               wall[3], wall[4], sigma, two_d, prob.pitch_ratio)
+        _, S, idx = prob.wall_terms(x, j, grad=True)
+        p_cons, dt_q, du_q, z_q = obs.consistency_scores(d_c[:, :2], S, c.col,
+                                                    width=system.receiver.width)
+        # signal the fit explains vs the excess over the background in the cells
+        fired = np.isfinite(c.t)
+        n_fired = int(np.count_nonzero(fired))
+        exp_bg = float(np.sum(-np.expm1(-c.lam * c.t_max)))
+        mu_k = np.exp(wall[3] + pred[pos, 3] - c.log_gref)
+
+        s_px = min(max(math.exp(wall[4]), 0.12), 6.0)
+        share = spot_share(c.col, pred[pos, 1], s_px)[0]
+        m = np.where(ok[pos], mu_k * share, 0.0)
+        zz = (c.t_max - pred[pos, 0]) / sigma
+
+        p_sig = np.where(ok[pos], -np.expm1(-m * (ndtr(zz) - ndtr(-pred[pos, 0] / sigma))), 0.0)
+        exp_sig = float(p_sig.sum())
+        excess = n_fired - exp_bg
+        share_expl = exp_sig / excess if excess > 0 else 0.0
+        # signal-weighted residuals
+        wsig = np.where(fired, m * np.exp(-0.5 * ((c.t - pred[pos, 0]) / sigma) ** 2)
+                        / (sigma * math.sqrt(2 * math.pi)), 0.0)
+        wsig = np.where(fired, wsig / (wsig + c.lam), 0.0)
+        rms_u += float(np.sum(wsig * (c.col - pred[pos, 1]) ** 2))
+        rms_t += float(np.nansum(wsig * (c.t - pred[pos, 0]) ** 2))
+        wsum += float(np.sum(wsig))
+        n_sig += exp_sig
+        tilt = math.acos(min(1.0, abs(n_z)))
+        big_shift = obs.big_shift(dt_q, du_q, z_q, sigma)
+        t = {"source": w.source, "distance_axis": z_axis, "distance_axis_std": z_std,
+             "mu": float(math.exp(wall[3])), "spot_px": s_px, "tilt": tilt,
+             "consistency_p": p_cons, "time_shifts": dt_q.tolist(),
+             "column_shifts": du_q.tolist(), "signal_expected": exp_sig,
+             "signal_excess": excess, "signal_share": share_expl, "cells": int(c.t.size),
+             "fired": n_fired, "background_expected": exp_bg}
+        targets.append(t)
+        if tracks is not None and tracks[j] is not None:  # beam must follow the track
+            tr = tracks[j]
+            u_fit = shot_model(system.with_params(**values), values, wall, tr.phase)[0][:, 1]
+            gate = np.maximum(TRACK_GATE, 3.0 * tr.u_err)
+            on_track = float(np.mean(np.abs(u_fit - tr.u) < gate))
+            t["on_track"] = on_track
+            checks[f"wall {j} track points followed"] = (on_track, MIN_ON_TRACK,
+                                                         on_track >= MIN_ON_TRACK)
+            if on_track < MIN_ON_TRACK:
+                bad_walls.add(j)
+                bad.append(f"wall {j} ({w.source}): the fitted beam follows only "
+                           f"{on_track:.0%} of the returns found on the sensor (need "
+                           f"{MIN_ON_TRACK:.0%}): the fit converged to a wrong geometry")
+        checks[f"wall {j} distance"] = (z_axis, MIN_DISTANCE, z_axis >= MIN_DISTANCE)
+        spot_ok = s_px > 1.05 * SPOT_MIN
+        checks[f"wall {j} spot σ above its bound"] = (s_px, SPOT_MIN, spot_ok)
+        if not spot_ok:  # pixel-share derivatives of a collapsed spot inflate the information
+            warns.append(f"wall {j} ({w.source}): the fitted spot σ {s_px:.2f} px sits at "
+                         f"its lower bound ({SPOT_MIN} px)")
+        if z_axis < MIN_DISTANCE:
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}) fitted at {z_axis:.3f} m (closer than "
+                       f"{MIN_DISTANCE} m): a degenerate geometry")
+        checks[f"wall {j} tilt"] = (tilt, MAX_TILT, tilt <= MAX_TILT)
+        checks[f"wall {j} signal explained"] = (share_expl, MIN_SIGNAL_SHARE,
+                                                share_expl >= MIN_SIGNAL_SHARE)
+        checks[f"wall {j} flat-wall consistency p"] = (
+            p_cons, obs.P_INCONSISTENT, not (p_cons < obs.P_INCONSISTENT and big_shift))
+        if tilt > MAX_TILT:
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}) fitted at {math.degrees(tilt):.0f}° to the "
+                       f"optical axis (limit {math.degrees(MAX_TILT):.0f}°)")
+        elif share_expl < MIN_SIGNAL_SHARE:
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}): the fit explains {share_expl:.0%} of the "
+                       f"returns above the background (need {MIN_SIGNAL_SHARE:.0%})")
+        elif p_cons < obs.P_INCONSISTENT and big_shift:
+            bad_walls.add(j)
+            bad.append(f"wall {j} ({w.source}) is not a flat wall seen by this model: returns "
+                       f"shifted by up to {np.max(np.abs(dt_q)) * 1e9:.2f} ns / "
+                       f"{np.max(np.abs(du_q)):.2f} px across the sensor "
+                       f"({obs.sigma_of_p(p_cons):.0f}σ)")
+    b_fit = np.array([values.get(n, system.get_param(n))
+                      for n in ("baseline_x", "baseline_y", "baseline_z")])
+    ratio = float(np.linalg.norm(b_fit) / max(np.linalg.norm(system.baseline), 1e-9))
+    checks["baseline length / nominal"] = (ratio, (0.5, 2.0), 0.5 <= ratio <= 2.0)
+    if not 0.5 <= ratio <= 2.0:
+        bad.append(f"fitted baseline {np.linalg.norm(b_fit) * 1e3:.1f} mm, nominal "
+                   f"{np.linalg.norm(system.baseline) * 1e3:.1f} mm: a degenerate geometry")
+    return Checks(targets, checks, bad, bad_walls, rms_u, rms_t, wsum, n_sig)
+
+
+def check_distances(prob, x, priors, walls, chk: Checks, warns: list) -> None:
+    """Each measured distance against the data (linear pull first, then, when one
+    is large, a fit without it): the pulls go to ``chk``; a distance off by more
+    than ``DISTANCE_PULL`` σ is named in ``warns`` and heads ``chk.bad``."""
+    lay = prob.layout
+    _, wall_p = lay.unpack(x)
+    targets, checks, bad = chk.targets, chk.checks, chk.bad
+    quick = []
+    for j, kind, d, sd in priors:  # linear pull first: the refits only when needed
+        var_fit = targets[j]["distance_axis_std"] ** 2
+        quick.append(abs(distance_model(wall_p[j], kind) - d)
+                     / math.sqrt(max(sd * sd - var_fit, 0.01 * sd * sd)))
+    if priors and max(quick) > 0.5 * DISTANCE_PULL:
+        loo = leave_one_out(prob, x, lay)
+        pulls = []
+        for j, _kind, d, sd, fitted, f_std, _ in loo:
+            pull = (fitted - d) / math.sqrt(sd * sd + f_std * f_std)
+            pulls.append(pull)
+            targets[j]["distance_measured"] = d
+            targets[j]["distance_pull"] = pull
+            checks[f"wall {j} measured distance pull"] = (pull, DISTANCE_PULL,
+                                                          abs(pull) <= DISTANCE_PULL)
+        if max(abs(p_) for p_ in pulls) > DISTANCE_PULL:
+            # the culprit: the distance whose removal leaves the most consistent rest
+            i = int(np.argmax([e[6] if abs(p_) > DISTANCE_PULL else -np.inf
+                               for e, p_ in zip(loo, pulls)]))
+            j, kind, d, sd, fitted, f_std, _ = loo[i]
+            w_text = (f"the measured distance of wall {j} ({walls[j].source}), {d:.4f} m "
+                      f"± {sd * 1e3:.1f} mm, contradicts the data by {abs(pulls[i]):.1f}σ "
+                      f"(the data and the other distances put it at {fitted:.4f} m ± "
+                      f"{f_std * 1e3:.1f} mm)")
+            warns.append(w_text)
+            bad.insert(0, w_text)
