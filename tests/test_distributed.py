@@ -16,7 +16,7 @@ from mems_stereo.pipeline.distributed import (
     shot_ranges,
     split_peak_counts,
 )
-from mems_stereo.pipeline.fusion import FP_BLOCK
+from mems_stereo.pipeline.first_photon_correction import FP_BLOCK
 from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.run import process_recording
 

@@ -207,7 +207,7 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     z1 = e1 / on["sigma_r_tof"]
     assert np.mean(e0) < -0.3  # first photons of μ0 = 4: about -0.8 m of range
     assert abs(np.mean(z1)) < 4 / math.sqrt(z1.size), (np.mean(e1), np.mean(z1))
-    # σ carries the model's systematic allowance (fusion.MODEL_DELAY_FRACTION,
+    # σ carries the model's systematic allowance (first_photon_correction.MODEL_DELAY_FRACTION,
     # SATURATED_EDGE_SIGMA): on data that follow the model exactly it over-covers
     assert 0.4 < np.sqrt(np.mean(z1 ** 2)) < 1.5
     assert abs(np.median(on["signal_photons"]) / 4.0 - 1) < 0.35

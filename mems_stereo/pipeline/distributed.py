@@ -47,7 +47,7 @@ import numpy as np
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
-from mems_stereo.pipeline.fusion import FP_BLOCK
+from mems_stereo.pipeline.first_photon_correction import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range

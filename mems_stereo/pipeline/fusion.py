@@ -29,15 +29,10 @@ from the ToF (and, by its share, the fused) estimate, with its uncertainty
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
 from mems_stereo.errors import GeometryError
-from mems_stereo.geometry.triangulation import (
-    epipolar_stereo_point,
-    path_length_of_point,
-)
+from mems_stereo.geometry.triangulation import epipolar_stereo_point
 from mems_stereo.geometry.uncertainty import (
     Spreads,
     _rays,
@@ -48,88 +43,17 @@ from mems_stereo.geometry.uncertainty import (
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import codes_from_path_length
-from mems_stereo.physics.first_photon import (
-    _detection_log_odds,
-    _firing_probability,
-    first_photon_delay,
-)
+from mems_stereo.physics.first_photon import _detection_log_odds
 from mems_stereo.physics.spot import spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.detections import detection_points
+from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
-
-#: segments of each (peak, step)'s accepted code interval over which its expected
-#: background is spread (as negative-weight entries at the segments' centroids)
-BACKGROUND_SEGMENTS = 8
-
-
-def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
-                      segments: int = BACKGROUND_SEGMENTS):
-    """Expected background detections among the counted codes of each (peak, angle step).
-
-    A SPAD pixel records one photon per shot, so background can only be
-    recorded by shots that have not fired yet: with the hazard
-    ``h = 1 − exp(−λ·Δt)`` per bin, the expected background in code c is
-    ``h·S(c)``, S(c) the shots of the step still unfired at c — the shots that
-    reach the accepted interval unfired (``n·(1 − h)^(lo−1)``) less the
-    detections counted at the codes before c (a martingale: exact in
-    expectation whatever the signal).  Where the laser fires the pixel in
-    most shots this is far below the free-running expectation, and it is not
-    uniform in code: background before the return is recorded, after it
-    mostly not — subtracting it as a uniform share would bias both the signal
-    level (hence the first-photon correction) and the time of flight early.
-
-    Parameters (one entry per distinct (group, code), sorted by group, then code)
-    ----------
-    group : (M,) int, the (peak, step) group; code : (M,) int TDC code;
-    count : (M,) detections; a, b : (M,) the group's counted codes (its
-    accepted interval ∩ the peak's code window); n_shots : (M,) valid shots of
-    the step; lo : (M,) start of the accepted interval; rate_hz : (M,) λ.
-
-    Returns
-    -------
-    first : (G,) index of each group's first entry;
-    bg : (G, J) expected background of each of the J segments of [a, b];
-    centroid : (G, J) its mean code (float64).
-    """
-    group = np.asarray(group, np.int64)
-    code = np.asarray(code, np.float64)
-    cnt = np.asarray(count, np.float64)
-    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
-    G = first.size
-    h = -np.expm1(-np.nan_to_num(np.asarray(rate_hz, np.float64)[first]) * bin_width)
-    s0 = np.asarray(n_shots, np.float64)[first] * np.exp(
-        (np.asarray(lo, np.float64)[first] - 1.0) * np.log1p(-np.minimum(h, 1 - 1e-15)))
-    ag = np.asarray(a, np.float64)[first]
-    bg_ = np.asarray(b, np.float64)[first]
-    n_codes = np.maximum(bg_ - ag + 1.0, 0.0)
-    J = int(segments)
-    edges = ag[:, None] + np.floor(n_codes[:, None] * np.arange(J + 1)[None, :] / J)
-    s_lo, s_hi = edges[:, :-1], edges[:, 1:] - 1.0  # (G, J) inclusive
-    length = np.maximum(s_hi - s_lo + 1.0, 0.0)
-
-    def csum(m, n):  # Σ c for c = m..n (0 when n < m)
-        return np.where(n >= m, (m + n) * (n - m + 1.0) / 2.0, 0.0)
-
-    tot = s0[:, None] * length
-    tot_c = s0[:, None] * csum(s_lo, s_hi)
-    ce1 = code + 1.0
-    closed = np.zeros((G, J))
-    closed_c = np.zeros((G, J))
-    for j in range(J):  # one segment at a time: (M,) temporaries, no (M, J)
-        start = np.maximum(s_lo[inv, j], ce1)  # codes of the segment after the detection
-        hi_j = s_hi[inv, j]
-        m = np.maximum(hi_j - start + 1.0, 0.0)
-        closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
-        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start, hi_j), minlength=G)
-    S_sum = np.maximum(tot - closed, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
-    return first, h[:, None] * S_sum, centroid
+from mems_stereo.pipeline.window_background import window_background
 
 
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
@@ -552,7 +476,7 @@ class PeakAccumulator:
         # the first-photon correction needs the pulse's centre: from the peak-level
         # fusion of the stereo (at the mean angle) and uncorrected ToF means
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
-        fp = self._first_photon(mean) if self._correcting() else None
+        fp = first_photon_correction(self, mean) if correcting(self) else None
         for name in ("stereo", "tof"):
             mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
         for name, C in (c_pix or {}).items():  # systematic: not scaled
@@ -622,105 +546,12 @@ class PeakAccumulator:
         mean["stereo"] = (x_new, mean["stereo"][1])
         return {"stereo": C_sys}
 
-    def _correcting(self) -> bool:
-        return (self.first_photon and self.shots_per_step is not None
-                and bool(np.any(self.band[1] >= self.band[0])))
 
-    def _band_steps(self, q=None, max_steps: int = 2048):
-        """(Q', B) steps around the inlier band of each peak ``q`` ((Q',) int, default
-        all; the band widened by its width plus 8 steps on each side), the valid
-        shots of each (0 outside) and the spot share of the pixel at each step
-        (target at the peak's centre).  B is the widest of these peaks' bands."""
-        q = np.arange(self.Q) if q is None else np.asarray(q, np.int64)
-        lo, hi = self.band[0][q], self.band[1][q]
-        centre = np.nan_to_num(self.centre[q], nan=1.0)
-        has = hi >= lo
-        pad = np.where(has, hi - lo + 8, 0)
-        a = np.where(has, lo - pad, 0)
-        b = np.where(has, hi + pad, -1)
-        B = int(min(max_steps, max(1, (b - a + 1).max())))
-        steps = a[:, None] + np.arange(B)[None, :]
-        S = self.shots_per_step.size
-        inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
-        if self.step_window is not None:  # only where pass 2 counted detections
-            inside &= ((steps >= self.step_window[0][q, None])
-                       & (steps <= self.step_window[1][q, None]))
-        if self.accept is not None:  # only where the classifier accepts the return's code
-            inside &= self.accept(np.clip(steps, 0, S - 1), centre, q)
-        n = np.where(inside, self.shots_per_step[np.clip(steps, 0, S - 1)], 0)
-        t0, dt = self.step_grid
-        f = spot_fraction(self.system, self.rows[q, None], self.cols[q, None], t0 + steps * dt,
-                          centre[:, None], self.spot_sigma)
-        return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
-
-    def _first_photon(self, mean: dict) -> dict:
-        """Apply the first-photon correction to ``mean`` (in place; see the class
-        docstring); returns per peak the delay (s), its σ as path length (m) and μ0."""
-        s = self.system
-        sp = spreads_for(s) if self.spreads is None else self.spreads
-        sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
-        out = {"delay": np.full(self.Q, np.nan), "mu": np.full(self.Q, np.nan),
-               "sigma_L": np.zeros(self.Q)}
-        # pulse centre from the fused point (stereo-dominated near the TDC start)
-        tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
-        tau = tau + s.tdc.offset
-        ok = (self.band[1] >= self.band[0]) & np.isfinite(tau) & np.isfinite(self.centre)
-        if sigma <= 0 or not np.any(ok):
-            return out
-        idx = np.flatnonzero(ok)
-        d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
-        # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
-        # its own band width B: a peak's result depends on its block alone, so the
-        # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
-        # identical to the whole
-        cut = np.searchsorted(idx, np.arange(0, self.Q + FP_BLOCK, FP_BLOCK))
-        for a, b in zip(cut[:-1], cut[1:]):
-            if b <= a:
-                continue
-            q = idx[a:b]
-            _, n_band, f_band = self._band_steps(q)
-            ll = self.sums.loglik[q] + np.einsum(
-                "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
-            d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
-                ll, f_band, n_band, tau[q], sigma)
-        c = s.speed_of_light
-        dL = np.zeros(self.Q)
-        dvar = np.zeros(self.Q)
-        # background that fires the pixel first removes the late part of the
-        # pulse: the recorded returns' density is the pulse's times exp(−λt),
-        # a further shift of −λσ² (exact for a Gaussian pulse)
-        d = d - self.rate_hz[idx] * sigma * sigma
-        dL[ok] = -c * d  # path length to add: the arrivals were early by d
-        dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
-        # the model's own systematic uncertainty (pulse shape, spot profile, the
-        # signal level's posterior): a share of the correction it applies
-        # and, as the return saturates (nearly every shot fires with the spot on the
-        # pixel), the arrival is the pulse's leading edge, whose shape the Gaussian
-        # model does not know: up to SATURATED_EDGE_SIGMA pulse σ
-        sat = -np.expm1(-mu)
-        sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
-                                   SATURATED_EDGE_SIGMA * sigma * sat ** 2))
-        out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
-        D, G = self.sums.tof.dL()
-        x, C = mean["tof"]
-        mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
-        return out
-
-
-#: peaks per block of the first-photon correction (by peak index; see
-#: :meth:`PeakAccumulator._first_photon`): a split of the peaks at multiples of it
-#: gives the same bits as the whole
-FP_BLOCK = 16
 #: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
 #: (:meth:`PeakAccumulator._footprint_halfwidth`)
 INLIER_FOOTPRINT_PX = 1.0
 #: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
 STEREO_PIXEL_SIGMA = 0.05
-#: relative systematic uncertainty of the first-photon delay the correction removes
-MODEL_DELAY_FRACTION = 0.15
-#: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
-#: pulse σ, scaled by the square of the detection probability with the spot centred
-SATURATED_EDGE_SIGMA = 0.2
 
 
 def _empty_band(Q: int):

@@ -39,8 +39,8 @@ from mems_stereo.model.system import System
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import truth_suffix
+from mems_stereo.pipeline.first_photon_correction import FP_BLOCK
 from mems_stereo.pipeline.fusion import (
-    FP_BLOCK,
     accumulator_for_peaks,
     consistent_points,
     peak_sums_from_counts,
@@ -464,7 +464,7 @@ def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[t
     """Split the peaks 0..Q into at most ``n_blocks`` contiguous ranges ``(q0, q1)``.
 
     Cuts only at multiples of ``unit`` (the fusion's first-photon block
-    :data:`~mems_stereo.pipeline.fusion.FP_BLOCK`, so the blocks' clouds joined are
+    :data:`~mems_stereo.pipeline.first_photon_correction.FP_BLOCK`, so the blocks' clouds joined are
     the whole's, bit for bit), each near an equal share of the fusion's work
     (``entries_per_peak`` (Q,): the peaks' distinct (step, code) entries, plus one).
     """

@@ -1,0 +1,119 @@
+"""The first-photon correction of each peak's time of flight.
+
+A SPAD records a shot's first photon only, so the ToF mean of a strong
+return is early (pile-up) and one at the TDC start late.  Given the valid
+shots per scan-angle step, :func:`first_photon_correction` estimates each
+peak's signal photons per shot from which shots of its band fired
+(:func:`mems_stereo.physics.first_photon.first_photon_delay`) and removes
+that delay from the peak's ToF mean, with its uncertainty and the model's
+own systematic allowance.  ``acc`` is the
+:class:`~mems_stereo.pipeline.fusion.PeakAccumulator` whose sums are used.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mems_stereo.geometry.triangulation import path_length_of_point
+from mems_stereo.geometry.uncertainty import spreads_for
+from mems_stereo.physics.first_photon import _firing_probability, first_photon_delay
+from mems_stereo.physics.spot import spot_fraction
+
+#: peaks per block of the first-photon correction (by peak index; see
+#: :func:`first_photon_correction`): a split of the peaks at multiples of it
+#: gives the same bits as the whole
+FP_BLOCK = 16
+#: relative systematic uncertainty of the first-photon delay the correction removes
+MODEL_DELAY_FRACTION = 0.15
+#: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
+#: pulse σ, scaled by the square of the detection probability with the spot centred
+SATURATED_EDGE_SIGMA = 0.2
+
+
+def correcting(acc) -> bool:
+    """Whether the first-photon correction applies to the accumulator's peaks (the
+    correction is on, the valid shots per step are known and a peak has a band)."""
+    return (acc.first_photon and acc.shots_per_step is not None
+            and bool(np.any(acc.band[1] >= acc.band[0])))
+
+def band_steps(acc, q=None, max_steps: int = 2048):
+    """(Q', B) steps around the inlier band of each peak ``q`` ((Q',) int, default
+    all; the band widened by its width plus 8 steps on each side), the valid
+    shots of each (0 outside) and the spot share of the pixel at each step
+    (target at the peak's centre).  B is the widest of these peaks' bands."""
+    q = np.arange(acc.Q) if q is None else np.asarray(q, np.int64)
+    lo, hi = acc.band[0][q], acc.band[1][q]
+    centre = np.nan_to_num(acc.centre[q], nan=1.0)
+    has = hi >= lo
+    pad = np.where(has, hi - lo + 8, 0)
+    a = np.where(has, lo - pad, 0)
+    b = np.where(has, hi + pad, -1)
+    B = int(min(max_steps, max(1, (b - a + 1).max())))
+    steps = a[:, None] + np.arange(B)[None, :]
+    S = acc.shots_per_step.size
+    inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
+    if acc.step_window is not None:  # only where pass 2 counted detections
+        inside &= ((steps >= acc.step_window[0][q, None])
+                   & (steps <= acc.step_window[1][q, None]))
+    if acc.accept is not None:  # only where the classifier accepts the return's code
+        inside &= acc.accept(np.clip(steps, 0, S - 1), centre, q)
+    n = np.where(inside, acc.shots_per_step[np.clip(steps, 0, S - 1)], 0)
+    t0, dt = acc.step_grid
+    f = spot_fraction(acc.system, acc.rows[q, None], acc.cols[q, None], t0 + steps * dt,
+                      centre[:, None], acc.spot_sigma)
+    return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
+
+def first_photon_correction(acc, mean: dict) -> dict:
+    """Apply the first-photon correction to ``mean`` (in place; see the class
+    docstring); returns per peak the delay (s), its σ as path length (m) and μ0."""
+    s = acc.system
+    sp = spreads_for(s) if acc.spreads is None else acc.spreads
+    sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
+    out = {"delay": np.full(acc.Q, np.nan), "mu": np.full(acc.Q, np.nan),
+           "sigma_L": np.zeros(acc.Q)}
+    # pulse centre from the fused point (stereo-dominated near the TDC start)
+    tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
+    tau = tau + s.tdc.offset
+    ok = (acc.band[1] >= acc.band[0]) & np.isfinite(tau) & np.isfinite(acc.centre)
+    if sigma <= 0 or not np.any(ok):
+        return out
+    idx = np.flatnonzero(ok)
+    d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
+    # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
+    # its own band width B: a peak's result depends on its block alone, so the
+    # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
+    # identical to the whole
+    cut = np.searchsorted(idx, np.arange(0, acc.Q + FP_BLOCK, FP_BLOCK))
+    for a, b in zip(cut[:-1], cut[1:]):
+        if b <= a:
+            continue
+        q = idx[a:b]
+        _, n_band, f_band = band_steps(acc, q)
+        ll = acc.sums.loglik[q] + np.einsum(
+            "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
+        d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
+            ll, f_band, n_band, tau[q], sigma)
+    c = s.speed_of_light
+    dL = np.zeros(acc.Q)
+    dvar = np.zeros(acc.Q)
+    # background that fires the pixel first removes the late part of the
+    # pulse: the recorded returns' density is the pulse's times exp(−λt),
+    # a further shift of −λσ² (exact for a Gaussian pulse)
+    d = d - acc.rate_hz[idx] * sigma * sigma
+    dL[ok] = -c * d  # path length to add: the arrivals were early by d
+    dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
+    # the model's own systematic uncertainty (pulse shape, spot profile, the
+    # signal level's posterior): a share of the correction it applies
+    # and, as the return saturates (nearly every shot fires with the spot on the
+    # pixel), the arrival is the pulse's leading edge, whose shape the Gaussian
+    # model does not know: up to SATURATED_EDGE_SIGMA pulse σ
+    sat = -np.expm1(-mu)
+    sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
+                               SATURATED_EDGE_SIGMA * sigma * sat ** 2))
+    out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
+    D, G = acc.sums.tof.dL()
+    x, C = mean["tof"]
+    mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
+    return out
