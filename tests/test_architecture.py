@@ -16,8 +16,8 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
 #: pipeline stages in data-flow order; a stage may import only stages before it
 STAGES = ["consistency", "intervals", "settings", "angles", "histograms", "pass1", "peaks",
           "pass2", "matched", "signal_store", "cloud", "detections", "sums", "peak_means",
-          "window_background", "first_photon_correction", "fusion", "run", "distributed",
-          "timetags", "twoaxis"]
+          "window_background", "first_photon_correction", "peak_geometry", "fusion", "run",
+          "distributed", "timetags", "twoaxis"]
 
 
 def _modules():

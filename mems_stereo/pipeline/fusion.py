@@ -32,13 +32,9 @@ from __future__ import annotations
 import numpy as np
 
 from mems_stereo.errors import GeometryError
-from mems_stereo.geometry.triangulation import epipolar_stereo_point
 from mems_stereo.geometry.uncertainty import (
     Spreads,
-    _rays,
     polar_from_cartesian,
-    spreads_for,
-    stereo_point_est,
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
@@ -50,6 +46,7 @@ from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
+from mems_stereo.pipeline.peak_geometry import footprint_halfwidth, stereo_at_mean_angle
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
@@ -316,45 +313,9 @@ class PeakAccumulator:
         """Fix each peak's centre range (Q,) m (NaN without detections) and the
         inliers' half-width (:class:`RangeMode`)."""
         self.centre, self.halfwidth = self.mode.finish()
-        self.halfwidth = np.maximum(self.halfwidth, self._footprint_halfwidth(self.centre))
+        self.halfwidth = np.maximum(self.halfwidth, footprint_halfwidth(
+            self.system, self.rows, self.cols, self.centre, self.spreads))
         return self.centre
-
-    def _footprint_halfwidth(self, centre) -> np.ndarray:
-        """(Q,) m: half the stereo range span of ±:data:`INLIER_FOOTPRINT_PX` pixels about
-        each peak's pixel at its centre range (0 where undefined).
-
-        A return fires the pixel while the spot crosses its footprint and, when
-        strong or defocused (near range), while the spot's tails are still on
-        it: its detections' stereo ranges spread over that span, several of one
-        detection's σ.  With few detections the mode's plateau cannot show it
-        and the inlier bound would cut true returns; the angle band of pass 2
-        has already selected the steps, so this floor lets the band's
-        detections in (their mean is taken at the mean angle: no bias).
-        """
-        out = np.zeros(self.Q)
-        ok = np.isfinite(centre) & (centre > 0)
-        if not np.any(ok):
-            return out
-        u = self.cols[ok].astype(np.float64)
-        v = self.rows[ok].astype(np.float64)
-        p = np.asarray(self.system.scanner.position, dtype=np.float64)
-        x = centre[ok, None] * _rays(self.system, u, v)
-        d = x - p
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        h = INLIER_FOOTPRINT_PX
-        r = [np.linalg.norm(epipolar_stereo_point(p, d, _rays(self.system, u + a, v))[0], axis=1)
-             for a in (-h, h)]
-        span = np.nan_to_num(0.5 * np.abs(r[1] - r[0]), nan=0.0, posinf=0.0)
-        # the inlier test is on the fused range: the stereo spread enters it by the
-        # stereo's weight (far, or with a short baseline, the ToF decides alone and the
-        # floor must not open the bound to the whole window)
-        sp = spreads_for(self.system) if self.spreads is None else self.spreads
-        var_st = (sp.sigma_u * span / h) ** 2
-        var_tof = (0.5 * sp.sigma_L(self.system)) ** 2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            w = np.where(var_st + var_tof > 0, var_tof / (var_st + var_tof), 0.0)
-        out[ok] = w * span
-        return out
 
     def add_inliers(self, shot, peak, code, theta, weight=None, background=None) -> None:
         """Sub-pass 2: sums over the detections within k·σ of their peak's centre
@@ -472,7 +433,8 @@ class PeakAccumulator:
             var_bg_t = np.maximum(s.bt2 - 2 * rbar_t * s.bt1 + rbar_t ** 2 * s.b0, 0.0) / W ** 2
             u_t = x_tof / rbar_t[:, None]
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
-        c_pix = self._stereo_at_mean_angle(mean, n)
+        c_pix, range_per_px = stereo_at_mean_angle(self.system, self.rows, self.cols,
+                                                   self.sums.theta, n, mean)
         # the first-photon correction needs the pulse's centre: from the peak-level
         # fusion of the stereo (at the mean angle) and uncorrected ToF means
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
@@ -504,54 +466,10 @@ class PeakAccumulator:
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
         return PeakMeans(self.system, self.k, self.rows, self.cols, self.peak_code,
                          mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
-                         birge, self._range_per_px if c_pix is not None else None,
+                         birge, range_per_px,
                          None if fp is None else fp["delay"], None if fp is None else fp["mu"])
 
-    def _stereo_at_mean_angle(self, mean: dict, n) -> dict | None:
-        """Stereo point of each peak at its detections' mean scan angle (in place).
 
-        A detection's stereo range is a convex function of its angle (range ∝ 1 /
-        disparity): the mean of the ranges over a band of angles lies behind the
-        surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
-        strong return that fires the pixel over several pixel footprints), the
-        range at the mean angle does not.  Returns the systematic covariance of
-        the pixel location (:data:`STEREO_PIXEL_SIGMA`), ``{"stereo": C}``, to add
-        unscaled.
-        """
-        with np.errstate(invalid="ignore", divide="ignore"):
-            th = self.sums.theta / n
-        ok = np.isfinite(th) & (n > 0)
-        if not np.any(ok):
-            return None
-        x_old = mean["stereo"][0]
-        x_new = x_old.copy()
-        x_new[ok] = stereo_point_est(self.system, self.cols[ok].astype(np.float64),
-                                     self.rows[ok].astype(np.float64), np.zeros(ok.sum()),
-                                     th[ok])
-        good = ok & np.all(np.isfinite(x_new), axis=1)
-        x_new[~good] = x_old[~good]
-        # the band locates the spot's centre on the pixel to a fraction of a pixel
-        # (spot profile, band edges, a surface inclined across the footprint):
-        # STEREO_PIXEL_SIGMA px along the row, propagated at the mean angle
-        J = np.zeros_like(x_new)
-        if np.any(good):
-            u = self.cols[good].astype(np.float64)
-            v = self.rows[good].astype(np.float64)
-            z = np.zeros(u.size)
-            J[good] = (stereo_point_est(self.system, u + 0.5, v, z, th[good])
-                       - stereo_point_est(self.system, u - 0.5, v, z, th[good]))
-        J = np.nan_to_num(J)
-        self._range_per_px = J  # (Q, 3) m per pixel at the mean angle (depth edges)
-        C_sys = STEREO_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
-        mean["stereo"] = (x_new, mean["stereo"][1])
-        return {"stereo": C_sys}
-
-
-#: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
-#: (:meth:`PeakAccumulator._footprint_halfwidth`)
-INLIER_FOOTPRINT_PX = 1.0
-#: systematic uncertainty, in pixels, of where a peak's band puts the spot's centre
-STEREO_PIXEL_SIGMA = 0.05
 
 
 def _empty_band(Q: int):
