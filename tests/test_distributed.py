@@ -165,6 +165,19 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
                     np.testing.assert_array_equal(c[k], whole[k], err_msg=k)
 
 
+def _count_calls(monkeypatch, module, name: str) -> list:
+    """Wrap ``module.name`` so that each call appends to the returned list."""
+    calls = []
+    orig = getattr(module, name)
+
+    def counted(*a, **k):
+        calls.append(1)
+        return orig(*a, **k)
+
+    monkeypatch.setattr(module, name, counted)
+    return calls
+
+
 def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
     (each block's per-peak sums, joined into one accumulator) gives the cloud of one
@@ -172,15 +185,8 @@ def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     from mems_stereo.pipeline import run as R
 
     one = process_recording(SAMPLES / "room.h5")
-    calls = []
-    orig = R.peak_sums_from_counts
-
-    def count(*a, **k):
-        calls.append(1)
-        return orig(*a, **k)
-
     monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
-    monkeypatch.setattr(R, "peak_sums_from_counts", count)
+    calls = _count_calls(monkeypatch, R, "peak_sums_from_counts")
     blocked = process_recording(SAMPLES / "room.h5")
     assert len(calls) >= 2
     _same(one, blocked)
@@ -244,14 +250,7 @@ def test_split_with_signal_stores_equals_one_process(monkeypatch):
     from mems_stereo.pipeline.signal_store import SignalStore
 
     one = process_recording(SAMPLES / "floodlight.h5")
-    used = []
-    orig = D.peak_counts_from_store
-
-    def spy(*a, **k):
-        used.append(1)
-        return orig(*a, **k)
-
-    monkeypatch.setattr(D, "peak_counts_from_store", spy)
+    used = _count_calls(monkeypatch, D, "peak_counts_from_store")
     monkeypatch.setattr(D, "COMPILE_SLOTS", 0)
     monkeypatch.setattr(pass1, "COMPILE_SLOTS", 0)
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,

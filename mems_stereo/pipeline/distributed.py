@@ -260,15 +260,20 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
 
+        def pass2_sum(peaks_f):
+            # each part counts the windows of ``peaks_f`` (its store or its shots); the
+            # parts' counts are summed on the workers: one future
+            return tree_sum(client, [client.submit(_pass2_part, str(path), sysm, ang, st,
+                                                   peaks_f, a, b, table_f, store, pure=False)
+                                     for ang, (a, b), store in zip(angle_f, parts, stores)])
+
         def count_peaks(peaks):
             # pass 2 needs only the pixels, windows and bands; send them once
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
             shared["peaks"] = client.scatter(light, broadcast=True)
-            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, shared["peaks"], a, b,
-                                 table_f, store, pure=False)
-                   for ang, (a, b), store in zip(angle_f, parts, stores)]
+            total_f = pass2_sum(shared["peaks"])
             stores.clear()  # released once their pass 2 has run
-            return tree_sum(client, pcs)  # stays on the workers
+            return total_f  # stays on the workers
 
         def make_points(peaks, total_f):
             Q = len(peaks["row"])
@@ -293,11 +298,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         def count_candidates(cands):
             # the matched filter's candidates, counted on the workers (their stores or
             # their shots) and summed there: the client gets one PeakCounts
-            c_f = client.scatter(cands, broadcast=True)
-            pcs = [client.submit(_pass2_part, str(path), sysm, ang, st, c_f, a, b, table_f,
-                                 store, pure=False)
-                   for ang, (a, b), store in zip(angle_f, parts, stores)]
-            return waits(tree_sum(client, pcs).result)
+            return waits(pass2_sum(client.scatter(cands, broadcast=True)).result)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,

@@ -334,7 +334,8 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     K_range = max(0, (stop if stop is not None else start + len(theta) - angle_offset) - start)
     dt = _count_dtype(K_range)
     compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
-    # the reader checks codes against the file's n_bins: enough when it is ours too
+    # the reader checks codes against the file's n_bins: enough when it is ours too;
+    # otherwise each chunk is checked below (naming the file), not again in the kernel call
     file_bins = read_system(path).tdc.n_bins
     checked = file_bins <= n_bins
     raw = np.zeros((P, n_bins + 1), dt)
@@ -361,7 +362,7 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         keys = [] if signal_store is not None and compiled else None
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
                                                want_labels=want, hist_angle=angle, rows=rows,
-                                               compiled=compiled, codes_checked=checked,
+                                               compiled=compiled, codes_checked=True,
                                                keys_out=keys)
         if signal_store is not None:
             if keys:
