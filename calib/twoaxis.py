@@ -45,6 +45,7 @@ from mems_stereo.io.recording2d import Recording2D, read_recording_2d
 from mems_stereo.model.scanner import phase_from_zero_crossings
 from mems_stereo.model.scanner2d import require_two_axis, scan_direction_2d
 from mems_stereo.model.system import System
+from mems_stereo.pipeline.gate_check import check_gate
 from mems_stereo.pipeline.twoaxis import Settings2D, classify_events, shot_directions
 
 TWO_AXIS_PARAMS = ("theta0", "theta_mech_max", "phase_offset", "theta0_2", "theta_mech_max_2",
@@ -333,6 +334,8 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
         if len(recs) < 2:
             raise NotObservableError("two-axis calibration: expected walls at >= 2 distances, "
                                      f"found {len(recs)} recording(s)")
+        for r in recs:  # monitors and gate must agree (a FormatError naming the field)
+            check_gate(r)
     sys0 = recs[0].system if system is None else system
     a2 = require_two_axis(sys0)
     if intrinsics is not None:

@@ -17,7 +17,7 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
 STAGES = ["consistency", "intervals", "settings", "angles", "histograms", "pass1", "peaks",
           "pass2", "matched", "signal_store", "cloud", "detections", "sums", "peak_means",
           "window_background", "first_photon_correction", "peak_geometry", "fusion", "run",
-          "distributed", "timetags", "twoaxis"]
+          "distributed", "timetags", "gate_check", "twoaxis"]
 
 
 def _modules():

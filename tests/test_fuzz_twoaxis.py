@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 from fuzz_cases import external_link, rep
-from test_fuzz import check_refused
+from test_fuzz import check_refused, run_cli
 
 from mems_stereo.io.recording2d import read_recording_2d
 
@@ -154,3 +154,34 @@ def test_calibrate_recordings_of_one_system(axes, what, change, tmp_path):
     _other_system(other, change)(tmp_path)
     check_refused(tmp_path, ["calibrate", f"{{s}}/{first}", "{d}/m.h5", "-o", "{d}/c.json"],
                   "m.h5")
+
+
+def _invert(*paths):
+    def m(f, d):
+        for p in paths:
+            f[p][...] = 1 - f[p][()]
+    return m
+
+
+POLARITY_2D = [("axis1", ("scanner/rising",), "/scanner/rising"),
+               ("axis2", ("scanner/axis2/rising",), "/scanner/axis2/rising"),
+               ("both", ("scanner/rising", "scanner/axis2/rising"),
+                "/scanner/rising and /scanner/axis2/rising")]
+
+
+@pytest.mark.parametrize("axes,paths,field", POLARITY_2D, ids=[c[0] for c in POLARITY_2D])
+@pytest.mark.parametrize("command", ["process", "calibrate"])
+def test_two_axis_inverted_polarity_refused(command, axes, paths, field, tmp_path):
+    """Group 3: an inverted zero-crossing polarity keeps the crossings alternating
+    and spaced for f_mech; the detections outside the recomputed gate show it,
+    and the refusal names the flag whose inversion puts them back inside."""
+    src = "lissajous64.h5" if command == "process" else "lissajous64_calib_2.5m.h5"
+    shutil.copy(SAMPLES / src, tmp_path / "m.h5")
+    with h5py.File(tmp_path / "m.h5", "r+") as f:
+        _invert(*paths)(f, tmp_path)
+    argv = (["process", "{d}/m.h5", "-o", "{d}/o.ply"] if command == "process" else
+            ["calibrate", "{s}/lissajous64_calib_1.5m.h5", "{d}/m.h5", "-o", "{d}/c.json"])
+    check_refused(tmp_path, argv, "m.h5")
+    _, err, _ = run_cli([a.replace("{d}", str(tmp_path)).replace("{s}", str(SAMPLES))
+                         for a in argv])
+    assert f"{field}: the zero-crossing polarity looks inverted" in err, err

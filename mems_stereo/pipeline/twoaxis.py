@@ -49,6 +49,7 @@ from mems_stereo.model.camera import normalized_coordinates
 from mems_stereo.model.scanner2d import require_two_axis, scan_angles_2d, scan_direction_2d
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.gate_check import check_gate, recompute_gate
 
 
 @dataclass(frozen=True)
@@ -424,15 +425,6 @@ def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
 # the whole run
 
 
-def recompute_gate(rec: Recording2D, system: System, d_scan: np.ndarray) -> Gate:
-    """The gate a gated recording was read with, from its /readout parameters."""
-    if rec.readout["mode"] != "gated":
-        raise FormatError(f"expected a gated readout, found {rec.readout['mode']!r}",
-                          rec.source, "/readout attrs/mode")
-    spec = GateSpec(rec.readout["r_min"], rec.readout["r_max"], rec.readout["half_width"])
-    return gate_pixels(system, d_scan, spec)
-
-
 def process_recording_2d(recording: Recording2D | str | os.PathLike,
                          system: System | None = None,
                          settings: Settings2D | None = None) -> Result2D:
@@ -461,8 +453,11 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     w, h = system.receiver.image_size
     t0 = time.perf_counter()
     if rec.readout["mode"] == "gated":
-        nominal_d = d if system is rec.system else shot_directions(rec, rec.system)[2]
+        nominal_d, nominal_valid = ((d, valid) if system is rec.system
+                                    else shot_directions(rec, rec.system)[2:])
         gate = recompute_gate(rec, rec.system, nominal_d)
+        # every detection must lie in it (monitors and gate agree: docs/reliability.md)
+        check_gate(rec, nominal_d, nominal_valid, gate)
         exposure = gate.exposure()
         slots = int(gate.pixels.size)
         model_gate = gate
