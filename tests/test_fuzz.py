@@ -523,6 +523,40 @@ def test_unreachable_scheduler_fails_fast(tmp_path):
     assert time.monotonic() - t0 < 5.0
 
 
+@pytest.mark.parametrize("reply", [b"HTTP/1.1 400 Bad Request\r\n\r\n" * 4, b"", b"\x00" * 64],
+                         ids=["http", "closed", "zeros"])
+def test_scheduler_address_that_is_not_a_scheduler(reply, tmp_path):
+    """Something answers at the address (a web server, a closed connection, zeros):
+    one line naming the address, soon - not Dask's MemoryError from reading an
+    HTTP reply as a frame length, nor its 30 s timeout."""
+    import threading
+
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(8)
+    port = srv.getsockname()[1]
+
+    def answer():
+        while True:
+            try:
+                c, _ = srv.accept()
+            except OSError:
+                return
+            with contextlib.suppress(OSError):
+                c.recv(4096)
+                c.sendall(reply)
+            c.close()
+
+    threading.Thread(target=answer, daemon=True).start()
+    t0 = time.monotonic()
+    try:
+        check_refused(tmp_path, ["process", "{s}/room.h5", "-o", "{d}/o.ply", "--scheduler",
+                                 f"tcp://127.0.0.1:{port}"], f"127.0.0.1:{port}")
+    finally:
+        srv.close()
+    assert time.monotonic() - t0 < 15.0
+
+
 # ------------------------------------------------- bit flips: refused or processed
 
 def _flip_case(tmp_path, seed):

@@ -44,6 +44,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mems_stereo.errors import OptionError
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
@@ -68,6 +69,9 @@ from mems_stereo.pipeline.signal_store import (
     peak_counts_from_store,
     rereading_decompresses,
 )
+
+#: seconds a remote scheduler's handshake may take
+SCHEDULER_CONNECT_TIMEOUT = 10.0
 
 #: parts summed per task of the reduction tree
 FAN_IN = 4
@@ -96,7 +100,16 @@ def dask_client(scheduler="local", n_workers: int = 2):
                 Client(cluster) as client:
             yield client
         return
-    with Client(scheduler) as client:
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT)
+    except Exception as e:  # noqa: BLE001 - the handshake's faults vary with what answered
+        # e.g. an HTTP server on that port: Dask reads its bytes as a frame length
+        # and asks for exabytes (MemoryError), or times out, or is refused
+        why = "it answered, but not as a Dask scheduler" if isinstance(
+            e, (MemoryError, ValueError, TypeError)) else (str(e) or type(e).__name__)
+        raise OptionError(f"cannot connect to a Dask scheduler at {scheduler}: {why}",
+                          field="--scheduler") from None
+    with client:
         yield client
 
 
