@@ -315,9 +315,14 @@ def _path_cases():
                "under-file": (chain(cloud, write_bytes("f", b"x")), f"{{d}}/f/out{ext}"),
                "too-long": (cloud, "{d}/" + "n" * 300 + ext),
                "fifo": (chain(cloud, mkfifo(f"p{ext}")), f"{{d}}/p{ext}"),
-               "bad-ext": (cloud, "{d}/out.xyz")}
+               "bad-ext": (cloud, "{d}/out.xyz"),
+               # a folder that exists and looks writable but takes no new file
+               "virtual-fs": (cloud, f"/proc/out{ext}"),
+               "virtual-fs-sub": (cloud, f"/proc/sub/out{ext}")}
         for k, (b, path) in bad.items():
             if k == "bad-ext" and ext in (".h5", ".json"):
+                continue
+            if k.startswith("virtual-fs") and not Path("/proc/self").is_dir():
                 continue
             a = [path if x == "O" else x for x in argv]
             out.append((f"out-{k}-{argv[0]}{opt}", b, a, opt))
@@ -332,6 +337,20 @@ def _path_cases():
             ("out-is-samples", lambda d: None, ["-o", "{s}"], "--output"),
             ("out-too-long", lambda d: None, ["-o", "{d}/" + "n" * 300], "--output")]:
         out.append((f"demo-{name}", b, ["demo", "--no-render", *argv], expect))
+    # the same recording twice (its data would count twice), also through a link;
+    # recordings whose clouds would land on one file of the output folder
+    link = lambda d: (d / "l.h5").symlink_to(SAMPLES / "room.h5")  # noqa: E731
+    two = lambda d: [(d / x).mkdir() or shutil.copy(SAMPLES / "room.h5", d / x)  # noqa: E731
+                     for x in ("a", "b")]
+    out += [("rec-twice-process", lambda d: None,
+             ["process", "{s}/room.h5", "{s}/room.h5", "-o", "{d}/x"], "room.h5"),
+            ("rec-twice-link", link, ["process", "{s}/room.h5", "{d}/l.h5", "-o", "{d}/x"],
+             "l.h5"),
+            ("rec-twice-calibrate", lambda d: None,
+             ["calibrate", "{s}/calib_1.5m.h5", "{s}/calib_1.5m.h5", "-o", "{d}/c.json"],
+             "calib_1.5m.h5"),
+            ("rec-same-stem", two, ["process", "{d}/a/room.h5", "{d}/b/room.h5", "-o", "{d}/x"],
+             "room.ply")]
     # outputs clashing with each other
     out.append(("out-same-twice", lambda d: None,
                 ["process", "{s}/room.h5", "-o", "{d}/x.ply", "--labels", "{d}/l.h5",

@@ -64,8 +64,14 @@ def error_line(command: str, message: str) -> None:
     print(f"mems-stereo {command}: error: {_one_line(translate(message))}", file=sys.stderr)
 
 
-def _file_error(e: OSError) -> str:
+def _file_error(e: OSError, plan=None) -> str:
+    """One line for an OSError; on a file the run writes (a staged output or a
+    writer's temporary beside it): "cannot write TARGET (reason)"."""
     name = e.filename if e.filename is not None else ""
+    if name and plan is not None and plan.names_staged(str(name)):
+        o = plan.option_of(str(name))
+        return (f"{o + ': ' if o else ''}cannot write {plan.translate(str(name))} "
+                f"({e.strerror or type(e).__name__})")
     what = "file not found" if isinstance(e, FileNotFoundError) else (e.strerror or str(e))
     return f"{name}: {what}" if name else what
 
@@ -127,7 +133,7 @@ def run_command(args) -> int:
                 print(format_error(cmd, e, bool(getattr(args, "verbose", False))),
                       file=sys.stderr)
             elif isinstance(e, OSError):
-                error_line(cmd, _file_error(e))
+                error_line(cmd, _file_error(e, plan))
             elif isinstance(e, MemoryError):
                 error_line(cmd, "out of memory; lower --chunk-shots or --max-memory")
             elif isinstance(e, Exception) and not os.environ.get("MEMS_STEREO_DEBUG"):

@@ -23,13 +23,15 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import secrets
 import shutil
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mems_stereo.cli._pathcheck import check_outputs, resolve_inputs, resolve_outputs
+from mems_stereo.cli._pathcheck import check_outputs, opt, resolve_inputs, resolve_outputs
+from mems_stereo.errors import OptionError
 from mems_stereo.util.atomic import signals_blocked
 
 
@@ -106,23 +108,33 @@ class OutputPlan:
 
     def _stage(self) -> None:
         for name, p, kind in self.outputs:
-            if kind == "dir":  # written in place (demo): its steps commit their own outputs
-                self._mkdirs(p)
-                continue
-            if kind == "cloud" and p.suffix.lower() in (".mcap", ".db3"):
-                # a ROS 2 bag is a folder named after the output (room.mcap → room/), which
-                # its writer fills and replaces itself: written in place, not staged
-                self._mkdirs(p.parent)
-                continue
-            self._mkdirs(p.parent)
-            tag = secrets.token_hex(4)
-            staged = p.parent / f".{p.name[:60]}.ms-{tag}.part{p.suffix}"
-            if kind == "dir-of-clouds":
-                staged.mkdir()
-                self.created.append(staged)
-            self.staged[str(p)] = staged
-            setattr(self.args, name, str(staged))
+            try:
+                self._stage_one(name, p, kind)
+            except OSError as e:  # e.g. a virtual file system that refuses new files
+                raise OptionError(f"cannot write {p} ({e.strerror or type(e).__name__} at "
+                                  f"{e.filename})", field=opt(name)) from None
         self.state = "staged"
+
+    def _stage_one(self, name: str, p: Path, kind: str) -> None:
+        if kind == "dir":  # written in place (demo): its steps commit their own outputs
+            self._mkdirs(p)
+            return
+        if kind == "cloud" and p.suffix.lower() in (".mcap", ".db3"):
+            # a ROS 2 bag is a folder named after the output (room.mcap → room/), which
+            # its writer fills and replaces itself: written in place, not staged
+            self._mkdirs(p.parent)
+            return
+        self._mkdirs(p.parent)
+        tag = secrets.token_hex(4)
+        staged = p.parent / f".{p.name[:60]}.ms-{tag}.part{p.suffix}"
+        if kind == "dir-of-clouds":
+            staged.mkdir()
+            self.created.append(staged)
+        else:  # a folder can look writable and take no new file (/proc and the like)
+            os.close(os.open(staged, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+            os.unlink(staged)
+        self.staged[str(p)] = staged
+        setattr(self.args, name, str(staged))
 
     def _mkdirs(self, d: Path) -> None:
         missing = []
@@ -178,13 +190,26 @@ class OutputPlan:
     # ------------------------------------------------------------- messages
 
     def translate(self, text: str) -> str:
-        """``text`` with staged paths replaced by the final ones."""
+        """``text`` with staged paths, and the writers' temporary files beside them
+        (``<folder>/.<staged name>.<random>.part<ext>``), replaced by the final ones."""
         for final, s in self.staged.items():
-            text = text.replace(str(s), final)
+            stem = s.name[: -len(s.suffix)] if s.suffix else s.name
+            temp = re.compile(re.escape(str(s.parent)) + r"/\.?" + re.escape(stem)
+                              + r"[^\s:'\"]*")
+            text = temp.sub(lambda _m, f=final: f, text.replace(str(s), final))
         return text
 
     def names_staged(self, text: str) -> bool:
-        return any(str(s) in text for s in self.staged.values())
+        return self.translate(text) != text
+
+    def option_of(self, text: str) -> str | None:
+        """The option (``--output``…) whose staged output ``text`` names, if any."""
+        for name, p, _kind in self.outputs:
+            s = self.staged.get(str(p))
+            if s is not None and self.translate(text).startswith(str(p)) \
+                    and self.translate(str(s)) == str(p):
+                return opt(name)
+        return None
 
     def __enter__(self) -> OutputPlan:
         _STACK.append(self)

@@ -79,7 +79,9 @@ def _missing_named_input(name: str, kind: str, v) -> OptionError:
 def _input_paths(name: str, kind: str, v) -> list[Path]:
     """The checked path(s) of one input argument (none for a preset name)."""
     if kind == "files":
-        return [require_input_file(x, None) for x in v]
+        paths = [require_input_file(x, None) for x in v]
+        _refuse_repeated(name, paths)
+        return paths
     if kind == "system" and str(v) in _preset_names():
         return []
     if kind == "dir":
@@ -97,6 +99,25 @@ def _input_paths(name: str, kind: str, v) -> list[Path]:
         if name not in _NAMED_INPUTS:
             raise
         raise _missing_named_input(name, kind, v) from None
+
+
+def _identity(p: Path):
+    with contextlib.suppress(OSError):
+        st = os.stat(p)
+        return (st.st_dev, st.st_ino)
+    return _real(p)
+
+
+def _refuse_repeated(name: str, paths: list[Path]) -> None:
+    """The same file given twice (also through a link) would count its data twice."""
+    seen: dict = {}
+    for p in paths:
+        key = _identity(p)
+        if key in seen:
+            also = "" if str(seen[key]) == str(p) else f" (as {seen[key]})"
+            raise OptionError(f"{p} is given twice{also}; expected each recording once",
+                              field=opt(name))
+        seen[key] = p
 
 
 def resolve_inputs(command: str, inputs: dict, args) -> list[tuple[str, Path]]:
@@ -164,7 +185,13 @@ def check_outputs(outputs: list, inputs: list, recordings=()) -> None:
         finals[key] = name
         members = [p]
         if kind == "dir-of-clouds":
-            members += [p / f"{Path(r).stem}.ply" for r in recordings]
+            clouds = [p / f"{Path(r).stem}.ply" for r in recordings]
+            for i, c in enumerate(clouds):
+                if c in clouds[:i]:
+                    raise OptionError(f"{recordings[clouds.index(c)]} and {recordings[i]} "
+                                      f"would both be written to {c}; expected recordings "
+                                      "with distinct file names", field=opt(name))
+            members += clouds
         for member in members:
             check_not_input(name, member, kind, inputs)
 
