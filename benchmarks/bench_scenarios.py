@@ -363,7 +363,8 @@ def main(argv=None) -> int:
             r = run_case(draw_case(args.seed + i, args.scale), tmp)
             results.append(r)
             print_case(i, r)
-        summarise(results)
+        if results:  # (--cases 0: the ladder alone)
+            summarise(results)
         ladder(args, tmp)
     print(f"\ntotal {time.perf_counter() - t_all:.0f} s")
     return 0
