@@ -17,7 +17,9 @@ simulator (truth labels and points), processes it with the default
   that count is significant against the exactly known expected background
   (Poisson, false-alarm probability ``Settings().false_alarm`` per pixel,
   no look-elsewhere penalty: it knows where to look) and holds ≥ 3 truth-signal
-  detections — the coverage the data allow;
+  detections — the coverage the data allow; and the same oracle at the level a
+  detector that searches its window must pay (``false_alarm`` over the footprint
+  windows × code boxes of the pixel, the matched filter's Bonferroni count);
 * median and 90th-percentile |error| of the points (fused range − the true
   surface's range along the ray through the point, capped at twice the
   point's distance to the nearest true surface: the same for surfaces within
