@@ -30,6 +30,9 @@ MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
+#: fewest valid shots per sampled angle step (mean over a peak's band, steps with
+#: shots) for the binomial variance of its mean angle (:func:`angle_binomial_factor`)
+BINOMIAL_MIN_SHOTS = 2.0
 
 
 def correcting(acc) -> bool:
@@ -65,6 +68,31 @@ def band_steps(acc, q=None, max_steps: int = 2048):
                       centre[:, None], acc.spot_sigma)
     return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
 
+def angle_binomial_factor(steps, n_band, f_band, mu, theta_bar) -> np.ndarray:
+    """(Q,) in [0, 1]: the variance of a peak's mean scan angle given its shots,
+    against the Poisson variance its scatter (the Birge-scaled spread) stands for.
+
+    θ̄ = Σ k_s θ_s / Σ k_s, k_s the firings of the N_s shots at step s.  As
+    independent draws of an angle (Poisson, what the detections' scatter about
+    their mean estimates): ``Σ N_s p_s (θ_s − θ̄)²``; given the shots, k_s is
+    binomial: ``Σ N_s p_s (1 − p_s)(θ_s − θ̄)²`` (both over K²): a saturated step
+    (every shot fires) adds nothing.  ``p_s = 1 − exp(−μ0 f_s)`` (μ0 the
+    posterior mean signal photons per shot, f_s the spot's share of the pixel;
+    :func:`band_steps`).  Only where the scan revisits its sampled angles with
+    at least :data:`BINOMIAL_MIN_SHOTS` shots each on average: with one shot per
+    sampled angle, which angles the shots sample is itself the randomness, and
+    μ0 (saturated or not) is not identified by the firings.  Otherwise 1.
+    ``steps``, ``n_band``, ``f_band`` (Q, B); ``mu``, ``theta_bar`` (Q,), θ̄ in steps.
+    """
+    p = -np.expm1(-np.asarray(mu, np.float64)[:, None] * f_band)
+    dev2 = (steps - np.asarray(theta_bar, np.float64)[:, None]) ** 2
+    w = n_band * p * dev2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sum(w * (1.0 - p), axis=1) / np.sum(w, axis=1)
+        dense = np.sum(n_band, axis=1) / np.sum(n_band > 0, axis=1) >= BINOMIAL_MIN_SHOTS
+    return np.where(np.isfinite(r) & dense, np.clip(r, 0.0, 1.0), 1.0)
+
+
 def first_photon_correction(acc, mean: dict) -> dict:
     """Apply the first-photon correction to ``mean`` (in place; see the class
     docstring); returns per peak the delay (s), its σ as path length (m) and μ0."""
@@ -72,7 +100,7 @@ def first_photon_correction(acc, mean: dict) -> dict:
     sp = spreads_for(s) if acc.spreads is None else acc.spreads
     sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
     out = {"delay": np.full(acc.Q, np.nan), "mu": np.full(acc.Q, np.nan),
-           "sigma_L": np.zeros(acc.Q)}
+           "sigma_L": np.zeros(acc.Q), "angle_binomial": np.ones(acc.Q)}
     # pulse centre from the fused point (stereo-dominated near the TDC start)
     tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
     tau = tau + s.tdc.offset
@@ -80,7 +108,10 @@ def first_photon_correction(acc, mean: dict) -> dict:
     if sigma <= 0 or not np.any(ok):
         return out
     idx = np.flatnonzero(ok)
-    d, sd, var, mu = (np.empty(idx.size) for _ in range(4))
+    d, sd, var, mu, ab = (np.empty(idx.size) for _ in range(5))
+    t0, dt = acc.step_grid
+    with np.errstate(invalid="ignore", divide="ignore"):
+        theta_bar = (acc.sums.theta / acc.sums.n - t0) / dt  # the inliers' mean step
     # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
     # its own band width B: a peak's result depends on its block alone, so the
     # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
@@ -90,11 +121,12 @@ def first_photon_correction(acc, mean: dict) -> dict:
         if b <= a:
             continue
         q = idx[a:b]
-        _, n_band, f_band = band_steps(acc, q)
+        steps, n_band, f_band = band_steps(acc, q)
         ll = acc.sums.loglik[q] + np.einsum(
             "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
         d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma)
+        ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
     c = s.speed_of_light
     dL = np.zeros(acc.Q)
     dvar = np.zeros(acc.Q)
@@ -113,6 +145,7 @@ def first_photon_correction(acc, mean: dict) -> dict:
     sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
                                SATURATED_EDGE_SIGMA * sigma * sat ** 2))
     out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
+    out["angle_binomial"][ok] = ab
     D, G = acc.sums.tof.dL()
     x, C = mean["tof"]
     mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])

@@ -439,8 +439,12 @@ class PeakAccumulator:
         # fusion of the stereo (at the mean angle) and uncorrected ToF means
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
         fp = first_photon_correction(self, mean) if correcting(self) else None
+        # the stereo mean's spread is that of its mean scan angle: binomial, not
+        # Poisson, where the scan revisits its angles (angle_binomial_factor)
+        scale = {"stereo": birge if fp is None else birge * fp["angle_binomial"],
+                 "tof": birge}
         for name in ("stereo", "tof"):
-            mean[name] = (mean[name][0], mean[name][1] * birge[:, None, None])
+            mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
         for name, C in (c_pix or {}).items():  # systematic: not scaled
             mean[name] = (mean[name][0], mean[name][1] + C)
         with np.errstate(invalid="ignore", divide="ignore"):
