@@ -89,8 +89,10 @@ def dask_client(scheduler="local", n_workers: int = 2):
         # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 by default: glibc then
         # returns every large temporary to the OS and page-faults it back, which
         # measured 2x slower on this pipeline's NumPy stages; keep glibc's default.
+        # and no statistical profiler on the workers: it samples the running task's
+        # stack every 10 ms (a third of an idle worker's CPU, more while it works)
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
-                              None}), \
+                              None, "distributed.worker.profile.enabled": False}), \
                 LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                              dashboard_address=None, env=env) as cluster, \
                 Client(cluster) as client:
