@@ -72,6 +72,12 @@ from mems_stereo.pipeline.signal_store import (
 #: parts summed per task of the reduction tree
 FAN_IN = 4
 
+#: shot ranges of :func:`process_split` per worker (default of ``n_parts``): one.  More
+#: parts cost each their pass-1 arrays, their tasks on the client and their transfers
+#: (400,000 dense shots on 2 workers: 3.46 s of worker CPU with 2 parts, 3.68 with 4,
+#: 3.95-4.25 with 8, against 3.65 s in one process; the client 0.51 -> 0.75-0.96 s)
+PARTS_PER_WORKER = 1
+
 #: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
                         "distributed.admin.tick.interval": "200ms",
@@ -222,9 +228,9 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     Pass 1 per shot range, summed in a tree on the workers; the peak detector
     on the client; pass 2 per shot range, summed in a tree; the fusion per
     block of peaks on the workers (:func:`split_peak_counts`), the client only
-    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: 4 per
-    worker).  ``timings`` of the result add the client's own serial seconds
-    (``client_serial``: the wall time less the time it waited on its workers,
+    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: one per
+    worker, :data:`PARTS_PER_WORKER`).  ``timings`` of the result add the
+    client's own serial seconds (``client_serial``: the wall time less the time it waited on its workers,
     ``client_wait``), the CPU seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
@@ -248,7 +254,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     with dask_client(scheduler, n_workers) as client:
         t_run = time.perf_counter()  # (a local cluster's start-up is not the run's)
         n_w = _n_workers(client)
-        parts = shot_ranges(K, n_parts or 4 * n_w)
+        parts = shot_ranges(K, n_parts or n_w * PARTS_PER_WORKER)
         t0 = time.perf_counter()
         rows = table.rows(theta, valid)
         fill_table(client, table, rows, settings=st, waits=waits)
