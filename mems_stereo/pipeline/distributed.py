@@ -230,8 +230,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     block of peaks on the workers (:func:`split_peak_counts`), the client only
     joining the blocks' clouds.  ``n_parts`` : shot ranges (default: one per
     worker, :data:`PARTS_PER_WORKER`).  ``timings`` of the result add the
-    client's own serial seconds (``client_serial``: the wall time less the time it waited on its workers,
-    ``client_wait``), the CPU seconds of the client process over the run
+    client's own serial seconds (``client_serial``: the wall time less the time
+    it waited on its workers, ``client_wait``), the CPU seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
     (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
