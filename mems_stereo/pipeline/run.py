@@ -505,15 +505,33 @@ def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[t
 def split_peak_counts(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int,
                       n_blocks: int) -> list[tuple[int, int, PeakCounts]]:
     """``(q0, q1, counts of peaks q0..q1−1 renumbered from 0)`` per block of
-    :func:`peak_blocks`; keys are sorted by peak, so each block is a slice."""
+    :func:`peak_blocks` (balanced by :func:`fusion_work`); keys are sorted by peak, so
+    each block is a slice."""
     span = np.int64(n_steps) * np.int64(n_codes)
     keys = counts.keys
-    per_peak = np.bincount(keys // span, minlength=n_peaks) if keys.size else np.zeros(n_peaks)
     out = []
-    for q0, q1 in peak_blocks(per_peak, n_blocks):
+    for q0, q1 in peak_blocks(fusion_work(counts, n_peaks, n_steps, n_codes), n_blocks):
         a, b = np.searchsorted(keys, [q0 * span, q1 * span])
         out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b].copy())))
     return out
+
+
+def fusion_work(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int) -> np.ndarray:
+    """(Q,) int64, the fusion's entries per peak: its distinct (step, code) keys plus
+    ``BACKGROUND_SEGMENTS`` negative-weight entries per distinct step (the expected
+    background, :func:`~mems_stereo.pipeline.window_background.window_background`);
+    what :func:`split_peak_counts` balances its blocks by."""
+    from mems_stereo.pipeline.window_background import BACKGROUND_SEGMENTS
+
+    keys = counts.keys
+    if keys.size == 0:
+        return np.zeros(n_peaks, np.int64)
+    q = keys // (np.int64(n_steps) * np.int64(n_codes))
+    g = keys // np.int64(n_codes)  # peak · S + step, sorted with the keys
+    new_step = np.ones(g.size, bool)
+    new_step[1:] = g[1:] != g[:-1]
+    return (np.bincount(q, minlength=n_peaks)
+            + BACKGROUND_SEGMENTS * np.bincount(q[new_step], minlength=n_peaks))
 
 
 def join_clouds(clouds: Sequence[PointCloud]) -> PointCloud:
