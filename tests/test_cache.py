@@ -50,3 +50,24 @@ def test_first_photon_table_from_cache_equals_fresh(tmp_path, monkeypatch):
         assert abs(m - again[2][7, 11]) < 1e-12 and abs(v - again[3][7, 11]) < 1e-12
     finally:
         fp._first_photon_table.cache_clear()
+
+
+def test_interval_table_read_from_the_cache_counts_as_used(tmp_path, monkeypatch):
+    """The cache keeps the most recently used tables: reading one marks it used, so a
+    table read at every run is not the first evicted when other tables are written."""
+    import os
+
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.pipeline.intervals import IntervalTable
+    from mems_stereo.pipeline.settings import Settings
+
+    monkeypatch.setenv("MEMS_STEREO_CACHE", str(tmp_path))
+    t = IntervalTable.for_settings(burkard2022(), Settings())
+    t.ensure(np.array([0, 5, 17]))
+    assert t.save_cache()
+    (path,) = tmp_path.glob("intervals-*.npz")
+    os.utime(path, (1_000_000, 1_000_000))  # written long ago
+    u = IntervalTable.for_settings(burkard2022(), Settings())
+    assert u.load_cache() == 3
+    assert np.array_equal(u.lo[[0, 5, 17]], t.lo[[0, 5, 17]])
+    assert path.stat().st_mtime > 1_000_000 + 86400  # marked used now

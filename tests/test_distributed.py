@@ -266,3 +266,43 @@ def test_split_with_signal_stores_equals_one_process(monkeypatch):
     np.testing.assert_array_equal(np.concatenate(list(back.blocks())),
                                   np.r_[np.arange(10), np.arange(5)])
     assert back.n_keys == 15 and back.complete
+
+
+def test_deal_blocks_balances_by_work():
+    """Largest first to the least loaded worker: on random work the busiest worker
+    carries at most 4/3 of the optimum's bound (Graham), every block once."""
+    from mems_stereo.pipeline.distributed import deal_blocks
+
+    rng = np.random.default_rng(14)
+    worst = 0.0
+    for _ in range(200):
+        n, w = int(rng.integers(1, 30)), int(rng.integers(1, 5))
+        work = rng.exponential(1.0, n).tolist()
+        owner = deal_blocks(work, [f"w{i}" for i in range(w)])
+        assert len(owner) == n and set(owner) <= {f"w{i}" for i in range(w)}
+        load = {}
+        for o, x in zip(owner, work):
+            load[o] = load.get(o, 0.0) + x
+        bound = max(sum(work) / w, max(work))  # no assignment does better
+        worst = max(worst, max(load.values()) / bound)
+    assert worst <= 4 / 3 + 1e-9
+    assert deal_blocks([1.0, 2.0], []) == [None, None]
+    print(f"busiest worker / lower bound, worst of 200: {worst:.3f}")
+
+
+def test_fusion_work_counts_entries_and_steps():
+    """Per peak: its distinct (step, code) keys plus BACKGROUND_SEGMENTS per distinct step."""
+    from mems_stereo.pipeline.run import fusion_work
+    from mems_stereo.pipeline.window_background import BACKGROUND_SEGMENTS
+
+    rng = np.random.default_rng(3)
+    Q, S, nb = 9, 50, 20
+    q, j, c = rng.integers(0, Q, 400), rng.integers(0, S, 400), rng.integers(0, nb, 400)
+    keys = np.unique((q * S + j) * nb + c)
+    pc = PeakCounts(keys, np.ones(keys.size, np.int64))
+    got = fusion_work(pc, Q, S, nb)
+    kq, kj = keys // (S * nb), (keys // nb) % S
+    want = [np.sum(kq == p) + BACKGROUND_SEGMENTS * np.unique(kj[kq == p]).size
+            for p in range(Q)]
+    assert np.array_equal(got, want)
+    assert np.array_equal(fusion_work(PeakCounts(), Q, S, nb), np.zeros(Q))

@@ -48,7 +48,6 @@ from mems_stereo.errors import OptionError
 from mems_stereo.io.recording import read_header, read_system
 from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
-from mems_stereo.pipeline.first_photon_correction import FP_BLOCK
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
@@ -56,6 +55,7 @@ from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this
     ProcessResult,
     cloud_of_means,
     finish_processing,
+    fusion_work,
     join_clouds,
     means_block,
     peak_blocks,
@@ -76,6 +76,22 @@ SCHEDULER_CONNECT_TIMEOUT = 10.0
 #: parts summed per task of the reduction tree
 FAN_IN = 4
 
+#: shot ranges of :func:`process_split` per worker (default of ``n_parts``): one.  More
+#: parts cost each their pass-1 arrays, their tasks on the client and their transfers
+#: (400,000 dense shots on 2 workers: 3.46 s of worker CPU with 2 parts, 3.68 with 4,
+#: 3.95-4.25 with 8, against 3.65 s in one process; the client 0.51 -> 0.75-0.96 s)
+PARTS_PER_WORKER = 1
+
+#: blocks of peaks fused per worker (at most: blocks are cut at multiples of
+#: ``FP_BLOCK`` peaks), dealt to the workers by their work (:func:`deal_blocks`)
+BLOCKS_PER_WORKER = 8
+
+#: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
+LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
+                        "distributed.admin.tick.interval": "200ms",
+                        "distributed.worker.memory.monitor-interval": "1s",
+                        "distributed.admin.system-monitor.interval": "2s"}
+
 
 @contextlib.contextmanager
 def dask_client(scheduler="local", n_workers: int = 2):
@@ -93,8 +109,13 @@ def dask_client(scheduler="local", n_workers: int = 2):
         # Dask's nannies set MALLOC_TRIM_THRESHOLD_=65536 by default: glibc then
         # returns every large temporary to the OS and page-faults it back, which
         # measured 2x slower on this pipeline's NumPy stages; keep glibc's default.
+        # The housekeeping of a local cluster, which shares the cores with the work:
+        # no statistical profiler on the workers (it samples the running task's stack
+        # every 10 ms: a third of an idle worker's CPU, more while it works), and the
+        # event loops' tick and the memory and system monitors less often (an idle
+        # worker 2.1 % -> 0.5 % of a core, the client with the scheduler 3.8 % -> 1.2 %)
         with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
-                              None}), \
+                              None, **LOCAL_CLUSTER_CONFIG}), \
                 LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                              dashboard_address=None, env=env) as cluster, \
                 Client(cluster) as client:
@@ -115,6 +136,11 @@ def dask_client(scheduler="local", n_workers: int = 2):
 
 def _n_workers(client) -> int:
     return max(1, len(client.scheduler_info().get("workers", {})))
+
+
+def _worker_addresses(client) -> list:
+    """The cluster's worker addresses, sorted (empty where the scheduler lists none)."""
+    return sorted(client.scheduler_info().get("workers", {}))
 
 
 def _sum(*parts):
@@ -224,10 +250,10 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     Pass 1 per shot range, summed in a tree on the workers; the peak detector
     on the client; pass 2 per shot range, summed in a tree; the fusion per
     block of peaks on the workers (:func:`split_peak_counts`), the client only
-    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: 4 per
-    worker).  ``timings`` of the result add the client's own serial seconds
-    (``client_serial``: the wall time less the time it waited on its workers,
-    ``client_wait``), the CPU seconds of the client process over the run
+    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: one per
+    worker, :data:`PARTS_PER_WORKER`).  ``timings`` of the result add the
+    client's own serial seconds (``client_serial``: the wall time less the time
+    it waited on its workers, ``client_wait``), the CPU seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
     (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
@@ -250,7 +276,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     with dask_client(scheduler, n_workers) as client:
         t_run = time.perf_counter()  # (a local cluster's start-up is not the run's)
         n_w = _n_workers(client)
-        parts = shot_ranges(K, n_parts or 4 * n_w)
+        parts = shot_ranges(K, n_parts or n_w * PARTS_PER_WORKER)
         t0 = time.perf_counter()
         rows = table.rows(theta, valid)
         fill_table(client, table, rows, settings=st, waits=waits)
@@ -291,12 +317,20 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         def make_points(peaks, total_f):
             Q = len(peaks["row"])
             nps_f = client.scatter(acc.n_per_step, broadcast=True)
-            blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes, 4 * n_w,
+            blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes,
+                                     BLOCKS_PER_WORKER * n_w,
                                      pure=False)
-            # at most this many blocks (no round trip to ask how many there are)
-            n_blocks = min(4 * n_w, -(-Q // FP_BLOCK))
+            # each block's work (a few numbers back), so that the blocks are dealt to the
+            # workers by it, the largest first to the least loaded (cuts at multiples of
+            # FP_BLOCK peaks leave blocks of unequal work).  Left to itself the scheduler
+            # runs every block where ``blocks_f`` lies (data locality): one worker fused
+            # most of them (2 workers, 1,600,000 shots: 4.55 / 5.25 s of CPU)
+            work = waits(client.submit(_block_work, blocks_f, S, n_codes, pure=False).result)
+            owner = deal_blocks(work, _worker_addresses(client))
             means_f = [client.submit(_means_nth_block, sysm, shared["peaks"], blocks_f, i,
-                                     st, nps_f, table_f, pure=False) for i in range(n_blocks)]
+                                     st, nps_f, table_f, pure=False,
+                                     workers=None if owner[i] is None else [owner[i]],
+                                     allow_other_workers=True) for i in range(len(work))]
             means = [m for m in waits(client.gather, means_f) if m is not None]
             if not means:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
@@ -353,6 +387,27 @@ def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store
     theta, valid = angles
     return peak_counts_range(path, system, theta, valid, settings, peaks, start, stop,
                              table=table, angle_offset=start)
+
+
+def _block_work(blocks, n_steps: int, n_codes: int) -> list[float]:
+    """The fusion's work of each block of :func:`split_peak_counts` (its entries,
+    :func:`~mems_stereo.pipeline.run.fusion_work`)."""
+    return [float(fusion_work(c, q1 - q0, n_steps, n_codes).sum()) for q0, q1, c in blocks]
+
+
+def deal_blocks(work, workers: Sequence) -> list:
+    """The worker of each block: the blocks by decreasing ``work``, each to the worker
+    with the least work so far (longest processing time first); None for every block
+    when ``workers`` is empty."""
+    if not workers:
+        return [None] * len(work)
+    load = dict.fromkeys(workers, 0.0)
+    owner: list = [None] * len(work)
+    for i in sorted(range(len(work)), key=lambda i: -work[i]):
+        w = min(load, key=load.get)
+        owner[i] = w
+        load[w] += work[i]
+    return owner
 
 
 def _means_nth_block(system, peaks, blocks, i, settings, n_per_step, table):

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -226,9 +227,14 @@ def _cache_load(table: IntervalTable) -> int:
     d = cache_dir()
     if d is None:
         return 0
-    got = _load_rows(d / f"intervals-{_cache_key(table)}.npz", table)
+    path = d / f"intervals-{_cache_key(table)}.npz"
+    got = _load_rows(path, table)
     if got is None:
         return 0
+    # used now: the oldest files are evicted (_cache_save), so a table that is read at
+    # every run but not written again would otherwise go first (least recently used)
+    with contextlib.suppress(OSError):
+        os.utime(path)
     lo, hi, filled = got
     new = filled & ~table.filled
     table.put_rows(np.flatnonzero(new), lo[new], hi[new])

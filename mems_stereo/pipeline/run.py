@@ -376,25 +376,41 @@ FUSE_ENTRIES = 1 << 16
 def fuse_in_blocks(system, peaks, counts: PeakCounts, settings: Settings, n_per_step,
                    table: IntervalTable, max_entries: int | None = None):
     """:func:`points_from_counts` over blocks of peaks of at most about ``max_entries``
-    distinct (peak, step, code) entries each: each block's per-peak sums
-    (:func:`~mems_stereo.pipeline.fusion.peak_sums_from_counts`), joined into one
-    accumulator whose cloud is the whole's bit for bit, with the fusion's
-    per-entry arrays (≈ 200 bytes an entry) bounded by the block instead of
-    growing with the recording's distinct entries (default :data:`FUSE_ENTRIES`)."""
+    distinct (peak, step, code) entries each (:func:`fused_sums`): the cloud of the
+    joined accumulator is the whole's bit for bit, with the fusion's per-entry
+    arrays (≈ 200 bytes an entry) bounded by the block instead of growing with the
+    recording's distinct entries (default :data:`FUSE_ENTRIES`)."""
     cap = FUSE_ENTRIES if max_entries is None else max_entries
-    n_blocks = max(1, math.ceil(counts.keys.size / max(1, int(cap))))
-    if n_blocks == 1:
+    if counts.keys.size <= cap:
         return points_from_counts(system, peaks, counts, settings, shots_per_step=n_per_step,
                                   table=table)
-    # each block's sums (a peak's are its entries' alone), joined, then one cloud: no
-    # halo of neighbours to fuse twice (the Dask runner's blocks need one)
+    acc = fused_sums(system, peaks, counts, settings, n_per_step, table, cap)
+    return consistent_points(acc.cloud(settings.min_counts), settings.confidence)
+
+
+def fused_sums(system, peaks, counts: PeakCounts, settings: Settings, n_per_step,
+               table: IntervalTable, max_entries: int | None = None):
+    """The :class:`~mems_stereo.pipeline.fusion.PeakAccumulator` of ``peaks`` (a mapping
+    of (Q,) arrays) after both sub-passes over ``counts``, computed over blocks of
+    peaks of at most about ``max_entries`` distinct entries each (default
+    :data:`FUSE_ENTRIES`; cut at multiples of ``FP_BLOCK`` peaks) and joined
+    (:meth:`~mems_stereo.pipeline.fusion.PeakAccumulator.joined`): a peak's sums are its
+    entries' alone, so the result is the one accumulator of every entry, bit for bit.
+    The fusion's cost per entry grows with the block (its temporaries, and above
+    ``fusion.KEEP_ENTRIES`` sub-pass 1's points are computed again), so the Dask
+    runner's blocks of peaks are cut the same way on their workers."""
+    cap = FUSE_ENTRIES if max_entries is None else max_entries
     light = {k: v for k, v in peaks.items() if k != "background_by_step" and v is not None}
+    n_blocks = max(1, math.ceil(counts.keys.size / max(1, int(cap))))
+    if n_blocks == 1:
+        return peak_sums_from_counts(system, light, counts, settings, n_per_step, table)
+    # each block's sums (a peak's are its entries' alone), joined: no halo of
+    # neighbours to fuse twice (the cloud's depth edges are made on the joined sums)
     blocks = split_peak_counts(counts, len(light["row"]), table.n_steps,
                                system.tdc.n_bins + 1, n_blocks)
     parts = [peak_sums_from_counts(system, {k: np.asarray(v)[q0:q1] for k, v in light.items()},
                                    c, settings, n_per_step, table) for q0, q1, c in blocks]
-    acc = accumulator_for_peaks(system, light, settings, n_per_step, table).joined(parts)
-    return consistent_points(acc.cloud(settings.min_counts), settings.confidence)
+    return accumulator_for_peaks(system, light, settings, n_per_step, table).joined(parts)
 
 
 def block_with_halo(system, peaks, blocks, i: int, n_steps: int):
@@ -447,11 +463,11 @@ def means_block(system, peaks, blocks, i: int, settings: Settings, n_per_step, t
     """The :class:`~mems_stereo.pipeline.peak_means.PeakMeans` of the peaks of block ``i``
     of ``blocks`` (:func:`split_peak_counts`; ``peaks`` a mapping of (Q,) arrays),
     no halo: the blocks' means joined (``PeakMeans.concat``) give the whole's cloud,
-    bit for bit (:func:`cloud_of_means`)."""
+    bit for bit (:func:`cloud_of_means`).  A block of more than :data:`FUSE_ENTRIES`
+    entries is fused in sub-blocks (:func:`fused_sums`), as one process does."""
     q0, q1, counts = blocks[i]
     sub = {k: np.asarray(v)[q0:q1] for k, v in peaks.items() if v is not None}
-    return peak_sums_from_counts(system, sub, counts, settings, n_per_step,
-                                 table).peak_means()
+    return fused_sums(system, sub, counts, settings, n_per_step, table).peak_means()
 
 
 def cloud_of_means(means, settings: Settings):
@@ -489,15 +505,33 @@ def peak_blocks(entries_per_peak, n_blocks: int, unit: int = FP_BLOCK) -> list[t
 def split_peak_counts(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int,
                       n_blocks: int) -> list[tuple[int, int, PeakCounts]]:
     """``(q0, q1, counts of peaks q0..q1−1 renumbered from 0)`` per block of
-    :func:`peak_blocks`; keys are sorted by peak, so each block is a slice."""
+    :func:`peak_blocks` (balanced by :func:`fusion_work`); keys are sorted by peak, so
+    each block is a slice."""
     span = np.int64(n_steps) * np.int64(n_codes)
     keys = counts.keys
-    per_peak = np.bincount(keys // span, minlength=n_peaks) if keys.size else np.zeros(n_peaks)
     out = []
-    for q0, q1 in peak_blocks(per_peak, n_blocks):
+    for q0, q1 in peak_blocks(fusion_work(counts, n_peaks, n_steps, n_codes), n_blocks):
         a, b = np.searchsorted(keys, [q0 * span, q1 * span])
         out.append((q0, q1, PeakCounts(keys[a:b] - q0 * span, counts.counts[a:b].copy())))
     return out
+
+
+def fusion_work(counts: PeakCounts, n_peaks: int, n_steps: int, n_codes: int) -> np.ndarray:
+    """(Q,) int64, the fusion's entries per peak: its distinct (step, code) keys plus
+    ``BACKGROUND_SEGMENTS`` negative-weight entries per distinct step (the expected
+    background, :func:`~mems_stereo.pipeline.window_background.window_background`);
+    what :func:`split_peak_counts` balances its blocks by."""
+    from mems_stereo.pipeline.window_background import BACKGROUND_SEGMENTS
+
+    keys = counts.keys
+    if keys.size == 0:
+        return np.zeros(n_peaks, np.int64)
+    q = keys // (np.int64(n_steps) * np.int64(n_codes))
+    g = keys // np.int64(n_codes)  # peak · S + step, sorted with the keys
+    new_step = np.ones(g.size, bool)
+    new_step[1:] = g[1:] != g[:-1]
+    return (np.bincount(q, minlength=n_peaks)
+            + BACKGROUND_SEGMENTS * np.bincount(q[new_step], minlength=n_peaks))
 
 
 def join_clouds(clouds: Sequence[PointCloud]) -> PointCloud:
