@@ -1,14 +1,16 @@
 #!/usr/bin/env bash
 # One-time, idempotent set-up of a fresh machine for mems-stereo:
 #   1. the system libraries Open3D needs (libusb for `import open3d`,
-#      Mesa EGL/GL for headless rendering), installed with apt when missing;
+#      Mesa EGL/GL for headless rendering) and libdeflate (gzip'd recordings
+#      read twice as fast; mems_stereo/io/deflate_chunks.py), installed with
+#      apt when missing;
 #   2. a virtual environment in .venv with the package and its test tools.
 # Re-running it is cheap: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 need_pkgs=()
-for p in libusb-1.0-0 libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgomp1; do
+for p in libusb-1.0-0 libegl1 libegl-mesa0 libgl1 libgl1-mesa-dri libgomp1 libdeflate0; do
   dpkg -s "$p" >/dev/null 2>&1 || need_pkgs+=("$p")
 done
 if [ ${#need_pkgs[@]} -gt 0 ]; then
