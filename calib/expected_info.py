@@ -138,3 +138,25 @@ def consistency_information(cells, pc: np.ndarray, ok: np.ndarray, Jc: np.ndarra
         aE[:, i] = (q == i) * okf
         bE[:, 4 + i] = (q == i) * bu
     return information(F, np.hstack([aE, a]), np.hstack([bE, b]))
+
+
+def expected_information(prob, x) -> np.ndarray:
+    """(P, P) SI expected information of the whole problem at ``x`` (all walls'
+    cells, plus the measured distances' Gauss-Newton term): the counterpart of
+    :meth:`~mems_stereo.calib.problem.Problem.score`'s outer product."""
+    lay = prob.layout
+    _, walls = lay.unpack(x)
+    H = np.zeros((lay.size, lay.size))
+    for j in range(lay.T):
+        c = prob.cells[j]
+        pred, ok, (J, geo) = prob.predictions(x, j, c.shots, steps=True)
+        pos = np.searchsorted(c.shots, c.shot)
+        pc = np.where(ok[pos, None], pred[pos], [0.0, -1e6, -1e6, 0.0])
+        m, a, b, _ = wall_rows(c, pc, ok[pos], J[pos], walls[j, 3], walls[j, 4], lay.two_d,
+                               prob.pitch_ratio)
+        ws = lay.wall_slice(j)
+        idx = geo + [ws.start + lay.wall_names.index("logmu"),
+                     ws.start + lay.wall_names.index("logspot")]
+        F = cell_fisher(pc[:, 0], m, c.lam, c.t_max, prob.sigma)
+        H[np.ix_(idx, idx)] += information(F, a, b)
+    return H + prob.prior_terms(x)[2]
