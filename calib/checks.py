@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from mems_stereo.calib import observability as obs
+from mems_stereo.calib.expected_info import consistency_information
 from mems_stereo.calib.model import plane_normal
 from mems_stereo.calib.problem import (
     SPOT_MIN,
@@ -75,11 +76,6 @@ def check_walls(prob, x, cov, walls, tracks, system, values, sigma, two_d,
     rms_u, rms_t, wsum, n_sig = 0.0, 0.0, 0.0, 0.0
     bad = []
     bad_walls = set()
-    checks = {}
-    targets = []
-    rms_u, rms_t, wsum, n_sig = 0.0, 0.0, 0.0, 0.0
-    bad = []
-    bad_walls = set()
     for j, w in enumerate(walls):
         ws = lay.wall_slice(j)
         wall = wall_p[j]
@@ -96,11 +92,13 @@ def check_walls(prob, x, cov, walls, tracks, system, values, sigma, two_d,
         c = prob.cells[j]
         pred, ok, jac = prob.predictions(x, j, c.shots, steps=True)
         pos = np.searchsorted(c.shots, c.shot)
-        ll_c, d_c = cell_terms(c, np.where(ok[pos, None], pred[pos], [0, -1e6, -1e6, 0]),
-                               wall[3], wall[4], sigma, two_d, prob.pitch_ratio)
+        pc = np.where(ok[pos, None], pred[pos], [0, -1e6, -1e6, 0])
+        ll_c, d_c = cell_terms(c, pc, wall[3], wall[4], sigma, two_d, prob.pitch_ratio)
         _, S, idx = prob.wall_terms(x, j, grad=True)
+        info = consistency_information(c, pc, ok[pos], jac[0][pos], wall, sigma, two_d,
+                                       prob.pitch_ratio, system.receiver.width)
         p_cons, dt_q, du_q, z_q = obs.consistency_scores(d_c[:, :2], S, c.col,
-                                                    width=system.receiver.width)
+                                                    width=system.receiver.width, info=info)
         # signal the fit explains vs the excess over the background in the cells
         fired = np.isfinite(c.t)
         n_fired = int(np.count_nonzero(fired))

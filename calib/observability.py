@@ -5,11 +5,14 @@ observability verdict, and the consistency checks of a fitted calibration.
   relative singular values (exact null directions show as ~0);
 * :func:`weak_parameters` — free system parameters whose σ exceeds the limit
   (:data:`DEFAULT_MAX_STD`), with the parameters they trade off with;
-* :func:`consistency_scores` — Rao score tests of a flat wall: per wall and per
+* :func:`consistency_scores` — score tests of a flat wall: per wall and per
   quarter of the sensor, a TDC-time shift and a column shift the model does not
-  have.  Under the model each statistic is χ² with 8 degrees of freedom; a
-  recording that is not a flat wall, or a fit that locked onto the wrong
-  geometry, fails it.
+  have.  Neyman's C(α) form (the shifts' score less what the wall's nuisance
+  score explains: the system parameters are shared with the other walls, so
+  this wall's score of them is not zero at the joint fit), with the expected
+  information of :mod:`mems_stereo.calib.expected_info`.  Under the model each
+  statistic is χ² with up to 8 degrees of freedom; a recording that is not a
+  flat wall, or a fit that locked onto the wrong geometry, fails it.
 """
 
 from __future__ import annotations
@@ -35,9 +38,9 @@ SHIFT_PIXEL = 0.3
 #: fraction of the pulse width (a strong, piled-up wall's leading edge), not to 1 ns
 SHIFT_TIME_PULSE = 0.5
 #: ... and a shift that large counts only where it is itself this significant
-#: (shift / its σ): the outer-product information of the few signal cells of a weak
-#: wall is overdispersed (correct fits show p ~ 1e-3 routinely), and a genuine
-#: non-flat wall or a wrong geometry shows shifts at tens of σ
+#: (shift / its σ): an allowance for the model's approximations (Gaussian pulse,
+#: background measured, not fitted); a genuine non-flat wall or a wrong geometry
+#: shows shifts at tens of σ
 SHIFT_Z = 8.0
 
 
@@ -101,12 +104,19 @@ def weak_parameters(std: dict, limits: dict, trade: list) -> tuple[list, str]:
 
 
 def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray,
-                       H_inv_block: np.ndarray | None = None, width: int = 192):
+                       H_inv_block: np.ndarray | None = None, width: int = 192,
+                       info: np.ndarray | None = None):
     """Score test of per-quarter time and column shifts of one wall.
 
     d_cells : (N, 2) ∂ℓ/∂τ and ∂ℓ/∂u of each cell at the fit.
     S_cells : (N, P) the cells' scores of the fitted parameters (the nuisance).
     col : (N,) column of each cell (the quarter of the sensor it belongs to).
+    info : None — the information is the outer product of the observed scores;
+        or the (8 + P, 8 + P) expected information of [the 8 shifts (time per
+        quarter, then column per quarter), the P nuisance parameters]
+        (:mod:`mems_stereo.calib.expected_info`): the test then uses it (the
+        outer product of a weak wall's few signal cells is too noisy for the
+        small information left to a shift once the nuisance is fitted).
 
     Returns (p_value, time shifts (4,) s, column shifts (4,) px, and the
     significance of each shift (8,): shift / its σ, time shifts first): the
@@ -120,18 +130,41 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
         E[m, i] = d_cells[m, 0]
         E[m, 4 + i] = d_cells[m, 1]
     used = np.any(E != 0, axis=0)
+    if info is not None:
+        used &= np.diag(info)[:8] > 0
     E = E[:, used]
     if E.shape[1] == 0:
         return none
-    unit = np.sqrt(np.maximum(np.einsum("ij,ij->j", E, E), 1e-300))
-    E = E / unit  # columns in units of their own σ
-    S_cells = S_cells / np.sqrt(np.maximum(np.einsum("ij,ij->j", S_cells, S_cells), 1e-300))
-    g = E.sum(axis=0)
-    Iee = E.T @ E
-    Ies = E.T @ S_cells
-    Iss = S_cells.T @ S_cells
+    if info is None:
+        unit = np.sqrt(np.maximum(np.einsum("ij,ij->j", E, E), 1e-300))
+        E = E / unit  # columns in units of their own σ
+        S_cells = S_cells / np.sqrt(np.maximum(np.einsum("ij,ij->j", S_cells, S_cells),
+                                               1e-300))
+        g = E.sum(axis=0)
+        g_s = S_cells.sum(axis=0)
+        Iee = E.T @ E
+        Ies = E.T @ S_cells
+        Iss = S_cells.T @ S_cells
+    else:
+        sel = np.concatenate([np.flatnonzero(used), 8 + np.arange(info.shape[0] - 8)])
+        Ii = info[np.ix_(sel, sel)]
+        dd = np.sqrt(np.maximum(np.diag(Ii), 1e-300))
+        Ii = Ii / dd[:, None] / dd[None, :]
+        ne = E.shape[1]
+        unit = dd[:ne]
+        g = E.sum(axis=0) / unit
+        g_s = S_cells.sum(axis=0) / dd[ne:]
+        Iee, Ies, Iss = Ii[:ne, :ne], Ii[:ne, ne:], Ii[ne:, ne:]
     try:
-        adj = Iee - Ies @ np.linalg.pinv(Iss, rcond=1e-10, hermitian=True) @ Ies.T
+        Iss_inv = np.linalg.pinv(Iss, rcond=1e-10, hermitian=True)
+        adj = Iee - Ies @ Iss_inv @ Ies.T
+        # Neyman's C(α) effective score: the shifts' score less what the nuisance's
+        # own score explains.  The system parameters are fitted to all walls, so one
+        # wall's score of them is not zero at the fit (it pulls against the others);
+        # without this a shift nearly collinear with the nuisance (a time trend
+        # across the sensor vs the wall's yaw and the baseline) inherits that pull
+        # divided by its small residual information
+        g = g - Ies @ Iss_inv @ g_s
         ev, V = np.linalg.eigh(0.5 * (adj + adj.T))
     except np.linalg.LinAlgError:
         return none

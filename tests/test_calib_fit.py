@@ -179,3 +179,36 @@ def test_consistency_needs_a_large_and_significant_shift():
     assert big(z4, [0, 0, 0.6, 0], [0, 0, 0, 0, 0, 0, 20, 0])
     # significant but tiny shifts are the model's precision, not a failure
     assert not big([0.5e-9, 0, 0, 0], [0.1, 0, 0, 0], [50, 0, 0, 0, 50, 0, 0, 0])
+
+
+def test_expected_information_agrees_with_the_outer_product(nominal, good):
+    """The expected information (:mod:`mems_stereo.calib.expected_info`, used by the
+    flat-wall consistency test) and the outer product of the observed scores (the
+    solver's) at the true system and walls: the same σ of every system parameter
+    within 15 % (the simulator and the first-photon model agree)."""
+    from mems_stereo.calib import observability as obs
+    from mems_stereo.calib.expected_info import expected_information
+    from mems_stereo.calib.problem import Layout, Problem
+    from mems_stereo.calib.solver import build_cells
+
+    from mems_stereo.physics.pulse import pulse_sigma
+
+    case, walls = good
+    true = case.true_system(nominal)
+    names = ["theta0", "theta_mech_max", "phase_offset", "tdc_offset", "baseline_x",
+             "baseline_z"]
+    wp = np.zeros((len(walls), 5))
+    for j, w in enumerate(case.walls):  # the walls' traces in the scan plane y = 0
+        n = w.normal
+        k = math.hypot(n[0], n[2])
+        wp[j] = [math.atan2(-n[0], -n[2]), 0.0, -n[2] * w.distance / k, math.log(w.flux),
+                 math.log(0.3)]
+    lay = Layout(names, len(walls), False)
+    prob = Problem(walls, nominal, lay, pulse_sigma(nominal.laser.pulse_fwhm, 50e-12))
+    x = build_cells(prob, lay.pack({n: true.get_param(n) for n in names}, wp), radius=2)
+    sd = []
+    for H in (prob.score(x)[2], expected_information(prob, x)):
+        cov = obs.covariance(H, lay.scales)[0]
+        sd.append(np.sqrt(np.diag(cov))[:len(names)])
+    ratio = sd[0] / sd[1]
+    assert np.all(np.abs(ratio - 1) < 0.15), dict(zip(names, ratio))
