@@ -150,3 +150,26 @@ def test_room_peaks_tof_first_photon_correction():
     assert ratios[False][0] > 1.2 * ratios[True][0]  # the bias the correction removes
     for r in ratios[True]:
         assert 1 / 1.5 < r < 1.5, ratios
+
+
+@pytest.mark.parametrize("share, expect_point", [(0.2, True), (0.97, False)])
+def test_no_point_from_inliers_consistent_with_background(system, rng, share, expect_point):
+    """A peak's mean is a ratio over its inliers' background-subtracted count: where
+    their detections are not significant against the background subtracted from
+    them (Poisson, at the confidence), there is no point; 20 % background leaves one."""
+    from mems_stereo.pipeline.fusion import points_from_peak_detections
+
+    _, x, col, code, th = _shots(system, rng, 20000, 3.0)
+    c0 = np.bincount(col).argmax()
+    sel = np.flatnonzero(col == c0)
+    n = sel.size
+    assert n > 50
+    # each detection entry with a background entry at the same shot and code
+    shot = np.concatenate([sel, sel])
+    code2 = np.concatenate([code[sel], code[sel]])
+    weight = np.concatenate([np.ones(n), np.full(n, -share)])
+    bg = np.concatenate([np.zeros(n), np.full(n, share)])
+    pc = points_from_peak_detections(system, shot, np.zeros(2 * n, np.int64), code2, th,
+                                     np.array([0]), np.array([c0]), weight=weight,
+                                     background=bg)
+    assert (len(pc) == 1) is expect_point

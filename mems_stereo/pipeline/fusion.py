@@ -50,7 +50,7 @@ from mems_stereo.pipeline.peak_geometry import footprint_halfwidth, stereo_at_me
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
-from mems_stereo.pipeline.window_background import window_background
+from mems_stereo.pipeline.window_background import inlier_codes, window_background
 
 
 def points_from_counts(system: System, peaks: dict, counts: PeakCounts, settings: Settings,
@@ -104,6 +104,7 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
     theta = table.theta_min + step * table.step
     weight = counts.counts.astype(np.float64)
     background = None
+    inlier_background = None
     rate = peaks.get("rate_hz")
     q_all, code_all, theta_all = q, code.astype(np.float64), theta
     if rate is not None and shots_per_step is not None and k.size:
@@ -127,10 +128,40 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
         theta_all = np.concatenate([theta, np.repeat(theta[first], J)[keep]])
         background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
         weight = np.concatenate([weight, -bgs.ravel()[keep]])
+        n_shots = np.asarray(shots_per_step)[step]
+
+        def inlier_background(acc):
+            # sub-pass 2's background: over the codes of each (peak, step) that pass
+            # the inlier test (:func:`inlier_codes`); the segments above stay for
+            # the mode and the window's detection count (first-photon likelihood)
+            g_first = first
+            qg, thg = q[g_first], theta[g_first]
+
+            def margins(gi, c):
+                pk, _, _, r, sr, ok, _ = acc._points(np.arange(gi.size), qg[gi], c, thg[gi],
+                                                      None)
+                ctr = acc.centre[pk]
+                bound = acc.k * sr + acc.halfwidth[pk]
+                bad = ~(ok & np.isfinite(ctr))
+                return (np.where(bad, np.nan, r - (ctr - bound)),
+                        np.where(bad, np.nan, ctr + bound - r))
+
+            c1, c2 = inlier_codes(margins, a[g_first], b[g_first])
+            _, inv = np.unique(q * S + step, return_inverse=True)
+            a2 = np.maximum(a, np.ceil(np.nan_to_num(c1, posinf=1e9, neginf=-1e9))[inv])
+            b2 = np.minimum(b, np.floor(np.nan_to_num(c2, posinf=1e9, neginf=-1e9))[inv])
+            f2, bg2, cen2 = window_background(q * S + step, code, counts.counts, a2, b2,
+                                              n_shots, lo, rate[q], system.tdc.bin_width)
+            kp = bg2.ravel() > 0
+            J2 = bg2.shape[1]
+            return (np.repeat(q[f2], J2)[kp], cen2.ravel()[kp],
+                    np.repeat(theta[f2], J2)[kp], bg2.ravel()[kp])
 
     acc = accumulator_for_peaks(system, peaks, settings, shots_per_step, table)
     return accumulate_entries(acc, np.arange(q_all.size), q_all, code_all, theta_all,
-                              weight=weight, background=background)
+                              weight=weight, background=background,
+                              inlier_background=None if background is None
+                              else inlier_background)
 
 
 def _acceptance(system: System, table, peaks):
@@ -341,15 +372,18 @@ class PeakAccumulator:
                                theta, background)
 
     def _add_inliers_sums(self, peak, code, r, sr, ok, m, dp_of, shot, theta,
-                          background) -> None:
+                          background, may_be_inlier=None, count_window=True) -> None:
         """The sums of :meth:`add_inliers` from each entry's fused range r, its σ sr and
         ok (M,); ``dp_of(inl)`` gives the :class:`DetectionPoints` of the inliers only
         (each entry's points are its own: computing them for the inliers alone
         changes no bit)."""
         s = self.sums
-        np.add.at(s.window, peak, m)
+        if count_window:
+            np.add.at(s.window, peak, m)
         with np.errstate(invalid="ignore"):
             inl = ok & (np.abs(r - self.centre[peak]) <= self.k * sr + self.halfwidth[peak])
+        if may_be_inlier is not None:
+            inl &= may_be_inlier
         q = peak[inl]
         m_all, m = m, m[inl]
         np.add.at(s.n, q, m)
@@ -366,7 +400,7 @@ class PeakAccumulator:
                     g * (1.0 - dp.weight_stereo)[:, None])
         s.stereo.add(q, dp.stereo, dp.cov_stereo, m)
         s.tof.add(q, dp.tof, dp.cov_tof, m, g)
-        if self.shots_per_step is not None and self.first_photon and peak.size:
+        if self.shots_per_step is not None and self.first_photon and peak.size and count_window:
             # band: the inliers' steps; likelihood: every detection of the window (the
             # in-peak test drops true returns at the band's edges, where the spot is
             # half off the pixel: counting those shots as misses would bias μ0 low)
@@ -522,18 +556,31 @@ def points_from_peak_detections(system: System, shot, peak, code, theta, rows, c
 
 
 def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=None,
-                       background=None) -> PeakAccumulator:
+                       background=None, inlier_background=None) -> PeakAccumulator:
     """Both sub-passes of ``acc`` over the entries (arguments as
     :func:`points_from_peak_detections`); returns ``acc``, its centres fixed and its
-    sums added."""
+    sums added.
+
+    ``inlier_background`` (optional): ``f(acc) -> (peak, code, theta, background)``
+    (N,) each, called after the centres are fixed: sub-pass 2's background
+    entries (weight −background) in place of the entries with ``background > 0``,
+    which then count only in the window (the first-photon likelihood)."""
     system = acc.system
     shot = np.asarray(shot, dtype=np.int64).ravel()
     M = shot.size
+    bg = None if background is None else np.asarray(background, np.float64).ravel()
+    may = None if inlier_background is None or bg is None else ~(bg > 0)
     if M <= ENTRY_BLOCK:  # the entries' points computed once, used by both sub-passes
         pts = acc._points(shot, peak, code, theta, weight)
         acc._add_mode_points(pts)
         acc.finish_mode()
-        acc._add_inliers_points(pts, shot, theta, background)
+        if may is None:
+            acc._add_inliers_points(pts, shot, theta, background)
+        else:
+            pe, ce, dp, r, sr, ok, m = pts
+            acc._add_inliers_sums(pe, ce, r, sr, ok, m, lambda inl: dp.subset(inl), shot,
+                                  theta, bg, may_be_inlier=may)
+            _add_inlier_background(acc, inlier_background(acc))
         return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
     # keeps each entry's fused range, its σ and ok (17 bytes an entry) and, up to
@@ -544,7 +591,6 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
     peak = np.asarray(peak, dtype=np.int64).ravel()
     code = np.asarray(code, dtype=np.float64).ravel()
     m = (np.ones(M) if weight is None else np.asarray(weight, dtype=np.float64).ravel())
-    bg = None if background is None else np.asarray(background, np.float64).ravel()
     r, sr, ok = np.empty(M), np.empty(M), np.empty(M, bool)
     for a in range(0, M, ENTRY_BLOCK):
         e = slice(a, a + ENTRY_BLOCK)
@@ -566,8 +612,24 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
                                     ce[inl], theta, acc.spreads)
 
         acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
-                              None if bg is None else bg[e])
+                              None if bg is None else bg[e],
+                              may_be_inlier=None if may is None else may[e])
+    if may is not None:
+        _add_inlier_background(acc, inlier_background(acc))
     return acc
+
+
+def _add_inlier_background(acc: PeakAccumulator, entries) -> None:
+    """Sub-pass 2 over background entries ``(peak, code, theta, background)`` (N,)
+    each: weight −background, inlier sums only (not the window), in blocks."""
+    peak, code, theta, b = entries
+    for a in range(0, peak.size, ENTRY_BLOCK):
+        e = slice(a, a + ENTRY_BLOCK)
+        sh = np.arange(peak[e].size)
+        pts = acc._points(sh, peak[e], code[e], theta[e], -b[e])
+        pe, ce, dp, r, sr, ok, m = pts
+        acc._add_inliers_sums(pe, ce, r, sr, ok, m, lambda inl, dp=dp: dp.subset(inl), sh,
+                              theta[e], b[e], count_window=False)
 
 
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by

@@ -79,3 +79,80 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
     return first, h[:, None] * S_sum, centroid
+
+
+#: nodes (equally spaced codes, ends included) at which :func:`inlier_codes`
+#: evaluates each group's inlier margins before its secant refinement
+INLIER_NODES = 9
+
+
+def inlier_codes(margins, a, b, nodes: int = INLIER_NODES, refine: int = 2):
+    """The codes ``[c1, c2]`` of ``[a, b]`` whose entries pass a peak's inlier test.
+
+    The inlier test of a (peak, step) keeps an entry when its range lies
+    within the bound about the peak's centre; at one step the range grows with
+    the code, so the kept codes are one interval.  The expected background
+    must be subtracted over exactly those codes: spread over segments of the
+    whole accepted interval and tested at the segments' centroids, a segment
+    of hundreds of codes (a pixel whose interval reaches the beam's vanishing
+    point holds all 4096) is kept or dropped whole, while the inlier window is
+    ± a few pulse widths — the background under the return was left in or
+    taken from elsewhere, and the time of flight of faint returns under strong
+    background came out up to a metre early (sweep case 19010).
+
+    ``margins(g, c)`` : for group indices g (N,) and float codes c (N,) returns
+    ``(f_lo, f_hi)`` (N,): range − (centre − bound) and (centre + bound) −
+    range (both ≥ 0 inside; f_lo increasing, f_hi decreasing in the code; NaN
+    where not evaluable).  ``a, b`` : (G,) the groups' counted codes.  The
+    crossings are found by linear interpolation between ``nodes`` equally
+    spaced codes, then ``refine`` secant steps.  Returns (G,) float64 ``c1, c2``
+    (c1 > c2: no inlier code); a group with a NaN margin keeps ``[a, b]``.
+    """
+    a = np.asarray(a, np.float64)
+    b = np.asarray(b, np.float64)
+    G = a.size
+    t = np.linspace(0.0, 1.0, int(nodes))
+    c = a[:, None] + (b - a)[:, None] * t[None, :]  # (G, n)
+    g = np.repeat(np.arange(G), t.size)
+    f_lo, f_hi = (x.reshape(G, t.size) for x in margins(g, c.ravel()))
+    bad = ~(np.all(np.isfinite(f_lo), axis=1) & np.all(np.isfinite(f_hi), axis=1))
+    c1 = _crossing(margins, c, f_lo, a, b, rising=True, refine=refine, which=0)
+    c2 = _crossing(margins, c, f_hi, a, b, rising=False, refine=refine, which=1)
+    c1 = np.where(bad, a, c1)
+    c2 = np.where(bad, b, c2)
+    return c1, c2
+
+
+def _crossing(margins, c, f, a, b, rising, refine, which):
+    """Code where the monotone margin f (G, n) at codes c crosses 0 (see
+    :func:`inlier_codes`): the first inside code (``rising``) or the last."""
+    G, n = f.shape
+    inside = f >= 0
+    out = np.empty(G)
+    if rising:  # inside from the crossing on
+        all_in, none_in = inside[:, 0], ~inside[:, -1]
+        j = np.argmax(inside, axis=1)  # first inside node
+        i0, i1 = np.maximum(j - 1, 0), j
+        out[:] = np.where(all_in, a, np.where(none_in, np.inf, np.nan))
+    else:  # inside up to the crossing
+        all_in, none_in = inside[:, -1], ~inside[:, 0]
+        j = n - 1 - np.argmax(inside[:, ::-1], axis=1)  # last inside node
+        i0, i1 = j, np.minimum(j + 1, n - 1)
+        out[:] = np.where(all_in, b, np.where(none_in, -np.inf, np.nan))
+    todo = np.flatnonzero(np.isnan(out))
+    r = np.arange(G)[todo]
+    x0, x1 = c[r, i0[todo]], c[r, i1[todo]]
+    y0, y1 = f[r, i0[todo]], f[r, i1[todo]]
+    for it in range(refine + 1):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            x = np.where(y1 != y0, x0 - y0 * (x1 - x0) / (y1 - y0), 0.5 * (x0 + x1))
+        x = np.clip(np.nan_to_num(x, nan=0.5), np.minimum(x0, x1), np.maximum(x0, x1))
+        if it == refine or not todo.size:
+            break
+        y = margins(todo, x)[which]
+        y = np.where(np.isfinite(y), y, 0.0)
+        same = (y >= 0) == (y0 >= 0)  # keep the bracket: replace the end on y's side
+        x0, y0 = np.where(same, x, x0), np.where(same, y, y0)
+        x1, y1 = np.where(same, x1, x), np.where(same, y1, y)
+    out[todo] = x
+    return out

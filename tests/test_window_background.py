@@ -1,0 +1,82 @@
+"""Background inside a peak's inlier codes (pipeline.window_background)."""
+
+import numpy as np
+import pytest
+
+from mems_stereo.pipeline.window_background import inlier_codes, window_background
+
+
+def test_inlier_codes_find_the_crossings_of_monotone_margins():
+    rng = np.random.default_rng(5)
+    G = 400
+    a = rng.integers(1, 200, G).astype(float)
+    b = a + rng.integers(0, 4000, G)
+    slope = rng.uniform(0.01, 0.2, G)  # range per code (m), slightly curved below
+    curve = rng.uniform(0.0, 2e-6, G)
+    centre = rng.uniform(-50, 500, G) * slope + a * slope
+    bound = rng.uniform(0.5, 4.0, G)
+
+    def rng_of(g, c):
+        return slope[g] * c + curve[g] * c ** 2
+
+    def margins(g, c):
+        r = rng_of(g, c)
+        return r - (centre[g] - bound[g]), centre[g] + bound[g] - r
+
+    c1, c2 = inlier_codes(margins, a, b)
+    # the exact interval, code by code
+    n_ok = 0
+    for g in range(G):
+        c = np.arange(a[g], b[g] + 1)
+        inside = np.abs(rng_of(np.full(c.size, g), c) - centre[g]) <= bound[g]
+        if not inside.any():
+            assert np.ceil(c1[g]) > np.floor(c2[g])
+            continue
+        n_ok += 1
+        assert np.ceil(c1[g] - 1e-6) == pytest.approx(c[inside][0], abs=1)
+        assert np.floor(c2[g] + 1e-6) == pytest.approx(c[inside][-1], abs=1)
+    assert n_ok > 100
+
+
+def test_inlier_codes_keep_the_interval_where_a_margin_is_nan():
+    a, b = np.array([10.0, 10.0]), np.array([500.0, 500.0])
+
+    def margins(g, c):
+        f = np.where(g == 0, np.nan, c - 100.0)
+        return f, 300.0 - c
+
+    c1, c2 = inlier_codes(margins, a, b)
+    assert (c1[0], c2[0]) == (10.0, 500.0)
+    assert c1[1] == pytest.approx(100.0, abs=0.5) and c2[1] == pytest.approx(300.0, abs=0.5)
+
+
+def test_background_over_a_sub_window_is_the_recorded_one():
+    """A faint return under strong background in a wide accepted interval: the
+    expected background over the inlier codes [a2, b2] (all detections of the
+    step passed) matches the background detections recorded there (Monte-Carlo
+    of first photons: background hazard h per code, a Gaussian return)."""
+    rng = np.random.default_rng(11)
+    n_shots, lo, hi = 400, 1, 4096
+    bw, lam = 3.125e-10, 5.4e6
+    h = -np.expm1(-lam * bw)
+    a2, b2 = 120, 240
+    trials, est, rec = 300, [], []
+    for _ in range(trials):
+        # first background photon (geometric) and the return (20 % of shots, code ~179)
+        t_bg = rng.geometric(h, n_shots)
+        t_sig = np.where(rng.random(n_shots) < 0.2, np.rint(rng.normal(179, 20, n_shots)),
+                         np.inf)
+        first = np.minimum(t_bg, t_sig)
+        ok = (first >= lo) & (first <= hi)
+        code, cnt = np.unique(first[ok].astype(np.int64), return_counts=True)
+        is_bg = (t_bg < t_sig) & ok
+        rec.append(np.sum(is_bg & (first >= a2) & (first <= b2)))
+        g = np.zeros(code.size, np.int64)
+        one = np.ones(code.size)
+        _, bg, _ = window_background(g, code, cnt, a2 * one, b2 * one, n_shots * one, lo * one,
+                                     lam * one, bw)
+        est.append(bg.sum())
+    est, rec = np.mean(est), np.mean(rec)
+    # the estimate is exact in expectation: within 3 standard errors of the mean
+    se = np.sqrt(rec / trials)
+    assert abs(est - rec) < 3 * se + 0.5, (est, rec)
