@@ -111,8 +111,10 @@ class OutputPlan:
             try:
                 self._stage_one(name, p, kind)
             except OSError as e:  # e.g. a virtual file system that refuses new files
-                raise OptionError(f"cannot write {p} ({e.strerror or type(e).__name__} at "
-                                  f"{e.filename})", field=opt(name)) from None
+                where = "" if e.filename is None or self.names_staged(str(e.filename)) \
+                    else f" at {e.filename}"  # a folder on the way
+                raise OptionError(f"cannot write {p} ({e.strerror or type(e).__name__}"
+                                  f"{where})", field=opt(name)) from None
         self.state = "staged"
 
     def _stage_one(self, name: str, p: Path, kind: str) -> None:
@@ -127,14 +129,14 @@ class OutputPlan:
         self._mkdirs(p.parent)
         tag = secrets.token_hex(4)
         staged = p.parent / f".{p.name[:60]}.ms-{tag}.part{p.suffix}"
+        self.staged[str(p)] = staged
+        setattr(self.args, name, str(staged))
         if kind == "dir-of-clouds":
             staged.mkdir()
             self.created.append(staged)
         else:  # a folder can look writable and take no new file (/proc and the like)
             os.close(os.open(staged, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
             os.unlink(staged)
-        self.staged[str(p)] = staged
-        setattr(self.args, name, str(staged))
 
     def _mkdirs(self, d: Path) -> None:
         missing = []
@@ -204,10 +206,9 @@ class OutputPlan:
 
     def option_of(self, text: str) -> str | None:
         """The option (``--output``…) whose staged output ``text`` names, if any."""
+        named = self.translate(text)
         for name, p, _kind in self.outputs:
-            s = self.staged.get(str(p))
-            if s is not None and self.translate(text).startswith(str(p)) \
-                    and self.translate(str(s)) == str(p):
+            if str(p) in self.staged and named.startswith(str(p)):
                 return opt(name)
         return None
 
