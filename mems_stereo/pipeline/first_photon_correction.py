@@ -33,6 +33,12 @@ SATURATED_EDGE_SIGMA = 0.2
 #: fewest valid shots per sampled angle step (mean over a peak's band, steps with
 #: shots) for the binomial variance of its mean angle (:func:`angle_binomial_factor`)
 BINOMIAL_MIN_SHOTS = 2.0
+#: whether the stereo's scatter is scaled by :func:`angle_binomial_factor` (off: the
+#: factor is right for firings that follow the model's profile exactly, but the
+#: saturated steps it discounts carry the location only through the model's spot
+#: tails; on the sweep's seeds 19000 at scale 1 the peaks it had shrunk most
+#: (scatter σ < 0.01 px) erred by 3.7× that σ, RMS; docs/pipeline.md)
+ANGLE_BINOMIAL = False
 
 
 def correcting(acc) -> bool:
@@ -41,11 +47,13 @@ def correcting(acc) -> bool:
     return (acc.first_photon and acc.shots_per_step is not None
             and bool(np.any(acc.band[1] >= acc.band[0])))
 
-def band_steps(acc, q=None, max_steps: int = 2048):
+def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False):
     """(Q', B) steps around the inlier band of each peak ``q`` ((Q',) int, default
     all; the band widened by its width plus 8 steps on each side), the valid
     shots of each (0 outside) and the spot share of the pixel at each step
-    (target at the peak's centre).  B is the widest of these peaks' bands."""
+    (target at the peak's centre; 0 where no shot counts).  B is the widest of
+    these peaks' bands.  With ``full``, also the spot share at every step of
+    the range (the profile whatever the shots)."""
     q = np.arange(acc.Q) if q is None else np.asarray(q, np.int64)
     lo, hi = acc.band[0][q], acc.band[1][q]
     centre = np.nan_to_num(acc.centre[q], nan=1.0)
@@ -66,7 +74,38 @@ def band_steps(acc, q=None, max_steps: int = 2048):
     t0, dt = acc.step_grid
     f = spot_fraction(acc.system, acc.rows[q, None], acc.cols[q, None], t0 + steps * dt,
                       centre[:, None], acc.spot_sigma)
+    if full:
+        return steps, n.astype(np.float64), np.where(n > 0, f, 0.0), np.where(
+            (steps >= a[:, None]) & (steps <= b[:, None]), f, 0.0)
     return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
+
+
+def mean_angle_bias(steps, n_band, f_band, f_full, mu) -> np.ndarray:
+    """(Q,) steps: the expected offset of a peak's mean firing angle from the
+    angle at which the spot is centred on its pixel.
+
+    The stereo is taken at the detections' mean angle, whose expectation is
+    ``Σ N_s p_s θ_s / Σ N_s p_s`` (N_s the valid shots counted at step s,
+    ``p_s = 1 − exp(−μ0 f_s)``): where the shots are not spread evenly over
+    the footprint — near the scan's turning points, where the mirror slows and
+    the shots bunch, or where the band or the accepted codes cut the profile —
+    it moves towards the denser side, while the spot is centred where the
+    firing profile ``1 − exp(−μ0 f)`` of the unmasked share ``f_full`` has its
+    centroid.  The difference is what :class:`PeakAccumulator` removes from the
+    mean angle (sweep case 19043, column 5 of 192, 2 m: the stereo 5.4 cm
+    behind the wall where this predicts 5.7 cm).  ``steps``, ``n_band``,
+    ``f_band``, ``f_full`` (Q, B) as :func:`band_steps` (``full=True``); ``mu`` (Q,).
+    0 where undefined.
+    """
+    mu = np.asarray(mu, np.float64)[:, None]
+    p = -np.expm1(-mu * f_band)
+    pf = -np.expm1(-mu * f_full)
+    w = n_band * p
+    with np.errstate(invalid="ignore", divide="ignore"):
+        em = np.sum(w * steps, axis=1) / np.sum(w, axis=1)
+        tc = np.sum(pf * steps, axis=1) / np.sum(pf, axis=1)
+    b = em - tc
+    return np.where(np.isfinite(b), b, 0.0)
 
 def angle_binomial_factor(steps, n_band, f_band, mu, theta_bar) -> np.ndarray:
     """(Q,) in [0, 1]: the variance of a peak's mean scan angle given its shots,
@@ -95,12 +134,15 @@ def angle_binomial_factor(steps, n_band, f_band, mu, theta_bar) -> np.ndarray:
 
 def first_photon_correction(acc, mean: dict) -> dict:
     """Apply the first-photon correction to ``mean`` (in place; see the class
-    docstring); returns per peak the delay (s), its σ as path length (m) and μ0."""
+    docstring); returns per peak the delay (s), its σ as path length (m), μ0, the
+    binomial factor of the mean angle's variance (:func:`angle_binomial_factor`)
+    and the mean angle's expected bias (rad, :func:`mean_angle_bias`)."""
     s = acc.system
     sp = spreads_for(s) if acc.spreads is None else acc.spreads
     sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
     out = {"delay": np.full(acc.Q, np.nan), "mu": np.full(acc.Q, np.nan),
-           "sigma_L": np.zeros(acc.Q), "angle_binomial": np.ones(acc.Q)}
+           "sigma_L": np.zeros(acc.Q), "angle_binomial": np.ones(acc.Q),
+           "angle_bias": np.zeros(acc.Q)}
     # pulse centre from the fused point (stereo-dominated near the TDC start)
     tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
     tau = tau + s.tdc.offset
@@ -108,7 +150,7 @@ def first_photon_correction(acc, mean: dict) -> dict:
     if sigma <= 0 or not np.any(ok):
         return out
     idx = np.flatnonzero(ok)
-    d, sd, var, mu, ab = (np.empty(idx.size) for _ in range(5))
+    d, sd, var, mu, ab, bias = (np.empty(idx.size) for _ in range(6))
     t0, dt = acc.step_grid
     with np.errstate(invalid="ignore", divide="ignore"):
         theta_bar = (acc.sums.theta / acc.sums.n - t0) / dt  # the inliers' mean step
@@ -121,12 +163,13 @@ def first_photon_correction(acc, mean: dict) -> dict:
         if b <= a:
             continue
         q = idx[a:b]
-        steps, n_band, f_band = band_steps(acc, q)
+        steps, n_band, f_band, f_full = band_steps(acc, q, full=True)
         ll = acc.sums.loglik[q] + np.einsum(
             "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
         d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
+        bias[a:b] = mean_angle_bias(steps, n_band, f_band, f_full, mu[a:b])
     c = s.speed_of_light
     dL = np.zeros(acc.Q)
     dvar = np.zeros(acc.Q)
@@ -145,7 +188,8 @@ def first_photon_correction(acc, mean: dict) -> dict:
     sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
                                SATURATED_EDGE_SIGMA * sigma * sat ** 2))
     out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
-    out["angle_binomial"][ok] = ab
+    out["angle_binomial"][ok] = ab if ANGLE_BINOMIAL else 1.0
+    out["angle_bias"][ok] = bias * dt  # rad
     D, G = acc.sums.tof.dL()
     x, C = mean["tof"]
     mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])

@@ -46,7 +46,12 @@ from mems_stereo.pipeline.detections import detection_points
 from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
-from mems_stereo.pipeline.peak_geometry import footprint_halfwidth, stereo_at_mean_angle
+from mems_stereo.pipeline.peak_geometry import (
+    footprint_halfwidth,
+    stereo_angle_jacobian,
+    stereo_at_mean_angle,
+    stereo_cov_at_mean_angle,
+)
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.sums import PeakSums, RangeMode, add_rows_gathered
@@ -430,8 +435,10 @@ class PeakAccumulator:
         if background is not None:  # (the means have equal weights)
             b = np.asarray(background, dtype=np.float64).ravel()[inl]
             np.add.at(s.b0, q, b)
-            np.add.at(s.b1, q, b * r[inl])
-            np.add.at(s.b2, q, b * r[inl] ** 2)
+            # the stereo mean is taken at the mean angle: its background variance
+            # is that of the mean angle (see :meth:`peak_means`)
+            np.add.at(s.b1, q, b * th_e)
+            np.add.at(s.b2, q, b * th_e ** 2)
             r_tof = np.linalg.norm(dp.tof, axis=1)
             np.add.at(s.bt1, q, b * r_tof)
             np.add.at(s.bt2, q, b * r_tof ** 2)
@@ -461,33 +468,45 @@ class PeakAccumulator:
             # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w, w = 1/σ_i²
             rbar_w = s.wr / s.w
             chi2 = (s.wrr - 2 * rbar_w * s.wr + rbar_w ** 2 * s.w) / np.maximum(n - 1, 1)
-            rbar = np.linalg.norm(mean["fused"][0], axis=1)
             x_tof = mean["tof"][0]  # before the first-photon correction: the entries' mean
             rbar_t = np.linalg.norm(x_tof, axis=1)
             var_bg_t = np.maximum(s.bt2 - 2 * rbar_t * s.bt1 + rbar_t ** 2 * s.b0, 0.0) / W ** 2
             u_t = x_tof / rbar_t[:, None]
         birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+        grid = None if self.step_grid is None else self.step_grid[1]
         c_pix, range_per_px = stereo_at_mean_angle(self.system, self.rows, self.cols,
-                                                   self.sums.theta, n, mean)
+                                                   self.sums.theta, n, mean, step=grid)
+        # its covariance: the mean angle's, propagated at that angle (the detections
+        # and the subtracted background count as independent entries, as in the sums)
+        C_st = stereo_cov_at_mean_angle(self.system, self.rows, self.cols, s.theta, n,
+                                        s.detections + s.b0, self.spreads)
+        okc = np.all(np.isfinite(C_st), axis=(1, 2))
+        mean["stereo"] = (mean["stereo"][0],
+                          np.where(okc[:, None, None], C_st, mean["stereo"][1]))
         # the first-photon correction needs the pulse's centre: from the peak-level
         # fusion of the stereo (at the mean angle) and uncorrected ToF means
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
         fp = first_photon_correction(self, mean) if correcting(self) else None
-        # the stereo mean's spread is that of its mean scan angle: binomial, not
-        # Poisson, where the scan revisits its angles (angle_binomial_factor)
+        if fp is not None:  # the stereo at the mean angle less its expected bias
+            c_pix, range_per_px = stereo_at_mean_angle(self.system, self.rows, self.cols,
+                                                       self.sums.theta, n, mean,
+                                                       angle_bias=fp["angle_bias"], step=grid)
+        # the stereo mean's spread is that of its mean scan angle (Birge-scaled
+        # Poisson; the binomial factor only with first_photon_correction.ANGLE_BINOMIAL)
         scale = {"stereo": birge if fp is None else birge * fp["angle_binomial"],
                  "tof": birge}
         for name in ("stereo", "tof"):
             mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
         for name, C in (c_pix or {}).items():  # systematic: not scaled
             mean[name] = (mean[name][0], mean[name][1] + C)
+        # the subtracted background's Poisson fluctuation moves the mean angle:
+        # Σ b (θ_b − θ̄)² / n², along ∂x/∂θ at the mean angle
         with np.errstate(invalid="ignore", divide="ignore"):
-            var_bg = np.maximum(s.b2 - 2 * rbar * s.b1 + rbar ** 2 * s.b0, 0.0) / W ** 2
-        x0 = mean["stereo"][0]  # along the viewing direction of the point
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = x0 / np.linalg.norm(x0, axis=1, keepdims=True)
-        add = np.nan_to_num(var_bg)[:, None, None] * u[:, :, None] * u[:, None, :]
-        mean["stereo"] = (x0, mean["stereo"][1] + np.nan_to_num(add))
+            th_bar = s.theta / n
+            var_th = np.maximum(s.b2 - 2 * th_bar * s.b1 + th_bar ** 2 * s.b0, 0.0) / W ** 2
+        Jt = stereo_angle_jacobian(self.system, self.rows, self.cols, th_bar)
+        add = np.nan_to_num(var_th)[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
+        mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + np.nan_to_num(add))
         # the same for the time of flight: far away (stereo of no weight) a peak under
         # strong background is its ToF, and the background's Poisson fluctuation
         # across the accepted code interval (metres of range) is most of its error

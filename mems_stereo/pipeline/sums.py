@@ -190,8 +190,8 @@ class PeakSums:
     not subtracted background: the count ``min_counts`` applies to); code, weight,
     theta : Σ m·code, Σ m·stereo weight, Σ m·θ; w, wr, wrr : Σ m/σ², Σ m·r/σ²,
     Σ m·r²/σ² (the scatter test);
-    window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·r, Σ b·r² of the
-    subtracted background (its variance; r the entries' fused ranges), bt1, bt2 :
+    window : Σ m over the whole window; b0, b1, b2 : Σ b, Σ b·θ, Σ b·θ² of the
+    subtracted background (its variance; θ the entries' scan angles, rad), bt1, bt2 :
     Σ b·r_tof, Σ b·r_tof² (the same for the time-of-flight ranges); loglik : (Q, J) the detections'
     log-odds on the μ0 grid; fused, stereo, tof : :class:`EstimateSums`.
     """
