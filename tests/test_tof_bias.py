@@ -187,7 +187,8 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     rows = np.zeros_like(cols)
     args = (system, shot, peak, code, th_snap, rows, cols)
     kw = {"min_counts": 5, "spot_sigma": DEFAULT_SPOT_SIGMA}  # the spot the data were made with
-    plain = points_from_peak_detections(*args, **kw)
+    # (the angle grid alone adds its quantisation to the stereo σ: both runs know it)
+    plain = points_from_peak_detections(*args, **kw, step_grid=(t0, dtheta))
     off = points_from_peak_detections(*args, **kw, shots_per_step=sps,
                                       step_grid=(t0, dtheta), first_photon=False)
     on = points_from_peak_detections(*args, **kw, shots_per_step=sps, step_grid=(t0, dtheta))
