@@ -488,9 +488,19 @@ class PeakAccumulator:
         mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
         fp = first_photon_correction(self, mean) if correcting(self) else None
         if fp is not None:  # the stereo at the mean angle less its expected bias
+            # removed where significant: beyond k of the mean angle's statistical σ
+            # (below it the correction is within the noise, and it rests on the
+            # system's geometry: a wrong system, e.g. the samples' nominal one,
+            # predicts wrong small biases); where not removed it stays in σ
+            with np.errstate(invalid="ignore", divide="ignore"):
+                Jt = stereo_angle_jacobian(self.system, self.rows, self.cols, s.theta / n)
+                sig_th = np.sqrt(np.einsum("qi,qij,qj->q", Jt, mean["stereo"][1], Jt)
+                                 * birge) / np.einsum("qi,qi->q", Jt, Jt)
+                removed = np.abs(fp["angle_bias"]) > self.k * np.nan_to_num(sig_th, nan=np.inf)
             c_pix, range_per_px = stereo_at_mean_angle(self.system, self.rows, self.cols,
                                                        self.sums.theta, n, mean,
-                                                       angle_bias=fp["angle_bias"], step=grid)
+                                                       angle_bias=fp["angle_bias"], step=grid,
+                                                       removed=removed)
         # the stereo mean's spread is that of its mean scan angle (Birge-scaled
         # Poisson; the binomial factor only with first_photon_correction.ANGLE_BINOMIAL)
         scale = {"stereo": birge if fp is None else birge * fp["angle_binomial"],

@@ -66,7 +66,7 @@ def footprint_halfwidth(system, rows, cols, centre, spreads=None) -> np.ndarray:
 
 
 def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bias=None,
-                         step=None):
+                         step=None, removed=None):
     """Stereo point of each peak at its detections' mean scan angle (in place).
 
     A detection's stereo range is a convex function of its angle (range ∝ 1 /
@@ -77,7 +77,9 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
     inliers' angles (rad) and their number; ``mean["stereo"]`` is replaced.
     ``angle_bias`` (Q,) rad or None: the mean angle's expected bias
     (:func:`~mems_stereo.pipeline.first_photon_correction.mean_angle_bias`),
-    removed from it, with :data:`ANGLE_BIAS_FRACTION` of it as systematic σ.
+    removed from it where ``removed`` (Q,) bool (default everywhere), with
+    :data:`ANGLE_BIAS_FRACTION` of it as systematic σ; where not removed, all
+    of it is.
     ``step`` (rad) or None: the angle grid the detections were placed on (each
     at its step's angle): the mean angle is known to within that grid, a
     systematic σ of ``step / √12`` (uniform over one step; 0.006 px of the
@@ -89,8 +91,9 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
     """
     bias = (np.zeros(np.asarray(n).shape) if angle_bias is None
             else np.nan_to_num(np.asarray(angle_bias, np.float64)))
+    rm = np.ones(bias.shape, bool) if removed is None else np.asarray(removed, bool)
     with np.errstate(invalid="ignore", divide="ignore"):
-        th = theta_sum / n - bias
+        th = theta_sum / n - np.where(rm, bias, 0.0)
     ok = np.isfinite(th) & (n > 0)
     if not np.any(ok):
         return None, None
@@ -112,7 +115,8 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
         Jt[good] = stereo_angle_jacobian(system, rows[good], cols[good], th[good])
     J = np.nan_to_num(J)
     # the grid's quantisation and the bias correction's allowance, along ∂x/∂θ
-    var_th = (0.0 if step is None else float(step) ** 2 / 12.0) + (ANGLE_BIAS_FRACTION * bias) ** 2
+    var_th = ((0.0 if step is None else float(step) ** 2 / 12.0)
+              + (np.where(rm, ANGLE_BIAS_FRACTION, 1.0) * bias) ** 2)
     C_sys = var_th[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
     mean["stereo"] = (x_new, mean["stereo"][1])
     return {"stereo": C_sys}, J
