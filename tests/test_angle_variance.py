@@ -64,3 +64,24 @@ def test_sparse_or_undetermined_peaks_keep_the_poisson_variance():
     assert angle_binomial_factor(steps, z, z, np.array([1.0]), np.array([60.0]))[0] == 1.0
     nn = np.full((1, 121), 5.0)
     assert angle_binomial_factor(steps, nn, f, np.array([np.nan]), np.array([60.0]))[0] == 1.0
+
+
+def test_mean_angle_bias_matches_monte_carlo_where_the_shots_bunch():
+    """Near a turning point the shots bunch on one side of the footprint: the mean
+    firing angle moves towards it by what ``mean_angle_bias`` predicts; with the
+    shots spread evenly the prediction is zero."""
+    from mems_stereo.pipeline.first_photon_correction import mean_angle_bias
+
+    steps, f = _profile()
+    c = (steps.size - 1) / 2
+    for mu in (0.5, 4.0):
+        even = np.full((1, steps.size), 3.0)
+        assert abs(mean_angle_bias(steps, even, f, f, np.array([mu]))[0]) < 1e-9
+        dense = np.rint(3.0 * np.exp((steps[0] - c) / 30.0))[None, :]  # shots grow to one side
+        b = mean_angle_bias(steps, dense, f, f, np.array([mu]))[0]
+        rng = np.random.default_rng(int(mu * 100))
+        p = -np.expm1(-mu * f[0])
+        k = rng.binomial(dense.astype(np.int64), p[None, :], size=(3000, steps.size))
+        tb = (k * steps).sum(axis=1) / k.sum(axis=1)
+        assert b > 3.0  # steps, towards the denser side
+        assert abs((np.mean(tb) - c) - b) < 0.05 * b + 4 * np.std(tb) / np.sqrt(tb.size)

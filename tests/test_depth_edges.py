@@ -1,0 +1,45 @@
+"""Depth edges of the cloud (``PeakMeans._depth_edges``): a silhouette is an edge, a
+surface inclined to the rays is not."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.peak_means import PeakMeans
+
+
+def _edges(ranges, sigma):
+    """Edge flags of one row of points at ``ranges`` (m, NaN: no point) along +z."""
+    r = np.asarray(ranges, np.float64)
+    Q = r.size
+    x = np.zeros((Q, 3))
+    x[:, 2] = np.nan_to_num(r)
+    C = np.zeros((Q, 3, 3))
+    C[:, 2, 2] = sigma ** 2
+    C[:, 0, 0] = C[:, 1, 1] = 1e-12
+    pm = PeakMeans.__new__(PeakMeans)
+    pm.system, pm.k, pm.Q = burkard2022(), 2.97, Q
+    pm.rows = np.zeros(Q, np.int64)
+    pm.cols = np.arange(Q, dtype=np.int64) + 50
+    return pm._depth_edges(x, C, np.isfinite(r))
+
+
+def test_inclined_surface_is_not_an_edge():
+    # 5 mm per column at σ 1 mm: every step is 3.5 σ of a step, all equal
+    e = _edges(0.6 + 0.005 * np.arange(30), 1e-3)
+    assert not e.any()
+
+
+def test_silhouette_and_straddling_pixel_are_edges():
+    r = np.r_[np.full(10, 1.0), np.full(10, 4.0)]
+    e = _edges(r, 1e-3)
+    assert np.flatnonzero(e).tolist() == [9, 10]
+    # a pixel halfway between the box and the wall: its two steps agree with each
+    # other, not with the surfaces' (flat) steps around them
+    r = np.r_[np.full(10, 1.0), 2.5, np.full(10, 4.0)]
+    e = _edges(r, 1e-3)
+    assert {9, 10, 11} <= set(np.flatnonzero(e).tolist())
+    # an inclined box before a flat wall: the jump is an edge, the slope is not
+    r = np.r_[1.0 + 0.01 * np.arange(10), np.full(10, 4.0)]
+    assert np.flatnonzero(_edges(r, 1e-3)).tolist() == [9, 10]
