@@ -33,12 +33,6 @@ SATURATED_EDGE_SIGMA = 0.2
 #: fewest valid shots per sampled angle step (mean over a peak's band, steps with
 #: shots) for the binomial variance of its mean angle (:func:`angle_binomial_factor`)
 BINOMIAL_MIN_SHOTS = 2.0
-#: whether the stereo's scatter is scaled by :func:`angle_binomial_factor` (off: the
-#: factor is right for firings that follow the model's profile exactly, but the
-#: saturated steps it discounts carry the location only through the model's spot
-#: tails; on the sweep's seeds 19000 at scale 1 the peaks it had shrunk most
-#: (scatter σ < 0.01 px) erred by 3.7× that σ, RMS; docs/pipeline.md)
-ANGLE_BINOMIAL = False
 
 
 def correcting(acc) -> bool:
@@ -188,7 +182,7 @@ def first_photon_correction(acc, mean: dict) -> dict:
     sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
                                SATURATED_EDGE_SIGMA * sigma * sat ** 2))
     out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
-    out["angle_binomial"][ok] = ab if ANGLE_BINOMIAL else 1.0
+    out["angle_binomial"][ok] = ab
     out["angle_bias"][ok] = bias * dt  # rad
     D, G = acc.sums.tof.dL()
     x, C = mean["tof"]

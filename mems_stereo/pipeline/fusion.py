@@ -501,8 +501,8 @@ class PeakAccumulator:
                                                        self.sums.theta, n, mean,
                                                        angle_bias=fp["angle_bias"], step=grid,
                                                        removed=removed)
-        # the stereo mean's spread is that of its mean scan angle (Birge-scaled
-        # Poisson; the binomial factor only with first_photon_correction.ANGLE_BINOMIAL)
+        # the stereo mean's spread is that of its mean scan angle: binomial, not
+        # Poisson, where the scan revisits its angles (angle_binomial_factor)
         scale = {"stereo": birge if fp is None else birge * fp["angle_binomial"],
                  "tof": birge}
         for name in ("stereo", "tof"):
