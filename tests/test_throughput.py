@@ -286,6 +286,45 @@ def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed
         assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
 
 
+@pytest.mark.parametrize("seed", [2, 3])
+def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatch, seed):
+    """_cov compiled (numba loaded, at least COV_COMPILED_ROWS rows) equals its NumPy
+    form; detection_points(fused_only=True) equals the full result's fused fields; the
+    accumulator's fused ranges for the inlier margins equal those of its _points."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.detections as det
+    from mems_stereo.pipeline.fusion import PeakAccumulator
+
+    s = burkard2022()
+    rng = np.random.default_rng(seed)
+    n = 6000
+    theta = rng.uniform(-0.35, 0.35, 300)
+    args = (rng.integers(0, 300, n), rng.integers(0, s.receiver.height, n),
+            rng.integers(0, s.receiver.width, n), rng.uniform(0.5, s.tdc.n_bins, n), theta)
+    assert det._compiled_cov() is not None and n >= det.COV_COMPILED_ROWS
+    a = det.detection_points(s, *args)
+    x, C, ok = det.detection_points(s, *args, fused_only=True)
+    monkeypatch.setattr(det, "COV_COMPILED_ROWS", 10 ** 9)  # NumPy
+    b = det.detection_points(s, *args)
+    assert 0.05 < a.ok.mean() < 0.95  # NaN rows too
+    for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused", "weight_stereo",
+              "ok", "dtof_dL"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+    assert np.array_equal(x, a.fused, equal_nan=True)
+    assert np.array_equal(C, a.cov_fused, equal_nan=True)
+    assert np.array_equal(ok, a.ok)
+    Q = 40
+    acc = PeakAccumulator(s, rng.integers(0, s.receiver.height, Q),
+                          rng.integers(0, s.receiver.width, Q), rng.integers(1, 200, Q))
+    pk = rng.integers(0, Q, n)
+    code = rng.uniform(0.5, s.tdc.n_bins, n)
+    th = theta[rng.integers(0, 300, n)]
+    p0, _, _, r0, sr0, ok0, _ = acc._points(np.arange(n), pk, code, th, None)
+    p1, r1, sr1, ok1 = acc._fused_ranges(pk, code, th)
+    assert np.array_equal(p0, p1) and np.array_equal(ok0, ok1) and 0.05 < ok0.mean() < 1
+    assert np.array_equal(r0, r1, equal_nan=True) and np.array_equal(sr0, sr1, equal_nan=True)
+
+
 def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     """points_from_counts in blocks of 97 entries (second sub-pass for the inliers
     only) gives the cloud of one block, bit for bit."""

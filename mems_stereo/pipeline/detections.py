@@ -115,7 +115,7 @@ def _s_tof(system, u, v, L, theta):
 
 
 def detection_points(system: System, shot_idx, rows, cols, codes, theta,
-                     spreads: Spreads | None = None) -> DetectionPoints:
+                     spreads: Spreads | None = None, fused_only: bool = False):
     """Stereo, time-of-flight and fused points of detections.
 
     The same numbers as :func:`_detection_points_reference` (the three
@@ -137,10 +137,14 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     theta : (K,) float64 scan angle of every shot, rad (indexed by shot_idx).
     spreads : :class:`~mems_stereo.geometry.uncertainty.Spreads` (default
         :func:`~mems_stereo.geometry.uncertainty.spreads_for`).
+    fused_only : return only ``(fused (M, 3), cov_fused (M, 3, 3), ok (M,))``, the
+        same bits as those fields of the full result, without the stereo and ToF
+        covariances (the fusion's inlier margins need the fused range and its σ alone).
     """
     sp = spreads_for(system) if spreads is None else spreads
     if sp.param_names:
-        return _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
+        dp = _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
+        return (dp.fused, dp.cov_fused, dp.ok) if fused_only else dp
     u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
     x_in = _as_inputs(u, v, L, th)
     p = np.asarray(system.scanner.position)
@@ -171,14 +175,14 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
 
     x_st0 = E["0"][0]
     # the L column is (x0 − x0)/2h = 0 where x0 is finite (NaN rows stay NaN below)
-    c_st = gather(_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
+    c_st = None if fused_only else gather(_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
                         (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
                         (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0]))
     # conditional (given θ) along-ray variance of the stereo: the s of the pixel variants
     ds_u = diff(E["u+"][1], E["u-"][1], hu)
     ds_v = diff(E["v+"][1], E["v-"][1], hv)
     var_st = gather(ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2)
-    x_st = gather(x_st0)
+    x_st = None if fused_only else gather(x_st0)
     s_st = {k: gather(E[k][1]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
     dirs = {k: gather(d) for k, d in dr.items()}
     # per detection: the time-of-flight geometry
@@ -187,8 +191,9 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
          "t+": tof_on_scanner_ray(p, dirs["t+"], Lx), "t-": tof_on_scanner_ray(p, dirs["t-"], Lx)}
     x_tf = T["0"][0]
     # the u and v columns are 0 where x_tf is finite
-    c_tf = _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
-                 (diff(T["t+"][0], T["t-"][0], ht), var_in[3])], x_tf.shape[0])
+    c_tf = None if fused_only else _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
+                                         (diff(T["t+"][0], T["t-"][0], ht), var_in[3])],
+                                        x_tf.shape[0])
     dsdL = diff(T["L+"][1], T["L-"][1], hL)
     var_tf = dsdL ** 2 * sp.sigma_L(system) ** 2
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -206,6 +211,9 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                x_f.shape[0])
     ok_st = gather(np.all(np.isfinite(x_st0), 1))
     ok = ok_st & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
+    if fused_only:  # as _detection_result makes them
+        nan3 = np.where(ok[:, None], 0.0, np.nan)
+        return x_f + nan3, c_f + nan3[:, :, None], ok
     return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, dsdL[:, None, None],
                              dirs["0"], ok)
 
@@ -226,11 +234,57 @@ def _runs(u, v, th):
 def _cov(terms, n: int) -> np.ndarray:
     """Σ_k var_k·J_k J_kᵀ (n, 3, 3) of the columns ``terms`` = [(J_k (n, 3), var_k)], in
     the order given: as ``einsum("nik,k,njk->nij")`` over these columns, bit for bit
-    (the same products ``(J_i·var)·J_j`` added one column after the other from 0)."""
+    (the same products ``(J_i·var)·J_j`` added one column after the other from 0).
+
+    At least :data:`COV_COMPILED_ROWS` rows where numba is loaded already (a dense
+    run's pass 1 loaded it): one compiled pass (:func:`_cov_py`, the same IEEE
+    operations in the same order, so the same bits; tested), without the (n, 3, 3)
+    temporaries of each column; otherwise, and without numba, in NumPy."""
+    kernel = _compiled_cov() if n >= COV_COMPILED_ROWS else None
+    if kernel is not None and terms:
+        J = np.ascontiguousarray(np.stack([np.asarray(t[0], np.float64) for t in terms]))
+        var = np.array([float(t[1]) for t in terms])
+        C = np.empty((n, 3, 3))
+        kernel(J, var, C)
+        return C
     C = np.zeros((n, 3, 3))
     for J, var in terms:
         C += (J * var)[:, :, None] * J[:, None, :]
     return C
+
+
+#: rows from which :func:`_cov` runs compiled (when numba is loaded already)
+COV_COMPILED_ROWS = 4096
+
+
+def _cov_py(J, var, C):
+    """C[i, a, b] = Σ_k (J[k, i, a]·var[k])·J[k, i, b], added in k order from 0.0
+    (J (K, n, 3), var (K,), C (n, 3, 3) written): the compiled form of :func:`_cov`."""
+    K, n = J.shape[0], J.shape[1]
+    for i in range(n):
+        for a in range(3):
+            for b in range(3):
+                acc = 0.0
+                for k in range(K):
+                    acc += (J[k, i, a] * var[k]) * J[k, i, b]
+                C[i, a, b] = acc
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_cov():
+    """The numba form of :func:`_cov_py` where numba is imported already (dense runs:
+    pass 1's kernels), else None: a small recording loads no compiled code."""
+    if "cov" not in _COMPILED:
+        import sys
+
+        if "numba" not in sys.modules:
+            return None
+        import numba
+
+        _COMPILED["cov"] = numba.njit(cache=True, nogil=True, boundscheck=False)(_cov_py)
+    return _COMPILED["cov"]
 
 
 def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):

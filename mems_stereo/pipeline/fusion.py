@@ -138,8 +138,7 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
             qg, thg = q[g_first], theta[g_first]
 
             def margins(gi, c):
-                pk, _, _, r, sr, ok, _ = acc._points(np.arange(gi.size), qg[gi], c, thg[gi],
-                                                      None)
+                pk, r, sr, ok = acc._fused_ranges(qg[gi], c, thg[gi])
                 ctr = acc.centre[pk]
                 bound = acc.k * sr + acc.halfwidth[pk]
                 bad = ~(ok & np.isfinite(ctr))
@@ -325,6 +324,22 @@ class PeakAccumulator:
         r, _, sr, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
         return peak, code, dp, r, sr, ok, w
+
+    def _fused_ranges(self, peak, code, theta):
+        """``(peak, r, sr, ok)`` of :meth:`_points` for entries at angles ``theta`` (M,)
+        (the same bits), from the fused points alone (no stereo or ToF covariances)."""
+        peak = np.asarray(peak, dtype=np.int64).ravel()
+        code = np.asarray(code, dtype=np.float64).ravel()
+        x, C, ok = detection_points(self.system, np.arange(peak.size), self.rows[peak],
+                                    self.cols[peak], code, theta, self.spreads,
+                                    fused_only=True)
+        # r and σ_r as polar_from_cartesian computes them
+        r = np.linalg.norm(x, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gr = x / r[:, None]
+        sr = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", gr, C, gr), 0.0))
+        ok = ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
+        return peak, r, sr, ok
 
     def add_mode(self, shot, peak, code, theta, weight=None) -> None:
         """Sub-pass 1: coverage of each detection's ±σ range interval.
