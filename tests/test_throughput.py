@@ -325,6 +325,56 @@ def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatc
     assert np.array_equal(r0, r1, equal_nan=True) and np.array_equal(sr0, sr1, equal_nan=True)
 
 
+@pytest.mark.parametrize("name", ["room.h5", "floodlight.h5"])
+def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
+    """The peak detector's per-pixel stage over random blocks of pixels, the neighbour
+    support on the joined few numbers, each block's peaks joined: find_peaks' peaks,
+    candidates (with their background rows) and rates, bit for bit."""
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.peaks import (
+        concat_peaks,
+        find_peaks,
+        peak_scores,
+        peaks_of_scores,
+        supported,
+    )
+
+    h = read_header(SAMPLES / name)
+    s, st = h.system, Settings()
+    th, va = shot_angles(h, s)
+    t = IntervalTable.for_settings(s, st)
+    acc = accumulate_range(SAMPLES / name, s, th, va, st, table=t)
+    P, nb = s.receiver.width * s.receiver.height, s.tdc.n_bins
+    sig = acc.hist_signal[:, 1:].astype(np.int64)
+    noise = acc.hist_raw[:, 1:].astype(np.int64) - sig
+    H, W = s.receiver.height, s.receiver.width
+    whole, rate = find_peaks(s, sig.reshape(H, W, nb), noise.reshape(H, W, nb), th, va, st,
+                             signal_angle=acc.hist_angle, table=t, n_per_step=acc.n_per_step)
+    assert len(whole) > 10
+    rng = np.random.default_rng(1417)
+    for _ in range(2):
+        edges = np.unique(np.concatenate([[0, P], rng.integers(1, P, 4)]))
+        scores = [peak_scores(s, sig[a:b], noise[a:b], acc.hist_angle[a:b], acc.n_per_step, t,
+                              st, np.arange(a, b)) for a, b in zip(edges[:-1], edges[1:])]
+        keep = supported(*(np.concatenate(x) for x in zip(*(c.support_inputs()
+                                                           for c in scores))), W)
+        got = concat_peaks([peaks_of_scores(s, c, keep[c.pixels], acc.n_per_step, t, st)
+                            for c in scores])
+        assert np.array_equal(np.concatenate([c.rate for c in scores]), rate.ravel(),
+                              equal_nan=True)
+        for a, b in ((whole, got), (whole.candidates, got.candidates)):
+            for k in a.__dataclass_fields__:
+                u, v = getattr(a, k), getattr(b, k)
+                if k == "background_by_step":
+                    assert u.shape == v.shape
+                    for f in ("indptr", "indices", "data"):
+                        assert np.array_equal(getattr(u, f), getattr(v, f)), f
+                else:
+                    assert u.dtype == v.dtype and np.array_equal(u, v, equal_nan=True), k
+        assert np.array_equal(whole.candidates.n_windows, got.candidates.n_windows)
+
+
 def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     """points_from_counts in blocks of 97 entries (second sub-pass for the inliers
     only) gives the cloud of one block, bit for bit."""

@@ -51,6 +51,7 @@ from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
 from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.peaks import concat_peaks, peak_scores, peaks_of_scores, supported
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
     cloud_of_means,
@@ -85,6 +86,10 @@ PARTS_PER_WORKER = 1
 #: blocks of peaks fused per worker (at most: blocks are cut at multiples of
 #: ``FP_BLOCK`` peaks), dealt to the workers by their work (:func:`deal_blocks`)
 BLOCKS_PER_WORKER = 8
+
+#: blocks of pixels per worker in which :func:`process_split` runs the peak detector
+#: (its per-pixel stages; the neighbour support between them on the client)
+PEAK_BLOCKS_PER_WORKER = 1
 
 #: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
@@ -293,11 +298,40 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
         stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
         del p1
-        acc = waits(tree_sum(client, accs).result)
+        acc_f = tree_sum(client, accs)
         del accs
+        # the client needs the code histograms and counts; the (P, S) signal detections
+        # per angle step stay on the workers, for the peak detector's blocks of pixels
+        acc = waits(client.submit(_without_angle, acc_f, pure=False).result)
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
+
+        def detect(sig, noise):
+            # the detector's per-pixel stage in blocks of pixels on the workers; the
+            # client joins the few numbers the neighbour support needs, then each block
+            # makes its peaks (the same as find_peaks on the whole, bit for bit)
+            shared["wait_peaks"] = waits.seconds
+            P = sysm.receiver.width * sysm.receiver.height
+            edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
+            addr = _worker_addresses(client)
+            rows_f = client.submit(_pixel_rows, acc_f, edges, pure=False)
+            scores_f = [client.submit(_scores_block, client.submit(operator.getitem, rows_f, i,
+                                                                   pure=False),
+                                      sysm, st, table_f, p0, p1, pure=False,
+                                      workers=[addr[i % len(addr)]] if addr else None,
+                                      allow_other_workers=True)
+                        for i, (p0, p1) in enumerate(edges)]
+            sup = waits(client.gather, [client.submit(_support_inputs, f, pure=False)
+                                        for f in scores_f])
+            keep = supported(*(np.concatenate(x) for x in zip(*(s[:4] for s in sup))),
+                             sysm.receiver.width)
+            parts = waits(client.gather, [
+                client.submit(peaks_of_scores, sysm, f, keep[p0:p1], acc.n_per_step, table_f,
+                              st, pure=False) for f, (p0, p1) in zip(scores_f, edges)])
+            detect.nbytes = sum(sum(a.nbytes for a in s) for s in sup)
+            rate = np.concatenate([s[4] for s in sup])
+            return concat_peaks(parts), rate.reshape(sysm.receiver.height, sysm.receiver.width)
 
         def pass2_sum(peaks_f):
             # each part counts the windows of ``peaks_f`` (its store or its shots); the
@@ -307,6 +341,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                                      for ang, (a, b), store in zip(angle_f, parts, stores)])
 
         def count_peaks(peaks):
+            # (the peak stage ends here: what of it the client spent waiting on workers)
+            timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
             # pass 2 needs only the pixels, windows and bands; send them once
             light = {k: v for k, v in peaks.items() if k != "background_by_step"}
             shared["peaks"] = client.scatter(light, broadcast=True)
@@ -349,7 +385,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
-                                count_candidates=count_candidates)
+                                count_candidates=count_candidates, detect=detect)
         t_end = time.perf_counter()
         c_end = time.process_time()
         m_end = time.thread_time()
@@ -362,7 +398,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     # work above plus Dask's communication), the figure to compare on a shared machine
     t["client_cpu"] = c_end - c_all
     t["client_main_cpu"] = m_end - m_all  # this thread alone: the serial work proper
-    t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0))
+    t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0)
+                              + getattr(detect, "nbytes", 0))
     t["parts"] = float(len(parts))
     t["peak_blocks"] = float(getattr(make_points, "blocks", 0))
     return res
@@ -377,6 +414,39 @@ def _pass1_part(path, system, angles, settings, start, stop, table):
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
     return acc, (store if store is not None and store.complete else None)
+
+
+def _without_angle(acc):
+    """``acc`` without its (P, S) ``hist_angle`` (an empty (P, 0) array): what the client
+    gathers of pass 1 (the peak detector's blocks read the full one on the workers)."""
+    import dataclasses
+
+    return dataclasses.replace(acc, hist_angle=np.zeros((acc.hist_angle.shape[0], 0),
+                                                        acc.hist_angle.dtype))
+
+
+def _pixel_rows(acc, edges):
+    """Per block ``(p0, p1)`` of ``edges``: ``(signal, noise, angle)`` of its pixels, the
+    int64 code histograms (codes 1..n_bins) and the signal detections per angle step."""
+    out = []
+    for p0, p1 in edges:
+        raw = acc.hist_raw[p0:p1, 1:].astype(np.int64)
+        sig = acc.hist_signal[p0:p1, 1:].astype(np.int64)
+        out.append((sig, raw - sig, acc.hist_angle[p0:p1].copy(), acc.n_per_step))
+    return out
+
+
+def _scores_block(rows, system, settings, table, p0, p1):
+    """:class:`~mems_stereo.pipeline.peaks.PeakScores` of pixels p0..p1−1 (stays on its
+    worker for :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`)."""
+    sig, noise, angle, n_per_step = rows
+    return peak_scores(system, sig, noise, angle, n_per_step, table, settings,
+                       np.arange(p0, p1))
+
+
+def _support_inputs(scores):
+    """What the client needs of a block's scores: ``(keep, cnt, thr_iso, log_range, rate)``."""
+    return (*scores.support_inputs(), scores.rate)
 
 
 def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store=None):

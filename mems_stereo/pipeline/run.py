@@ -253,7 +253,7 @@ def process_recording(path, system: System | None = None,
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
                       table: IntervalTable | None = None, make_points=None,
-                      count_candidates=None) -> ProcessResult:
+                      count_candidates=None, detect=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
@@ -265,6 +265,9 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     ``count_candidates(peaks) -> PeakCounts`` counts the matched filter's
     candidates (default: a pass over the recording's shots; a run with a
     :class:`SignalStore` counts from the store, the same integers).
+    ``detect(signal, noise) -> (Peaks, background_hz)`` runs the peak detector
+    (default: :func:`~mems_stereo.pipeline.peaks.find_peaks` here, on
+    ``acc.hist_angle``; the Dask runner scores blocks of pixels on its workers).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -279,9 +282,12 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     big = K * H * W >= TRIM_SLOTS
     if big:  # pass 1's freed chunks, before the detector's (P, S) temporaries
         release_freed_memory()
-    peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
-                                   signal_angle=acc.hist_angle, table=table,
-                                   n_per_step=acc.n_per_step)
+    if detect is None:
+        peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
+                                       signal_angle=acc.hist_angle, table=table,
+                                       n_per_step=acc.n_per_step)
+    else:
+        peaks, background = detect(sig, noise)
     if big:  # the detector's (P, S) temporaries are freed: give them back
         release_freed_memory()
     peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step,
