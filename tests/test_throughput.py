@@ -442,10 +442,20 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
     assert np.array_equal(got.toarray(), want)
 
 
-def test_add_rows_equals_add_at():
-    """sums.add_rows (one bincount per column) against np.add.at, bit for bit, over
-    random shapes, signs and magnitudes, onto non-zero sums, repeated."""
+@pytest.mark.parametrize("form", ["numpy", "compiled"])
+def test_add_rows_equals_add_at(monkeypatch, form):
+    """sums.add_rows (one bincount per column, or the compiled loop where numba is
+    loaded) against np.add.at, bit for bit, over random shapes, signs and magnitudes,
+    onto non-zero sums, repeated."""
+    import mems_stereo.pipeline.sums as sums
     from mems_stereo.pipeline.sums import add_rows, add_rows_gathered
+
+    if form == "compiled":
+        pytest.importorskip("numba")
+        monkeypatch.setattr(sums, "COMPILED_ROWS", 0)
+        assert sums._compiled("rows") is not None and sums._compiled("gathered") is not None
+    else:
+        monkeypatch.setattr(sums, "COMPILED_ROWS", 10 ** 9)
 
     rng = np.random.default_rng(1415)
     for _ in range(40):

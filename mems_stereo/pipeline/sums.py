@@ -30,6 +30,10 @@ def add_rows(A, q, V) -> None:
         np.add.at(A, q, V)
         return
     Vf = np.asarray(V, np.float64).reshape(q.size, -1)
+    kernel = _compiled("rows") if q.size >= COMPILED_ROWS else None
+    if kernel is not None:
+        kernel(Af, q, np.ascontiguousarray(Vf))
+        return
     idx = np.concatenate([np.arange(Q), q])
     for j in range(Af.shape[1]):
         Af[:, j] = np.bincount(idx, weights=np.concatenate([Af[:, j], Vf[:, j]]),
@@ -47,11 +51,57 @@ def add_rows_gathered(A, q, rows, run, m) -> None:
     if not A.flags.c_contiguous:  # pragma: no cover - the sums are contiguous
         np.add.at(A, q, rows[run] * m[:, None])
         return
+    kernel = _compiled("gathered") if q.size >= COMPILED_ROWS else None
+    if kernel is not None:
+        kernel(A, q, np.ascontiguousarray(rows, np.float64), np.asarray(run, np.int64),
+               np.asarray(m, np.float64))
+        return
     cols = np.ascontiguousarray(np.asarray(rows, np.float64).T)
     idx = np.concatenate([np.arange(Q), q])
     for j in range(A.shape[1]):
         A[:, j] = np.bincount(idx, weights=np.concatenate([A[:, j], cols[j][run] * m]),
                               minlength=Q)
+
+
+#: entries from which :func:`add_rows` and :func:`add_rows_gathered` run compiled, where
+#: numba is loaded already (a dense run's pass 1 loaded it; small runs load no numba)
+COMPILED_ROWS = 4096
+
+
+def _add_rows_py(A, q, V):
+    """A[q[i], j] += V[i, j] in entry order (A (Q, J), q (N,), V (N, J)): np.add.at's
+    sums, bit for bit (the compiled form of :func:`add_rows`)."""
+    for i in range(q.size):
+        r = q[i]
+        for j in range(A.shape[1]):
+            A[r, j] += V[i, j]
+
+
+def _add_rows_gathered_py(A, q, rows, run, m):
+    """A[q[i], j] += rows[run[i], j] · m[i] in entry order (the compiled form of
+    :func:`add_rows_gathered`)."""
+    for i in range(q.size):
+        r, g, w = q[i], run[i], m[i]
+        for j in range(A.shape[1]):
+            A[r, j] += rows[g, j] * w
+
+
+_KERNELS: dict = {}
+
+
+def _compiled(name: str):
+    """The numba form of ``_add_rows_py`` ("rows") or ``_add_rows_gathered_py``
+    ("gathered") where numba is imported already, else None."""
+    if name not in _KERNELS:
+        import sys
+
+        if "numba" not in sys.modules:
+            return None
+        import numba
+
+        fn = _add_rows_py if name == "rows" else _add_rows_gathered_py
+        _KERNELS[name] = numba.njit(cache=True, nogil=True, boundscheck=False)(fn)
+    return _KERNELS[name]
 
 
 class RangeMode:
