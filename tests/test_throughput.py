@@ -442,6 +442,24 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
     assert np.array_equal(got.toarray(), want)
 
 
+def test_moving_sum_equals_the_padded_running_sum():
+    """moving_sum (running sum written in place) against the running sum of the
+    zero-padded array, bit for bit, over shapes, widths and magnitudes."""
+    from mems_stereo.physics.background import moving_sum
+
+    rng = np.random.default_rng(1418)
+    for shape in ((192, 913), (7,), (3, 4), (2, 0), (2, 3, 50)):
+        for width in (1, 3, 11, 101):
+            h = rng.poisson(3.0, shape) * 10.0 ** rng.uniform(-6, 6, shape)
+            half = width // 2
+            pad = [(0, 0)] * (h.ndim - 1) + [(half + 1, half)]
+            c = np.cumsum(np.pad(h, pad), axis=-1)
+            ref = c[..., width:] - c[..., :-width]
+            got = moving_sum(h, width)
+            assert got.shape == ref.shape == h.shape
+            assert np.array_equal(got.view(np.int64), ref.view(np.int64))
+
+
 @pytest.mark.parametrize("form", ["numpy", "compiled"])
 def test_add_rows_equals_add_at(monkeypatch, form):
     """sums.add_rows (one bincount per column, or the compiled loop where numba is

@@ -238,6 +238,11 @@ def moving_sum(hist, width: int) -> np.ndarray:
         raise FormatError(f"width must be an odd number >= 1, found {width}", field="width")
     h = np.asarray(hist, dtype=np.float64)
     half = width // 2
-    pad = [(0, 0)] * (h.ndim - 1) + [(half + 1, half)]
-    c = np.cumsum(np.pad(h, pad), axis=-1)
+    n = h.shape[-1]
+    # the running sum of h padded with half + 1 zeros before and half after, written
+    # in place (no padded copy): the same sums, as the zeros add nothing
+    c = np.empty(h.shape[:-1] + (n + width,))
+    c[..., :half + 1] = 0.0
+    np.cumsum(h, axis=-1, out=c[..., half + 1:half + 1 + n])
+    c[..., half + 1 + n:] = c[..., half + n:half + n + 1]
     return c[..., width:] - c[..., :-width]

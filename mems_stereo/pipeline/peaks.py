@@ -61,11 +61,12 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     hi = table.hi[sel].astype(np.int64)
     ok = lo <= hi
     P = lo.shape[1]
-    diff = np.zeros((P, n_bins + 2), np.int64)
-    w = np.broadcast_to(n_row[:, None], lo.shape)
-    pix = np.broadcast_to(np.arange(P)[None, :], lo.shape)
-    np.add.at(diff, (pix[ok], lo[ok]), w[ok])
-    np.add.at(diff, (pix[ok], hi[ok] + 1), -w[ok])
+    w = np.broadcast_to(n_row[:, None], lo.shape)[ok].astype(np.float64)
+    at = np.broadcast_to(np.arange(P)[None, :] * (n_bins + 2), lo.shape)[ok]
+    # the difference array by bincount (float sums of integers below 2**53: exact)
+    diff = (np.bincount(at + lo[ok], w, P * (n_bins + 2))
+            - np.bincount(at + hi[ok] + 1, w, P * (n_bins + 2)))
+    diff = np.rint(diff).astype(np.int64).reshape(P, n_bins + 2)
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
