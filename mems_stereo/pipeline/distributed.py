@@ -300,38 +300,44 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         del p1
         acc_f = tree_sum(client, accs)
         del accs
-        # the client needs the code histograms and counts; the (P, S) signal detections
-        # per angle step stay on the workers, for the peak detector's blocks of pixels
+        # the peak detector's per-pixel stage in blocks of pixels on the workers, from
+        # the summed pass 1 there: submitted at once, it runs while the client gathers
+        # what it needs of pass 1 (the (P, S) per-angle counts stay on the workers)
+        P = sysm.receiver.width * sysm.receiver.height
+        edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
+        addr = _worker_addresses(client)
+        rows_f = client.submit(_pixel_rows, acc_f, edges, pure=False)
+        scores_f = [client.submit(_scores_block, client.submit(operator.getitem, rows_f, i,
+                                                               pure=False),
+                                  sysm, st, table_f, p0, p1, pure=False,
+                                  workers=[addr[i % len(addr)]] if addr else None,
+                                  allow_other_workers=True)
+                    for i, (p0, p1) in enumerate(edges)]
+        sup_f = [client.submit(_support_inputs, f, pure=False) for f in scores_f]
+        del rows_f
         acc = waits(client.submit(_without_angle, acc_f, pure=False).result)
+        del acc_f
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
 
         def detect(sig, noise):
-            # the detector's per-pixel stage in blocks of pixels on the workers; the
-            # client joins the few numbers the neighbour support needs, then each block
-            # makes its peaks (the same as find_peaks on the whole, bit for bit)
+            # the client joins the few numbers per pixel that the neighbour support
+            # needs, then each block makes its peaks (the same as find_peaks on the
+            # whole, bit for bit)
             shared["wait_peaks"] = waits.seconds
-            P = sysm.receiver.width * sysm.receiver.height
-            edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
-            addr = _worker_addresses(client)
-            rows_f = client.submit(_pixel_rows, acc_f, edges, pure=False)
-            scores_f = [client.submit(_scores_block, client.submit(operator.getitem, rows_f, i,
-                                                                   pure=False),
-                                      sysm, st, table_f, p0, p1, pure=False,
-                                      workers=[addr[i % len(addr)]] if addr else None,
-                                      allow_other_workers=True)
-                        for i, (p0, p1) in enumerate(edges)]
-            sup = waits(client.gather, [client.submit(_support_inputs, f, pure=False)
-                                        for f in scores_f])
+            sup = waits(client.gather, sup_f)
             keep = supported(*(np.concatenate(x) for x in zip(*(s[:4] for s in sup))),
                              sysm.receiver.width)
             parts = waits(client.gather, [
                 client.submit(peaks_of_scores, sysm, f, keep[p0:p1], acc.n_per_step, table_f,
                               st, pure=False) for f, (p0, p1) in zip(scores_f, edges)])
+            scores_f.clear()  # each block's (P, S) arrays: released on the workers
             detect.nbytes = sum(sum(a.nbytes for a in s) for s in sup)
             rate = np.concatenate([s[4] for s in sup])
-            return concat_peaks(parts), rate.reshape(sysm.receiver.height, sysm.receiver.width)
+            peaks = concat_peaks(parts)
+            shared["first"] = peaks  # the first stage's peaks (see count_candidates)
+            return peaks, rate.reshape(sysm.receiver.height, sysm.receiver.width)
 
         def pass2_sum(peaks_f):
             # each part counts the windows of ``peaks_f`` (its store or its shots); the
@@ -344,9 +350,23 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             # (the peak stage ends here: what of it the client spent waiting on workers)
             timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
             # pass 2 needs only the pixels, windows and bands; send them once
-            light = {k: v for k, v in peaks.items() if k != "background_by_step"}
-            shared["peaks"] = client.scatter(light, broadcast=True)
-            total_f = pass2_sum(shared["peaks"])
+            shared["peaks"] = _scatter_one(client, _light(peaks))
+            early = shared.get("first_f")
+            if early is None:
+                total_f = pass2_sum(shared["peaks"])
+            else:
+                # the first stage's peaks were counted while the client confirmed the
+                # matched filter's candidates: count the confirmed ones, and renumber
+                # both into the order of ``peaks`` on a worker (each peak's counts are
+                # its own: the same PeakCounts as counting ``peaks`` at once)
+                W = sysm.receiver.width
+                pix, first = peaks.pixel(W), shared["first"].pixel(W)
+                new = np.flatnonzero(~np.isin(pix, first))
+                new_f = (pass2_sum(_scatter_one(client, _light(peaks, new)))
+                         if new.size else None)
+                total_f = client.submit(_renumbered_counts, early, new_f,
+                                        np.searchsorted(pix, first), new,
+                                        np.int64(S) * np.int64(n_codes), pure=False)
             stores.clear()  # released once their pass 2 has run
             return total_f  # stays on the workers
 
@@ -380,8 +400,13 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
         def count_candidates(cands):
             # the matched filter's candidates, counted on the workers (their stores or
-            # their shots) and summed there: the client gets one PeakCounts
-            return waits(pass2_sum(client.scatter(cands, broadcast=True)).result)
+            # their shots) and summed there: the client gets one PeakCounts.  Pass 2 of
+            # the first stage's peaks is submitted behind them: it runs while the
+            # client confirms candidates (count_peaks adds the confirmed ones' counts)
+            cands_f = pass2_sum(client.scatter(cands, broadcast=True))
+            if "first" in shared and len(shared["first"]):
+                shared["first_f"] = pass2_sum(_scatter_one(client, _light(shared["first"])))
+            return waits(cands_f.result)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
@@ -414,6 +439,39 @@ def _pass1_part(path, system, angles, settings, start, stop, table):
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
     return acc, (store if store is not None and store.complete else None)
+
+
+def _scatter_one(client, obj):
+    """One future of ``obj`` on every worker (a dict scattered directly becomes one
+    future per value, keyed by the dict's keys: two dicts of the same fields would
+    share their keys)."""
+    return client.scatter([obj], broadcast=True)[0]
+
+
+def _light(peaks, rows=None) -> dict:
+    """The fields of ``peaks`` (rows ``rows``, default all) that pass 2 and the fusion
+    read: every (Q,) array, not ``background_by_step``."""
+    return {k: (v if rows is None else np.asarray(v)[rows]) for k, v in peaks.items()
+            if k != "background_by_step"}
+
+
+def _renumbered_counts(first: PeakCounts, new: PeakCounts | None, pos_first, pos_new,
+                       span) -> PeakCounts:
+    """The :class:`PeakCounts` of the joined peaks from those of two disjoint sets of
+    them: peak i of ``first`` is peak ``pos_first[i]`` of the whole, peak j of ``new``
+    (None: no peaks) peak ``pos_new[j]``; keys ``peak·span + rest`` renumbered and
+    sorted (exact integers: the counts of one pass over the whole)."""
+    keys, counts = [], []
+    for pc, pos in ((first, pos_first), (new, pos_new)):
+        if pc is None or pc.keys.size == 0:
+            continue
+        keys.append(np.asarray(pos, np.int64)[pc.keys // span] * span + pc.keys % span)
+        counts.append(pc.counts)
+    if not keys:
+        return PeakCounts()
+    k = np.concatenate(keys)
+    order = np.argsort(k, kind="stable")
+    return PeakCounts(k[order], np.concatenate(counts)[order])
 
 
 def _without_angle(acc):
