@@ -259,10 +259,11 @@ def test_split_with_signal_stores_equals_one_process(monkeypatch):
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                       dashboard_address=None) as cluster, Client(cluster) as c:
         split = process_split(SAMPLES / "floodlight.h5", scheduler=c, n_parts=3)
-    # each of the 3 parts' stores counted three times: the matched filter's candidates,
-    # the first stage's peaks (while the client confirms candidates), the confirmed ones
-    # (the floodlight sample confirms some); their counts renumbered into one PeakCounts
-    assert len(used) == 9
+    # each of the 3 parts' stores counted once: the first stage's peaks and the matched
+    # filter's candidates over widened windows in one pass, from which the candidates',
+    # the first stage's and the confirmed peaks' counts are filtered (the floodlight
+    # sample confirms some)
+    assert len(used) == 3
     _same(one, split)
     st = SignalStore(memory_bytes=16)
     st.append(np.arange(10))
@@ -311,3 +312,30 @@ def test_fusion_work_counts_entries_and_steps():
             for p in range(Q)]
     assert np.array_equal(got, want)
     assert np.array_equal(fusion_work(PeakCounts(), Q, S, nb), np.zeros(Q))
+
+
+def test_select_counts_filters_and_renumbers_exactly():
+    """_select_counts: the counts of some peaks over sub-windows of their steps,
+    renumbered, equal the counts of exactly those keys (random keys and windows)."""
+    from mems_stereo.pipeline.distributed import _select_counts
+    from mems_stereo.pipeline.pass2 import decode_peak_keys
+
+    rng = np.random.default_rng(1419)
+    S, nb = 50, 9
+    for _ in range(20):
+        Q = int(rng.integers(1, 12))
+        keys = np.unique(encode_peak_keys(rng.integers(0, Q, 400), rng.integers(0, S, 400),
+                                          rng.integers(1, nb, 400), S, nb))
+        pc = PeakCounts(keys, rng.integers(1, 9, keys.size))
+        src = rng.permutation(Q)[:int(rng.integers(0, Q + 1))]
+        dst = rng.permutation(src.size)
+        lo = rng.integers(0, S, src.size)
+        hi = lo + rng.integers(-1, S, src.size)
+        got = _select_counts(pc, src, dst, lo, hi, S, nb)
+        q, step, code = decode_peak_keys(pc.keys, S, nb)
+        want = {}
+        for s_, d_, a, b in zip(src, dst, lo, hi):
+            for k in np.flatnonzero((q == s_) & (step >= a) & (step <= b)):
+                want[int(encode_peak_keys(d_, step[k], code[k], S, nb)[0])] = pc.counts[k]
+        assert np.all(np.diff(got.keys) > 0)
+        assert dict(zip(got.keys.tolist(), got.counts.tolist())) == want

@@ -351,22 +351,27 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
             # pass 2 needs only the pixels, windows and bands; send them once
             shared["peaks"] = _scatter_one(client, _light(peaks))
-            early = shared.get("first_f")
-            if early is None:
+            both_f = shared.get("both_f")
+            if both_f is None:
                 total_f = pass2_sum(shared["peaks"])
             else:
-                # the first stage's peaks were counted while the client confirmed the
-                # matched filter's candidates: count the confirmed ones, and renumber
-                # both into the order of ``peaks`` on a worker (each peak's counts are
-                # its own: the same PeakCounts as counting ``peaks`` at once)
+                # the first stage's peaks and the candidates' widened windows were counted
+                # in one pass (count_candidates): the first stage's counts renumbered into
+                # the order of ``peaks``, each confirmed peak's filtered to its window
+                # (each peak's counts are its own: the PeakCounts of counting ``peaks``)
                 W = sysm.receiver.width
                 pix, first = peaks.pixel(W), shared["first"].pixel(W)
+                cpix = shared["cands"].pixel(W)
                 new = np.flatnonzero(~np.isin(pix, first))
-                new_f = (pass2_sum(_scatter_one(client, _light(peaks, new)))
-                         if new.size else None)
-                total_f = client.submit(_renumbered_counts, early, new_f,
-                                        np.searchsorted(pix, first), new,
-                                        np.int64(S) * np.int64(n_codes), pure=False)
+                Qa = first.size
+                inf = np.iinfo(np.int64).max
+                total_f = client.submit(
+                    _select_counts, both_f,
+                    np.concatenate([np.arange(Qa), Qa + np.searchsorted(cpix, pix[new])]),
+                    np.concatenate([np.searchsorted(pix, first), new]),
+                    np.concatenate([np.zeros(Qa, np.int64), peaks.step_lo[new]]),
+                    np.concatenate([np.full(Qa, inf), peaks.step_hi[new]]), S, n_codes,
+                    pure=False)
             stores.clear()  # released once their pass 2 has run
             return total_f  # stays on the workers
 
@@ -400,13 +405,25 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
         def count_candidates(cands):
             # the matched filter's candidates, counted on the workers (their stores or
-            # their shots) and summed there: the client gets one PeakCounts.  Pass 2 of
-            # the first stage's peaks is submitted behind them: it runs while the
-            # client confirms candidates (count_peaks adds the confirmed ones' counts)
-            cands_f = pass2_sum(client.scatter(cands, broadcast=True))
-            if "first" in shared and len(shared["first"]):
-                shared["first_f"] = pass2_sum(_scatter_one(client, _light(shared["first"])))
-            return waits(cands_f.result)
+            # their shots) and summed there: the client gets one PeakCounts.  One pass
+            # counts them over windows widened to hold any peak they may confirm
+            # (matched.confirm: centre within the candidate's steps, ± 1.5 footprints
+            # more) together with the first stage's peaks: the candidates' own counts,
+            # the first stage's and the confirmed ones' are filtered from it (exact)
+            first = shared.get("first")
+            if first is None:  # pragma: no cover - detect always runs first
+                return waits(pass2_sum(_scatter_one(client, cands)).result)
+            H = cands.width + cands.width // 2
+            ext = _light(cands)
+            ext["step_lo"] = np.maximum(0, cands.step_lo - H)
+            ext["step_hi"] = np.minimum(S - 1, cands.step_hi + H)
+            both = {k: np.concatenate([v, ext[k]]) for k, v in _light(first).items()}
+            shared["both_f"] = pass2_sum(_scatter_one(client, both))
+            shared["cands"] = cands
+            Qa, C = len(first), len(cands)
+            return waits(client.submit(_select_counts, shared["both_f"], Qa + np.arange(C),
+                                       np.arange(C), cands.step_lo, cands.step_hi, S,
+                                       n_codes, pure=False).result)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
@@ -455,23 +472,29 @@ def _light(peaks, rows=None) -> dict:
             if k != "background_by_step"}
 
 
-def _renumbered_counts(first: PeakCounts, new: PeakCounts | None, pos_first, pos_new,
-                       span) -> PeakCounts:
-    """The :class:`PeakCounts` of the joined peaks from those of two disjoint sets of
-    them: peak i of ``first`` is peak ``pos_first[i]`` of the whole, peak j of ``new``
-    (None: no peaks) peak ``pos_new[j]``; keys ``peak·span + rest`` renumbered and
-    sorted (exact integers: the counts of one pass over the whole)."""
-    keys, counts = [], []
-    for pc, pos in ((first, pos_first), (new, pos_new)):
-        if pc is None or pc.keys.size == 0:
-            continue
-        keys.append(np.asarray(pos, np.int64)[pc.keys // span] * span + pc.keys % span)
-        counts.append(pc.counts)
-    if not keys:
+def _select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
+                   n_codes: int) -> PeakCounts:
+    """The counts of peaks ``src`` (M,) of ``pc`` (distinct) renumbered ``dst`` (M,),
+    each over its steps ``step_lo..step_hi`` (M,) only, keys sorted: the
+    :class:`PeakCounts` of counting those peaks over those windows (each key's count is
+    the same whichever other windows were counted with it)."""
+    span = np.int64(n_steps) * np.int64(n_codes)
+    src = np.asarray(src, np.int64)
+    if pc.keys.size == 0 or src.size == 0:
         return PeakCounts()
-    k = np.concatenate(keys)
-    order = np.argsort(k, kind="stable")
-    return PeakCounts(k[order], np.concatenate(counts)[order])
+    q = pc.keys // span
+    n = int(max(q.max(), src.max())) + 1
+    to = np.full(n, -1, np.int64)
+    lo = np.zeros(n, np.int64)
+    hi = np.full(n, -1, np.int64)
+    to[src] = dst
+    lo[src] = step_lo
+    hi[src] = step_hi
+    step = (pc.keys // np.int64(n_codes)) % np.int64(n_steps)
+    m = (to[q] >= 0) & (step >= lo[q]) & (step <= hi[q])
+    keys = to[q[m]] * span + pc.keys[m] % span
+    order = np.argsort(keys, kind="stable")
+    return PeakCounts(keys[order], pc.counts[m][order])
 
 
 def _without_angle(acc):
