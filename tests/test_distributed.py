@@ -336,6 +336,6 @@ def test_select_counts_filters_and_renumbers_exactly():
         want = {}
         for s_, d_, a, b in zip(src, dst, lo, hi):
             for k in np.flatnonzero((q == s_) & (step >= a) & (step <= b)):
-                want[int(encode_peak_keys(d_, step[k], code[k], S, nb)[0])] = pc.counts[k]
+                want[int((d_ * S + step[k]) * nb + code[k])] = pc.counts[k]
         assert np.all(np.diff(got.keys) > 0)
         assert dict(zip(got.keys.tolist(), got.counts.tolist())) == want
