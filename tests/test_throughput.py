@@ -442,6 +442,18 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
     assert np.array_equal(got.toarray(), want)
 
 
+def test_dot3_equals_the_row_sum():
+    """detections._dot3 (d·p added left to right) equals np.sum(d * p, axis=-1), bit for
+    bit, on random rows and magnitudes (the time-of-flight geometry uses it)."""
+    from mems_stereo.pipeline.detections import _dot3
+
+    rng = np.random.default_rng(1420)
+    for _ in range(5):
+        d = rng.normal(size=(20000, 3)) * 10.0 ** rng.uniform(-8, 8, (20000, 3))
+        p = rng.normal(size=3) * 10.0 ** rng.uniform(-3, 3, 3)
+        assert np.array_equal(_dot3(d, p).view(np.int64), np.sum(d * p, axis=-1).view(np.int64))
+
+
 def test_moving_sum_equals_the_padded_running_sum():
     """moving_sum (running sum written in place) against the running sum of the
     zero-padded array, bit for bit, over shapes, widths and magnitudes."""
