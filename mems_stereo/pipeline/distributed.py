@@ -6,9 +6,11 @@ are integers), so the outcome is identical to one process, bit for bit.
 
 * :func:`process_many` — one task per recording.
 * :func:`process_split` — one recording split into shot ranges: pass 1
-  (classify + histograms) per range, peaks on the client, pass 2 (peak
-  counts) per range, the fusion per block of peaks on the workers; the
-  client joins the blocks' peak means and makes the cloud.
+  (classify + histograms) per range, the peak detector per block of pixels
+  (the client joins the few numbers per pixel of its neighbour support and
+  confirms the matched filter's candidates), pass 2 (peak counts) per range,
+  the fusion per block of peaks, all on the workers; the client joins the
+  blocks' peak means and makes the cloud.
 
 What keeps the client's serial share small (``docs/throughput.md``):
 
@@ -22,7 +24,13 @@ What keeps the client's serial share small (``docs/throughput.md``):
   as uint32, as their non-zero entries where that is smaller;
 * each part keeps its signal detections on its worker
   (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
-  counts from them instead of reading the shots again;
+  counts from them instead of reading the shots again — one pass for the
+  first stage's peaks and the matched filter's candidates together
+  (:func:`_select_counts` filters each set's counts from it);
+* the peak detector's per-pixel stages run in blocks of pixels on the workers
+  (:func:`~mems_stereo.pipeline.peaks.peak_scores`,
+  :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`), so the (P, S)
+  per-angle counts never reach the client;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
   (:func:`split_peak_counts`) and each block is fused on a worker, without
   a halo, up to each peak's means (``PeakMeans``); the client joins the
@@ -253,17 +261,20 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     """Process one (large) recording split by shot ranges over Dask workers.
 
     Pass 1 per shot range, summed in a tree on the workers; the peak detector
-    on the client; pass 2 per shot range, summed in a tree; the fusion per
-    block of peaks on the workers (:func:`split_peak_counts`), the client only
-    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: one per
-    worker, :data:`PARTS_PER_WORKER`).  ``timings`` of the result add the
-    client's own serial seconds (``client_serial``: the wall time less the time
-    it waited on its workers, ``client_wait``), the CPU seconds of the client process over the run
+    per block of pixels on the workers (the neighbour support and the matched
+    filter's confirmation on the client); pass 2 per shot range, summed in a
+    tree; the fusion per block of peaks on the workers
+    (:func:`split_peak_counts`), the client only joining the blocks' means.
+    ``n_parts`` : shot ranges (default: one per worker, :data:`PARTS_PER_WORKER`).
+    ``timings`` of the result add the client's own serial seconds
+    (``client_serial``: the wall time less the time it waited on its workers,
+    ``client_wait``), the CPU seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
-    (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
-    workers while the fusion's tasks are submitted, so ``points`` holds pass 2
-    and the fusion and ``peak_detections`` only the submission.
+    (``client_bytes``), ``parts`` and ``peak_blocks``; ``peaks_wait`` : of the
+    peak stage's seconds (``peaks``), those spent waiting on the workers.  Pass 2
+    runs on the workers while the fusion's tasks are submitted, so ``points``
+    holds pass 2 and the fusion and ``peak_detections`` only the submission.
     """
     st = Settings() if settings is None else settings
     t_all = time.perf_counter()
