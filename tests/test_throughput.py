@@ -380,6 +380,40 @@ def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
         assert np.array_equal(whole.candidates.n_windows, got.candidates.n_windows)
 
 
+def test_stereo_cache_gives_the_same_detection_points():
+    """detection_points with a StereoCache (runs met again gathered from it, new ones
+    added) equals it without, every field, over calls with overlapping runs, fused-only
+    calls, and runs it does not keep (non-integer pixel coordinates)."""
+    from mems_stereo.pipeline.detections import StereoCache, detection_points
+
+    s = burkard2022()
+    rng = np.random.default_rng(1421)
+    cache = StereoCache()
+    theta = rng.uniform(-0.35, 0.35, 60)  # few angles: later calls meet cached runs
+    for call in range(6):
+        R = int(rng.integers(1, 300))
+        length = rng.integers(1, 12, R)
+        shot = np.repeat(rng.integers(0, 60, R), length)
+        row = np.repeat(rng.integers(0, s.receiver.height, R), length)
+        col = np.repeat(rng.integers(0, 20, R), length).astype(np.float64)
+        if call == 4:
+            col = col + 0.25  # not kept: computed, the same values
+        code = rng.uniform(0.5, s.tdc.n_bins, shot.size)
+        a = detection_points(s, shot, row, col, code, theta)
+        if call % 2:
+            x, C, ok = detection_points(s, shot, row, col, code, theta, fused_only=True,
+                                        stereo_cache=cache)
+            assert np.array_equal(x, a.fused, equal_nan=True)
+            assert np.array_equal(C, a.cov_fused, equal_nan=True) and np.array_equal(ok, a.ok)
+            continue
+        b = detection_points(s, shot, row, col, code, theta, stereo_cache=cache)
+        for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused",
+                  "weight_stereo", "ok", "dtof_dL"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+    assert 0 < cache.keys.size < 60 * 20 * s.receiver.height
+    assert np.all(np.diff(cache.keys.real) >= 0)
+
+
 def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     """points_from_counts in blocks of 97 entries (second sub-pass for the inliers
     only) gives the cloud of one block, bit for bit."""

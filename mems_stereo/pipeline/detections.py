@@ -124,7 +124,8 @@ def _s_tof(system, u, v, L, theta):
 
 
 def detection_points(system: System, shot_idx, rows, cols, codes, theta,
-                     spreads: Spreads | None = None, fused_only: bool = False):
+                     spreads: Spreads | None = None, fused_only: bool = False,
+                     stereo_cache=None):
     """Stereo, time-of-flight and fused points of detections.
 
     The same numbers as :func:`_detection_points_reference` (the three
@@ -149,6 +150,9 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     fused_only : return only ``(fused (M, 3), cov_fused (M, 3, 3), ok (M,))``, the
         same bits as those fields of the full result, without the stereo and ToF
         covariances (the fusion's inlier margins need the fused range and its σ alone).
+    stereo_cache : a :class:`StereoCache` for ``system`` and ``spreads`` (the
+        fusion's accumulator keeps one: its sub-passes and inlier margins evaluate
+        the same (pixel, angle step) runs several times), or None.
     """
     sp = spreads_for(system) if spreads is None else spreads
     if sp.param_names:
@@ -167,39 +171,24 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     def gather(a):  # per run -> per detection
         return a if run is None else a[run]
 
-    # per run of equal (u, v, θ): scan directions and the stereo geometry
-    dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
-          "t-": scan_direction(Tr - ht, system.scanner)}
-    ray0 = _rays(system, Ur, Vr)
-    E = {}  # (point (R, 3), s (R,)) of each variant
-    for key, ray, dk in (("0", ray0, "0"), ("u+", _rays(system, Ur + hu, Vr), "0"),
-                         ("u-", _rays(system, Ur - hu, Vr), "0"),
-                         ("v+", _rays(system, Ur, Vr + hv), "0"),
-                         ("v-", _rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
-                         ("t-", ray0, "t-")):
-        E[key] = epipolar_stereo_point(system.scanner.position, dr[dk], ray)[:2]
-
     def diff(a, b, h):
         return (a - b) / (2.0 * h)
 
-    x_st0 = E["0"][0]
-    # the L column is (x0 − x0)/2h = 0 where x0 is finite (NaN rows stay NaN below)
-    c_st = None if fused_only else gather(_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
-                        (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
-                        (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0]))
-    # conditional (given θ) along-ray variance of the stereo: the s of the pixel variants
-    ds_u = diff(E["u+"][1], E["u-"][1], hu)
-    ds_v = diff(E["v+"][1], E["v-"][1], hv)
-    var_st = gather(ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2)
-    x_st = None if fused_only else gather(x_st0)
-    s_st = {k: gather(E[k][1]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
-    dirs = {k: gather(d) for k, d in dr.items()}
+    # per run of equal (u, v, θ): scan directions and the stereo geometry
+    R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
+         else stereo_cache.get(system, sp, Ur, Vr, Tr))
+    c_st = None if fused_only else gather(R["c_st"])
+    var_st = gather(R["var_st"])
+    x_st = None if fused_only else gather(R["x0"])
+    s_st = {k: gather(R["s" + k]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
+    dirs = {k: gather(R["d" + k]) for k in ("0", "t+", "t-")}
+    db = {k: gather(R["db" + k]) for k in ("0", "t+", "t-")}  # d·b, for the ToF
     # per detection: the time-of-flight geometry
-    db0 = _dot3(dirs["0"], p)  # d·b of the unperturbed directions, for three variants
-    T = {"0": tof_on_scanner_ray(p, dirs["0"], Lx, db0),
-         "L+": tof_on_scanner_ray(p, dirs["0"], Lx + hL, db0),
-         "L-": tof_on_scanner_ray(p, dirs["0"], Lx - hL, db0),
-         "t+": tof_on_scanner_ray(p, dirs["t+"], Lx), "t-": tof_on_scanner_ray(p, dirs["t-"], Lx)}
+    T = {"0": tof_on_scanner_ray(p, dirs["0"], Lx, db["0"]),
+         "L+": tof_on_scanner_ray(p, dirs["0"], Lx + hL, db["0"]),
+         "L-": tof_on_scanner_ray(p, dirs["0"], Lx - hL, db["0"]),
+         "t+": tof_on_scanner_ray(p, dirs["t+"], Lx, db["t+"]),
+         "t-": tof_on_scanner_ray(p, dirs["t-"], Lx, db["t-"])}
     x_tf = T["0"][0]
     # the u and v columns are 0 where x_tf is finite
     c_tf = None if fused_only else _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
@@ -220,13 +209,92 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                 (diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL), var_in[2]),
                 (diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht), var_in[3])],
                x_f.shape[0])
-    ok_st = gather(np.all(np.isfinite(x_st0), 1))
+    ok_st = gather(R["ok_st"])
     ok = ok_st & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
     if fused_only:  # as _detection_result makes them
         nan3 = np.where(ok[:, None], 0.0, np.nan)
         return x_f + nan3, c_f + nan3[:, :, None], ok
     return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, dsdL[:, None, None],
                              dirs["0"], ok)
+
+
+def _stereo_runs(system: System, sp: Spreads, Ur, Vr, Tr, want_cov: bool = True) -> dict:
+    """The stereo geometry of :func:`detection_points` per run of equal (u, v, θ) (R,):
+    scan directions ``d0, dt+, dt-`` (R, 3) and their ``d·b`` ``db0, dbt+, dbt-`` (R,),
+    the stereo point ``x0`` (R, 3), its ``s`` of each variant ``s0, su+, …, st-`` (R,),
+    covariance ``c_st`` (R, 3, 3) (None unless ``want_cov``), along-ray variance
+    ``var_st`` (R,) and ``ok_st`` (R,).  Every value is a function of its own run."""
+    hu, hv, _, ht = (_STEPS[n] for n in INPUTS)
+    sig = sp.input_sigmas(system)
+    var_in = [sig[n] ** 2 for n in INPUTS]
+    p = np.asarray(system.scanner.position)
+    dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
+          "t-": scan_direction(Tr - ht, system.scanner)}
+    ray0 = _rays(system, Ur, Vr)
+    E = {}  # (point (R, 3), s (R,)) of each variant
+    for key, ray, dk in (("0", ray0, "0"), ("u+", _rays(system, Ur + hu, Vr), "0"),
+                         ("u-", _rays(system, Ur - hu, Vr), "0"),
+                         ("v+", _rays(system, Ur, Vr + hv), "0"),
+                         ("v-", _rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
+                         ("t-", ray0, "t-")):
+        E[key] = epipolar_stereo_point(system.scanner.position, dr[dk], ray)[:2]
+
+    def diff(a, b, h):
+        return (a - b) / (2.0 * h)
+
+    x_st0 = E["0"][0]
+    out = {"x0": x_st0, "ok_st": np.all(np.isfinite(x_st0), 1)}
+    # the L column is (x0 − x0)/2h = 0 where x0 is finite (NaN rows stay NaN below)
+    out["c_st"] = (_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
+                         (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
+                         (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0])
+                   if want_cov else None)
+    # conditional (given θ) along-ray variance of the stereo: the s of the pixel variants
+    ds_u = diff(E["u+"][1], E["u-"][1], hu)
+    ds_v = diff(E["v+"][1], E["v-"][1], hv)
+    out["var_st"] = ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2
+    for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-"):
+        out["s" + k] = E[k][1]
+    for k, d in dr.items():
+        out["d" + k] = d
+        out["db" + k] = _dot3(d, p)
+    return out
+
+
+class StereoCache:
+    """The per-run stereo geometry of :func:`detection_points` (:func:`_stereo_runs`)
+    of one system and spreads, kept by exact (u, v, θ): a run met again is gathered,
+    not computed (the same bits: each run's values are its own).  Runs with
+    non-integer or large pixel coordinates or a non-finite angle are not kept."""
+
+    #: pixel coordinates below this (integers) are kept: key ``u·2²⁰ + v + i·θ``
+    SPAN = 1 << 20
+
+    def __init__(self):
+        self.keys = np.zeros(0, np.complex128)
+        self.vals: dict | None = None
+
+    def get(self, system: System, sp: Spreads, Ur, Vr, Tr) -> dict:
+        """:func:`_stereo_runs` of the runs (R,), from the cache where it holds them."""
+        ok = np.all(np.isfinite(Tr)) and all(
+            np.all((x >= 0) & (x < self.SPAN) & (x == np.floor(x))) for x in (Ur, Vr))
+        if not ok or Ur.size == 0:
+            return _stereo_runs(system, sp, Ur, Vr, Tr)
+        key = (Ur * self.SPAN + Vr) + 1j * Tr
+        pos = np.searchsorted(self.keys, key)
+        hit = self.keys[np.minimum(pos, max(self.keys.size - 1, 0))] == key if self.keys.size \
+            else np.zeros(key.size, bool)
+        if not np.all(hit):
+            new_keys, first = np.unique(key[~hit], return_index=True)
+            sel = np.flatnonzero(~hit)[first]
+            new = _stereo_runs(system, sp, Ur[sel], Vr[sel], Tr[sel])
+            keys = np.concatenate([self.keys, new_keys])
+            order = np.argsort(keys, kind="stable")
+            self.keys = keys[order]
+            self.vals = {k: (v if self.vals is None else np.concatenate([self.vals[k], v]))[order]
+                         for k, v in new.items()}
+            pos = np.searchsorted(self.keys, key)
+        return {k: v[pos] for k, v in self.vals.items()}
 
 
 def _runs(u, v, th):

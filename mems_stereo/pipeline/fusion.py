@@ -42,7 +42,7 @@ from mems_stereo.model.tdc import codes_from_path_length
 from mems_stereo.physics.first_photon import _detection_log_odds
 from mems_stereo.physics.spot import spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.detections import detection_points
+from mems_stereo.pipeline.detections import StereoCache, detection_points
 from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
@@ -320,10 +320,17 @@ class PeakAccumulator:
         if not (shot.shape == peak.shape == code.shape == w.shape):
             raise GeometryError("shot, peak, code, weight: expected equal lengths")
         dp = detection_points(self.system, shot, self.rows[peak], self.cols[peak], code, theta,
-                              self.spreads)
+                              self.spreads, stereo_cache=self._stereo_cache())
         r, _, sr, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
         return peak, code, dp, r, sr, ok, w
+
+    def _stereo_cache(self) -> StereoCache:
+        """The stereo geometry of the (pixel, step) runs this accumulator has evaluated
+        (its sub-passes and inlier margins meet each several times)."""
+        if getattr(self, "_stereo", None) is None:
+            self._stereo = StereoCache()
+        return self._stereo
 
     def _fused_ranges(self, peak, code, theta):
         """``(peak, r, sr, ok)`` of :meth:`_points` for entries at angles ``theta`` (M,)
@@ -332,7 +339,7 @@ class PeakAccumulator:
         code = np.asarray(code, dtype=np.float64).ravel()
         x, C, ok = detection_points(self.system, np.arange(peak.size), self.rows[peak],
                                     self.cols[peak], code, theta, self.spreads,
-                                    fused_only=True)
+                                    fused_only=True, stereo_cache=self._stereo_cache())
         # r and σ_r as polar_from_cartesian computes them
         r = np.linalg.norm(x, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -596,6 +603,7 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
             acc._add_inliers_sums(pe, ce, r, sr, ok, m, lambda inl: dp.subset(inl), shot,
                                   theta, bg, may_be_inlier=may)
             _add_inlier_background(acc, inlier_background(acc))
+        acc._stereo = None  # (the sub-passes' stereo geometry: no longer needed)
         return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
     # keeps each entry's fused range, its σ and ok (17 bytes an entry) and, up to
@@ -631,6 +639,7 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
                               may_be_inlier=None if may is None else may[e])
     if may is not None:
         _add_inlier_background(acc, inlier_background(acc))
+    acc._stereo = None
     return acc
 
 
