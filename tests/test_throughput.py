@@ -493,6 +493,31 @@ def test_dot3_equals_the_row_sum():
         assert np.array_equal(_dot3(d, p).view(np.int64), np.sum(d * p, axis=-1).view(np.int64))
 
 
+def test_estimate_sums_compiled_equal_numpy(monkeypatch):
+    """EstimateSums.add with its products added in one compiled pass equals the NumPy
+    form (products, then add_rows), bit for bit, on random entries, repeated."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.sums as sums
+
+    out = []
+    for rows in (0, 10 ** 9):  # compiled; NumPy
+        monkeypatch.setattr(sums, "COMPILED_ROWS", rows)
+        r = np.random.default_rng(1422)
+        e = sums.EstimateSums.zeros(30, timed=True)
+        for _ in range(3):
+            n = int(r.integers(1, 3000))
+            q = r.integers(0, 30, n)
+            m = r.normal(size=n) * 10.0 ** r.uniform(-3, 3, n)
+            x = r.normal(size=(n, 3)) * 10.0 ** r.uniform(-6, 6, (n, 3))
+            C = r.normal(size=(n, 3, 3)) * 10.0 ** r.uniform(-9, 3, (n, 3, 3))
+            g = r.normal(size=(n, 3))
+            e.add(q, x, C, m, g)
+        out.append(e)
+    assert sums._compiled("scaled") is not None
+    for k in ("W", "X", "C", "D", "G"):
+        assert np.array_equal(getattr(out[0], k), getattr(out[1], k)), k
+
+
 def test_moving_sum_equals_the_padded_running_sum():
     """moving_sum (running sum written in place) against the running sum of the
     zero-padded array, bit for bit, over shapes, widths and magnitudes."""

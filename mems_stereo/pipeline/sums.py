@@ -86,12 +86,34 @@ def _add_rows_gathered_py(A, q, rows, run, m):
             A[r, j] += rows[g, j] * w
 
 
+def _add_scaled_py(A, q, V, m):
+    """A[q[i], j] += V[i, j] · m[i] in entry order (A (Q, J), V (N, J)): add_rows of the
+    products ``V · m[:, None]``, bit for bit."""
+    for i in range(q.size):
+        r, w = q[i], m[i]
+        for j in range(A.shape[1]):
+            A[r, j] += V[i, j] * w
+
+
+def _add_outer_scaled_py(A, q, g, m):
+    """A[q[i], 3a + b] += (g[i, a] · g[i, b]) · m[i] in entry order (A (Q, 9), g (N, 3)):
+    add_rows of ``g[:, :, None] * g[:, None, :] * m[:, None, None]``, bit for bit."""
+    for i in range(q.size):
+        r, w = q[i], m[i]
+        for a in range(3):
+            for b in range(3):
+                A[r, 3 * a + b] += (g[i, a] * g[i, b]) * w
+
+
 _KERNELS: dict = {}
+_PY_KERNELS = {"rows": _add_rows_py, "gathered": _add_rows_gathered_py,
+               "scaled": _add_scaled_py, "outer": _add_outer_scaled_py}
 
 
 def _compiled(name: str):
-    """The numba form of ``_add_rows_py`` ("rows") or ``_add_rows_gathered_py``
-    ("gathered") where numba is imported already, else None."""
+    """The numba form of ``_add_rows_py`` ("rows"), ``_add_rows_gathered_py``
+    ("gathered"), ``_add_scaled_py`` ("scaled") or ``_add_outer_scaled_py`` ("outer")
+    where numba is imported already, else None."""
     if name not in _KERNELS:
         import sys
 
@@ -99,8 +121,8 @@ def _compiled(name: str):
             return None
         import numba
 
-        fn = _add_rows_py if name == "rows" else _add_rows_gathered_py
-        _KERNELS[name] = numba.njit(cache=True, nogil=True, boundscheck=False)(fn)
+        _KERNELS[name] = numba.njit(cache=True, nogil=True,
+                                    boundscheck=False)(_PY_KERNELS[name])
     return _KERNELS[name]
 
 
@@ -210,6 +232,21 @@ class EstimateSums:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
         np.add.at(self.W, q, m)
+        q = np.asarray(q, np.int64)
+        kernel = _compiled("scaled") if q.size >= COMPILED_ROWS else None
+        if kernel is not None and all(a is None or a.flags.c_contiguous
+                                      for a in (self.X, self.C, self.D, self.G)):
+            # the products below, added entry after entry: the same bits, no temporaries
+            m = np.asarray(m, np.float64)
+            am = np.abs(m)
+            kernel(self.X, q, np.ascontiguousarray(x, np.float64), m)
+            kernel(self.C.reshape(self.C.shape[0], 9), q,
+                   np.ascontiguousarray(C, np.float64).reshape(-1, 9), am)
+            if self.D is not None and g is not None:
+                g = np.ascontiguousarray(g, np.float64)
+                kernel(self.D, q, g, m)
+                _compiled("outer")(self.G.reshape(self.G.shape[0], 9), q, g, am)
+            return
         add_rows(self.X, q, x * m[:, None])
         add_rows(self.C, q, C * np.abs(m)[:, None, None])
         if self.D is not None and g is not None:
