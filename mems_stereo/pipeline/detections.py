@@ -199,8 +199,15 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
 
+    w1 = 1.0 - w
+    ws, wt = {}, {}  # each product once: the same values as computing it per variant
+
     def fused(e, t, d):
-        s = w * s_st[e] + (1.0 - w) * T[t][1]
+        if e not in ws:
+            ws[e] = w * s_st[e]
+        if t not in wt:
+            wt[t] = w1 * T[t][1]
+        s = ws[e] + wt[t]
         return p + s[:, None] * dirs[d]
 
     x_f = fused("0", "0", "0")
