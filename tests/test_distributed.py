@@ -315,10 +315,9 @@ def test_fusion_work_counts_entries_and_steps():
 
 
 def test_select_counts_filters_and_renumbers_exactly():
-    """_select_counts: the counts of some peaks over sub-windows of their steps,
+    """pass2.select_counts: the counts of some peaks over sub-windows of their steps,
     renumbered, equal the counts of exactly those keys (random keys and windows)."""
-    from mems_stereo.pipeline.distributed import _select_counts
-    from mems_stereo.pipeline.pass2 import decode_peak_keys
+    from mems_stereo.pipeline.pass2 import decode_peak_keys, select_counts
 
     rng = np.random.default_rng(1419)
     S, nb = 50, 9
@@ -331,7 +330,7 @@ def test_select_counts_filters_and_renumbers_exactly():
         dst = rng.permutation(src.size)
         lo = rng.integers(0, S, src.size)
         hi = lo + rng.integers(-1, S, src.size)
-        got = _select_counts(pc, src, dst, lo, hi, S, nb)
+        got = select_counts(pc, src, dst, lo, hi, S, nb)
         q, step, code = decode_peak_keys(pc.keys, S, nb)
         want = {}
         for s_, d_, a, b in zip(src, dst, lo, hi):

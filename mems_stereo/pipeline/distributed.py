@@ -26,7 +26,7 @@ What keeps the client's serial share small (``docs/throughput.md``):
   (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
   counts from them instead of reading the shots again — one pass for the
   first stage's peaks and the matched filter's candidates together
-  (:func:`_select_counts` filters each set's counts from it);
+  (:func:`select_counts` filters each set's counts from it);
 * the peak detector's per-pixel stages run in blocks of pixels on the workers
   (:func:`~mems_stereo.pipeline.peaks.peak_scores`,
   :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`), so the (P, S)
@@ -58,7 +58,15 @@ from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
-from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.pass2 import (
+    PeakCounts,
+    candidate_selection,
+    merged_selection,
+    peak_counts_range,
+    peak_fields,
+    select_counts,
+    with_widened_candidates,
+)
 from mems_stereo.pipeline.peaks import concat_peaks, peak_scores, peaks_of_scores, supported
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
@@ -361,7 +369,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             # (the peak stage ends here: what of it the client spent waiting on workers)
             timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
             # pass 2 needs only the pixels, windows and bands; send them once
-            shared["peaks"] = _scatter_one(client, _light(peaks))
+            shared["peaks"] = _scatter_one(client, peak_fields(peaks))
             both_f = shared.get("both_f")
             if both_f is None:
                 total_f = pass2_sum(shared["peaks"])
@@ -370,19 +378,9 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                 # in one pass (count_candidates): the first stage's counts renumbered into
                 # the order of ``peaks``, each confirmed peak's filtered to its window
                 # (each peak's counts are its own: the PeakCounts of counting ``peaks``)
-                W = sysm.receiver.width
-                pix, first = peaks.pixel(W), shared["first"].pixel(W)
-                cpix = shared["cands"].pixel(W)
-                new = np.flatnonzero(~np.isin(pix, first))
-                Qa = first.size
-                inf = np.iinfo(np.int64).max
-                total_f = client.submit(
-                    _select_counts, both_f,
-                    np.concatenate([np.arange(Qa), Qa + np.searchsorted(cpix, pix[new])]),
-                    np.concatenate([np.searchsorted(pix, first), new]),
-                    np.concatenate([np.zeros(Qa, np.int64), peaks.step_lo[new]]),
-                    np.concatenate([np.full(Qa, inf), peaks.step_hi[new]]), S, n_codes,
-                    pure=False)
+                sel = merged_selection(shared["first"], shared["cands"], peaks,
+                                       sysm.receiver.width)
+                total_f = client.submit(select_counts, both_f, *sel, S, n_codes, pure=False)
             stores.clear()  # released once their pass 2 has run
             return total_f  # stays on the workers
 
@@ -424,17 +422,12 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             first = shared.get("first")
             if first is None:  # pragma: no cover - detect always runs first
                 return waits(pass2_sum(_scatter_one(client, cands)).result)
-            H = cands.width + cands.width // 2
-            ext = _light(cands)
-            ext["step_lo"] = np.maximum(0, cands.step_lo - H)
-            ext["step_hi"] = np.minimum(S - 1, cands.step_hi + H)
-            both = {k: np.concatenate([v, ext[k]]) for k, v in _light(first).items()}
+            both = with_widened_candidates(first, cands, S)
             shared["both_f"] = pass2_sum(_scatter_one(client, both))
             shared["cands"] = cands
-            Qa, C = len(first), len(cands)
-            return waits(client.submit(_select_counts, shared["both_f"], Qa + np.arange(C),
-                                       np.arange(C), cands.step_lo, cands.step_hi, S,
-                                       n_codes, pure=False).result)
+            return waits(client.submit(select_counts, shared["both_f"],
+                                       *candidate_selection(len(first), cands), S, n_codes,
+                                       pure=False).result)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
@@ -474,38 +467,6 @@ def _scatter_one(client, obj):
     future per value, keyed by the dict's keys: two dicts of the same fields would
     share their keys)."""
     return client.scatter([obj], broadcast=True)[0]
-
-
-def _light(peaks, rows=None) -> dict:
-    """The fields of ``peaks`` (rows ``rows``, default all) that pass 2 and the fusion
-    read: every (Q,) array, not ``background_by_step``."""
-    return {k: (v if rows is None else np.asarray(v)[rows]) for k, v in peaks.items()
-            if k != "background_by_step"}
-
-
-def _select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
-                   n_codes: int) -> PeakCounts:
-    """The counts of peaks ``src`` (M,) of ``pc`` (distinct) renumbered ``dst`` (M,),
-    each over its steps ``step_lo..step_hi`` (M,) only, keys sorted: the
-    :class:`PeakCounts` of counting those peaks over those windows (each key's count is
-    the same whichever other windows were counted with it)."""
-    span = np.int64(n_steps) * np.int64(n_codes)
-    src = np.asarray(src, np.int64)
-    if pc.keys.size == 0 or src.size == 0:
-        return PeakCounts()
-    q = pc.keys // span
-    n = int(max(q.max(), src.max())) + 1
-    to = np.full(n, -1, np.int64)
-    lo = np.zeros(n, np.int64)
-    hi = np.full(n, -1, np.int64)
-    to[src] = dst
-    lo[src] = step_lo
-    hi[src] = step_hi
-    step = (pc.keys // np.int64(n_codes)) % np.int64(n_steps)
-    m = (to[q] >= 0) & (step >= lo[q]) & (step <= hi[q])
-    keys = to[q[m]] * span + pc.keys[m] % span
-    order = np.argsort(keys, kind="stable")
-    return PeakCounts(keys[order], pc.counts[m][order])
 
 
 def _without_angle(acc):

@@ -56,7 +56,14 @@ from mems_stereo.pipeline.pass1 import (
     accumulate_range,
     truth_scores,
 )
-from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.pass2 import (
+    PeakCounts,
+    candidate_selection,
+    merged_selection,
+    peak_counts_range,
+    select_counts,
+    with_widened_candidates,
+)
 from mems_stereo.pipeline.peak_means import PeakMeans
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.signal_store import (
@@ -232,19 +239,41 @@ def process_recording(path, system: System | None = None,
         if own_table:
             table.save_cache()
         timings["classify_histogram"] = time.perf_counter() - t1
-        count_peaks = count_candidates = None
+        count_peaks = count_candidates = detect = None
         if keep is not None and store.complete:
-            def count_candidates(peaks):
-                return peak_counts_from_store(store, sysm, peaks, table.n_steps)
+            S, nb = table.n_steps, sysm.tdc.n_bins + 1
+            seen = {}
+
+            def detect(sig, noise):  # find_peaks, keeping the first stage's peaks
+                from mems_stereo.pipeline.peaks import find_peaks
+
+                seen["first"], bg = find_peaks(sysm, sig, noise, theta, valid, st,
+                                               signal_angle=acc.hist_angle, table=table,
+                                               n_per_step=acc.n_per_step)
+                return seen["first"], bg
+
+            def count_candidates(cands):
+                # one pass over the store for the candidates (over windows widened to
+                # hold any peak they confirm) and the first stage's peaks; each set's
+                # counts are filtered from it (the same integers as counting it alone)
+                seen["cands"] = cands
+                seen["both"] = peak_counts_from_store(
+                    store, sysm, with_widened_candidates(seen["first"], cands, S), S)
+                return select_counts(seen["both"],
+                                     *candidate_selection(len(seen["first"]), cands), S, nb)
 
             def count_peaks(peaks):
-                pc = count_candidates(peaks)
+                if "both" in seen:
+                    pc = select_counts(seen.pop("both"), *merged_selection(
+                        seen["first"], seen["cands"], peaks, sysm.receiver.width), S, nb)
+                else:
+                    pc = peak_counts_from_store(store, sysm, peaks, S)
                 if progress is not None:
                     progress(K)
                 return pc
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, progress=progress, table=table,
-                                count_candidates=count_candidates)
+                                count_candidates=count_candidates, detect=detect)
     if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
         table.save_cache()
     return res
