@@ -149,6 +149,9 @@ def dense(shots: int, seed: int, d: Path, runs=("cold", "warm"), before=None) ->
     if before:  # the same recording and cache with the package of another commit
         labels.insert(0, (f"BEFORE ({before}), {runs[-1]} table cache",
                           dict(env, BENCH_PACKAGE_SRC=str(extract_commit(before, d)))))
+    if before:  # its numba kernels compiled into their disk cache first (a package
+        # extracted to a new path has none: its first run would pay the JIT, ~2 s)
+        measure_child(PROCESS, path, d / "warmup.npz", env=labels[0][1])
     clouds = []
     for label, env_ in labels:
         clouds.append(d / f"cloud{len(clouds)}.npz")

@@ -47,10 +47,15 @@ def _block(rng, k, p_zero=0.3):
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
 @pytest.mark.parametrize("want_labels", [True, False])
-def test_pass1_numpy_compiled_and_python_kernels_agree(table, seed, want_labels):
+def test_pass1_numpy_compiled_and_python_kernels_agree(table, seed, want_labels, monkeypatch):
+    import mems_stereo.pipeline.pass1 as pass1
+
     rng = np.random.default_rng(seed)
     bins, theta, valid = _block(rng, 97)
     out = []
+    # compiled with the raw histogram counted in uint16 first (seeds 1, 3) or straight
+    # into the uint32 one (seed 2); the NumPy form
+    monkeypatch.setattr(pass1, "RAW16_SHOTS", 1 << 16 if seed != 2 else 0)
     for compiled in (True, False):
         angle = np.zeros((192, table.n_steps), np.uint32)
         lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096,
@@ -286,6 +291,129 @@ def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed
         assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
 
 
+@pytest.mark.parametrize("seed", [2, 3])
+def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatch, seed):
+    """_cov compiled (numba loaded, at least COV_COMPILED_ROWS rows) equals its NumPy
+    form; detection_points(fused_only=True) equals the full result's fused fields; the
+    accumulator's fused ranges for the inlier margins equal those of its _points."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.detections as det
+    from mems_stereo.pipeline.fusion import PeakAccumulator
+
+    s = burkard2022()
+    rng = np.random.default_rng(seed)
+    n = 6000
+    theta = rng.uniform(-0.35, 0.35, 300)
+    args = (rng.integers(0, 300, n), rng.integers(0, s.receiver.height, n),
+            rng.integers(0, s.receiver.width, n), rng.uniform(0.5, s.tdc.n_bins, n), theta)
+    assert det._compiled_cov() is not None and n >= det.COV_COMPILED_ROWS
+    a = det.detection_points(s, *args)
+    x, C, ok = det.detection_points(s, *args, fused_only=True)
+    monkeypatch.setattr(det, "COV_COMPILED_ROWS", 10 ** 9)  # NumPy
+    b = det.detection_points(s, *args)
+    assert 0.05 < a.ok.mean() < 0.95  # NaN rows too
+    for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused", "weight_stereo",
+              "ok", "dtof_dL"):
+        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+    assert np.array_equal(x, a.fused, equal_nan=True)
+    assert np.array_equal(C, a.cov_fused, equal_nan=True)
+    assert np.array_equal(ok, a.ok)
+    Q = 40
+    acc = PeakAccumulator(s, rng.integers(0, s.receiver.height, Q),
+                          rng.integers(0, s.receiver.width, Q), rng.integers(1, 200, Q))
+    pk = rng.integers(0, Q, n)
+    code = rng.uniform(0.5, s.tdc.n_bins, n)
+    th = theta[rng.integers(0, 300, n)]
+    p0, _, _, r0, sr0, ok0, _ = acc._points(np.arange(n), pk, code, th, None)
+    p1, r1, sr1, ok1 = acc._fused_ranges(pk, code, th)
+    assert np.array_equal(p0, p1) and np.array_equal(ok0, ok1) and 0.05 < ok0.mean() < 1
+    assert np.array_equal(r0, r1, equal_nan=True) and np.array_equal(sr0, sr1, equal_nan=True)
+
+
+@pytest.mark.parametrize("name", ["room.h5", "floodlight.h5"])
+def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
+    """The peak detector's per-pixel stage over random blocks of pixels, the neighbour
+    support on the joined few numbers, each block's peaks joined: find_peaks' peaks,
+    candidates (with their background rows) and rates, bit for bit."""
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.peaks import (
+        concat_peaks,
+        find_peaks,
+        peak_scores,
+        peaks_of_scores,
+        supported,
+    )
+
+    h = read_header(SAMPLES / name)
+    s, st = h.system, Settings()
+    th, va = shot_angles(h, s)
+    t = IntervalTable.for_settings(s, st)
+    acc = accumulate_range(SAMPLES / name, s, th, va, st, table=t)
+    P, nb = s.receiver.width * s.receiver.height, s.tdc.n_bins
+    sig = acc.hist_signal[:, 1:].astype(np.int64)
+    noise = acc.hist_raw[:, 1:].astype(np.int64) - sig
+    H, W = s.receiver.height, s.receiver.width
+    whole, rate = find_peaks(s, sig.reshape(H, W, nb), noise.reshape(H, W, nb), th, va, st,
+                             signal_angle=acc.hist_angle, table=t, n_per_step=acc.n_per_step)
+    assert len(whole) > 10
+    rng = np.random.default_rng(1417)
+    for _ in range(2):
+        edges = np.unique(np.concatenate([[0, P], rng.integers(1, P, 4)]))
+        scores = [peak_scores(s, sig[a:b], noise[a:b], acc.hist_angle[a:b], acc.n_per_step, t,
+                              st, np.arange(a, b)) for a, b in zip(edges[:-1], edges[1:])]
+        keep = supported(*(np.concatenate(x) for x in zip(*(c.support_inputs()
+                                                           for c in scores))), W)
+        got = concat_peaks([peaks_of_scores(s, c, keep[c.pixels], acc.n_per_step, t, st)
+                            for c in scores])
+        assert np.array_equal(np.concatenate([c.rate for c in scores]), rate.ravel(),
+                              equal_nan=True)
+        for a, b in ((whole, got), (whole.candidates, got.candidates)):
+            for k in a.__dataclass_fields__:
+                u, v = getattr(a, k), getattr(b, k)
+                if k == "background_by_step":
+                    assert u.shape == v.shape
+                    for f in ("indptr", "indices", "data"):
+                        assert np.array_equal(getattr(u, f), getattr(v, f)), f
+                else:
+                    assert u.dtype == v.dtype and np.array_equal(u, v, equal_nan=True), k
+        assert np.array_equal(whole.candidates.n_windows, got.candidates.n_windows)
+
+
+def test_stereo_cache_gives_the_same_detection_points():
+    """detection_points with a StereoCache (runs met again gathered from it, new ones
+    added) equals it without, every field, over calls with overlapping runs, fused-only
+    calls, and runs it does not keep (non-integer pixel coordinates)."""
+    from mems_stereo.pipeline.detections import StereoCache, detection_points
+
+    s = burkard2022()
+    rng = np.random.default_rng(1421)
+    cache = StereoCache()
+    theta = rng.uniform(-0.35, 0.35, 60)  # few angles: later calls meet cached runs
+    for call in range(6):
+        R = int(rng.integers(1, 300))
+        length = rng.integers(1, 12, R)
+        shot = np.repeat(rng.integers(0, 60, R), length)
+        row = np.repeat(rng.integers(0, s.receiver.height, R), length)
+        col = np.repeat(rng.integers(0, 20, R), length).astype(np.float64)
+        if call == 4:
+            col = col + 0.25  # not kept: computed, the same values
+        code = rng.uniform(0.5, s.tdc.n_bins, shot.size)
+        a = detection_points(s, shot, row, col, code, theta)
+        if call % 2:
+            x, C, ok = detection_points(s, shot, row, col, code, theta, fused_only=True,
+                                        stereo_cache=cache)
+            assert np.array_equal(x, a.fused, equal_nan=True)
+            assert np.array_equal(C, a.cov_fused, equal_nan=True) and np.array_equal(ok, a.ok)
+            continue
+        b = detection_points(s, shot, row, col, code, theta, stereo_cache=cache)
+        for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused",
+                  "weight_stereo", "ok", "dtof_dL"):
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+    assert 0 < cache.keys.size < 60 * 20 * s.receiver.height
+    assert np.all(np.diff(cache.keys.real) >= 0)
+
+
 def test_points_in_entry_blocks_equal_points_at_once(monkeypatch):
     """points_from_counts in blocks of 97 entries (second sub-pass for the inliers
     only) gives the cloud of one block, bit for bit."""
@@ -353,10 +481,75 @@ def test_background_by_step_is_stored_over_the_counted_steps_only():
     assert np.array_equal(got.toarray(), want)
 
 
-def test_add_rows_equals_add_at():
-    """sums.add_rows (one bincount per column) against np.add.at, bit for bit, over
-    random shapes, signs and magnitudes, onto non-zero sums, repeated."""
+def test_dot3_equals_the_row_sum():
+    """detections._dot3 (d·p added left to right) equals np.sum(d * p, axis=-1), bit for
+    bit, on random rows and magnitudes (the time-of-flight geometry uses it)."""
+    from mems_stereo.pipeline.detections import _dot3
+
+    rng = np.random.default_rng(1420)
+    for _ in range(5):
+        d = rng.normal(size=(20000, 3)) * 10.0 ** rng.uniform(-8, 8, (20000, 3))
+        p = rng.normal(size=3) * 10.0 ** rng.uniform(-3, 3, 3)
+        assert np.array_equal(_dot3(d, p).view(np.int64), np.sum(d * p, axis=-1).view(np.int64))
+
+
+def test_estimate_sums_compiled_equal_numpy(monkeypatch):
+    """EstimateSums.add with its products added in one compiled pass equals the NumPy
+    form (products, then add_rows), bit for bit, on random entries, repeated."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.sums as sums
+
+    out = []
+    for rows in (0, 10 ** 9):  # compiled; NumPy
+        monkeypatch.setattr(sums, "COMPILED_ROWS", rows)
+        r = np.random.default_rng(1422)
+        e = sums.EstimateSums.zeros(30, timed=True)
+        for _ in range(3):
+            n = int(r.integers(1, 3000))
+            q = r.integers(0, 30, n)
+            m = r.normal(size=n) * 10.0 ** r.uniform(-3, 3, n)
+            x = r.normal(size=(n, 3)) * 10.0 ** r.uniform(-6, 6, (n, 3))
+            C = r.normal(size=(n, 3, 3)) * 10.0 ** r.uniform(-9, 3, (n, 3, 3))
+            g = r.normal(size=(n, 3))
+            e.add(q, x, C, m, g)
+        out.append(e)
+    assert sums._compiled("scaled") is not None
+    for k in ("W", "X", "C", "D", "G"):
+        assert np.array_equal(getattr(out[0], k), getattr(out[1], k)), k
+
+
+def test_moving_sum_equals_the_padded_running_sum():
+    """moving_sum (running sum written in place) against the running sum of the
+    zero-padded array, bit for bit, over shapes, widths and magnitudes."""
+    from mems_stereo.physics.background import moving_sum
+
+    rng = np.random.default_rng(1418)
+    for shape in ((192, 913), (7,), (3, 4), (2, 0), (2, 3, 50)):
+        for width in (1, 3, 11, 101):
+            h = rng.poisson(3.0, shape) * 10.0 ** rng.uniform(-6, 6, shape)
+            half = width // 2
+            pad = [(0, 0)] * (h.ndim - 1) + [(half + 1, half)]
+            c = np.cumsum(np.pad(h, pad), axis=-1)
+            ref = c[..., width:] - c[..., :-width]
+            got = moving_sum(h, width)
+            assert got.shape == ref.shape == h.shape
+            assert np.array_equal(got.view(np.int64), ref.view(np.int64))
+
+
+@pytest.mark.parametrize("form", ["numpy", "compiled"])
+def test_add_rows_equals_add_at(monkeypatch, form):
+    """sums.add_rows (one bincount per column, or the compiled loop where numba is
+    loaded) against np.add.at, bit for bit, over random shapes, signs and magnitudes,
+    onto non-zero sums, repeated."""
+    import mems_stereo.pipeline.sums as sums
     from mems_stereo.pipeline.sums import add_rows, add_rows_gathered
+
+    if form == "compiled":
+        pytest.importorskip("numba")
+        monkeypatch.setattr(sums, "COMPILED_ROWS", 0)
+        assert sums._compiled("rows") is not None and sums._compiled("gathered") is not None
+    else:
+        monkeypatch.setattr(sums, "COMPILED_ROWS", 10 ** 9)
 
     rng = np.random.default_rng(1415)
     for _ in range(40):

@@ -203,22 +203,26 @@ def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.n
     return acceptance * expected_background(rate_hz, 1.0, bin_width, acceptance.shape[1])
 
 
-def expected_background_by_angle(table, n_per_step, rate_hz) -> np.ndarray:
+def expected_background_by_angle(table, n_per_step, rate_hz, pixels=None) -> np.ndarray:
     """Expected background counts that pass the classifier, per pixel and angle step.
 
     For step s and pixel p, a first background photon lands in the accepted
     interval [lo, hi] with probability ``(1 − q)^(lo−1) − (1 − q)^hi``
     (geometric first-photon law, q = 1 − exp(−λ·Δt)); times the number of
-    valid shots at that step.  Returns (P, S) float64.
+    valid shots at that step.  Returns (P, S) float64.  ``pixels`` : (P,) the
+    flat pixels of ``rate_hz`` (default: all of the table's, in order); each
+    pixel's row is the same whichever others are computed with it.
     """
-    P = table.lo.shape[1]
+    P = table.lo.shape[1] if pixels is None else len(pixels)
     out = np.zeros((P, table.n_steps))
     used = np.flatnonzero(n_per_step)
     if used.size == 0:
         return out
     table.ensure(used)
-    lo = table.lo[used].astype(np.float64)
-    hi = table.hi[used].astype(np.float64)
+    lo = table.lo[used] if pixels is None else table.lo[np.ix_(used, pixels)]
+    hi = table.hi[used] if pixels is None else table.hi[np.ix_(used, pixels)]
+    lo = lo.astype(np.float64)
+    hi = hi.astype(np.float64)
     dt = table.system.tdc.bin_width
     a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * dt), 1 - 1e-15))[None, :]
     pacc = np.where(lo <= hi, np.exp((lo - 1.0) * a) - np.exp(hi * a), 0.0)
@@ -234,6 +238,11 @@ def moving_sum(hist, width: int) -> np.ndarray:
         raise FormatError(f"width must be an odd number >= 1, found {width}", field="width")
     h = np.asarray(hist, dtype=np.float64)
     half = width // 2
-    pad = [(0, 0)] * (h.ndim - 1) + [(half + 1, half)]
-    c = np.cumsum(np.pad(h, pad), axis=-1)
+    n = h.shape[-1]
+    # the running sum of h padded with half + 1 zeros before and half after, written
+    # in place (no padded copy): the same sums, as the zeros add nothing
+    c = np.empty(h.shape[:-1] + (n + width,))
+    c[..., :half + 1] = 0.0
+    np.cumsum(h, axis=-1, out=c[..., half + 1:half + 1 + n])
+    c[..., half + 1 + n:] = c[..., half + n:half + n + 1]
     return c[..., width:] - c[..., :-width]

@@ -67,7 +67,14 @@ class DetectionPoints:
 TOF_LINEAR_BELOW = 2.0
 
 
-def tof_on_scanner_ray(p, d, L):
+def _dot3(d, p) -> np.ndarray:
+    """(N,) d·p of (N, 3) rows and a (3,) vector, added left to right: the same bits as
+    ``np.sum(d * p, axis=-1)`` (tested), without its slow reduction over 3 columns."""
+    p = np.asarray(p, dtype=np.float64)
+    return d[..., 0] * p[0] + d[..., 1] * p[1] + d[..., 2] * p[2]
+
+
+def tof_on_scanner_ray(p, d, L, db=None):
     """Time-of-flight point at path length L on the scanner ray ``p + s·d``, for every L.
 
     The exact root ``s = (L² − |b|²) / (2 (L + d·b))`` (as
@@ -79,13 +86,15 @@ def tof_on_scanner_ray(p, d, L):
     where the root does not exist.  Left out, they bias the peak's ToF mean
     late and take counts from its stereo mean; the first-photon model expects
     them (it knows the clipping), so each keeps its measured L on this
-    continuation.  ``p`` (3,), ``d`` (N, 3) unit, ``L`` (N,).  Returns
-    ``(points (N, 3), s (N,))``; NaN only for non-finite L.
+    continuation.  ``p`` (3,), ``d`` (N, 3) unit, ``L`` (N,); ``db`` (N,) ``d·p``
+    when known (:func:`_dot3`).  Returns ``(points (N, 3), s (N,))``; NaN only for
+    non-finite L.
     """
     p = np.asarray(p, dtype=np.float64)
     L = np.asarray(L, dtype=np.float64)
     bb = float(p @ p)
-    db = np.sum(d * p, axis=-1)
+    if db is None:
+        db = _dot3(np.asarray(d, dtype=np.float64), p)
     Lc = TOF_LINEAR_BELOW * math.sqrt(bb)
     Le = np.maximum(L, Lc)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -115,7 +124,8 @@ def _s_tof(system, u, v, L, theta):
 
 
 def detection_points(system: System, shot_idx, rows, cols, codes, theta,
-                     spreads: Spreads | None = None) -> DetectionPoints:
+                     spreads: Spreads | None = None, fused_only: bool = False,
+                     stereo_cache=None):
     """Stereo, time-of-flight and fused points of detections.
 
     The same numbers as :func:`_detection_points_reference` (the three
@@ -137,10 +147,17 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     theta : (K,) float64 scan angle of every shot, rad (indexed by shot_idx).
     spreads : :class:`~mems_stereo.geometry.uncertainty.Spreads` (default
         :func:`~mems_stereo.geometry.uncertainty.spreads_for`).
+    fused_only : return only ``(fused (M, 3), cov_fused (M, 3, 3), ok (M,))``, the
+        same bits as those fields of the full result, without the stereo and ToF
+        covariances (the fusion's inlier margins need the fused range and its σ alone).
+    stereo_cache : a :class:`StereoCache` for ``system`` and ``spreads`` (the
+        fusion's accumulator keeps one: its sub-passes and inlier margins evaluate
+        the same (pixel, angle step) runs several times), or None.
     """
     sp = spreads_for(system) if spreads is None else spreads
     if sp.param_names:
-        return _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
+        dp = _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
+        return (dp.fused, dp.cov_fused, dp.ok) if fused_only else dp
     u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
     x_in = _as_inputs(u, v, L, th)
     p = np.asarray(system.scanner.position)
@@ -154,7 +171,70 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     def gather(a):  # per run -> per detection
         return a if run is None else a[run]
 
+    def diff(a, b, h):
+        return (a - b) / (2.0 * h)
+
     # per run of equal (u, v, θ): scan directions and the stereo geometry
+    R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
+         else stereo_cache.get(system, sp, Ur, Vr, Tr))
+    c_st = None if fused_only else gather(R["c_st"])
+    var_st = gather(R["var_st"])
+    x_st = None if fused_only else gather(R["x0"])
+    s_st = {k: gather(R["s" + k]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
+    dirs = {k: gather(R["d" + k]) for k in ("0", "t+", "t-")}
+    db = {k: gather(R["db" + k]) for k in ("0", "t+", "t-")}  # d·b, for the ToF
+    # per detection: the time-of-flight geometry
+    T = {"0": tof_on_scanner_ray(p, dirs["0"], Lx, db["0"]),
+         "L+": tof_on_scanner_ray(p, dirs["0"], Lx + hL, db["0"]),
+         "L-": tof_on_scanner_ray(p, dirs["0"], Lx - hL, db["0"]),
+         "t+": tof_on_scanner_ray(p, dirs["t+"], Lx, db["t+"]),
+         "t-": tof_on_scanner_ray(p, dirs["t-"], Lx, db["t-"])}
+    x_tf = T["0"][0]
+    # the u and v columns are 0 where x_tf is finite
+    c_tf = None if fused_only else _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
+                                         (diff(T["t+"][0], T["t-"][0], ht), var_in[3])],
+                                        x_tf.shape[0])
+    dsdL = diff(T["L+"][1], T["L-"][1], hL)
+    var_tf = dsdL ** 2 * sp.sigma_L(system) ** 2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
+
+    w1 = 1.0 - w
+    ws, wt = {}, {}  # each product once: the same values as computing it per variant
+
+    def fused(e, t, d):
+        if e not in ws:
+            ws[e] = w * s_st[e]
+        if t not in wt:
+            wt[t] = w1 * T[t][1]
+        s = ws[e] + wt[t]
+        return p + s[:, None] * dirs[d]
+
+    x_f = fused("0", "0", "0")
+    c_f = _cov([(diff(fused("u+", "0", "0"), fused("u-", "0", "0"), hu), var_in[0]),
+                (diff(fused("v+", "0", "0"), fused("v-", "0", "0"), hv), var_in[1]),
+                (diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL), var_in[2]),
+                (diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht), var_in[3])],
+               x_f.shape[0])
+    ok_st = gather(R["ok_st"])
+    ok = ok_st & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
+    if fused_only:  # as _detection_result makes them
+        nan3 = np.where(ok[:, None], 0.0, np.nan)
+        return x_f + nan3, c_f + nan3[:, :, None], ok
+    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, dsdL[:, None, None],
+                             dirs["0"], ok)
+
+
+def _stereo_runs(system: System, sp: Spreads, Ur, Vr, Tr, want_cov: bool = True) -> dict:
+    """The stereo geometry of :func:`detection_points` per run of equal (u, v, θ) (R,):
+    scan directions ``d0, dt+, dt-`` (R, 3) and their ``d·b`` ``db0, dbt+, dbt-`` (R,),
+    the stereo point ``x0`` (R, 3), its ``s`` of each variant ``s0, su+, …, st-`` (R,),
+    covariance ``c_st`` (R, 3, 3) (None unless ``want_cov``), along-ray variance
+    ``var_st`` (R,) and ``ok_st`` (R,).  Every value is a function of its own run."""
+    hu, hv, _, ht = (_STEPS[n] for n in INPUTS)
+    sig = sp.input_sigmas(system)
+    var_in = [sig[n] ** 2 for n in INPUTS]
+    p = np.asarray(system.scanner.position)
     dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
           "t-": scan_direction(Tr - ht, system.scanner)}
     ray0 = _rays(system, Ur, Vr)
@@ -170,44 +250,58 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
         return (a - b) / (2.0 * h)
 
     x_st0 = E["0"][0]
+    out = {"x0": x_st0, "ok_st": np.all(np.isfinite(x_st0), 1)}
     # the L column is (x0 − x0)/2h = 0 where x0 is finite (NaN rows stay NaN below)
-    c_st = gather(_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
-                        (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
-                        (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0]))
+    out["c_st"] = (_cov([(diff(E["u+"][0], E["u-"][0], hu), var_in[0]),
+                         (diff(E["v+"][0], E["v-"][0], hv), var_in[1]),
+                         (diff(E["t+"][0], E["t-"][0], ht), var_in[3])], x_st0.shape[0])
+                   if want_cov else None)
     # conditional (given θ) along-ray variance of the stereo: the s of the pixel variants
     ds_u = diff(E["u+"][1], E["u-"][1], hu)
     ds_v = diff(E["v+"][1], E["v-"][1], hv)
-    var_st = gather(ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2)
-    x_st = gather(x_st0)
-    s_st = {k: gather(E[k][1]) for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")}
-    dirs = {k: gather(d) for k, d in dr.items()}
-    # per detection: the time-of-flight geometry
-    T = {"0": tof_on_scanner_ray(p, dirs["0"], Lx), "L+": tof_on_scanner_ray(p, dirs["0"], Lx + hL),
-         "L-": tof_on_scanner_ray(p, dirs["0"], Lx - hL),
-         "t+": tof_on_scanner_ray(p, dirs["t+"], Lx), "t-": tof_on_scanner_ray(p, dirs["t-"], Lx)}
-    x_tf = T["0"][0]
-    # the u and v columns are 0 where x_tf is finite
-    c_tf = _cov([(diff(T["L+"][0], T["L-"][0], hL), var_in[2]),
-                 (diff(T["t+"][0], T["t-"][0], ht), var_in[3])], x_tf.shape[0])
-    dsdL = diff(T["L+"][1], T["L-"][1], hL)
-    var_tf = dsdL ** 2 * sp.sigma_L(system) ** 2
-    with np.errstate(invalid="ignore", divide="ignore"):
-        w = np.where(var_st + var_tf > 0, var_tf / (var_st + var_tf), 0.5)
+    out["var_st"] = ds_u ** 2 * sp.sigma_u ** 2 + ds_v ** 2 * sp.sigma_v ** 2
+    for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-"):
+        out["s" + k] = E[k][1]
+    for k, d in dr.items():
+        out["d" + k] = d
+        out["db" + k] = _dot3(d, p)
+    return out
 
-    def fused(e, t, d):
-        s = w * s_st[e] + (1.0 - w) * T[t][1]
-        return p + s[:, None] * dirs[d]
 
-    x_f = fused("0", "0", "0")
-    c_f = _cov([(diff(fused("u+", "0", "0"), fused("u-", "0", "0"), hu), var_in[0]),
-                (diff(fused("v+", "0", "0"), fused("v-", "0", "0"), hv), var_in[1]),
-                (diff(fused("0", "L+", "0"), fused("0", "L-", "0"), hL), var_in[2]),
-                (diff(fused("t+", "t+", "t+"), fused("t-", "t-", "t-"), ht), var_in[3])],
-               x_f.shape[0])
-    ok_st = gather(np.all(np.isfinite(x_st0), 1))
-    ok = ok_st & np.all(np.isfinite(x_tf), 1) & np.isfinite(w)
-    return _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, dsdL[:, None, None],
-                             dirs["0"], ok)
+class StereoCache:
+    """The per-run stereo geometry of :func:`detection_points` (:func:`_stereo_runs`)
+    of one system and spreads, kept by exact (u, v, θ): a run met again is gathered,
+    not computed (the same bits: each run's values are its own).  Runs with
+    non-integer or large pixel coordinates or a non-finite angle are not kept."""
+
+    #: pixel coordinates below this (integers) are kept: key ``u·2²⁰ + v + i·θ``
+    SPAN = 1 << 20
+
+    def __init__(self):
+        self.keys = np.zeros(0, np.complex128)
+        self.vals: dict | None = None
+
+    def get(self, system: System, sp: Spreads, Ur, Vr, Tr) -> dict:
+        """:func:`_stereo_runs` of the runs (R,), from the cache where it holds them."""
+        ok = np.all(np.isfinite(Tr)) and all(
+            np.all((x >= 0) & (x < self.SPAN) & (x == np.floor(x))) for x in (Ur, Vr))
+        if not ok or Ur.size == 0:
+            return _stereo_runs(system, sp, Ur, Vr, Tr)
+        key = (Ur * self.SPAN + Vr) + 1j * Tr
+        pos = np.searchsorted(self.keys, key)
+        hit = self.keys[np.minimum(pos, max(self.keys.size - 1, 0))] == key if self.keys.size \
+            else np.zeros(key.size, bool)
+        if not np.all(hit):
+            new_keys, first = np.unique(key[~hit], return_index=True)
+            sel = np.flatnonzero(~hit)[first]
+            new = _stereo_runs(system, sp, Ur[sel], Vr[sel], Tr[sel])
+            keys = np.concatenate([self.keys, new_keys])
+            order = np.argsort(keys, kind="stable")
+            self.keys = keys[order]
+            self.vals = {k: (v if self.vals is None else np.concatenate([self.vals[k], v]))[order]
+                         for k, v in new.items()}
+            pos = np.searchsorted(self.keys, key)
+        return {k: v[pos] for k, v in self.vals.items()}
 
 
 def _runs(u, v, th):
@@ -226,11 +320,57 @@ def _runs(u, v, th):
 def _cov(terms, n: int) -> np.ndarray:
     """Σ_k var_k·J_k J_kᵀ (n, 3, 3) of the columns ``terms`` = [(J_k (n, 3), var_k)], in
     the order given: as ``einsum("nik,k,njk->nij")`` over these columns, bit for bit
-    (the same products ``(J_i·var)·J_j`` added one column after the other from 0)."""
+    (the same products ``(J_i·var)·J_j`` added one column after the other from 0).
+
+    At least :data:`COV_COMPILED_ROWS` rows where numba is loaded already (a dense
+    run's pass 1 loaded it): one compiled pass (:func:`_cov_py`, the same IEEE
+    operations in the same order, so the same bits; tested), without the (n, 3, 3)
+    temporaries of each column; otherwise, and without numba, in NumPy."""
+    kernel = _compiled_cov() if n >= COV_COMPILED_ROWS else None
+    if kernel is not None and terms:
+        J = np.ascontiguousarray(np.stack([np.asarray(t[0], np.float64) for t in terms]))
+        var = np.array([float(t[1]) for t in terms])
+        C = np.empty((n, 3, 3))
+        kernel(J, var, C)
+        return C
     C = np.zeros((n, 3, 3))
     for J, var in terms:
         C += (J * var)[:, :, None] * J[:, None, :]
     return C
+
+
+#: rows from which :func:`_cov` runs compiled (when numba is loaded already)
+COV_COMPILED_ROWS = 4096
+
+
+def _cov_py(J, var, C):
+    """C[i, a, b] = Σ_k (J[k, i, a]·var[k])·J[k, i, b], added in k order from 0.0
+    (J (K, n, 3), var (K,), C (n, 3, 3) written): the compiled form of :func:`_cov`."""
+    K, n = J.shape[0], J.shape[1]
+    for i in range(n):
+        for a in range(3):
+            for b in range(3):
+                acc = 0.0
+                for k in range(K):
+                    acc += (J[k, i, a] * var[k]) * J[k, i, b]
+                C[i, a, b] = acc
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_cov():
+    """The numba form of :func:`_cov_py` where numba is imported already (dense runs:
+    pass 1's kernels), else None: a small recording loads no compiled code."""
+    if "cov" not in _COMPILED:
+        import sys
+
+        if "numba" not in sys.modules:
+            return None
+        import numba
+
+        _COMPILED["cov"] = numba.njit(cache=True, nogil=True, boundscheck=False)(_cov_py)
+    return _COMPILED["cov"]
 
 
 def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):

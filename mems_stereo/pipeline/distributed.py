@@ -6,9 +6,11 @@ are integers), so the outcome is identical to one process, bit for bit.
 
 * :func:`process_many` — one task per recording.
 * :func:`process_split` — one recording split into shot ranges: pass 1
-  (classify + histograms) per range, peaks on the client, pass 2 (peak
-  counts) per range, the fusion per block of peaks on the workers; the
-  client joins the blocks' peak means and makes the cloud.
+  (classify + histograms) per range, the peak detector per block of pixels
+  (the client joins the few numbers per pixel of its neighbour support and
+  confirms the matched filter's candidates), pass 2 (peak counts) per range,
+  the fusion per block of peaks, all on the workers; the client joins the
+  blocks' peak means and makes the cloud.
 
 What keeps the client's serial share small (``docs/throughput.md``):
 
@@ -22,7 +24,13 @@ What keeps the client's serial share small (``docs/throughput.md``):
   as uint32, as their non-zero entries where that is smaller;
 * each part keeps its signal detections on its worker
   (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
-  counts from them instead of reading the shots again;
+  counts from them instead of reading the shots again — one pass for the
+  first stage's peaks and the matched filter's candidates together
+  (:func:`select_counts` filters each set's counts from it);
+* the peak detector's per-pixel stages run in blocks of pixels on the workers
+  (:func:`~mems_stereo.pipeline.peaks.peak_scores`,
+  :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`), so the (P, S)
+  per-angle counts never reach the client;
 * pass 2's sum stays on the workers: it is split by blocks of peaks there
   (:func:`split_peak_counts`) and each block is fused on a worker, without
   a halo, up to each peak's means (``PeakMeans``); the client joins the
@@ -50,7 +58,16 @@ from mems_stereo.model.system import System, system_to_json
 from mems_stereo.pipeline.angles import shot_angles
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS, accumulate_range
-from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.pass2 import (
+    PeakCounts,
+    candidate_selection,
+    merged_selection,
+    peak_counts_range,
+    peak_fields,
+    select_counts,
+    with_widened_candidates,
+)
+from mems_stereo.pipeline.peaks import concat_peaks, peak_scores, peaks_of_scores, supported
 from mems_stereo.pipeline.run import (  # noqa: F401 - peak_blocks: part of this API
     ProcessResult,
     cloud_of_means,
@@ -85,6 +102,10 @@ PARTS_PER_WORKER = 1
 #: blocks of peaks fused per worker (at most: blocks are cut at multiples of
 #: ``FP_BLOCK`` peaks), dealt to the workers by their work (:func:`deal_blocks`)
 BLOCKS_PER_WORKER = 8
+
+#: blocks of pixels per worker in which :func:`process_split` runs the peak detector
+#: (its per-pixel stages; the neighbour support between them on the client)
+PEAK_BLOCKS_PER_WORKER = 1
 
 #: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
@@ -248,17 +269,20 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     """Process one (large) recording split by shot ranges over Dask workers.
 
     Pass 1 per shot range, summed in a tree on the workers; the peak detector
-    on the client; pass 2 per shot range, summed in a tree; the fusion per
-    block of peaks on the workers (:func:`split_peak_counts`), the client only
-    joining the blocks' clouds.  ``n_parts`` : shot ranges (default: one per
-    worker, :data:`PARTS_PER_WORKER`).  ``timings`` of the result add the
-    client's own serial seconds (``client_serial``: the wall time less the time
-    it waited on its workers, ``client_wait``), the CPU seconds of the client process over the run
+    per block of pixels on the workers (the neighbour support and the matched
+    filter's confirmation on the client); pass 2 per shot range, summed in a
+    tree; the fusion per block of peaks on the workers
+    (:func:`split_peak_counts`), the client only joining the blocks' means.
+    ``n_parts`` : shot ranges (default: one per worker, :data:`PARTS_PER_WORKER`).
+    ``timings`` of the result add the client's own serial seconds
+    (``client_serial``: the wall time less the time it waited on its workers,
+    ``client_wait``), the CPU seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
-    (``client_bytes``), ``parts`` and ``peak_blocks``.  Pass 2 runs on the
-    workers while the fusion's tasks are submitted, so ``points`` holds pass 2
-    and the fusion and ``peak_detections`` only the submission.
+    (``client_bytes``), ``parts`` and ``peak_blocks``; ``peaks_wait`` : of the
+    peak stage's seconds (``peaks``), those spent waiting on the workers.  Pass 2
+    runs on the workers while the fusion's tasks are submitted, so ``points``
+    holds pass 2 and the fusion and ``peak_detections`` only the submission.
     """
     st = Settings() if settings is None else settings
     t_all = time.perf_counter()
@@ -293,11 +317,46 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
         stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
         del p1
-        acc = waits(tree_sum(client, accs).result)
+        acc_f = tree_sum(client, accs)
         del accs
+        # the peak detector's per-pixel stage in blocks of pixels on the workers, from
+        # the summed pass 1 there: submitted at once, it runs while the client gathers
+        # what it needs of pass 1 (the (P, S) per-angle counts stay on the workers)
+        P = sysm.receiver.width * sysm.receiver.height
+        edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
+        addr = _worker_addresses(client)
+        rows_f = client.submit(_pixel_rows, acc_f, edges, pure=False)
+        scores_f = [client.submit(_scores_block, client.submit(operator.getitem, rows_f, i,
+                                                               pure=False),
+                                  sysm, st, table_f, p0, p1, pure=False,
+                                  workers=[addr[i % len(addr)]] if addr else None,
+                                  allow_other_workers=True)
+                    for i, (p0, p1) in enumerate(edges)]
+        sup_f = [client.submit(_support_inputs, f, pure=False) for f in scores_f]
+        del rows_f
+        acc = waits(client.submit(_without_angle, acc_f, pure=False).result)
+        del acc_f
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
+
+        def detect(sig, noise):
+            # the client joins the few numbers per pixel that the neighbour support
+            # needs, then each block makes its peaks (the same as find_peaks on the
+            # whole, bit for bit)
+            shared["wait_peaks"] = waits.seconds
+            sup = waits(client.gather, sup_f)
+            keep = supported(*(np.concatenate(x) for x in zip(*(s[:4] for s in sup))),
+                             sysm.receiver.width)
+            parts = waits(client.gather, [
+                client.submit(peaks_of_scores, sysm, f, keep[p0:p1], acc.n_per_step, table_f,
+                              st, pure=False) for f, (p0, p1) in zip(scores_f, edges)])
+            scores_f.clear()  # each block's (P, S) arrays: released on the workers
+            detect.nbytes = sum(sum(a.nbytes for a in s) for s in sup)
+            rate = np.concatenate([s[4] for s in sup])
+            peaks = concat_peaks(parts)
+            shared["first"] = peaks  # the first stage's peaks (see count_candidates)
+            return peaks, rate.reshape(sysm.receiver.height, sysm.receiver.width)
 
         def pass2_sum(peaks_f):
             # each part counts the windows of ``peaks_f`` (its store or its shots); the
@@ -307,10 +366,21 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                                      for ang, (a, b), store in zip(angle_f, parts, stores)])
 
         def count_peaks(peaks):
+            # (the peak stage ends here: what of it the client spent waiting on workers)
+            timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
             # pass 2 needs only the pixels, windows and bands; send them once
-            light = {k: v for k, v in peaks.items() if k != "background_by_step"}
-            shared["peaks"] = client.scatter(light, broadcast=True)
-            total_f = pass2_sum(shared["peaks"])
+            shared["peaks"] = _scatter_one(client, peak_fields(peaks))
+            both_f = shared.get("both_f")
+            if both_f is None:
+                total_f = pass2_sum(shared["peaks"])
+            else:
+                # the first stage's peaks and the candidates' widened windows were counted
+                # in one pass (count_candidates): the first stage's counts renumbered into
+                # the order of ``peaks``, each confirmed peak's filtered to its window
+                # (each peak's counts are its own: the PeakCounts of counting ``peaks``)
+                sel = merged_selection(shared["first"], shared["cands"], peaks,
+                                       sysm.receiver.width)
+                total_f = client.submit(select_counts, both_f, *sel, S, n_codes, pure=False)
             stores.clear()  # released once their pass 2 has run
             return total_f  # stays on the workers
 
@@ -344,12 +414,24 @@ def process_split(path, system: System | None = None, settings: Settings | None 
 
         def count_candidates(cands):
             # the matched filter's candidates, counted on the workers (their stores or
-            # their shots) and summed there: the client gets one PeakCounts
-            return waits(pass2_sum(client.scatter(cands, broadcast=True)).result)
+            # their shots) and summed there: the client gets one PeakCounts.  One pass
+            # counts them over windows widened to hold any peak they may confirm
+            # (matched.confirm: centre within the candidate's steps, ± 1.5 footprints
+            # more) together with the first stage's peaks: the candidates' own counts,
+            # the first stage's and the confirmed ones' are filtered from it (exact)
+            first = shared.get("first")
+            if first is None:  # pragma: no cover - detect always runs first
+                return waits(pass2_sum(_scatter_one(client, cands)).result)
+            both = with_widened_candidates(first, cands, S)
+            shared["both_f"] = pass2_sum(_scatter_one(client, both))
+            shared["cands"] = cands
+            return waits(client.submit(select_counts, shared["both_f"],
+                                       *candidate_selection(len(first), cands), S, n_codes,
+                                       pure=False).result)
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
-                                count_candidates=count_candidates)
+                                count_candidates=count_candidates, detect=detect)
         t_end = time.perf_counter()
         c_end = time.process_time()
         m_end = time.thread_time()
@@ -362,7 +444,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     # work above plus Dask's communication), the figure to compare on a shared machine
     t["client_cpu"] = c_end - c_all
     t["client_main_cpu"] = m_end - m_all  # this thread alone: the serial work proper
-    t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0))
+    t["client_bytes"] = float(nbytes + getattr(make_points, "nbytes", 0)
+                              + getattr(detect, "nbytes", 0))
     t["parts"] = float(len(parts))
     t["peak_blocks"] = float(getattr(make_points, "blocks", 0))
     return res
@@ -377,6 +460,46 @@ def _pass1_part(path, system, angles, settings, start, stop, table):
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
     return acc, (store if store is not None and store.complete else None)
+
+
+def _scatter_one(client, obj):
+    """One future of ``obj`` on every worker (a dict scattered directly becomes one
+    future per value, keyed by the dict's keys: two dicts of the same fields would
+    share their keys)."""
+    return client.scatter([obj], broadcast=True)[0]
+
+
+def _without_angle(acc):
+    """``acc`` without its (P, S) ``hist_angle`` (an empty (P, 0) array): what the client
+    gathers of pass 1 (the peak detector's blocks read the full one on the workers)."""
+    import dataclasses
+
+    return dataclasses.replace(acc, hist_angle=np.zeros((acc.hist_angle.shape[0], 0),
+                                                        acc.hist_angle.dtype))
+
+
+def _pixel_rows(acc, edges):
+    """Per block ``(p0, p1)`` of ``edges``: ``(signal, noise, angle)`` of its pixels, the
+    int64 code histograms (codes 1..n_bins) and the signal detections per angle step."""
+    out = []
+    for p0, p1 in edges:
+        raw = acc.hist_raw[p0:p1, 1:].astype(np.int64)
+        sig = acc.hist_signal[p0:p1, 1:].astype(np.int64)
+        out.append((sig, raw - sig, acc.hist_angle[p0:p1].copy(), acc.n_per_step))
+    return out
+
+
+def _scores_block(rows, system, settings, table, p0, p1):
+    """:class:`~mems_stereo.pipeline.peaks.PeakScores` of pixels p0..p1−1 (stays on its
+    worker for :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`)."""
+    sig, noise, angle, n_per_step = rows
+    return peak_scores(system, sig, noise, angle, n_per_step, table, settings,
+                       np.arange(p0, p1))
+
+
+def _support_inputs(scores):
+    """What the client needs of a block's scores: ``(keep, cnt, thr_iso, log_range, rate)``."""
+    return (*scores.support_inputs(), scores.rate)
 
 
 def _pass2_part(path, system, angles, settings, peaks, start, stop, table, store=None):

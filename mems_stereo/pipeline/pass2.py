@@ -230,3 +230,75 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()
+
+
+# --------------------------------------------------------------------------
+# one pass for the matched filter's candidates and the first stage's peaks
+
+
+def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
+                  n_codes: int) -> PeakCounts:
+    """The counts of peaks ``src`` (M,) of ``pc`` (distinct) renumbered ``dst`` (M,),
+    each over its steps ``step_lo..step_hi`` (M,) only, keys sorted: the
+    :class:`PeakCounts` of counting those peaks over those windows (each key's count is
+    the same whichever other windows were counted with it)."""
+    span = np.int64(n_steps) * np.int64(n_codes)
+    src = np.asarray(src, np.int64)
+    if pc.keys.size == 0 or src.size == 0:
+        return PeakCounts()
+    q = pc.keys // span
+    n = int(max(q.max(), src.max())) + 1
+    to = np.full(n, -1, np.int64)
+    lo = np.zeros(n, np.int64)
+    hi = np.full(n, -1, np.int64)
+    to[src] = dst
+    lo[src] = step_lo
+    hi[src] = step_hi
+    step = (pc.keys // np.int64(n_codes)) % np.int64(n_steps)
+    m = (to[q] >= 0) & (step >= lo[q]) & (step <= hi[q])
+    keys = to[q[m]] * span + pc.keys[m] % span
+    order = np.argsort(keys, kind="stable")
+    return PeakCounts(keys[order], pc.counts[m][order])
+
+
+def peak_fields(peaks, rows=None) -> dict:
+    """The (Q,) fields of ``peaks`` (rows ``rows``, default all) that pass 2 and the
+    fusion read: every array but ``background_by_step``."""
+    return {k: (v if rows is None else np.asarray(v)[rows]) for k, v in peaks.items()
+            if k != "background_by_step"}
+
+
+def with_widened_candidates(first, cands, n_steps: int) -> dict:
+    """The windows to count in one pass for the matched filter and the peaks: the first
+    stage's peaks (Qa) followed by the candidates (C) over their steps widened by 1.5
+    footprints each side (``cands.width``): any peak a candidate can confirm counts
+    inside (:func:`~mems_stereo.pipeline.matched.confirm` centres it within the
+    candidate's steps and counts ± 1.5 footprints around it).  (Qa + C,) arrays."""
+    H = cands.width + cands.width // 2
+    ext = peak_fields(cands)
+    ext["step_lo"] = np.maximum(0, np.asarray(cands.step_lo, np.int64) - H)
+    ext["step_hi"] = np.minimum(n_steps - 1, np.asarray(cands.step_hi, np.int64) + H)
+    return {k: np.concatenate([v, ext[k]]) for k, v in peak_fields(first).items()}
+
+
+def candidate_selection(n_first: int, cands):
+    """``(src, dst, step_lo, step_hi)`` of :func:`select_counts` for the candidates' own
+    counts from a count of :func:`with_widened_candidates`."""
+    C = len(cands)
+    return n_first + np.arange(C), np.arange(C), cands.step_lo, cands.step_hi
+
+
+def merged_selection(first, cands, peaks, width: int):
+    """``(src, dst, step_lo, step_hi)`` of :func:`select_counts` for ``peaks`` (the first
+    stage's ``first`` and the candidates it confirmed, merged in pixel order) from a
+    count of :func:`with_widened_candidates`: the first stage's counts renumbered, each
+    confirmed peak's over its own window.  ``width`` : the sensor's columns."""
+    pix, fp = peaks.pixel(width), first.pixel(width)
+    cp = cands.pixel(width)
+    new = np.flatnonzero(~np.isin(pix, fp))
+    Qa = fp.size
+    return (np.concatenate([np.arange(Qa), Qa + np.searchsorted(cp, pix[new])]),
+            np.concatenate([np.searchsorted(pix, fp), new]),
+            np.concatenate([np.zeros(Qa, np.int64), np.asarray(peaks.step_lo)[new]]),
+            np.concatenate([np.full(Qa, np.iinfo(np.int64).max),
+                            np.asarray(peaks.step_hi)[new]]))

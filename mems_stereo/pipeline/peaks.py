@@ -39,13 +39,14 @@ from mems_stereo.pipeline.settings import Settings
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
                       min_range: float | None = None, table=None,
-                      n_per_step=None) -> np.ndarray:
+                      n_per_step=None, pixels=None) -> np.ndarray:
     """A[p, j]: valid shots in which code j+1 of pixel p was accepted as signal.
 
     (P, n_bins) int64, from the interval table and the shots' angle steps (a
     difference array over codes: O(steps × pixels), not O(shots × pixels)).
     ``table`` : the run's interval table (default: a new one); ``n_per_step``
-    : (S,) valid shots per step (default: counted from ``theta``, ``valid``).
+    : (S,) valid shots per step (default: counted from ``theta``, ``valid``);
+    ``pixels`` : (P,) flat pixels (default: all, in order).
     """
     if table is None:
         table = interval_table(system, confidence, min_range=min_range)
@@ -55,15 +56,17 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     n_row = n_per_row[used]
     table.ensure(used)
     n_bins = system.tdc.n_bins
-    lo = table.lo[used].astype(np.int64)  # (U, P)
-    hi = table.hi[used].astype(np.int64)
+    sel = used if pixels is None else np.ix_(used, np.asarray(pixels, np.int64))
+    lo = table.lo[sel].astype(np.int64)  # (U, P)
+    hi = table.hi[sel].astype(np.int64)
     ok = lo <= hi
     P = lo.shape[1]
-    diff = np.zeros((P, n_bins + 2), np.int64)
-    w = np.broadcast_to(n_row[:, None], lo.shape)
-    pix = np.broadcast_to(np.arange(P)[None, :], lo.shape)
-    np.add.at(diff, (pix[ok], lo[ok]), w[ok])
-    np.add.at(diff, (pix[ok], hi[ok] + 1), -w[ok])
+    w = np.broadcast_to(n_row[:, None], lo.shape)[ok].astype(np.float64)
+    at = np.broadcast_to(np.arange(P)[None, :] * (n_bins + 2), lo.shape)[ok]
+    # the difference array by bincount (float sums of integers below 2**53: exact)
+    diff = (np.bincount(at + lo[ok], w, P * (n_bins + 2))
+            - np.bincount(at + hi[ok] + 1, w, P * (n_bins + 2)))
+    diff = np.rint(diff).astype(np.int64).reshape(P, n_bins + 2)
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
@@ -96,6 +99,18 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     count and expected background, and whether it passes the Poisson threshold
     and ``settings.min_counts``.
     """
+    j, cnt, mu, keep, n_windows = window_scores(counts, background, width, support, settings)
+    if support_pixels is not None:
+        # a peak with no other peak near it must be significant for the whole sensor
+        thr_iso = isolated_threshold(settings, n_windows, mu, support_pixels[1])
+        lr = None if len(support_pixels) < 3 else support_pixels[2](j)
+        keep = supported(keep, cnt, thr_iso, lr, support_pixels[0])
+    return j, cnt, mu, keep
+
+
+def window_scores(counts, background, width: int, support, settings: Settings):
+    """The per-row part of :func:`strongest_window`: ``(j, count, mu, keep, n_windows)``,
+    each (P,), ``keep`` before the neighbour support (each row's values are its own)."""
     S_w = np.rint(moving_sum(counts, width))  # window sums (integers)
     B_w = moving_sum(background, width)
     j = np.argmax(S_w - B_w, axis=1)
@@ -104,14 +119,21 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
     thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
     keep = (cnt > thr) & (cnt >= settings.min_counts)
-    if support_pixels is not None:
-        # a peak with no other peak near it must be significant for the whole sensor
-        thr_iso = poisson_isf(settings.false_alarm / n_windows / support_pixels[1],
-                              np.maximum(mu, 1e-12))
-        lr = None if len(support_pixels) < 3 else support_pixels[2](j)
-        alone = keep & ~neighbour_support(keep, support_pixels[0], SUPPORT_COLUMNS, lr)
-        keep &= ~alone | (cnt > thr_iso)
-    return j, cnt, mu, keep
+    return j, cnt, mu, keep, n_windows
+
+
+def isolated_threshold(settings: Settings, n_windows, mu, n_pixels: int) -> np.ndarray:
+    """(P,) the Poisson threshold an isolated peak must pass: ``false_alarm`` spread over
+    its window positions and the sensor's ``n_pixels`` (:func:`strongest_window`)."""
+    return poisson_isf(settings.false_alarm / n_windows / n_pixels, np.maximum(mu, 1e-12))
+
+
+def supported(keep, cnt, thr_iso, log_range, width: int) -> np.ndarray:
+    """(P,) bool: the peaks ``keep`` (P,) of the whole sensor (rows of ``width``) that a
+    neighbour supports (:func:`neighbour_support`, ``log_range`` (P,) or None) or that
+    pass the isolated threshold ``thr_iso`` (P,) with their window count ``cnt``."""
+    alone = keep & ~neighbour_support(keep, width, SUPPORT_COLUMNS, log_range)
+    return keep & (~alone | (cnt > thr_iso))
 
 
 #: columns either side of a peak (and rows either side, for an array sensor) in which
@@ -300,25 +322,87 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
                          "angle step of pass 1, found None")
     H, W, n_bins = signal.shape
     P = H * W
-    bw = system.tdc.bin_width
     if table is None:
         table = interval_table(system, settings.confidence, min_range=settings.min_range)
-    S = np.asarray(signal).reshape(P, n_bins)
-    N = np.asarray(noise).reshape(P, n_bins)
     if n_per_step is None:
         n_per_step = table.shots_per_step(theta, valid)
+    sc = peak_scores(system, np.asarray(signal).reshape(P, n_bins),
+                     np.asarray(noise).reshape(P, n_bins),
+                     np.asarray(signal_angle).reshape(P, table.n_steps), n_per_step, table,
+                     settings, np.arange(P))
+    keep = supported(sc.keep, sc.cnt, sc.thr_iso, sc.log_range, W)
+    return peaks_of_scores(system, sc, keep, n_per_step, table, settings), sc.rate.reshape(H, W)
+
+
+@dataclass
+class PeakScores:
+    """The first, per-pixel stage of :func:`find_peaks` for a block of pixels (Pb).
+
+    pixels : (Pb,) int64 flat pixels ``row·width + col``; signal : (Pb, n_bins) the
+    signal histogram; angle : (Pb, S) float64 signal detections per angle step;
+    background : (Pb, S) float64 their expected background; rate : (Pb,) Hz, the ML
+    background rate; j, cnt, mu, keep, n_windows : the strongest window
+    (:func:`window_scores`; ``keep`` before the neighbour support); thr_iso : the
+    isolated threshold (:func:`isolated_threshold`); log_range : (Pb,) log stereo
+    range at ``j`` (:func:`pixel_log_range`).  Every value of a pixel is its own, so
+    blocks of pixels give the whole's values (the Dask runner scores blocks on its
+    workers; :func:`supported` then needs ``keep, cnt, thr_iso, log_range`` of all).
+    """
+
+    pixels: np.ndarray
+    signal: np.ndarray
+    angle: np.ndarray
+    background: np.ndarray
+    rate: np.ndarray
+    j: np.ndarray
+    cnt: np.ndarray
+    mu: np.ndarray
+    keep: np.ndarray
+    n_windows: np.ndarray
+    thr_iso: np.ndarray
+    log_range: np.ndarray
+
+    def support_inputs(self):
+        """``(keep, cnt, thr_iso, log_range)``: what :func:`supported` needs (small)."""
+        return self.keep, self.cnt, self.thr_iso, self.log_range
+
+
+def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
+                settings: Settings, pixels) -> PeakScores:
+    """:class:`PeakScores` of the flat ``pixels`` (Pb,) from their rows ``signal``,
+    ``noise`` (Pb, n_bins) int and ``signal_angle`` (Pb, S) of pass 1; ``n_per_step``
+    (S,) valid shots per step; ``table`` the run's interval table."""
+    pixels = np.asarray(pixels, np.int64)
+    P_all = system.receiver.width * system.receiver.height
+    bw = system.tdc.bin_width
+    S = np.asarray(signal)
+    N = np.asarray(noise)
     n_valid = int(n_per_step.sum())
-    A = acceptance_counts(system, theta, valid, settings.confidence, settings.min_range,
-                          table=table, n_per_step=n_per_step)
+    A = acceptance_counts(system, None, None, settings.confidence, settings.min_range,
+                          table=table, n_per_step=n_per_step, pixels=pixels)
     rate = background_rate_from_noise(N, S + N, A, n_valid, bw)
     width = footprint_steps(system, table)
-    B = expected_background_by_angle(table, n_per_step, rate)
-    Hs = np.asarray(signal_angle, dtype=np.float64).reshape(P, table.n_steps)
-    def log_range_of(j):  # each pixel's stereo range at its window's angle (support)
-        return pixel_log_range(system, table, np.arange(P), j)
+    B = expected_background_by_angle(table, n_per_step, rate, pixels)
+    Hs = np.asarray(signal_angle, dtype=np.float64)
+    j, cnt, mu, keep, n_windows = window_scores(Hs, B, width, B > 0, settings)
+    return PeakScores(pixels, S, Hs, B, rate, j, cnt, mu, keep, n_windows,
+                      isolated_threshold(settings, n_windows, mu, P_all),
+                      pixel_log_range(system, table, pixels, j))
 
-    j, cnt, mu, keep = strongest_window(Hs, B, width, B > 0, settings,
-                                        support_pixels=(W, P, log_range_of))
+
+def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
+                    settings: Settings) -> Peaks:
+    """The :class:`Peaks` of a block of pixels (their ``candidates`` for the matched
+    filter attached) from its :class:`PeakScores` and ``keep`` (Pb,) bool, its pixels'
+    peaks after :func:`supported`; blocks joined with :func:`concat_peaks` are the
+    whole's."""
+    W = system.receiver.width
+    n_bins = system.tdc.n_bins
+    bw = system.tdc.bin_width
+    width = footprint_steps(system, table)
+    S, Hs, B, rate = sc.signal, sc.angle, sc.background, sc.rate
+    j, cnt, mu, n_windows = sc.j, sc.cnt, sc.mu, sc.n_windows
+    keep = np.array(keep, bool)
     keep_first = keep.copy()
     keep &= np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
@@ -351,7 +435,6 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     # (the band a confirmed peak counts)
     from scipy.special import pdtrc
 
-    n_windows = np.maximum(1.0, np.count_nonzero(B > 0, axis=1) / width)
     ok = np.isfinite(rate.reshape(-1)) & (cnt >= settings.min_counts)
     if scanned.size:
         ok &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
@@ -362,8 +445,9 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     c_hi = np.minimum(table.n_steps - 1, j[qc] + width + width // 2).astype(np.int64)
     b_lo = np.maximum(0, j[qc] - width - half).astype(np.int64)
     b_hi = np.minimum(table.n_steps - 1, j[qc] + width + half).astype(np.int64)
+    pc, pq = sc.pixels[qc], sc.pixels[q]
     candidates = Peaks(
-        row=(qc // W).astype(np.int64), col=(qc % W).astype(np.int64),
+        row=(pc // W).astype(np.int64), col=(pc % W).astype(np.int64),
         code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
         code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
         counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
@@ -371,13 +455,42 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     candidates.n_windows = n_windows[qc]
     candidates.width = width
     peaks = Peaks(
-        row=(q // W).astype(np.int64), col=(q % W).astype(np.int64), code=code.astype(np.int64),
+        row=(pq // W).astype(np.int64), col=(pq % W).astype(np.int64),
+        code=code.astype(np.int64),
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
         step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
         rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
     peaks.candidates = candidates
-    return peaks, rate.reshape(H, W)
+    return peaks
+
+
+def concat_peaks(parts) -> Peaks:
+    """The :class:`Peaks` of consecutive blocks of pixels (:func:`peaks_of_scores`), in
+    order, as one (their candidates joined too): the whole's, field for field."""
+    from scipy.sparse import csr_array
+
+    def join(ps):
+        out = {}
+        for k in Peaks.__dataclass_fields__:
+            if k != "background_by_step":
+                out[k] = np.concatenate([getattr(p, k) for p in ps])
+        mats = [p.background_by_step for p in ps]
+        off = np.cumsum([0] + [m.nnz for m in mats[:-1]])
+        indptr = np.concatenate([[0]] + [m.indptr[1:] + o for m, o in zip(mats, off)])
+        out["background_by_step"] = csr_array(
+            (np.concatenate([m.data for m in mats]), np.concatenate([m.indices for m in mats]),
+             indptr.astype(mats[0].indptr.dtype)), shape=(int(indptr.size - 1),
+                                                          mats[0].shape[1]))
+        return Peaks(**out)
+
+    parts = list(parts)
+    peaks = join(parts)
+    cands = join([p.candidates for p in parts])
+    cands.n_windows = np.concatenate([p.candidates.n_windows for p in parts])
+    cands.width = parts[0].candidates.width
+    peaks.candidates = cands
+    return peaks
 
 
 #: candidates: pixels whose strongest window's p-value, times the number of window

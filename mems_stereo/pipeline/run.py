@@ -56,7 +56,14 @@ from mems_stereo.pipeline.pass1 import (
     accumulate_range,
     truth_scores,
 )
-from mems_stereo.pipeline.pass2 import PeakCounts, peak_counts_range
+from mems_stereo.pipeline.pass2 import (
+    PeakCounts,
+    candidate_selection,
+    merged_selection,
+    peak_counts_range,
+    select_counts,
+    with_widened_candidates,
+)
 from mems_stereo.pipeline.peak_means import PeakMeans
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.signal_store import (
@@ -232,19 +239,41 @@ def process_recording(path, system: System | None = None,
         if own_table:
             table.save_cache()
         timings["classify_histogram"] = time.perf_counter() - t1
-        count_peaks = count_candidates = None
+        count_peaks = count_candidates = detect = None
         if keep is not None and store.complete:
-            def count_candidates(peaks):
-                return peak_counts_from_store(store, sysm, peaks, table.n_steps)
+            S, nb = table.n_steps, sysm.tdc.n_bins + 1
+            seen = {}
+
+            def detect(sig, noise):  # find_peaks, keeping the first stage's peaks
+                from mems_stereo.pipeline.peaks import find_peaks
+
+                seen["first"], bg = find_peaks(sysm, sig, noise, theta, valid, st,
+                                               signal_angle=acc.hist_angle, table=table,
+                                               n_per_step=acc.n_per_step)
+                return seen["first"], bg
+
+            def count_candidates(cands):
+                # one pass over the store for the candidates (over windows widened to
+                # hold any peak they confirm) and the first stage's peaks; each set's
+                # counts are filtered from it (the same integers as counting it alone)
+                seen["cands"] = cands
+                seen["both"] = peak_counts_from_store(
+                    store, sysm, with_widened_candidates(seen["first"], cands, S), S)
+                return select_counts(seen["both"],
+                                     *candidate_selection(len(seen["first"]), cands), S, nb)
 
             def count_peaks(peaks):
-                pc = count_candidates(peaks)
+                if "both" in seen:
+                    pc = select_counts(seen.pop("both"), *merged_selection(
+                        seen["first"], seen["cands"], peaks, sysm.receiver.width), S, nb)
+                else:
+                    pc = peak_counts_from_store(store, sysm, peaks, S)
                 if progress is not None:
                     progress(K)
                 return pc
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, progress=progress, table=table,
-                                count_candidates=count_candidates)
+                                count_candidates=count_candidates, detect=detect)
     if own_table:  # the fusion fills rows of its peaks' bands: keep them for the next run
         table.save_cache()
     return res
@@ -253,7 +282,7 @@ def process_recording(path, system: System | None = None,
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
                       table: IntervalTable | None = None, make_points=None,
-                      count_candidates=None) -> ProcessResult:
+                      count_candidates=None, detect=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
@@ -265,6 +294,9 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     ``count_candidates(peaks) -> PeakCounts`` counts the matched filter's
     candidates (default: a pass over the recording's shots; a run with a
     :class:`SignalStore` counts from the store, the same integers).
+    ``detect(signal, noise) -> (Peaks, background_hz)`` runs the peak detector
+    (default: :func:`~mems_stereo.pipeline.peaks.find_peaks` here, on
+    ``acc.hist_angle``; the Dask runner scores blocks of pixels on its workers).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -279,9 +311,12 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     big = K * H * W >= TRIM_SLOTS
     if big:  # pass 1's freed chunks, before the detector's (P, S) temporaries
         release_freed_memory()
-    peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
-                                   signal_angle=acc.hist_angle, table=table,
-                                   n_per_step=acc.n_per_step)
+    if detect is None:
+        peaks, background = find_peaks(sysm, sig, noise, theta, valid, st,
+                                       signal_angle=acc.hist_angle, table=table,
+                                       n_per_step=acc.n_per_step)
+    else:
+        peaks, background = detect(sig, noise)
     if big:  # the detector's (P, S) temporaries are freed: give them back
         release_freed_memory()
     peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step,

@@ -30,6 +30,10 @@ def add_rows(A, q, V) -> None:
         np.add.at(A, q, V)
         return
     Vf = np.asarray(V, np.float64).reshape(q.size, -1)
+    kernel = _compiled("rows") if q.size >= COMPILED_ROWS else None
+    if kernel is not None:
+        kernel(Af, q, np.ascontiguousarray(Vf))
+        return
     idx = np.concatenate([np.arange(Q), q])
     for j in range(Af.shape[1]):
         Af[:, j] = np.bincount(idx, weights=np.concatenate([Af[:, j], Vf[:, j]]),
@@ -47,11 +51,79 @@ def add_rows_gathered(A, q, rows, run, m) -> None:
     if not A.flags.c_contiguous:  # pragma: no cover - the sums are contiguous
         np.add.at(A, q, rows[run] * m[:, None])
         return
+    kernel = _compiled("gathered") if q.size >= COMPILED_ROWS else None
+    if kernel is not None:
+        kernel(A, q, np.ascontiguousarray(rows, np.float64), np.asarray(run, np.int64),
+               np.asarray(m, np.float64))
+        return
     cols = np.ascontiguousarray(np.asarray(rows, np.float64).T)
     idx = np.concatenate([np.arange(Q), q])
     for j in range(A.shape[1]):
         A[:, j] = np.bincount(idx, weights=np.concatenate([A[:, j], cols[j][run] * m]),
                               minlength=Q)
+
+
+#: entries from which :func:`add_rows` and :func:`add_rows_gathered` run compiled, where
+#: numba is loaded already (a dense run's pass 1 loaded it; small runs load no numba)
+COMPILED_ROWS = 4096
+
+
+def _add_rows_py(A, q, V):
+    """A[q[i], j] += V[i, j] in entry order (A (Q, J), q (N,), V (N, J)): np.add.at's
+    sums, bit for bit (the compiled form of :func:`add_rows`)."""
+    for i in range(q.size):
+        r = q[i]
+        for j in range(A.shape[1]):
+            A[r, j] += V[i, j]
+
+
+def _add_rows_gathered_py(A, q, rows, run, m):
+    """A[q[i], j] += rows[run[i], j] · m[i] in entry order (the compiled form of
+    :func:`add_rows_gathered`)."""
+    for i in range(q.size):
+        r, g, w = q[i], run[i], m[i]
+        for j in range(A.shape[1]):
+            A[r, j] += rows[g, j] * w
+
+
+def _add_scaled_py(A, q, V, m):
+    """A[q[i], j] += V[i, j] · m[i] in entry order (A (Q, J), V (N, J)): add_rows of the
+    products ``V · m[:, None]``, bit for bit."""
+    for i in range(q.size):
+        r, w = q[i], m[i]
+        for j in range(A.shape[1]):
+            A[r, j] += V[i, j] * w
+
+
+def _add_outer_scaled_py(A, q, g, m):
+    """A[q[i], 3a + b] += (g[i, a] · g[i, b]) · m[i] in entry order (A (Q, 9), g (N, 3)):
+    add_rows of ``g[:, :, None] * g[:, None, :] * m[:, None, None]``, bit for bit."""
+    for i in range(q.size):
+        r, w = q[i], m[i]
+        for a in range(3):
+            for b in range(3):
+                A[r, 3 * a + b] += (g[i, a] * g[i, b]) * w
+
+
+_KERNELS: dict = {}
+_PY_KERNELS = {"rows": _add_rows_py, "gathered": _add_rows_gathered_py,
+               "scaled": _add_scaled_py, "outer": _add_outer_scaled_py}
+
+
+def _compiled(name: str):
+    """The numba form of ``_add_rows_py`` ("rows"), ``_add_rows_gathered_py``
+    ("gathered"), ``_add_scaled_py`` ("scaled") or ``_add_outer_scaled_py`` ("outer")
+    where numba is imported already, else None."""
+    if name not in _KERNELS:
+        import sys
+
+        if "numba" not in sys.modules:
+            return None
+        import numba
+
+        _KERNELS[name] = numba.njit(cache=True, nogil=True,
+                                    boundscheck=False)(_PY_KERNELS[name])
+    return _KERNELS[name]
 
 
 class RangeMode:
@@ -160,6 +232,21 @@ class EstimateSums:
         """Add entries of peaks ``q`` (N,): points x (N, 3), covariances C (N, 3, 3),
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
         np.add.at(self.W, q, m)
+        q = np.asarray(q, np.int64)
+        kernel = _compiled("scaled") if q.size >= COMPILED_ROWS else None
+        if kernel is not None and all(a is None or a.flags.c_contiguous
+                                      for a in (self.X, self.C, self.D, self.G)):
+            # the products below, added entry after entry: the same bits, no temporaries
+            m = np.asarray(m, np.float64)
+            am = np.abs(m)
+            kernel(self.X, q, np.ascontiguousarray(x, np.float64), m)
+            kernel(self.C.reshape(self.C.shape[0], 9), q,
+                   np.ascontiguousarray(C, np.float64).reshape(-1, 9), am)
+            if self.D is not None and g is not None:
+                g = np.ascontiguousarray(g, np.float64)
+                kernel(self.D, q, g, m)
+                _compiled("outer")(self.G.reshape(self.G.shape[0], 9), q, g, am)
+            return
         add_rows(self.X, q, x * m[:, None])
         add_rows(self.C, q, C * np.abs(m)[:, None, None])
         if self.D is not None and g is not None:
