@@ -178,7 +178,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
             again.warnings[:0] = [m for m in warns if "sits at its lower bound" not in m]
             return again
     guided = [j for j in bad_walls if tracks is not None and tracks[j] is None]
-    if bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls:
+    if (bad and guided and len(bad) == len(bad_walls) and set(guided) == bad_walls
+            and len(guided) < len(walls)):
         # only walls found by the pose search with the fitted system fail: without them
         keep = [j for j in range(len(walls)) if j not in bad_walls]
         pri = [(keep.index(j), kind, d, sd) for j, kind, d, sd in priors if j in keep]

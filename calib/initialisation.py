@@ -6,7 +6,12 @@
    measured rate predicts; the box of 3 columns × 2σ of the pulse with the
    largest significant excess (Poisson z > ``Z_TRACK``) is a track point
    (φ, column, median time).  Points off a smooth track are dropped
-   (:func:`find_track`).  A wall without a track is left out, with a message.
+   (:func:`find_track`).  A wall too weak for it is searched over all its shots
+   with the nominal system (:func:`find_wall`, the matched filter of
+   :mod:`mems_stereo.calib.wall_search`), its track then collected around the
+   pose found (:func:`track_from_pose`).  A wall without a track is left out,
+   with a message; when no wall has one, the walls the pose search found start
+   the likelihood fit from the nominal system.
 2. A rough signal rate per wall (excess per shot) and the first-photon bias
    of the track times it implies.
 3. Over all walls, a coarse grid of θ0 (±``THETA0_SPAN`` around the nominal
@@ -24,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from mems_stereo.calib.model import beam_hits, plane_normal
 from mems_stereo.calib.problem import WallData, distance_model
+from mems_stereo.calib.wall_search import search_pose
 from scipy.optimize import least_squares
 
 from mems_stereo.errors import NotObservableError
@@ -246,7 +252,7 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     out (its message says why).  Raises :class:`NotObservableError` when no
     wall is left.
     """
-    tracks, used, skipped = [], [], []
+    tracks, used, skipped, posed = [], [], [], {}
     for j, w in enumerate(walls):
         try:
             tr = find_track(w, sigma)
@@ -259,7 +265,12 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
                    f"{MIN_TRACK_POINTS}): record more shots, or use a brighter wall")
             tr = None
         if tr is None:  # too weak for one phase bin: the whole recording at once
-            tr = track_from_pose(w, system, sigma)
+            pose = find_wall(w, system, _nominal_values(system), sigma)
+            tr = None if pose is None else track_from_pose(w, system, sigma, pose=pose)
+            if tr is None and pose is not None:
+                posed[j] = pose
+                why = (f"{w.source}: found by the pose search with the nominal system "
+                       f"({pose[3]:.1f}σ) but too faint for a track")
         if tr is None:
             skipped.append(why)
             continue
@@ -267,6 +278,21 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
             progress(f"{w.source}: track found by the pose search with the nominal system")
         tracks.append(tr)
         used.append(j)
+    if not used and posed:
+        # no wall bright enough for a track, but walls found by the matched filter
+        # over all shots: the likelihood fit starts from the nominal system and the
+        # poses found with it (the system's tolerances move a wall's image by a few
+        # pixels, which its apparent pose absorbs); the checks judge the result
+        used = sorted(posed)
+        out_walls = np.array([[posed[j][0], 0.0, posed[j][1], math.log(max(posed[j][2], 1e-3)),
+                               math.log(0.4)] for j in used])
+        skipped = [m for m in skipped if not any(m.startswith(f"{walls[j].source}:")
+                                                 for j in used)]
+        if progress:
+            progress(f"no track: {len(used)} wall(s) found by the pose search start the fit "
+                     "from the nominal system")
+        return ({n: system.get_param(n) for n in names}, out_walls, used, skipped,
+                [None] * len(used))
     if not used:
         raise NotObservableError("no recording shows a usable wall return: "
                                  + "; ".join(skipped))
@@ -356,63 +382,31 @@ def initialise(walls, system: System, names, sigma: float, priors=(), progress=N
     return values, out_walls, used, skipped, tracks
 
 
-Z_GUIDED = 7.0  # significance of a wall found with a known system (best of ~10,000 poses)
+def find_wall(w: WallData, system: System, values: dict, sigma: float):
+    """A wall's plane given the system: the matched-filter pose search of
+    :func:`mems_stereo.calib.wall_search.search_pose` over every shot.
 
-
-def find_wall(w: WallData, system: System, values: dict, sigma: float,
-              max_shots: int = 3000):
-    """A wall's plane given the system: a grid search over its pose.
-
-    For a wall the track search could not follow, with the system already
-    estimated from the other walls: over tilts α (±40°, 2° steps) and inverse
-    distances (0.4–15 m, steps of 0.01/m ~ 0.25 px of parallax), count the
-    shots whose predicted pixel fired within ±2σ of the predicted return time,
-    against the background its measured rate predicts.  Uses the whole
-    recording coherently, so it finds walls far weaker than one phase bin can
-    show.  Returns (α, D, μ, z) or None when the best pose is not significant
-    (z ≤ ``Z_GUIDED``).
+    Over tilts α (±40°, 2° steps) and inverse distances (0.4–15 m, steps of
+    0.01/m ~ 0.25 px of parallax), the shots pooled by monitor phase: the
+    detections at each phase's predicted column within ±2σ of the predicted
+    return time, against the background each pixel's measured rate predicts.
+    Returns (α, D, μ, z) or None when the best pose is not significant at the
+    recording's false-alarm threshold (one-sided Gaussian quantile of
+    ``FALSE_ALARM / n_poses``).
     """
-    K, H, W = w.bins.shape
-    idx = np.linspace(0, K - 1, min(K, max_shots)).astype(np.int64)
-    ph = w.phase[idx]
-    q = np.arange(1.0 / 15.0, 1.0 / 0.4, 0.01)
-    dists = 1.0 / q
-    alphas = np.radians(np.arange(-40.0, 40.1, 2.0))
-    lam = w.background.sum(axis=0)
-    off = values.get("tdc_offset", system.tdc.offset)
-    c_light = system.speed_of_light
-    best = (-np.inf, None)
-    n_d = dists.size
-    ph_rep = np.tile(ph, n_d)
-    d_rep = np.repeat(dists, ph.size)
-    k_rep = np.tile(idx, n_d)
-    for a in alphas:
-        h = beam_hits(system, values, ph_rep, plane_normal(a), d_rep)
-        u = np.rint(h.pixel[:, 0])
-        ok = h.ok & (u >= 0) & (u < W)
-        ui = np.where(ok, u, 0).astype(np.int64)
-        tau = h.path / c_light + off
-        code = w.bins[k_rep, 0, ui]
-        t = (code.astype(np.float64) - 0.5) * w.bin_width
-        hit = ok & (code > 0) & (np.abs(t - tau) < 2.0 * sigma)
-        lo = np.maximum(tau - 2.0 * sigma, 0.0)
-        lu = lam[ui]
-        pb = np.where(ok, np.exp(-lu * lo) * -np.expm1(-lu * (tau + 2.0 * sigma - lo)), 0.0)
-        hs = hit.reshape(n_d, -1).sum(axis=1)
-        es = pb.reshape(n_d, -1).sum(axis=1)
-        z = poisson_z(hs, es)
-        i = int(np.argmax(z))
-        if z[i] > best[0]:
-            n_on = max(int(ok.reshape(n_d, -1)[i].sum()), 1)
-            best = (float(z[i]), (float(a), float(dists[i]), float((hs[i] - es[i]) / n_on)))
-    if best[1] is None or not best[0] > Z_GUIDED:
+    f = search_pose(w, system, values, sigma)
+    if f is None or not f["z"] > f["z_needed"]:
         return None
-    a, d, frac = best[1]
-    mu = -math.log(max(1.0 - min(max(frac, 1e-3) / 0.8, 0.95), 1e-3))
-    return a, d, mu, best[0]
+    return f["alpha"], f["dist"], f["mu"], f["z"]
 
 
-def track_from_pose(w: WallData, system: System, sigma: float) -> Track | None:
+def _nominal_values(system: System) -> dict:
+    return {n: system.get_param(n) for n in ("theta0", "theta_mech_max", "phase_offset",
+                                             "tdc_offset", "baseline_x", "baseline_y",
+                                             "baseline_z")}
+
+
+def track_from_pose(w: WallData, system: System, sigma: float, pose=None) -> Track | None:
     """Track points of a wall too weak for the per-phase-bin search (:func:`find_track`).
 
     The pose search of :func:`find_wall` with the nominal system uses the whole
@@ -423,11 +417,10 @@ def track_from_pose(w: WallData, system: System, sigma: float) -> Track | None:
     each phase bin give a track point: the excess-weighted column centroid
     (measured, not the prediction's) and the median time.  Returns None when
     no pose is significant or fewer than ``MIN_TRACK_POINTS`` bins hold a return.
+    ``pose``: the search's result (α, D, μ, z) when already done.
     """
-    values = {n: system.get_param(n) for n in ("theta0", "theta_mech_max", "phase_offset",
-                                               "tdc_offset", "baseline_x", "baseline_y",
-                                               "baseline_z")}
-    f = find_wall(w, system, values, sigma)
+    values = _nominal_values(system)
+    f = find_wall(w, system, values, sigma) if pose is None else pose
     if f is None:
         return None
     a, d, mu, z = f

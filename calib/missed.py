@@ -2,8 +2,9 @@
 
 :func:`guide_values` — the system to search with: the fit of the walls found
 (or, when that fit is degenerate, one with the offset and the baseline pinned);
-:func:`add_missed_walls` — the pose search (:func:`mems_stereo.calib.initialisation.find_wall`)
-for each missed wall with that system, then the fit of all walls found.
+:func:`add_missed_walls` — the pose search (:func:`mems_stereo.calib.initialisation.find_wall`:
+the matched filter over every shot of :mod:`mems_stereo.calib.wall_search`) for each
+missed wall with that system, then the fit of all walls found.
 """
 
 from __future__ import annotations
