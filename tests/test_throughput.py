@@ -271,6 +271,15 @@ def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
     np.testing.assert_array_equal(whole.n_per_step, t.shots_per_step(th, va))
 
 
+def _random_detection_args(system, rng, n, n_steps):
+    """detection_points' positional arguments for n random detections over n_steps
+    scan-angle steps (steps, rows, columns, codes, step angles in rad)."""
+    theta = rng.uniform(-0.35, 0.35, n_steps)
+    return (rng.integers(0, n_steps, n), rng.integers(0, system.receiver.height, n),
+            rng.integers(0, system.receiver.width, n), rng.uniform(0.5, system.tdc.n_bins, n),
+            theta)
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed):
     """detection_points evaluates each geometry variant once; the reference propagates
@@ -278,11 +287,7 @@ def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed
     from mems_stereo.pipeline.detections import _detection_points_reference, detection_points
 
     s = burkard2022()
-    rng = np.random.default_rng(seed)
-    n = 3000
-    theta = rng.uniform(-0.35, 0.35, 200)
-    args = (rng.integers(0, 200, n), rng.integers(0, s.receiver.height, n),
-            rng.integers(0, s.receiver.width, n), rng.uniform(0.5, s.tdc.n_bins, n), theta)
+    args = _random_detection_args(s, np.random.default_rng(seed), 3000, 200)
     a = detection_points(s, *args)
     b = _detection_points_reference(s, *args)
     assert 0.05 < a.ok.mean() < 0.95  # both finite and degenerate rows are compared
@@ -303,9 +308,8 @@ def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatc
     s = burkard2022()
     rng = np.random.default_rng(seed)
     n = 6000
-    theta = rng.uniform(-0.35, 0.35, 300)
-    args = (rng.integers(0, 300, n), rng.integers(0, s.receiver.height, n),
-            rng.integers(0, s.receiver.width, n), rng.uniform(0.5, s.tdc.n_bins, n), theta)
+    args = _random_detection_args(s, rng, n, 300)
+    theta = args[4]
     assert det._compiled_cov() is not None and n >= det.COV_COMPILED_ROWS
     a = det.detection_points(s, *args)
     x, C, ok = det.detection_points(s, *args, fused_only=True)
