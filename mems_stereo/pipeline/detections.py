@@ -29,6 +29,7 @@ from mems_stereo.geometry.uncertainty import (
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 
 @dataclass
@@ -356,21 +357,10 @@ def _cov_py(J, var, C):
                 C[i, a, b] = acc
 
 
-_COMPILED: dict = {}
-
-
 def _compiled_cov():
     """The numba form of :func:`_cov_py` where numba is imported already (dense runs:
     pass 1's kernels), else None: a small recording loads no compiled code."""
-    if "cov" not in _COMPILED:
-        import sys
-
-        if "numba" not in sys.modules:
-            return None
-        import numba
-
-        _COMPILED["cov"] = numba.njit(cache=True, nogil=True, boundscheck=False)(_cov_py)
-    return _COMPILED["cov"]
+    return compiled_if_loaded(_cov_py)
 
 
 def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):

@@ -13,6 +13,7 @@ import numpy as np
 from mems_stereo.physics.first_photon import (
     MU_GRID,
 )
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 
 def add_rows(A, q, V) -> None:
@@ -105,7 +106,6 @@ def _add_outer_scaled_py(A, q, g, m):
                 A[r, 3 * a + b] += (g[i, a] * g[i, b]) * w
 
 
-_KERNELS: dict = {}
 _PY_KERNELS = {"rows": _add_rows_py, "gathered": _add_rows_gathered_py,
                "scaled": _add_scaled_py, "outer": _add_outer_scaled_py}
 
@@ -113,17 +113,8 @@ _PY_KERNELS = {"rows": _add_rows_py, "gathered": _add_rows_gathered_py,
 def _compiled(name: str):
     """The numba form of ``_add_rows_py`` ("rows"), ``_add_rows_gathered_py``
     ("gathered"), ``_add_scaled_py`` ("scaled") or ``_add_outer_scaled_py`` ("outer")
-    where numba is imported already, else None."""
-    if name not in _KERNELS:
-        import sys
-
-        if "numba" not in sys.modules:
-            return None
-        import numba
-
-        _KERNELS[name] = numba.njit(cache=True, nogil=True,
-                                    boundscheck=False)(_PY_KERNELS[name])
-    return _KERNELS[name]
+    where numba is imported already, else None (:func:`compiled_if_loaded`)."""
+    return compiled_if_loaded(_PY_KERNELS[name])
 
 
 class RangeMode:
