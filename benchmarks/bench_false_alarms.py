@@ -29,6 +29,7 @@ from scipy.special import pdtrc  # noqa: E402
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_scenarios import DARK_HZ, draw_case  # noqa: E402
 
+import mems_stereo.pipeline.matched as matched_mod  # noqa: E402
 import mems_stereo.pipeline.peaks as peaks_mod  # noqa: E402
 from mems_stereo.pipeline.run import process_recording  # noqa: E402
 from mems_stereo.sim import scene_from_dict, simulate  # noqa: E402
@@ -46,6 +47,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
 
     seen = []
+    seen_scan = []
     orig = peaks_mod.window_scores
 
     def recording(*a, **k):
@@ -54,9 +56,22 @@ def main(argv=None) -> int:
         with np.errstate(invalid="ignore"):
             p = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
         seen.append(np.where(cnt >= 1, p, 1.0))
+        seen_scan.append(np.where(cnt >= 1, peaks_mod.scan_sf(cnt, np.maximum(mu, 1e-12),
+                                                              n_windows), 1.0))
         return out
 
     peaks_mod.window_scores = recording
+    boxes = []  # the matched filter's best box per candidate: (Bonferroni p, scan p)
+    orig_box = matched_mod.scan_box_sf
+
+    def recording_box(k, mu, n_windows, n_code_pos):
+        p = orig_box(k, mu, n_windows, n_code_pos)
+        boxes.append((float(pdtrc(max(k - 1, 0), max(mu, 1e-12))) * n_windows * n_code_pos, p))
+        return p
+
+    matched_mod.scan_box_sf = recording_box
+    # the same levels for the first stage's scan p-value (scan_sf)
+    below_scan = np.zeros(len(LEVELS))
     scene = scene_from_dict(BLACK)
     below = np.zeros(len(LEVELS))
     n_pix = 0
@@ -69,8 +84,11 @@ def main(argv=None) -> int:
         rec = simulate(case.system, scene, case.shots, rng=np.random.default_rng(case.seed),
                        background_hz=case.background_hz, dark_count_hz=DARK_HZ)
         seen.clear()
+        seen_scan.clear()
         res = process_recording(rec)
         p = np.concatenate(seen) if seen else np.ones(0)
+        ps = np.concatenate(seen_scan) if seen_scan else np.ones(0)
+        below_scan += [np.sum(ps < x) for x in LEVELS]
         cnt = np.array([np.sum(p < x) for x in LEVELS])
         below += cnt
         n_pix += p.size
@@ -83,6 +101,15 @@ def main(argv=None) -> int:
     for x, b in zip(LEVELS, below):
         print(f"  Bonferroni p < {x:g}: {int(b)} pixels, {b / max(n_pix, 1):.2e} per pixel "
               f"(promised ≤ {x:g}; ratio {b / max(n_pix, 1) / x:.2f})")
+    for x, b in zip(LEVELS, below_scan):
+        print(f"  scan p (first-order clumping) < {x:g}: {int(b)} pixels, "
+              f"{b / max(n_pix, 1):.2e} per pixel (ratio {b / max(n_pix, 1) / x:.2f})")
+    bx = np.asarray(boxes).reshape(-1, 2)
+    print(f"  matched filter: {len(bx)} candidates scored (of {n_pix} pixels)")
+    for x in LEVELS:
+        nb, ns = int(np.sum(bx[:, 0] < x)), int(np.sum(bx[:, 1] < x))
+        print(f"    box p < {x:g}: Bonferroni {nb} ({nb / max(n_pix, 1):.2e} per pixel), "
+              f"scan {ns} ({ns / max(n_pix, 1):.2e} per pixel)")
     pp = np.asarray(peaks_per)
     print(f"  peaks kept: {int(pp.sum())} in {pp.size} frames ({pp.mean():.3f} per frame; "
           f"frames with any: {int(np.sum(pp > 0))})")

@@ -145,6 +145,10 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         level[i] = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
         p_best[i] = p[jj, ci]
         best[i] = (a + jj, c_lo + ci * cell + cell // 2, N_box[jj, ci], B_box[jj, ci])
+        # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
+        # it lets ~10× more through, the box sliding by single steps and cells of
+        # 1/24 FWHM: bench_false_alarms.py, docs/pipeline.md); the scan p-value over
+        # the whole scan's boxes for the per-frame level
         found[i] = p_best[i] < level[i]
         p_frame[i] = scan_box_sf(N_box[jj, ci], B_box[jj, ci], max(1.0, n_windows[i]),
                                  n_code_pos)
