@@ -22,10 +22,14 @@ conservative) — and keeps the pixel when the smallest Poisson p-value passes
 ``false_alarm / 2`` spread (Bonferroni) over every box position the whole scan
 allows: the footprint windows of the scan times the code boxes of the widest
 accepted interval.  Background alone therefore passes one of the two stages
-with probability at most 1.5·``false_alarm`` per pixel.  An isolated
-confirmation — no first-stage peak near it at a compatible range, directly or
-through a chain of confirmations (:func:`mems_stereo.pipeline.peaks.neighbour_support`)
-— must pass at the level divided by the sensor's pixels, as in the first stage.
+with probability at most 1.5·``false_alarm`` per pixel (nominal: Bonferroni).  A
+confirmation that no neighbour on the same surface supports — no first-stage
+peak or confirmation grown from them within
+:data:`~mems_stereo.pipeline.peaks.SUPPORT_COLUMNS` at an agreeing range
+(:func:`mems_stereo.pipeline.peaks.neighbour_support`,
+:func:`mems_stereo.pipeline.peaks.support_ranges`) — must pass the per-frame
+level, as in the first stage: its box's scan p-value (:func:`scan_box_sf`) below
+``MATCHED_SHARE · FRAME_FALSE_ALARMS / n_pixels``.
 """
 
 from __future__ import annotations
@@ -34,11 +38,14 @@ import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
+from mems_stereo.pipeline import peaks as _peaks
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peaks import (
     SUPPORT_COLUMNS,
     Peaks,
     neighbour_support,
+    scan_sf,
+    support_ranges,
     window_rows,
 )
 from mems_stereo.pipeline.settings import Settings
@@ -63,8 +70,9 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     positions of each candidate's scan (the first stage's); ``peak_pixels`` : (Q,)
     flat pixels of the first stage's peaks (neighbour support), ``peak_steps`` :
     (Q,) their centre steps;
-    ``log_range_of(pix, j)`` : log range of pixel ``pix`` at step ``j`` (support by
-    range, optional).  The confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)``
+    ``log_range_of(pix, j)`` : log range of pixel ``pix`` at step ``j``: given, support
+    is by range (:func:`mems_stereo.pipeline.peaks.support_ranges`), optional.  The
+    confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)``
     in pass 2, as the first stage's for a cluster one footprint wide.
     """
     C = len(cands)
@@ -84,6 +92,7 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     found = np.zeros(C, bool)
     best = np.zeros((C, 4))  # j0, c0, count, background
     p_best = np.ones(C)
+    p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
     level = np.zeros(C)
     pix = cands.pixel(W)
     for i in range(C):
@@ -136,9 +145,15 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         level[i] = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
         p_best[i] = p[jj, ci]
         best[i] = (a + jj, c_lo + ci * cell + cell // 2, N_box[jj, ci], B_box[jj, ci])
+        # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
+        # it lets ~10× more through, the box sliding by single steps and cells of
+        # 1/24 FWHM: bench_false_alarms.py, docs/pipeline.md); the scan p-value over
+        # the whole scan's boxes for the per-frame level
         found[i] = p_best[i] < level[i]
+        p_frame[i] = scan_box_sf(N_box[jj, ci], B_box[jj, ci], max(1.0, n_windows[i]),
+                                 n_code_pos)
     # support grows from the first stage's peaks only (a chain of confirmations may
-    # extend a surface they found); a confirmation without it carries the
+    # extend a surface they found); a confirmation without good support carries the
     # look-elsewhere of the whole sensor (two neighbouring near misses of
     # background do not support each other)
     if np.any(found):
@@ -146,11 +161,14 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         peak_pixels = np.asarray(peak_pixels, np.int64)
         anchor[peak_pixels] = True
         lr = None
-        if log_range_of is not None:
-            lr = np.full(P, np.nan)
+        if log_range_of is not None:  # ranges of the peaks: support_ranges (P, 3)
+            lr = np.full((P, 3), np.inf)
+            lr[:, 0] = np.nan
             if peak_pixels.size:
-                lr[peak_pixels] = log_range_of(peak_pixels, np.asarray(peak_steps, np.int64))
-            lr[pix[found]] = log_range_of(pix[found], best[found, 0].astype(np.int64))
+                lr[peak_pixels] = support_ranges(system, table, peak_pixels,
+                                                 np.asarray(peak_steps, np.int64), width)
+            lr[pix[found]] = support_ranges(system, table, pix[found],
+                                            best[found, 0].astype(np.int64), width)
         supported = np.zeros(C, bool)
         while True:
             sup = neighbour_support(anchor, W, SUPPORT_COLUMNS, lr)
@@ -159,7 +177,7 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
                 break
             supported |= new
             anchor[pix[new]] = True
-        found &= supported | (p_best < level / P)
+        found &= supported | (p_frame < MATCHED_SHARE * _peaks.FRAME_FALSE_ALARMS / P)
     sel = np.flatnonzero(found)
     j0 = best[sel, 0].astype(np.int64)
     half = width + width // 2
@@ -175,6 +193,19 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
                  step_lo=step_lo.astype(np.int64), step_hi=step_hi.astype(np.int64),
                  counts=np.rint(best[sel, 2]).astype(np.int64), background=best[sel, 3],
                  rate_hz=cands.rate_hz[sel], background_by_step=rows_bbs)
+
+
+def scan_box_sf(k, mu, n_windows, n_code_pos) -> float:
+    """P(the largest box count of a scan over angle × code reaches ``k``), background
+    alone: the box's Poisson tail with the first-order clumping of a box sliding
+    along each axis (:func:`mems_stereo.pipeline.peaks.scan_sf`), the two axes
+    multiplied (``n_windows`` footprint windows, ``n_code_pos`` code boxes)."""
+    tail = float(pdtrc(max(k - 1, 0), max(mu, 1e-12)))
+    if tail <= 0.0:
+        return 0.0
+    c_w = float(scan_sf(k, max(mu, 1e-12), n_windows)) / tail  # 1 + (n_w − 1)·clump
+    c_c = float(scan_sf(k, max(mu, 1e-12), n_code_pos)) / tail
+    return min(1.0, tail * c_w * c_c)
 
 
 def _box_sums(A, h: int, w: int) -> np.ndarray:

@@ -87,24 +87,22 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     of the sensor whose pixels the rows are (flat ``row·width + col``;
     ``log_range_of(j)`` : (P,) the log range of each row's peak at its window
     centres ``j`` (P,)), or None.
-    With it a peak that no other peak supports (:func:`neighbour_support`: none
-    within :data:`SUPPORT_COLUMNS`, at a range within :data:`SUPPORT_RANGE_RATIO`)
-    must also pass the threshold at ``false_alarm / n_pixels``: a surface images onto
-    several neighbouring pixels, while a background false alarm is isolated, so
-    an isolated peak carries the look-elsewhere of the whole sensor (the
-    probability that background puts one anywhere on it stays ``false_alarm``;
-    per pixel ``false_alarm`` alone gave a false point in one recording in ten,
-    most of all in sparse clouds under strong background, docs/pipeline.md).
+    With it a peak that no neighbour on the same surface supports
+    (:func:`neighbour_support`: none within :data:`SUPPORT_COLUMNS` at an agreeing
+    range) must also pass the sensor's per-frame threshold (:func:`frame_threshold`:
+    :data:`FRAME_FALSE_ALARMS` false peaks per recording, scan statistics of the
+    sliding window): a dense surface images onto
+    neighbouring pixels, while a background false alarm is isolated or sits next to
+    a sparse surface, whose few peaks would lend it their support.
     Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
     count and expected background, and whether it passes the Poisson threshold
     and ``settings.min_counts``.
     """
     j, cnt, mu, keep, n_windows = window_scores(counts, background, width, support, settings)
     if support_pixels is not None:
-        # a peak with no other peak near it must be significant for the whole sensor
-        thr_iso = isolated_threshold(settings, n_windows, mu, support_pixels[1])
+        thr_frame = frame_threshold(n_windows, mu, support_pixels[1])
         lr = None if len(support_pixels) < 3 else support_pixels[2](j)
-        keep = supported(keep, cnt, thr_iso, lr, support_pixels[0])
+        keep = supported(keep, cnt, thr_frame, lr, support_pixels[0])
     return j, cnt, mu, keep
 
 
@@ -122,25 +120,74 @@ def window_scores(counts, background, width: int, support, settings: Settings):
     return j, cnt, mu, keep, n_windows
 
 
-def isolated_threshold(settings: Settings, n_windows, mu, n_pixels: int) -> np.ndarray:
-    """(P,) the Poisson threshold an isolated peak must pass: ``false_alarm`` spread over
-    its window positions and the sensor's ``n_pixels`` (:func:`strongest_window`)."""
-    return poisson_isf(settings.false_alarm / n_windows / n_pixels, np.maximum(mu, 1e-12))
+#: false peaks per frame (one recording, the whole sensor) allowed among the peaks that
+#: no neighbour on the same surface supports (:func:`supported`): at the per-pixel
+#: level (10⁻³ nominal, 2.5·10⁻³ measured with the sliding window's clumping) a
+#: 192-pixel sensor gets a false peak in about every second frame, and next to a
+#: sparse surface (a few peaks) that one false point is 1–50 % of the cloud.  (10⁻³
+#: cost the bundled room recording, nominal system, a correct isolated point of 3
+#: detections at a scan p-value of 1.6·10⁻⁵.)
+FRAME_FALSE_ALARMS = 0.01
 
 
-def supported(keep, cnt, thr_iso, log_range, width: int) -> np.ndarray:
+def scan_sf(k, mu, n_windows) -> np.ndarray:
+    """P(the largest sliding-window count of a scan reaches ``k``), background alone.
+
+    ``k``, ``mu``, ``n_windows`` : broadcastable; ``mu`` the window's expected
+    background, ``n_windows`` the scan's length in windows.  The first-order
+    Poisson clumping (Naus–Alm) approximation
+    ``P(X ≥ k) + (n_windows − 1)·(k − mu)·p(k; mu)`` for ``k > mu``: the expected
+    number of upcrossings of ``k`` by a window sliding over background (a point
+    entering while the window holds k − 1 and none leaving) — ``k − mu`` times the
+    Bonferroni term ``p(k)`` per window position (about ``k`` times it at low
+    background, ``z²`` at high).  Clipped to [0, 1].
+    """
+    from scipy.special import pdtrc
+
+    k, mu, nw = np.broadcast_arrays(np.asarray(k, np.float64), np.asarray(mu, np.float64),
+                                    np.asarray(n_windows, np.float64))
+    tail = pdtrc(k - 1, mu)
+    pk = tail - pdtrc(k, mu)
+    return np.clip(tail + np.maximum(nw - 1, 0) * np.maximum(k - mu, 0) * pk, 0.0, 1.0)
+
+
+def scan_isf(alpha, mu, n_windows) -> np.ndarray:
+    """Smallest integer t with :func:`scan_sf` (t + 1, mu, n_windows) ≤ ``alpha`` (the
+    count must exceed t), vectorised; bisection above ``mu`` (where the tail falls)."""
+    a, m, nw = np.broadcast_arrays(np.asarray(alpha, np.float64), np.asarray(mu, np.float64),
+                                   np.asarray(n_windows, np.float64))
+    lo = np.floor(m) - 1.0  # scan_sf(lo + 1) > alpha (for alpha < ~0.5)
+    hi = np.ceil(m + 40.0 * np.sqrt(m) + 80.0)  # scan_sf(hi + 1) <= alpha
+    while np.any(hi - lo > 1):
+        mid = np.floor(0.5 * (lo + hi))
+        ok = scan_sf(mid + 1, m, nw) <= a
+        hi = np.where(ok, mid, hi)
+        lo = np.where(ok, lo, mid)
+    return hi
+
+
+def frame_threshold(n_windows, mu, n_pixels: int) -> np.ndarray:
+    """(P,) the count a peak that its neighbours do not support well must exceed: the
+    scan threshold (:func:`scan_isf`) at :data:`FRAME_FALSE_ALARMS` / ``n_pixels``, so
+    that background puts such a peak anywhere on the sensor at most
+    :data:`FRAME_FALSE_ALARMS` times per recording."""
+    return scan_isf(FRAME_FALSE_ALARMS / n_pixels, np.maximum(mu, 1e-12), n_windows)
+
+
+def supported(keep, cnt, thr_frame, log_range, width: int) -> np.ndarray:
     """(P,) bool: the peaks ``keep`` (P,) of the whole sensor (rows of ``width``) that a
-    neighbour supports (:func:`neighbour_support`, ``log_range`` (P,) or None) or that
-    pass the isolated threshold ``thr_iso`` (P,) with their window count ``cnt``."""
-    alone = keep & ~neighbour_support(keep, width, SUPPORT_COLUMNS, log_range)
-    return keep & (~alone | (cnt > thr_iso))
+    neighbour on the same surface supports (:func:`neighbour_support` within
+    :data:`SUPPORT_COLUMNS`, ``log_range`` (P, 3) :func:`support_ranges`, (P,) or
+    None) or that pass the per-frame threshold ``thr_frame`` (P,) with their window
+    count ``cnt``."""
+    keep = np.asarray(keep, bool)
+    return keep & (neighbour_support(keep, width, SUPPORT_COLUMNS, log_range) | (cnt > thr_frame))
 
 
 #: columns either side of a peak (and rows either side, for an array sensor) in which
-#: another peak supports it (:func:`neighbour_support`): a surface that the detector
-#: sees in one pixel in several (weak returns, sparse coverage) still has a detected
-#: pixel within this reach, while background false alarms, at ~10⁻³ per pixel, are
-#: not expected within it (2·8·10⁻³ ≈ 0.02)
+#: another peak supports it (:func:`neighbour_support`, the matched filter's chains):
+#: a surface that the detector sees in one pixel in several (weak returns, sparse
+#: coverage) still has a detected pixel within this reach
 SUPPORT_COLUMNS = 8
 #: the most by which the ranges of a peak and a supporting neighbour may differ (a
 #: factor; stereo range at each peak's window centre): one surface, or an object and
@@ -149,26 +196,37 @@ SUPPORT_RANGE_RATIO = 2.0
 
 
 def neighbour_support(keep, width: int, reach: int = SUPPORT_COLUMNS,
-                      log_range=None, ratio: float = None) -> np.ndarray:
+                      log_range=None, ratio: float = None, count: bool = False) -> np.ndarray:
     """(P,) bool: pixels with another ``keep`` pixel within ``reach`` columns in their
     row or, for an array sensor (P > width), within ``reach`` columns in the rows
     ``reach`` above or below.  ``keep`` : (P,) bool over the pixels of rows of
     ``width`` columns (flat index ``row·width + col``).  ``log_range`` : (P,)
-    optional log of each peak's range: then only a neighbour whose range is within
-    a factor ``ratio`` (default :data:`SUPPORT_RANGE_RATIO`) supports (a
-    non-finite range is compatible with any)."""
+    optional log of each peak's range, or (P, 3) :func:`support_ranges` (log range,
+    its resolution, the slope allowance per pixel): then only a neighbour whose log
+    range is within the two peaks' resolutions plus the slope allowance times their
+    distance in pixels, and within a factor ``ratio`` (default
+    :data:`SUPPORT_RANGE_RATIO`), supports (a non-finite range is compatible with
+    any).  ``count`` : return (P,) int64, the
+    number of such neighbours, instead."""
     ratio = SUPPORT_RANGE_RATIO if ratio is None else float(ratio)
     k = np.asarray(keep, bool).reshape(-1, int(width))
     H, W = k.shape
     R = int(reach)
-    lr = (np.zeros(k.shape) if log_range is None
-          else np.asarray(log_range, np.float64).reshape(H, W))
+    lr3 = np.zeros((H * W, 3))
+    lr3[:, 1:] = np.inf  # no range: compatible with any
+    if log_range is not None:
+        a = np.asarray(log_range, np.float64)
+        if a.ndim == 1:
+            lr3[:, 0] = a
+        else:
+            lr3[:, :a.shape[1]] = a
+    lr3 = lr3.reshape(H, W, 3)
     pad_k = np.zeros((H + 2 * R, W + 2 * R), bool)
     pad_k[R:R + H, R:R + W] = k
-    pad_r = np.full(pad_k.shape, np.nan)
-    pad_r[R:R + H, R:R + W] = lr
+    pad_r = np.full((H + 2 * R, W + 2 * R, 3), np.nan)
+    pad_r[R:R + H, R:R + W] = lr3
     tol = np.log(ratio)
-    out = np.zeros((H, W), bool)
+    out = np.zeros((H, W), np.int64)
     rows = range(-R, R + 1) if H > 1 else (0,)
     for dr in rows:
         for dc in range(-R, R + 1):
@@ -176,10 +234,15 @@ def neighbour_support(keep, width: int, reach: int = SUPPORT_COLUMNS,
                 continue
             nk = pad_k[R + dr:R + dr + H, R + dc:R + dc + W]
             nr = pad_r[R + dr:R + dr + H, R + dc:R + dc + W]
+            # each peak's own range resolution and the surface's slope over the pixels
+            # between them, at most the factor ``ratio``
+            t = np.minimum(tol, lr3[..., 1] + nr[..., 1]
+                           + 0.5 * (lr3[..., 2] + nr[..., 2]) * max(abs(dr), abs(dc)))
             with np.errstate(invalid="ignore"):
-                same = ~(np.abs(nr - lr) > tol)  # NaN (unknown range): compatible
-            out |= nk & same
-    return out.reshape(-1)
+                same = ~(np.abs(nr[..., 0] - lr3[..., 0]) > t)  # NaN: compatible
+            out += nk & same
+    out = out.reshape(-1)
+    return out if count else out > 0
 
 
 def excess_band(counts, background, width: int, j, level: float = 0.5):
@@ -330,7 +393,7 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
                      np.asarray(noise).reshape(P, n_bins),
                      np.asarray(signal_angle).reshape(P, table.n_steps), n_per_step, table,
                      settings, np.arange(P))
-    keep = supported(sc.keep, sc.cnt, sc.thr_iso, sc.log_range, W)
+    keep = supported(sc.keep, sc.cnt, sc.thr_frame, sc.log_range, W)
     return peaks_of_scores(system, sc, keep, n_per_step, table, settings), sc.rate.reshape(H, W)
 
 
@@ -342,11 +405,12 @@ class PeakScores:
     signal histogram; angle : (Pb, S) float64 signal detections per angle step;
     background : (Pb, S) float64 their expected background; rate : (Pb,) Hz, the ML
     background rate; j, cnt, mu, keep, n_windows : the strongest window
-    (:func:`window_scores`; ``keep`` before the neighbour support); thr_iso : the
-    isolated threshold (:func:`isolated_threshold`); log_range : (Pb,) log stereo
-    range at ``j`` (:func:`pixel_log_range`).  Every value of a pixel is its own, so
-    blocks of pixels give the whole's values (the Dask runner scores blocks on its
-    workers; :func:`supported` then needs ``keep, cnt, thr_iso, log_range`` of all).
+    (:func:`window_scores`; ``keep`` before the neighbour support); thr_frame : the
+    per-frame threshold (:func:`frame_threshold`); log_range : (Pb, 3) log stereo
+    range at ``j``, its resolution and slope allowance (:func:`support_ranges`).
+    Every value of a pixel is its own, so blocks of pixels give the whole's values
+    (the Dask runner scores blocks on its workers; :func:`supported` then needs
+    ``keep, cnt, thr_frame, log_range`` of all).
     """
 
     pixels: np.ndarray
@@ -359,12 +423,12 @@ class PeakScores:
     mu: np.ndarray
     keep: np.ndarray
     n_windows: np.ndarray
-    thr_iso: np.ndarray
+    thr_frame: np.ndarray
     log_range: np.ndarray
 
     def support_inputs(self):
-        """``(keep, cnt, thr_iso, log_range)``: what :func:`supported` needs (small)."""
-        return self.keep, self.cnt, self.thr_iso, self.log_range
+        """``(keep, cnt, thr_frame, log_range)``: what :func:`supported` needs (small)."""
+        return self.keep, self.cnt, self.thr_frame, self.log_range
 
 
 def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
@@ -386,8 +450,8 @@ def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
     Hs = np.asarray(signal_angle, dtype=np.float64)
     j, cnt, mu, keep, n_windows = window_scores(Hs, B, width, B > 0, settings)
     return PeakScores(pixels, S, Hs, B, rate, j, cnt, mu, keep, n_windows,
-                      isolated_threshold(settings, n_windows, mu, P_all),
-                      pixel_log_range(system, table, pixels, j))
+                      frame_threshold(n_windows, mu, P_all),
+                      support_ranges(system, table, pixels, j, width))
 
 
 def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
@@ -504,6 +568,31 @@ def candidate_rows(p_adjusted, keep, ok) -> np.ndarray:
     window positions, ``keep`` (P,) bool the first stage's peaks, ``ok`` (P,) bool
     pixels that may hold a peak at all (known rate, footprint inside the scan)."""
     return np.flatnonzero(~keep & ok & (p_adjusted < CANDIDATE_P)).astype(np.int64)
+
+
+#: the steepest incidence (degrees) a supporting neighbour's surface may have: the
+#: log range may change by tan(SUPPORT_INCIDENCE_DEG) / fx per pixel between them
+SUPPORT_INCIDENCE_DEG = 75.0
+
+
+def support_ranges(system: System, table, pix, j, width: int) -> np.ndarray:
+    """(N, 3) for flat pixels ``pix`` (N,) with peaks centred at steps ``j`` (N,): the
+    log stereo range at ``j`` (:func:`pixel_log_range`); its resolution, the largest
+    change of the log range within half a footprint (``width`` steps) of ``j`` (a
+    window's centre lies within that of the spot's crossing); and the log range's
+    change per pixel on a surface at :data:`SUPPORT_INCIDENCE_DEG` (``tan / fx``).
+    Non-finite entries (no range) become inf: compatible with any."""
+    j = np.asarray(j, np.int64)
+    h = int(width) // 2
+    lr = pixel_log_range(system, table, pix, j)
+    lo = pixel_log_range(system, table, pix, np.maximum(j - h, 0))
+    hi = pixel_log_range(system, table, pix, np.minimum(j + h, table.n_steps - 1))
+    with np.errstate(invalid="ignore"):
+        res = np.maximum(np.abs(hi - lr), np.abs(lo - lr))
+    res = np.where(np.isfinite(res), res, np.inf)
+    fx = float(system.receiver.camera_matrix[0, 0])
+    slope = np.full(lr.shape, np.tan(np.radians(SUPPORT_INCIDENCE_DEG)) / fx)
+    return np.stack([lr, res, slope], axis=1)
 
 
 def pixel_log_range(system: System, table, pix, j) -> np.ndarray:
