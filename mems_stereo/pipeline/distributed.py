@@ -252,7 +252,9 @@ def process_many(paths: Sequence, system: System | None = None,
     """Process several recordings on a Dask cluster, one task each (results in order).
 
     The interval table of each distinct system is filled once, on the workers
-    in parallel, and scattered to every worker, so no task computes one.
+    in parallel, and scattered to every worker, so no task computes one.  The
+    tasks are submitted largest recording first (longest processing time first),
+    so that recordings of unequal lengths balance over the workers.
     """
     st = Settings() if settings is None else settings
     systems = [system] * len(paths) if system is not None else [read_system(p) for p in paths]
@@ -265,9 +267,26 @@ def process_many(paths: Sequence, system: System | None = None,
                                          settings=st)
             keys.append(key)
         scattered = {k: client.scatter(t, broadcast=True) for k, t in tables.items()}
-        futures = [client.submit(_process_task, str(p), system, st, scattered[k], pure=False)
-                   for p, k in zip(paths, keys)]
-        return client.gather(futures)
+        # the largest recordings first (Dask starts tasks in the order submitted): the
+        # longest-processing-time-first order, so that the last tasks to start are the
+        # short ones and the workers finish together
+        order = sorted(range(len(paths)), key=lambda i: -_n_slots(paths[i]))
+        futures = {i: client.submit(_process_task, str(paths[i]), system, st,
+                                    scattered[keys[i]], pure=False) for i in order}
+        got = dict(zip(order, client.gather([futures[i] for i in order])))
+        return [got[i] for i in range(len(paths))]
+
+
+def _n_slots(path) -> int:
+    """Pixel-slots of a recording (its ``/shots/bins`` size; 0 where unreadable: the
+    task then reports the error), read without the shots."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return int(f["shots/bins"].size)
+    except Exception:  # noqa: BLE001 - the task itself raises the package's error
+        return 0
 
 
 def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
