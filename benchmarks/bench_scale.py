@@ -20,7 +20,10 @@ time; the serial fraction f = serial / T1 gives Amdahl's bound 1 / (f + (1 − f
 for 16 workers.  On a machine shared with
 other jobs wall times say little, so the CPU seconds of the same runs are
 printed too: the client process (with a LocalCluster: its scheduler too) and
-its calling thread, and each worker process, against one process's CPU.
+its calling thread, and each worker process (with its minor page faults),
+against one process's CPU; and where one worker's extra wall time over one
+process goes: the worker's CPU beyond one process's, the client's serial
+work, and the rest (the client's round trips between the stages, transfers).
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
 cache), as on a long-lived cluster; cluster start-up is printed apart.  The
@@ -285,7 +288,9 @@ def main():
               f"{main:.2f} s = {main / c1_split:.1%} of one process's CPU; the rest is the "
               f"in-process scheduler and Dask's communication threads), workers "
               f"{' / '.join(f'{x:.2f}' for x in wc)} s CPU (sum {sum(wc):.2f} s against "
-              f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
+              f"{c1_split:.2f} s in one process; minor page faults "
+              f"{' / '.join(str(x) for x in tm.get('worker_faults', []))} against "
+              f"{f1_split} in one process); one process's CPU / (client + busiest "
               f"worker) = {bound:.2f}x, / (client's main thread + busiest worker) = "
               f"{c1_split / (main + max(wc)):.2f}x; client CPU = "
               f"{tm['client_cpu'] / c1_split:.1%} of one process's")
