@@ -20,7 +20,10 @@ time; the serial fraction f = serial / T1 gives Amdahl's bound 1 / (f + (1 − f
 for 16 workers.  On a machine shared with
 other jobs wall times say little, so the CPU seconds of the same runs are
 printed too: the client process (with a LocalCluster: its scheduler too) and
-its calling thread, and each worker process, against one process's CPU.
+its calling thread, and each worker process (with its minor page faults),
+against one process's CPU; and where one worker's extra wall time over one
+process goes: the worker's CPU beyond one process's, the client's serial
+work, and the rest (the client's round trips between the stages, transfers).
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
 cache), as on a long-lived cluster; cluster start-up is printed apart.  The
@@ -78,10 +81,15 @@ def same(a, b) -> bool:
 
 
 def _cpu_seconds() -> float:
+    return _usage()[0]
+
+
+def _usage() -> tuple[float, int]:
+    """CPU seconds (user + system) and minor page faults of this process so far."""
     import resource
 
     r = resource.getrusage(resource.RUSAGE_SELF)
-    return r.ru_utime + r.ru_stime
+    return r.ru_utime + r.ru_stime, r.ru_minflt
 
 
 def default_workers() -> list[int]:
@@ -178,9 +186,11 @@ def main():
         process_recording(paths[0])  # warm up: compiled kernels from the disk cache
         t0 = time.perf_counter()
         c0 = time.process_time()
+        f0 = _usage()[1]
         one_split = process_recording(big)
         t1_split = time.perf_counter() - t0
         c1_split = time.process_time() - c0
+        f1_split = _usage()[1] - f0
         t0 = time.perf_counter()
         c0 = time.process_time()
         one_many = [process_recording(p) for p in paths]
@@ -197,12 +207,13 @@ def main():
                 t_start = time.perf_counter() - t0
                 # warm up: a dense recording loads the compiled kernels (small ones do not)
                 client.run(process_recording, str(paths[0]))
-                w0 = client.run(_cpu_seconds)
+                w0 = client.run(_usage)
                 t0 = time.perf_counter()
                 sp = process_split(big, scheduler=client)
                 t_split = time.perf_counter() - t0
-                w1 = client.run(_cpu_seconds)
-                sp.timings["worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
+                w1 = client.run(_usage)
+                sp.timings["worker_cpu"] = sorted(w1[k][0] - w0[k][0] for k in w0)
+                sp.timings["worker_faults"] = sorted(w1[k][1] - w0[k][1] for k in w0)
                 w0 = client.run(_cpu_seconds)
                 c0 = time.process_time()
                 t0 = time.perf_counter()
@@ -245,6 +256,23 @@ def main():
               f"and candidate counts); gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB per "
               f"part; serial fraction {f:.1%} of one process's {t1_split:.2f} s{vs1w} -> "
               f"Amdahl bound on 16 workers {amdahl16:.1f}x")
+    one = next((r for r in rows if r[0] == 1 and "worker_cpu" in r[6]), None)
+    if one is not None:
+        # where one worker's extra time over one process goes: its CPU beyond one
+        # process's (the same stages, plus Dask's threads in the worker), the client's
+        # serial work (the worker idles meanwhile), and the rest (round trips of the
+        # tasks' results, transfers, the client process's threads competing for cores)
+        tm = one[6]
+        extra = one[2] - t1_split
+        cpu_x = tm["worker_cpu"][0] - c1_split
+        rest = extra - cpu_x - tm["client_serial"]
+        print(f"one worker against one process: {one[2]:.2f} - {t1_split:.2f} = {extra:+.2f} s "
+              f"= worker CPU beyond one process's {cpu_x:+.2f} s ({tm['worker_cpu'][0]:.2f} "
+              f"against {c1_split:.2f} s; page faults {tm['worker_faults'][0]} against "
+              f"{f1_split} in one process) + client serial {tm['client_serial']:.2f} s + the "
+              f"rest {rest:+.2f} s (waiting between tasks: {int(tm.get('client_waits', 0))} "
+              f"round trips of the client, the tasks' transfers, the client's threads on "
+              f"the shared cores: {tm['client_cpu']:.2f} s of client CPU)")
     print(f"load average at the end: {os.getloadavg()[0]:.1f} (other jobs share these cores)")
     print()
     print("on a machine shared with other jobs the wall times above say little; the CPU "
@@ -260,7 +288,9 @@ def main():
               f"{main:.2f} s = {main / c1_split:.1%} of one process's CPU; the rest is the "
               f"in-process scheduler and Dask's communication threads), workers "
               f"{' / '.join(f'{x:.2f}' for x in wc)} s CPU (sum {sum(wc):.2f} s against "
-              f"{c1_split:.2f} s in one process); one process's CPU / (client + busiest "
+              f"{c1_split:.2f} s in one process; minor page faults "
+              f"{' / '.join(str(x) for x in tm.get('worker_faults', []))} against "
+              f"{f1_split} in one process); one process's CPU / (client + busiest "
               f"worker) = {bound:.2f}x, / (client's main thread + busiest worker) = "
               f"{c1_split / (main + max(wc)):.2f}x; client CPU = "
               f"{tm['client_cpu'] / c1_split:.1%} of one process's")

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from mems_stereo.pipeline.distributed import (
+    WORKER_MALLOC_ENV,
+    _n_slots,
     dask_client,
     join_clouds,
     peak_blocks,
@@ -21,6 +24,7 @@ from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+_ENV_BEFORE = {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}  # before any cluster
 
 
 def test_shot_ranges_cover_everything_once():
@@ -66,10 +70,21 @@ def test_split_recording_equals_one_process(client):
 
 
 def test_many_recordings_equal_one_process(client):
-    paths = [SAMPLES / "room.h5", SAMPLES / "calib_2.5m.h5"]
+    paths = [SAMPLES / "room.h5", SAMPLES / "calib_2.5m.h5", SAMPLES / "room.h5"]
+    # submitted largest first: the results still come back in the order given
+    sizes = [_n_slots(p) for p in paths]
+    assert sizes[0] != sizes[1] and min(sizes) > 0
+    assert _n_slots(SAMPLES / "no such file.h5") == 0
     res = process_many(paths, scheduler=client)
     for p, r in zip(paths, res):
         _same(process_recording(p), r)
+
+
+def test_local_workers_get_one_malloc_arena_and_the_client_keeps_its_environ(client):
+    got = client.run(lambda: {k: os.environ.get(k) for k in WORKER_MALLOC_ENV})
+    assert got and all(v == WORKER_MALLOC_ENV for v in got.values())
+    # Dask's pre-spawn environment lands in the spawning process: restored there
+    assert {k: os.environ.get(k) for k in WORKER_MALLOC_ENV} == _ENV_BEFORE
 
 
 def test_peak_blocks_cut_at_the_fusion_block_and_balance_work():

@@ -114,6 +114,19 @@ LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
                         "distributed.admin.system-monitor.interval": "2s"}
 
 
+#: glibc settings of the LocalCluster's worker processes (see :func:`dask_client`;
+#: workers of a remote cluster are best started with them too)
+WORKER_MALLOC_ENV = {"MALLOC_ARENA_MAX": "1"}
+
+
+def _restore_environ(saved: dict) -> None:
+    for k, v in saved.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
 @contextlib.contextmanager
 def dask_client(scheduler="local", n_workers: int = 2):
     """A Dask client for ``scheduler`` (see module docstring); closes what it started."""
@@ -135,12 +148,26 @@ def dask_client(scheduler="local", n_workers: int = 2):
         # every 10 ms: a third of an idle worker's CPU, more while it works), and the
         # event loops' tick and the memory and system monitors less often (an idle
         # worker 2.1 % -> 0.5 % of a core, the client with the scheduler 3.8 % -> 1.2 %)
-        with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
-                              None, **LOCAL_CLUSTER_CONFIG}), \
-                LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                             dashboard_address=None, env=env) as cluster, \
-                Client(cluster) as client:
-            yield client
+        # One malloc arena per worker (WORKER_MALLOC_ENV): a worker runs its tasks in a
+        # thread of its own, whose glibc arena hands the heaps of freed temporaries
+        # back to the OS and page-faults them in again on every task (1,600,000 dense
+        # shots, pass 1 on one worker: 52,000 page faults, 0.3-0.4 s of system time
+        # more than in one process; none with one arena).  Read by glibc when the
+        # process starts, so set before the spawn (Dask's pre-spawn environment,
+        # which also lands in this process's os.environ: restored afterwards)
+        saved = {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}
+        try:
+            with dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_":
+                                  None, **{f"distributed.nanny.pre-spawn-environ.{k}": v
+                                           for k, v in WORKER_MALLOC_ENV.items()},
+                                  **LOCAL_CLUSTER_CONFIG}), \
+                    LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                 dashboard_address=None, env=env) as cluster:
+                _restore_environ(saved)
+                with Client(cluster) as client:
+                    yield client
+        finally:
+            _restore_environ(saved)
         return
     try:
         client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT)
@@ -225,7 +252,9 @@ def process_many(paths: Sequence, system: System | None = None,
     """Process several recordings on a Dask cluster, one task each (results in order).
 
     The interval table of each distinct system is filled once, on the workers
-    in parallel, and scattered to every worker, so no task computes one.
+    in parallel, and scattered to every worker, so no task computes one.  The
+    tasks are submitted largest recording first (longest processing time first),
+    so that recordings of unequal lengths balance over the workers.
     """
     st = Settings() if settings is None else settings
     systems = [system] * len(paths) if system is not None else [read_system(p) for p in paths]
@@ -238,9 +267,26 @@ def process_many(paths: Sequence, system: System | None = None,
                                          settings=st)
             keys.append(key)
         scattered = {k: client.scatter(t, broadcast=True) for k, t in tables.items()}
-        futures = [client.submit(_process_task, str(p), system, st, scattered[k], pure=False)
-                   for p, k in zip(paths, keys)]
-        return client.gather(futures)
+        # the largest recordings first (Dask starts tasks in the order submitted): the
+        # longest-processing-time-first order, so that the last tasks to start are the
+        # short ones and the workers finish together
+        order = sorted(range(len(paths)), key=lambda i: -_n_slots(paths[i]))
+        futures = {i: client.submit(_process_task, str(paths[i]), system, st,
+                                    scattered[keys[i]], pure=False) for i in order}
+        got = dict(zip(order, client.gather([futures[i] for i in order])))
+        return [got[i] for i in range(len(paths))]
+
+
+def _n_slots(path) -> int:
+    """Pixel-slots of a recording (its ``/shots/bins`` size; 0 where unreadable: the
+    task then reports the error), read without the shots."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            return int(f["shots/bins"].size)
+    except Exception:  # noqa: BLE001 - the task itself raises the package's error
+        return 0
 
 
 def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
@@ -250,12 +296,14 @@ def shot_ranges(n_shots: int, n_parts: int) -> list[tuple[int, int]]:
 
 
 class _Waits:
-    """Seconds the client spends blocked on its workers' results."""
+    """Seconds the client spends blocked on its workers' results, and how many times."""
 
     def __init__(self):
         self.seconds = 0.0
+        self.count = 0
 
     def __call__(self, fn, *args):
+        self.count += 1
         t = time.perf_counter()
         try:
             return fn(*args)
@@ -276,7 +324,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     ``n_parts`` : shot ranges (default: one per worker, :data:`PARTS_PER_WORKER`).
     ``timings`` of the result add the client's own serial seconds
     (``client_serial``: the wall time less the time it waited on its workers,
-    ``client_wait``), the CPU seconds of the client process over the run
+    ``client_wait``; ``client_waits``: how many times it blocked on them), the CPU
+    seconds of the client process over the run
     (``client_cpu``: all its threads, with a local cluster's scheduler) and of
     its calling thread (``client_main_cpu``), the bytes it received
     (``client_bytes``), ``parts`` and ``peak_blocks``; ``peaks_wait`` : of the
@@ -440,6 +489,7 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     # angles, table rows' indices, scatters, the peak detector, joining the blocks)
     t["client_serial"] = timings["read_header"] + (t_end - t_run) - waits.seconds
     t["client_wait"] = waits.seconds
+    t["client_waits"] = float(waits.count)  # round trips: the client blocked on results
     # CPU seconds of the client process over the run (all its threads: the serial
     # work above plus Dask's communication), the figure to compare on a shared machine
     t["client_cpu"] = c_end - c_all

@@ -132,7 +132,10 @@ class IntervalTable:
     def missing(self, rows) -> np.ndarray:
         """The distinct rows among ``rows`` ((K,) int, −1 ignored) not yet filled, sorted."""
         r = np.asarray(rows)
-        r = np.unique(r[r >= 0])
+        r = r[r >= 0]
+        if self.filled[r].all():  # the usual case once filled: no sort of the rows
+            return np.zeros(0, np.int64 if r.dtype.kind != "i" else r.dtype)
+        r = np.unique(r)
         return r[~self.filled[r]]
 
     def ensure(self, rows) -> None:

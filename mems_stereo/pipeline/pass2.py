@@ -257,6 +257,10 @@ def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
     step = (pc.keys // np.int64(n_codes)) % np.int64(n_steps)
     m = (to[q] >= 0) & (step >= lo[q]) & (step <= hi[q])
     keys = to[q[m]] * span + pc.keys[m] % span
+    if keys.size < 2 or bool(np.all(keys[1:] > keys[:-1])):
+        # renumbered in the same order (e.g. the candidates, which follow the first
+        # stage's peaks): sorted already, no sort (the same arrays)
+        return PeakCounts(keys, pc.counts[m])
     order = np.argsort(keys, kind="stable")
     return PeakCounts(keys[order], pc.counts[m][order])
 
