@@ -271,10 +271,11 @@ def process_many(paths: Sequence, system: System | None = None,
         # longest-processing-time-first order, so that the last tasks to start are the
         # short ones and the workers finish together
         order = sorted(range(len(paths)), key=lambda i: -_n_slots(paths[i]))
-        futures = {i: client.submit(_process_task, str(paths[i]), system, st,
-                                    scattered[keys[i]], pure=False) for i in order}
-        got = dict(zip(order, client.gather([futures[i] for i in order])))
-        return [got[i] for i in range(len(paths))]
+        futures = [None] * len(paths)
+        for i in order:
+            futures[i] = client.submit(_process_task, str(paths[i]), system, st,
+                                       scattered[keys[i]], pure=False)
+        return client.gather(futures)
 
 
 def _n_slots(path) -> int:

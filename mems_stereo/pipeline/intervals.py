@@ -134,7 +134,7 @@ class IntervalTable:
         r = np.asarray(rows)
         r = r[r >= 0]
         if self.filled[r].all():  # the usual case once filled: no sort of the rows
-            return np.zeros(0, np.int64 if r.dtype.kind != "i" else r.dtype)
+            return r[:0]
         r = np.unique(r)
         return r[~self.filled[r]]
 

@@ -38,9 +38,9 @@ import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
-from mems_stereo.pipeline import peaks as _peaks
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peaks import (
+    FRAME_FALSE_ALARMS,
     SUPPORT_COLUMNS,
     Peaks,
     neighbour_support,
@@ -177,7 +177,7 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
                 break
             supported |= new
             anchor[pix[new]] = True
-        found &= supported | (p_frame < MATCHED_SHARE * _peaks.FRAME_FALSE_ALARMS / P)
+        found &= supported | (p_frame < MATCHED_SHARE * FRAME_FALSE_ALARMS / P)
     sel = np.flatnonzero(found)
     j0 = best[sel, 0].astype(np.int64)
     half = width + width // 2
