@@ -18,7 +18,7 @@ import numpy as np
 
 from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import spreads_for
-from mems_stereo.physics.first_photon import _firing_probability, first_photon_delay
+from mems_stereo.physics.first_photon import MU_MAX, _firing_probability, first_photon_delay
 from mems_stereo.physics.spot import spot_fraction
 
 #: peaks per block of the first-photon correction (by peak index; see
@@ -30,6 +30,13 @@ MODEL_DELAY_FRACTION = 0.15
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
+#: share of the μ0 grid's top (:data:`~mems_stereo.physics.first_photon.MU_MAX`) above
+#: which a peak's posterior mean μ0 is pinned at the grid's top
+MU_PINNED_FRACTION = 0.5
+#: a pinned peak whose inliers outnumber the firings the spot model predicts with this
+#: many times the grid's top μ0 is one the model does not explain
+#: (:func:`first_photon_correction`): its mean angle keeps the scatter's spread
+MU_BEYOND_GRID = 10.0
 #: fewest valid shots per sampled angle step (mean over a peak's band, steps with
 #: shots) for the binomial variance of its mean angle (:func:`angle_binomial_factor`)
 BINOMIAL_MIN_SHOTS = 2.0
@@ -163,6 +170,18 @@ def first_photon_correction(acc, mean: dict) -> dict:
         d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
+        # μ0 at the top of its grid, and more firings than even MU_BEYOND_GRID times
+        # that μ0 would give: they reach further from the pixel than the model's spot
+        # explains (a surface whose range changes across the band, the model taking
+        # it constant: sweep case 26039, a box face at 0.45–1 m seen at grazing
+        # incidence, μ0 100 where the simulator's was 7–113, inliers 1.3–1.6 times
+        # the firings μ0 = 100 predicts, the mean angle 1–7 steps from the pixel's
+        # while its binomial σ was 1–2 steps; a return truly 4× the grid's top fires
+        # 1.1 times).  The binomial variance rests on the model's firing
+        # probabilities: without them the mean angle keeps its scatter's spread
+        k_top = np.sum(n_band * -np.expm1(-MU_BEYOND_GRID * MU_MAX * f_band), axis=1)
+        unexplained = (mu[a:b] >= MU_PINNED_FRACTION * MU_MAX) & (acc.sums.detections[q] > k_top)
+        ab[a:b] = np.where(unexplained, 1.0, ab[a:b])
         bias[a:b] = mean_angle_bias(steps, n_band, f_band, f_full, mu[a:b])
     c = s.speed_of_light
     dL = np.zeros(acc.Q)
