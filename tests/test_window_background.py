@@ -80,3 +80,64 @@ def test_background_over_a_sub_window_is_the_recorded_one():
     # the estimate is exact in expectation: within 3 standard errors of the mean
     se = np.sqrt(rec / trials)
     assert abs(est - rec) < 3 * se + 0.5, (est, rec)
+
+
+def _band_trials(shots, rng, trials=300):
+    """Mean background expected over a 200-step band by :func:`window_background`,
+    with the steps without a detection added (:func:`fusion._with_empty_steps`) and
+    without, and the mean background recorded (a faint return on 30 of the steps)."""
+    from types import SimpleNamespace
+
+    from mems_stereo.pipeline.fusion import _with_empty_steps
+
+    S, lo, hi, bw, lam = shots.size, 20, 400, 3.125e-10, 0.5e6
+    h = -np.expm1(-lam * bw)
+    table = SimpleNamespace(theta_min=0.0, step=1e-4, n_steps=S)
+    band = {"step_lo": np.array([0]), "step_hi": np.array([S - 1])}
+    full, sel, rec = [], [], []
+    for _ in range(trials):
+        step = np.repeat(np.arange(S), shots)
+        t_bg = rng.geometric(h, step.size)
+        lit = (step >= 85) & (step < 115) & (rng.random(step.size) < 0.3)
+        t_sig = np.where(lit, np.rint(rng.normal(150, 15, step.size)), np.inf)
+        first = np.minimum(t_bg, t_sig)
+        ok = (first >= lo) & (first <= hi)
+        rec.append(np.sum(ok & (t_bg < t_sig)))
+        key, cnt = np.unique(step[ok] * 4096 + first[ok].astype(np.int64), return_counts=True)
+        q, st, code = np.zeros(key.size, np.int64), key // 4096, key % 4096
+        for out, entries in ((full, _with_empty_steps(band, q, st, code, cnt.astype(float),
+                                                      shots, table)),
+                             (sel, (q, st, code, cnt.astype(float)))):
+            qe, se, ce, we = entries[:4]
+            one = np.ones(qe.size)
+            _, bg, _ = window_background(se, ce, we, lo * one, hi * one, shots[se], lo * one,
+                                         lam * one, bw)
+            out.append(bg.sum())
+    return np.mean(full), np.mean(sel), np.mean(rec)
+
+
+def test_dense_band_background_counts_the_steps_without_detections():
+    """A band the scan revisits (1-5 shots per step, 3 on average; strong background,
+    a faint return on 30 of 200 steps): the background expected over it is that of
+    every counted step, detections or not, and matches the background recorded; over
+    the steps that hold a detection alone it falls short (sweep case 28036: 5-24 of
+    ~120 steps empty, the stereo and ToF of a 4.7 m wall 9 and 13 cm short)."""
+    from mems_stereo.pipeline.fusion import DENSE_BAND_SHOTS
+
+    rng = np.random.default_rng(7)
+    shots = rng.integers(1, 6, 200)
+    assert shots.mean() >= DENSE_BAND_SHOTS
+    full, sel, rec = _band_trials(shots, rng)
+    se = np.sqrt(rec / 300)
+    assert abs(full - rec) < 3 * se + 0.05, (full, rec)
+    assert sel < rec - 5 * se, (sel, rec)  # the detections' steps alone: too little
+
+
+def test_sparse_band_keeps_the_detections_steps_background():
+    """A band sampled about once per step (below DENSE_BAND_SHOTS): its empty steps are
+    most of it and are not added (their subtraction trades the bias for more noise:
+    the floodlight sample), so the expectation is the detections' steps' alone."""
+    rng = np.random.default_rng(8)
+    shots = rng.integers(0, 3, 200)  # 1 shot per step on average
+    full, sel, _ = _band_trials(shots, rng, trials=50)
+    assert full == sel

@@ -118,14 +118,18 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
         # (:func:`window_background`); their magnitude is the Poisson variance
         # of the subtraction (for the σ)
         W = system.receiver.width
-        pix = peaks["row"][q] * W + peaks["col"][q]
-        lo = table.lo[step, pix].astype(np.int64)
-        hi = table.hi[step, pix].astype(np.int64)
-        a = np.maximum(lo, peaks["code_lo"][q])
-        b = np.minimum(hi, peaks["code_hi"][q])
-        first, bgs, cen = window_background(q * S + step, code, weight, a, b,
-                                            np.asarray(shots_per_step)[step], lo, rate[q],
-                                            system.tdc.bin_width)
+
+        def entry_geometry(qe, se):
+            pix = peaks["row"][qe] * W + peaks["col"][qe]
+            lo = table.lo[se, pix].astype(np.int64)
+            hi = table.hi[se, pix].astype(np.int64)
+            return (lo, np.maximum(lo, peaks["code_lo"][qe]),
+                    np.minimum(hi, peaks["code_hi"][qe]), np.asarray(shots_per_step)[se])
+
+        lo, a, b, n_shots = entry_geometry(q, step)
+        first, bgs, cen = window_background(q * S + step, code, weight, a, b, n_shots, lo,
+                                            rate[q], system.tdc.bin_width)
+        q0, step0, code0, weight0 = q, step, code, counts.counts
         J = bgs.shape[1]
         keep = bgs.ravel() > 0
         q_all = np.concatenate([q, np.repeat(q[first], J)[keep]])
@@ -133,14 +137,22 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
         theta_all = np.concatenate([theta, np.repeat(theta[first], J)[keep]])
         background = np.concatenate([np.zeros(k.size), bgs.ravel()[keep]])
         weight = np.concatenate([weight, -bgs.ravel()[keep]])
-        n_shots = np.asarray(shots_per_step)[step]
 
         def inlier_background(acc):
             # sub-pass 2's background: over the codes of each (peak, step) that pass
-            # the inlier test (:func:`inlier_codes`); the segments above stay for
-            # the mode and the window's detection count (first-photon likelihood)
-            g_first = first
-            qg, thg = q[g_first], theta[g_first]
+            # the inlier test (:func:`inlier_codes`), at every step of the inliers'
+            # angle band (within the counted band) that has valid shots, with a
+            # detection or not (:func:`_with_empty_steps`); the segments above stay
+            # for the mode and the window's detection count (first-photon likelihood)
+            band = {"step_lo": acc.band[0], "step_hi": acc.band[1]}
+            if peaks.get("step_lo") is not None:
+                band = {"step_lo": np.maximum(band["step_lo"], peaks["step_lo"]),
+                        "step_hi": np.minimum(band["step_hi"], peaks["step_hi"])}
+            qe, se, ce, we, te = _with_empty_steps(band, q0, step0, code0, weight0,
+                                                   shots_per_step, table)
+            lo_e, a_e, b_e, n_e = entry_geometry(qe, se)
+            _, g_first, inv = np.unique(qe * S + se, return_index=True, return_inverse=True)
+            qg, thg = qe[g_first], te[g_first]
 
             def margins(gi, c):
                 pk, r, sr, ok = acc._fused_ranges(qg[gi], c, thg[gi])
@@ -150,22 +162,69 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
                 return (np.where(bad, np.nan, r - (ctr - bound)),
                         np.where(bad, np.nan, ctr + bound - r))
 
-            c1, c2 = inlier_codes(margins, a[g_first], b[g_first])
-            _, inv = np.unique(q * S + step, return_inverse=True)
-            a2 = np.maximum(a, np.ceil(np.nan_to_num(c1, posinf=1e9, neginf=-1e9))[inv])
-            b2 = np.minimum(b, np.floor(np.nan_to_num(c2, posinf=1e9, neginf=-1e9))[inv])
-            f2, bg2, cen2 = window_background(q * S + step, code, counts.counts, a2, b2,
-                                              n_shots, lo, rate[q], system.tdc.bin_width)
+            c1, c2 = inlier_codes(margins, a_e[g_first], b_e[g_first])
+            a2 = np.maximum(a_e, np.ceil(np.nan_to_num(c1, posinf=1e9, neginf=-1e9))[inv])
+            b2 = np.minimum(b_e, np.floor(np.nan_to_num(c2, posinf=1e9, neginf=-1e9))[inv])
+            f2, bg2, cen2 = window_background(qe * S + se, ce, we, a2, b2, n_e, lo_e, rate[qe],
+                                              system.tdc.bin_width)
             kp = bg2.ravel() > 0
             J2 = bg2.shape[1]
-            return (np.repeat(q[f2], J2)[kp], cen2.ravel()[kp],
-                    np.repeat(theta[f2], J2)[kp], bg2.ravel()[kp])
+            return (np.repeat(qe[f2], J2)[kp], cen2.ravel()[kp],
+                    np.repeat(te[f2], J2)[kp], bg2.ravel()[kp])
 
     acc = accumulator_for_peaks(system, peaks, settings, shots_per_step, table)
     return accumulate_entries(acc, np.arange(q_all.size), q_all, code_all, theta_all,
                               weight=weight, background=background,
                               inlier_background=None if background is None
                               else inlier_background)
+
+
+#: fewest valid shots per valid angle step, on average over a peak's band, for the
+#: background of its steps without a detection to be subtracted (:func:`_with_empty_steps`;
+#: as ``first_photon_correction.BINOMIAL_MIN_SHOTS``: a scan that revisits its angles)
+DENSE_BAND_SHOTS = 2.0
+
+
+def _with_empty_steps(band, q, step, code, weight, shots_per_step, table):
+    """The entries (q, step, code, weight, theta), each (M',), with one entry of
+    weight 0 added for every step of a peak's band ``[step_lo, step_hi]`` (a
+    mapping of (Q,) arrays) that has valid shots but no entry, in bands of at
+    least :data:`DENSE_BAND_SHOTS` shots per step (at code 1: with
+    no detection its expected background, :func:`window_background`, does not
+    depend on the code), sorted by (peak, step, code)."""
+    lo_s, hi_s = band["step_lo"], band["step_hi"]
+    theta = table.theta_min + step * table.step
+    if q.size == 0:
+        return q, step, code, weight, theta
+    S = table.n_steps
+    lo_s = np.clip(np.asarray(lo_s, np.int64), 0, S - 1)
+    hi_s = np.clip(np.asarray(hi_s, np.int64), -1, S - 1)
+    n = np.maximum(hi_s - lo_s + 1, 0)
+    qb = np.repeat(np.arange(n.size), n)
+    sb = lo_s[qb] + np.arange(qb.size) - np.repeat(np.cumsum(n) - n, n)
+    nsh = np.asarray(shots_per_step)
+    if qb.size:
+        # only bands whose scan revisits its steps (≥ DENSE_BAND_SHOTS valid shots per
+        # valid step on average): there a step without a detection is a measurement
+        # with few neighbours like it; where each step is sampled about once most of
+        # the band is such steps, and subtracting their background trades the bias
+        # for more noise (the floodlight sample, 1.27 shots per step: its 132 common
+        # points' median error 2.04 -> 2.16 cm, 4 points lost)
+        valid = nsh[sb] > 0
+        per_band = (np.bincount(qb, weights=np.where(valid, nsh[sb], 0), minlength=n.size)
+                    / np.maximum(np.bincount(qb, weights=valid, minlength=n.size), 1))
+        has = (np.isin(qb * S + sb, q * S + step) | ~valid
+               | (per_band[qb] < DENSE_BAND_SHOTS))
+        qb, sb = qb[~has], sb[~has]
+    if qb.size == 0:
+        return q, step, code, weight, theta
+    q2 = np.concatenate([q, qb])
+    s2 = np.concatenate([step, sb])
+    c2 = np.concatenate([np.asarray(code, np.int64), np.ones(qb.size, np.int64)])
+    w2 = np.concatenate([np.asarray(weight, np.float64), np.zeros(qb.size)])
+    o = np.lexsort((c2, s2, q2))
+    q2, s2, c2, w2 = q2[o], s2[o], c2[o], w2[o]
+    return q2, s2, c2, w2, table.theta_min + s2 * table.step
 
 
 def _acceptance(system: System, table, peaks):
