@@ -303,3 +303,31 @@ def test_mu_pinned_at_the_grid_top_keeps_the_mean_angles_scatter_spread(system, 
         same = points_from_peak_detections(*args, **kw)
         monkeypatch.undo()
         np.testing.assert_array_equal(good["sigma_r_stereo"], same["sigma_r_stereo"])
+
+
+@pytest.mark.parametrize("a", [-8.0, -1.2])
+def test_delay_sensitivity_to_the_signal_level(a):
+    """``first_photon_delay(..., mu_factor=F)``'s fifth result is half the change of the
+    band's delay between μ0/F and μ0·F: checked against the delays of posteriors
+    concentrated at those two grid points (F = three grid steps)."""
+    sigma = 6.33e-9
+    f = 0.6 * np.exp(-0.5 * np.linspace(-3, 3, 13) ** 2)  # a spot's shares across the band
+    f_band = np.tile(f, (3, 1))
+    n_band = np.full_like(f_band, 40.0)
+    j = np.array([10, 22, 30])  # μ0 ≈ 0.06, 1, 4
+    F = MU_GRID[j[0] + 3] / MU_GRID[j[0]]
+
+    def sharp(jj):  # log-likelihood with all its weight at grid point jj
+        ll = np.full((3, MU_GRID.size), -1e4)
+        ll[np.arange(3), jj] = 0.0
+        return ll
+
+    tau0 = np.full(3, -a * sigma)
+    d_hi = first_photon_delay(sharp(j + 3), f_band, n_band, tau0, sigma)[0]
+    d_lo = first_photon_delay(sharp(j - 3), f_band, n_band, tau0, sigma)[0]
+    out = first_photon_delay(sharp(j), f_band, n_band, tau0, sigma, mu_factor=F)
+    assert len(out) == 5
+    np.testing.assert_allclose(out[4], 0.5 * np.abs(d_hi - d_lo), rtol=1e-6, atol=1e-15)
+    # strong returns are the sensitive ones (pile-up moves the first photon)
+    assert out[4][2] > out[4][0]
+    assert len(first_photon_delay(sharp(j), f_band, n_band, tau0, sigma)) == 4

@@ -225,7 +225,7 @@ def _band_lookup(a, lm, f_band):
     return d, v
 
 
-def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
+def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma, mu_factor=None):
     """Posterior first-photon delay of peaks from their spot-profile likelihood.
 
     Parameters
@@ -240,6 +240,7 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
         is cut off (give it from the stereo or fused point there: inverting
         the mean arrival time is ill-conditioned at the cut).
     sigma : float, s, the pulse σ (⊕ jitter).
+    mu_factor : float > 1 or None; with it a fifth result, ``sigma_model``.
 
     Returns
     -------
@@ -250,6 +251,11 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
     var_arrival : (Q,) s², E[variance of one detection's arrival] (the
         band's mixture of first-photon spreads).
     mu : (Q,) posterior mean of μ0.
+    sigma_model : (Q,) s, only with ``mu_factor`` F: half the change of the band's
+        delay between μ0 = μ/F and μ0 = μ·F (linear in log μ0 on the grid, clipped
+        to it) — the delay's sensitivity to a signal level the spot model
+        misjudges by a factor F, which the posterior's spread (the data's) does not
+        hold.
     """
     ll = np.asarray(log_likelihood, dtype=np.float64)
     post = np.exp(ll - ll.max(axis=1, keepdims=True))
@@ -264,7 +270,23 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma):
     vj = np.sum(w * (v + d * d), axis=2) - dj * dj  # mixture variance
     dm = np.sum(post * dj, axis=1)
     sd = np.sqrt(np.maximum(np.sum(post * dj * dj, axis=1) - dm * dm, 0.0))
-    return dm * sigma, sd * sigma, np.sum(post * vj, axis=1) * sigma ** 2, post @ MU_GRID
+    mu = post @ MU_GRID
+    out = (dm * sigma, sd * sigma, np.sum(post * vj, axis=1) * sigma ** 2, mu)
+    if mu_factor is None:
+        return out
+    lg = np.log(MU_GRID)
+    h = lg[1] - lg[0]
+    u = (np.log(np.maximum(mu, MU_GRID[0])) - lg[0]) / h
+    du = math.log(mu_factor) / h
+
+    def at(v):  # dj at grid position v (Q,), linear between the grid's points
+        v = np.clip(v, 0.0, lg.size - 1.0)
+        i = np.minimum(np.floor(v).astype(np.int64), lg.size - 2)
+        t = v - i
+        r = np.arange(dj.shape[0])
+        return (1 - t) * dj[r, i] + t * dj[r, i + 1]
+
+    return out + (0.5 * np.abs(at(u + du) - at(u - du)) * sigma,)
 
 
 def first_photon_cdf(s, mu, pulse: PulseShape) -> np.ndarray:

@@ -27,6 +27,11 @@ from mems_stereo.physics.spot import spot_fraction
 FP_BLOCK = 16
 #: relative systematic uncertainty of the first-photon delay the correction removes
 MODEL_DELAY_FRACTION = 0.15
+#: factor by which the spot model may misjudge a peak's signal level μ0 (a surface
+#: whose range or reflectance changes across the band, a spot clipped at a
+#: silhouette): the delay's change over μ0/F … μ0·F is a systematic term of its σ
+#: (:func:`first_photon_correction`)
+MU_MODEL_FACTOR = 2.0
 #: systematic uncertainty of a saturated return's arrival (the pulse's leading edge), in
 #: pulse σ, scaled by the square of the detection probability with the spot centred
 SATURATED_EDGE_SIGMA = 0.2
@@ -151,7 +156,7 @@ def first_photon_correction(acc, mean: dict) -> dict:
     if sigma <= 0 or not np.any(ok):
         return out
     idx = np.flatnonzero(ok)
-    d, sd, var, mu, ab, bias = (np.empty(idx.size) for _ in range(6))
+    d, sd, var, mu, ab, bias, sm = (np.empty(idx.size) for _ in range(7))
     t0, dt = acc.step_grid
     with np.errstate(invalid="ignore", divide="ignore"):
         theta_bar = (acc.sums.theta / acc.sums.n - t0) / dt  # the inliers' mean step
@@ -167,8 +172,8 @@ def first_photon_correction(acc, mean: dict) -> dict:
         steps, n_band, f_band, f_full = band_steps(acc, q, full=True)
         ll = acc.sums.loglik[q] + np.einsum(
             "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
-        d[a:b], sd[a:b], var[a:b], mu[a:b] = first_photon_delay(
-            ll, f_band, n_band, tau[q], sigma)
+        d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
+            ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
         # μ0 at the top of its grid, and more firings than even MU_BEYOND_GRID times
         # that μ0 would give: they reach further from the pixel than the model's spot
@@ -198,8 +203,8 @@ def first_photon_correction(acc, mean: dict) -> dict:
     # pixel), the arrival is the pulse's leading edge, whose shape the Gaussian
     # model does not know: up to SATURATED_EDGE_SIGMA pulse σ
     sat = -np.expm1(-mu)
-    sd = np.hypot(sd, np.hypot(MODEL_DELAY_FRACTION * d,
-                               SATURATED_EDGE_SIGMA * sigma * sat ** 2))
+    sd = np.hypot(np.hypot(sd, sm), np.hypot(MODEL_DELAY_FRACTION * d,
+                                             SATURATED_EDGE_SIGMA * sigma * sat ** 2))
     out["delay"][ok], out["mu"][ok], out["sigma_L"][ok] = d, mu, c * sd
     out["angle_binomial"][ok] = ab
     out["angle_bias"][ok] = bias * dt  # rad

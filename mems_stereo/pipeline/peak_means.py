@@ -24,6 +24,9 @@ EDGE_PIXEL_SIGMA = 0.25
 #: without) also counts as a depth edge (off: in sparse clouds it flags most points
 #: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
 EDGE_RUN_ENDS = False
+#: columns on each side in which :meth:`PeakMeans._mixed_pixels` looks for a depth
+#: edge's nearest kept neighbour (2: a mixed pixel's other neighbour may have no point)
+MIXED_NEIGHBOUR_COLUMNS = 2
 
 
 def fuse_along_ray(stereo, tof):
@@ -137,6 +140,11 @@ class PeakMeans:
             mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
         w_mean = mean["fused"][2]
         xf, Cf = mean["fused"][:2]
+        mixed = self._mixed_pixels(xf, Cf, keep, edge)
+        if np.any(mixed > 0):  # along the ray: the range between the two surfaces
+            with np.errstate(invalid="ignore", divide="ignore"):
+                u = xf / np.linalg.norm(xf, axis=1, keepdims=True)
+            Cf = Cf + np.nan_to_num((mixed ** 2)[:, None, None] * u[:, :, None] * u[:, None, :])
         r, _, sr, sphi = polar_from_cartesian(xf, Cf)
         r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
         r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
@@ -164,6 +172,48 @@ class PeakMeans:
             q = np.arange(self.Q)
             keep = keep & (q >= own[0]) & (q < own[1])
         return PointCloud(xf, attrs).select(keep)
+
+    def _mixed_pixels(self, x, C, keep, edge) -> np.ndarray:
+        """(Q,) float64 m: the range uncertainty of a mixed pixel, 0 elsewhere.
+
+        A peak at a depth edge (``edge``, :meth:`_depth_edges`) whose range lies
+        between those of its nearest kept neighbours in the row (within
+        :data:`MIXED_NEIGHBOUR_COLUMNS` columns on each side), beyond k·σ of the
+        difference from both, agrees with neither surface: its pixel (or the spot)
+        straddles the silhouette and its range is a blend of the two — a "flying
+        pixel" (sweep case 29014, column 139: 2.39 m between a cylinder's limb at
+        2.05 m and the wall at 2.70 m, σ 5 cm).  Which surface the ray meets is not
+        known: its distance to the nearer neighbour's range is its uncertainty.
+        ``x`` (Q, 3), ``C`` (Q, 3, 3) the fused points; ``keep`` (Q,) those that
+        become points.
+        """
+        Q = self.Q
+        out = np.zeros(Q)
+        cand = np.flatnonzero(edge & keep)
+        if cand.size == 0:
+            return out
+        r, _, sr, _ = polar_from_cartesian(x, C)
+        W = self.system.receiver.width
+        pad = MIXED_NEIGHBOUR_COLUMNS
+        at = np.full((int(self.rows.max()) + 1, W + 2 * pad), -1, np.int64)
+        kept = np.flatnonzero(keep)
+        at[self.rows[kept], self.cols[kept] + pad] = kept
+        gaps = []
+        for dc in (-1, 1):  # the nearest kept neighbour on each side
+            j = np.full(cand.size, -1, np.int64)
+            for off in range(MIXED_NEIGHBOUR_COLUMNS, 0, -1):
+                jo = at[self.rows[cand], self.cols[cand] + pad + dc * off]
+                j = np.where(jo >= 0, jo, j)
+            has = j >= 0
+            jj = np.where(has, j, 0)
+            with np.errstate(invalid="ignore"):
+                D = np.where(has, r[jj] - r[cand], np.nan)
+                far = np.abs(D) > self.k * np.hypot(sr[cand], sr[jj])
+            gaps.append(np.where(far, D, np.nan))
+        with np.errstate(invalid="ignore"):
+            between = (gaps[0] * gaps[1]) < 0  # (NaN: no neighbour, or one agrees)
+        out[cand[between]] = np.minimum(np.abs(gaps[0]), np.abs(gaps[1]))[between]
+        return out
 
     def _depth_edges(self, x, C, keep) -> np.ndarray:
         """(Q,) bool: peaks at a depth edge of the cloud (see :data:`EDGE_PIXEL_SIGMA`).
