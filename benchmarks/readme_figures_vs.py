@@ -90,7 +90,8 @@ def run_package(src: Path | None, d: Path, tag: str) -> dict:
     if src is not None:
         env["BENCH_PACKAGE_SRC"] = str(src)
     out = d / f"{tag}.json"
-    subprocess.run([sys.executable, "-c", CHILD, str(out), str(ROOT / "samples")], env=env, check=True, cwd=d)
+    subprocess.run([sys.executable, "-c", CHILD, str(out), str(ROOT / "samples")], env=env,
+                   check=True, cwd=d)
     return json.loads(out.read_text())
 
 
@@ -123,7 +124,7 @@ def compare(before: dict, after: dict, before_tag: str) -> list[str]:
         better = int(np.sum(da < db - 0.005))
         worse = int(np.sum(da > db + 0.005))
         only_b = [eb[k] for k in set(eb) - set(ea)]
-        only_a = [ea[k] for k in set(ea) - set(eb)]
+        only_a = [ea[k] for k in set(ea) - set(eb)]  # (pixels listed below: column, |error|)
         lines += [
             f"{key}:",
             f"  README figures: {before_tag} {nb} points, coverage {cb}/{ill}, median "
@@ -134,6 +135,11 @@ def compare(before: dict, after: dict, before_tag: str) -> list[str]:
             f"at {worse}",
             f"  only {before_tag}: {len(only_b)} pixels (median {med_cm(only_b)}); only this: "
             f"{len(only_a)} pixels (median {med_cm(only_a)})"]
+        for tag, e, other in ((before_tag, eb, ea), ("this", ea, eb)):
+            only = sorted(set(e) - set(other))
+            if only:
+                lines.append(f"    only {tag}: " + ", ".join(
+                    f"{c} ({100 * e[(r, c)]:.1f} cm)" for r, c in only[:12]))
     return lines
 
 

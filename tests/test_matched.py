@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 from test_generalise import _error, _sweep_case
 
-from mems_stereo.pipeline.matched import _box_sums, merge_peaks
+import mems_stereo.pipeline.matched as matched
+from mems_stereo.pipeline.matched import _box_sums, _BoxGrid, merge_peaks
 from mems_stereo.pipeline.peaks import Peaks
 
 
@@ -65,3 +66,62 @@ def test_background_alone_gives_no_point():
                        background_hz=bg, dark_count_hz=1e3)
         res = process_recording(rec)
         assert len(res.peaks) == 0 and len(res.cloud) == 0
+
+
+def _planted_grid(rng, n_steps, n_cell, j0, k0, signal):
+    """A candidate's grid: accepted codes 1..4·n_cell at every step, 3 shots per step,
+    background h = 2e-3 per code, Poisson counts of it, plus ``signal`` detections
+    spread over a box around step j0, cell k0 (cells of 4 codes)."""
+    cell, c_lo = 4, 1
+    lo = np.full(n_steps, 1)
+    hi = np.full(n_steps, cell * n_cell)
+    nps = np.full(n_steps, 3.0)
+    log1mh = np.log1p(-2e-3)
+    g = _BoxGrid(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), lo, hi, nps,
+                 c_lo, cell, log1mh, n_steps, n_cell)
+    B = g.background(0, n_steps, 0, n_cell)
+    D = rng.poisson(B)
+    for _ in range(signal):
+        D[j0 + rng.integers(-10, 11), k0 + rng.integers(-2, 3)] += 1
+    ds, dc = np.nonzero(D)
+    return _BoxGrid(ds, dc, D[ds, dc].astype(float), lo, hi, nps, c_lo, cell, log1mh,
+                    n_steps, n_cell)
+
+
+def test_coarse_to_fine_search_finds_the_exact_best_box(rng, monkeypatch):
+    """Over a whole scan's grid (too large to search at every position) the coarse
+    search and its exact refinement find the box the exhaustive search finds; where
+    nothing is planted, the refined p is never below the exhaustive one (a subset of
+    the positions)."""
+    for trial in range(4):
+        j0, k0 = int(rng.integers(60, 2940)), int(rng.integers(20, 380))
+        g = _planted_grid(rng, 3000, 400, j0, k0, 60 if trial < 3 else 0)
+        monkeypatch.setattr(matched, "FULL_SCAN_CELLS", 10 ** 9)
+        exact = g.best(41, 25, 3)
+        monkeypatch.setattr(matched, "FULL_SCAN_CELLS", 1000)
+        fast = g.best(41, 25, 3)
+        assert fast is not None and exact is not None
+        assert fast[0] >= exact[0] * (1 - 1e-9)  # (sums in another order)
+        if trial < 3:
+            assert np.isclose(fast[0], exact[0], rtol=1e-9, atol=0)
+            assert abs(fast[1] - j0) <= 20 and abs(fast[2] - k0) <= 12
+
+
+_CASE_30003 = {"objects": [
+    {"type": "plane", "center": [0.0, 0.0, 7.775862539268064],
+     "normal": [-0.4465875947056219, 0.0, -0.8947399176604602],
+     "size": [23.7266000593786, 3.0], "reflectivity": 0.6515530555242236}]}
+
+
+def test_return_far_from_the_first_stages_window_is_found():
+    """Sweep case 30003's kind (a wall at 7.8 m, 27°, 6 cm baseline, 13 MHz): the
+    accepted code intervals are hundreds of codes wide and the first stage's strongest
+    window sits where the background bunched, 1,000–8,000 steps from the return; the
+    matched filter searches each pixel's whole scan (and every pixel without a first
+    stage peak): many more points, none false."""
+    scene, c = _sweep_case(-0.056817233668719186, -0.008949375738768226, 0.7822713039250917,
+                           0.0009434089419002173, _CASE_30003, 63100, 30003,
+                           13257826.688722005)
+    assert len(c) >= 60, len(c)  # 19 with the first stage's window only
+    bad = np.abs(_error(scene, c)) > np.maximum(3 * c["sigma_r"], 0.10)
+    assert not np.any(bad)

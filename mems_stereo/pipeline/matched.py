@@ -55,6 +55,18 @@ MATCHED_SHARE = 0.5
 #: cells of codes per half box (the box is ± one FWHM to within a cell; coarser
 #: cells, 4 per half box, lost half the confirmations of sweep case 15015)
 CELLS_PER_HALF_BOX = 24
+#: the most (step × cell) positions a candidate's grid is searched at in full; beyond
+#: (a whole scan's band of steps: candidates search it all, see
+#: :data:`~mems_stereo.pipeline.peaks.CANDIDATE_WHOLE_SCAN`), coarse to fine
+FULL_SCAN_CELLS = 400_000
+#: coarse blocks per box side in the coarse search (a box quantised to within 1/4;
+#: sweep case 30003 keeps the 68 points of 1/8 with a quarter of the coarse grid)
+COARSE_BOX_UNITS = 4
+#: coarse boxes refined exactly
+COARSE_TOP = 4
+#: in the refinement the Poisson tail is evaluated only at boxes whose deviance
+#: N ln(N/B) − (N − B) is within this of the largest
+DEVIANCE_MARGIN = 5.0
 
 
 def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
@@ -95,10 +107,14 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
     level = np.zeros(C)
     pix = cands.pixel(W)
-    for i in range(C):
-        a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
-        if start[i + 1] <= start[i]:
-            continue
+    half_c = m // cell
+    box_codes = (2 * half_c + 1) * cell
+    local_lo = getattr(cands, "local_lo", None)
+    local_hi = getattr(cands, "local_hi", None)
+
+    def search(i, a, b, whole):
+        """The candidate's best box over steps a..b: ``(p, j0, c0, count, background,
+        level, code positions per window)`` or None."""
         steps = np.arange(a, b + 1)
         shot = n_per_step[steps] > 0  # steps without valid shots hold nothing
         table.ensure(steps[shot])
@@ -106,52 +122,70 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         hi = np.where(shot, table.hi[steps, pix[i]], 0).astype(np.int64)
         okj = lo <= hi
         if not np.any(okj):
-            continue
+            return None
         sl = slice(start[i], start[i + 1])
+        e_step, e_code, e_cnt = step[sl], code[sl], cnt[sl]
+        inside = (e_step >= a) & (e_step <= b)
+        if not np.all(inside):
+            e_step, e_code, e_cnt = e_step[inside], e_code[inside], e_cnt[inside]
+        if e_step.size == 0:
+            return None
         # codes: the accepted ones within one box of a counted detection (elsewhere
         # no box reaches min_counts)
-        c_lo = max(int(lo[okj].min()), int(code[sl].min()) - m)
-        c_hi = min(int(hi[okj].max()), int(code[sl].max()) + m)
+        c_lo = max(int(lo[okj].min()), int(e_code.min()) - m)
+        c_hi = min(int(hi[okj].max()), int(e_code.max()) + m)
         # codes in cells of ``cell`` (a quarter of the box's half-width): the box is
         # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
         n_cell = (c_hi - c_lo) // cell + 1
-        D = np.zeros((steps.size, n_cell))
-        np.add.at(D, (step[sl] - a, (code[sl] - c_lo) // cell), cnt[sl])
         h = -np.expm1(-float(np.nan_to_num(cands.rate_hz[i])) * bw)
-        log1mh = np.log1p(-min(h, 1 - 1e-15))
-        # background of cell k at step j: the valid shots times P(first photon in the
-        # cell's codes ∩ [lo_j, hi_j]), F(c) = 1 − (1 − h)^c the chance it came by code c
-        e_lo = c_lo + cell * np.arange(n_cell)
-        a_c = np.maximum(e_lo[None, :], lo[:, None])
-        b_c = np.minimum(e_lo[None, :] + cell - 1, hi[:, None])
-        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * log1mh) - np.exp(b_c * log1mh), 0.0)
-        B = n_per_step[steps][:, None] * pr
-        half_c = m // cell
-        N_box = _box_sums(D, width, 2 * half_c + 1)
-        B_box = _box_sums(B, width, 2 * half_c + 1)
-        # whole boxes only: the box's steps inside the counted band
-        half = width // 2
-        valid = np.zeros(N_box.shape, bool)
-        if steps.size > 2 * half:
-            valid[half:steps.size - half, :] = True
-        valid &= (N_box >= settings.min_counts) & (N_box > B_box)
-        if not np.any(valid):
+        grid = _BoxGrid(e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi,
+                        n_per_step[steps], c_lo, cell, np.log1p(-min(h, 1 - 1e-15)),
+                        steps.size, n_cell)
+        box = grid.best(width, 2 * half_c + 1, settings.min_counts)
+        if box is None:
+            return None
+        p_min, jj, ci, n_box, b_box = box
+        if whole:
+            # the box positions of the whole scan: its accepted (step, code) area over
+            # one box's, as code positions per footprint window (the widest interval
+            # times the windows over-counts them where the width varies: a scan past
+            # the beam's vanishing point accepts every code at a few steps)
+            area = float(np.sum(hi[okj] - lo[okj] + 1))
+            n_code_pos = max(1.0, area / (width * box_codes) / max(1.0, float(n_windows[i])))
+        else:  # the first stage's window: the code boxes of its widest interval
+            n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / box_codes)
+        lvl = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
+        return (p_min, a + jj, c_lo + ci * cell + cell // 2, n_box, b_box, lvl, n_code_pos)
+
+    for i in range(C):
+        if start[i + 1] <= start[i]:
             continue
-        with np.errstate(invalid="ignore"):
-            p = np.where(valid, pdtrc(np.maximum(N_box - 1, 0), np.maximum(B_box, 1e-12)), 1.0)
-        k = int(np.argmin(p))
-        jj, ci = divmod(k, n_cell)
-        n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / ((2 * half_c + 1) * cell))
-        level[i] = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
-        p_best[i] = p[jj, ci]
-        best[i] = (a + jj, c_lo + ci * cell + cell // 2, N_box[jj, ci], B_box[jj, ci])
+        # two tests, each at the stage's share of false_alarm: the footprints around
+        # the first stage's strongest window (a near miss of that stage, the
+        # confirmations of before), then the candidate's whole scan (where the
+        # accepted interval is much wider than the pulse that window is where the
+        # background bunched: sweep case 30003, the returns 1,000–8,000 steps from it)
+        res = None
+        if local_lo is not None and local_lo[i] >= 0:
+            res = search(i, int(local_lo[i]), int(local_hi[i]), False)
+        a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
+        if (res is None or not res[0] < res[5]) and not (
+                local_lo is not None and (local_lo[i], local_hi[i]) == (a, b)):
+            whole = search(i, a, b, True)
+            if whole is not None and (res is None or whole[0] < whole[5]):
+                res = whole
+        if res is None:
+            continue
+        p_best[i], j0, c0, n_box, b_box, level[i], n_code_pos = res
+        best[i] = (j0, c0, n_box, b_box)
         # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
-        # it lets ~10× more through, the box sliding by single steps and cells of
-        # 1/24 FWHM: bench_false_alarms.py, docs/pipeline.md); the scan p-value over
-        # the whole scan's boxes for the per-frame level
+        # it lets 10–30× more through, the box sliding by single steps and cells of
+        # 1/24 FWHM: bench_false_alarms.py, docs/pipeline.md — a confirmation also needs
+        # support on a surface a first-stage peak found, or the per-frame level); the
+        # scan p-value over the whole scan's boxes for the per-frame level (at the
+        # per-pixel level it kept 36 of sweep case 30018's 88 points)
         found[i] = p_best[i] < level[i]
-        p_frame[i] = scan_box_sf(N_box[jj, ci], B_box[jj, ci], max(1.0, n_windows[i]),
-                                 n_code_pos)
+        p_frame[i] = scan_box_sf(n_box, b_box, max(1.0, n_windows[i]), n_code_pos)
     # support grows from the first stage's peaks only (a chain of confirmations may
     # extend a surface they found); a confirmation without good support carries the
     # look-elsewhere of the whole sensor (two neighbouring near misses of
@@ -193,6 +227,140 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
                  step_lo=step_lo.astype(np.int64), step_hi=step_hi.astype(np.int64),
                  counts=np.rint(best[sel, 2]).astype(np.int64), background=best[sel, 3],
                  rate_hz=cands.rate_hz[sel], background_by_step=rows_bbs)
+
+
+class _BoxGrid:
+    """One candidate's counts and expected background over its counted steps × code
+    cells, and the smallest Poisson p-value of the (footprint × code) box over them.
+
+    ``ds``, ``dc``, ``cnt`` : (E,) each entry's step and cell index (0-based within
+    the candidate's grid) and count; ``lo``, ``hi`` : (n_steps,) the accepted codes of
+    each step; ``nps`` : (n_steps,) its valid shots; cell ``k`` holds codes
+    ``c_lo + cell·k …`` ; ``log1mh`` : ln(1 − h), h the chance of a background first
+    photon per code.  The background of cell k at step j is the valid shots times
+    P(first photon in the cell's codes ∩ [lo_j, hi_j]), F(c) = 1 − (1 − h)^c the chance
+    it came by code c (the free-running expectation: conservative).
+    """
+
+    def __init__(self, ds, dc, cnt, lo, hi, nps, c_lo, cell, log1mh, n_steps, n_cell):
+        self.ds, self.dc, self.cnt = ds, dc, cnt
+        self.lo, self.hi, self.nps = lo, hi, nps
+        self.c_lo, self.cell, self.log1mh = c_lo, cell, log1mh
+        self.n_steps, self.n_cell = n_steps, n_cell
+
+    def counts(self, j0, j1, k0, k1, fs=1, fc=1):
+        """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
+        k0..k1−1, summed in blocks of fs steps × fc cells."""
+        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
+        D = np.zeros((-(-(j1 - j0) // fs), -(-(k1 - k0) // fc)))
+        np.add.at(D, ((self.ds[m] - j0) // fs, (self.dc[m] - k0) // fc), self.cnt[m])
+        return D
+
+    def background(self, j0, j1, k0, k1, fs=1, fc=1):
+        """The expected background of the same blocks (see :meth:`counts`)."""
+        e_lo = self.c_lo + self.cell * (k0 + fc * np.arange(-(-(k1 - k0) // fc)))
+        e_hi = np.minimum(e_lo + self.cell * fc - 1, self.c_lo + self.cell * k1 - 1)
+        a_c = np.maximum(e_lo[None, :], self.lo[j0:j1, None])
+        b_c = np.minimum(e_hi[None, :], self.hi[j0:j1, None])
+        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * self.log1mh)
+                      - np.exp(b_c * self.log1mh), 0.0)
+        B = self.nps[j0:j1, None] * pr
+        if fs > 1:
+            B = np.add.reduceat(B, np.arange(0, j1 - j0, fs), axis=0)
+        return B
+
+    def coarse_background(self, fs: int, fc: int):
+        """The background of blocks of ``fs`` steps × ``fc`` cells over the whole grid,
+        each block of steps taken as its valid shots over the union of its accepted
+        codes (an over-estimate at the intervals' ends only: the coarse search ranks
+        boxes, the exact background is the refinement's)."""
+        n = self.n_steps
+        starts = np.arange(0, n, fs)
+        shot = (self.nps > 0) & (self.lo <= self.hi)
+        big = np.iinfo(np.int64).max
+        lo = np.minimum.reduceat(np.where(shot, self.lo, big), starts)
+        hi = np.maximum.reduceat(np.where(shot, self.hi, -1), starts)
+        nps = np.add.reduceat(np.where(shot, self.nps, 0.0), starts)
+        g = _BoxGrid(None, None, None, lo, hi, nps, self.c_lo, self.cell, self.log1mh,
+                     starts.size, self.n_cell)
+        return g.background(0, starts.size, 0, self.n_cell, 1, fc)
+
+    def best(self, box_s: int, box_c: int, min_counts: int):
+        """``(p, j, k, count, background)`` of the box (``box_s`` steps × ``box_c``
+        cells, whole in steps) with the smallest Poisson p-value, or None.
+
+        Every box position where the grid holds at most :data:`FULL_SCAN_CELLS`
+        cells; a larger one (a scan's whole band of steps) is searched coarse to
+        fine: boxes of blocks of about 1/:data:`COARSE_BOX_UNITS` of a box, then the
+        exact boxes around the :data:`COARSE_TOP` best of them (a subset of the
+        positions: the false-alarm level, set for all of them, holds)."""
+        n, nc = self.n_steps, self.n_cell
+        if n * nc <= FULL_SCAN_CELLS:
+            return _smallest_p(self.counts(0, n, 0, nc), self.background(0, n, 0, nc),
+                               box_s, box_c, min_counts)
+        fs = max(1, box_s // COARSE_BOX_UNITS)
+        fc = max(1, box_c // COARSE_BOX_UNITS)
+        bs, bc = -(-box_s // fs) | 1, -(-box_c // fc) | 1
+        coarse = _smallest_p(self.counts(0, n, 0, nc, fs, fc), self.coarse_background(fs, fc),
+                             bs, bc, min_counts, top=COARSE_TOP)
+        if coarse is None:
+            return None
+        out = None
+        for jc, kc in coarse:
+            j0 = max(0, (jc - bs // 2 - 1) * fs)
+            j1 = min(n, (jc + bs // 2 + 2) * fs)
+            k0 = max(0, (kc - bc // 2 - 1) * fc)
+            k1 = min(nc, (kc + bc // 2 + 2) * fc)
+            # boxes whole in the window's cells too, except at the grid's own edges
+            # (the whole search's boxes run over them; a box cut at the window's edge
+            # would lose background the whole one carries)
+            r = _smallest_p(self.counts(j0, j1, k0, k1), self.background(j0, j1, k0, k1),
+                            box_s, box_c, min_counts, cut=(k0 == 0, k1 == nc),
+                            prefilter=True)
+            if r is not None and (out is None or r[0] < out[0]):
+                out = (r[0], r[1] + j0, r[2] + k0, r[3], r[4])
+        return out
+
+
+def _smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
+                cut=(True, True), prefilter: bool = False):
+    """Over the boxes of ``box_s`` × ``box_c`` (whole in the first axis) of counts ``D``
+    against background ``B``: ``(p, j, k, count, background)`` of the smallest
+    Poisson p-value, or with ``top`` the (j, k) of the ``top`` smallest; None if no
+    box holds ``min_counts`` above its background.  ``cut`` : whether boxes may run
+    over the first / last column (else they are whole there too); ``prefilter`` : the
+    tail only at boxes whose Poisson deviance is within :data:`DEVIANCE_MARGIN` of the
+    largest (the smallest p lies among them: ln p ≈ −deviance up to slowly varying
+    terms)."""
+    N_box = _box_sums(D, box_s, box_c)
+    B_box = _box_sums(B, box_s, box_c)
+    half = box_s // 2
+    valid = np.zeros(N_box.shape, bool)
+    if D.shape[0] > 2 * half:
+        valid[half:D.shape[0] - half, :] = True
+    hc = box_c // 2
+    if not cut[0]:
+        valid[:, :hc] = False
+    if not cut[1]:
+        valid[:, max(0, D.shape[1] - hc):] = False
+    valid &= (N_box >= min_counts) & (N_box > B_box)
+    if not np.any(valid):
+        return None
+    if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
+        flat = np.flatnonzero(valid)
+        n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        order = flat[np.argsort(-dev, kind="stable")[:top]]
+        return [divmod(int(k), D.shape[1]) for k in order]
+    if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
+        n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
+    with np.errstate(invalid="ignore"):
+        p = np.where(valid, pdtrc(np.maximum(N_box - 1, 0), np.maximum(B_box, 1e-12)), 1.0)
+    k = int(np.argmin(p))
+    jj, ci = divmod(k, D.shape[1])
+    return p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci]
 
 
 def scan_box_sf(k, mu, n_windows, n_code_pos) -> float:
