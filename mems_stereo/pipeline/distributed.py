@@ -106,6 +106,9 @@ BLOCKS_PER_WORKER = 8
 #: blocks of pixels per worker in which :func:`process_split` runs the peak detector
 #: (its per-pixel stages; the neighbour support between them on the client)
 PEAK_BLOCKS_PER_WORKER = 1
+#: blocks of the matched filter's candidates scored per worker (their whole-scan
+#: searches differ in cost: a few blocks each even the load)
+SCORE_BLOCKS_PER_WORKER = 4
 
 #: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
@@ -475,13 +478,44 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             both = with_widened_candidates(first, cands, S)
             shared["both_f"] = pass2_sum(_scatter_one(client, both))
             shared["cands"] = cands
-            return waits(client.submit(select_counts, shared["both_f"],
-                                       *candidate_selection(len(first), cands), S, n_codes,
-                                       pure=False).result)
+            # stays on the workers: score_cands reads it there
+            return client.submit(select_counts, shared["both_f"],
+                                 *candidate_selection(len(first), cands), S, n_codes,
+                                 pure=False)
+
+        def score_cands(cands, cc_f):
+            # the matched filter's search per candidate (a pixel's whole scan: the
+            # costly part of the stage) in blocks on the workers, next to the counts;
+            # the client joins a few numbers per candidate and runs the support test
+            from mems_stereo.pipeline.matched import (
+                candidates_block,
+                join_scores,
+                split_candidate_counts,
+            )
+
+            C = len(cands)
+            if C == 0:
+                return None
+            edges = shot_ranges(C, min(C, n_w * SCORE_BLOCKS_PER_WORKER))
+            split_f = client.submit(split_candidate_counts, cc_f, edges, S, n_codes,
+                                    pure=False)
+            # (hash=False: the fusion scatters the same array later; a content-hashed
+            # key released here would be lost to it)
+            nps_f = client.scatter(acc.n_per_step, broadcast=True, hash=False)
+            addr = _worker_addresses(client)
+            futs = [client.submit(_score_candidates_block, sysm,
+                                  *candidates_block(cands, cands.n_windows, a, b),
+                                  client.submit(operator.getitem, split_f, i, pure=False),
+                                  table_f, nps_f, st, cands.width, pure=False,
+                                  workers=[addr[i % len(addr)]] if addr else None,
+                                  allow_other_workers=True)
+                    for i, (a, b) in enumerate(edges)]
+            return join_scores(waits(client.gather, futs))
 
         res = finish_processing(path, sysm, header, theta, valid, acc, st, timings,
                                 count_peaks=count_peaks, make_points=make_points, table=table,
-                                count_candidates=count_candidates, detect=detect)
+                                count_candidates=count_candidates, detect=detect,
+                                score_candidates=score_cands)
         t_end = time.perf_counter()
         c_end = time.process_time()
         m_end = time.thread_time()
@@ -546,6 +580,15 @@ def _scores_block(rows, system, settings, table, p0, p1):
     sig, noise, angle, n_per_step = rows
     return peak_scores(system, sig, noise, angle, n_per_step, table, settings,
                        np.arange(p0, p1))
+
+
+def _score_candidates_block(system, cands, n_windows, counts, table, n_per_step, settings,
+                            width):
+    """:func:`~mems_stereo.pipeline.matched.score_candidates` of a block of candidates."""
+    from mems_stereo.pipeline.matched import score_candidates
+
+    return score_candidates(system, cands, counts, table, n_per_step, settings, width,
+                            n_windows)
 
 
 def _support_inputs(scores):

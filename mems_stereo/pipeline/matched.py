@@ -69,27 +69,17 @@ COARSE_TOP = 4
 DEVIANCE_MARGIN = 5.0
 
 
-def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
-            settings: Settings, width: int, n_windows, peak_pixels, peak_steps=None,
-            log_range_of=None) -> Peaks:
-    """The candidates that the matched filter confirms, as :class:`Peaks`.
+def score_candidates(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
+                     settings: Settings, width: int, n_windows) -> dict:
+    """Each candidate's best box and its tests (the per-candidate part of
+    :func:`confirm`, which a Dask run computes in blocks of candidates on its workers,
+    where their counts are: :func:`candidates_block`).
 
-    ``cands`` : candidate peaks (their ``step_lo..step_hi`` the steps counted in
-    ``counts``, ``code`` unused, ``background_by_step`` over a band that holds
-    every confirmed peak's); ``counts`` : their pass-2 counts; ``table`` :
-    the run's interval table; ``n_per_step`` : (S,) valid shots per step;
-    ``width`` : footprint in steps; ``n_windows`` : (C,) footprint-window
-    positions of each candidate's scan (the first stage's); ``peak_pixels`` : (Q,)
-    flat pixels of the first stage's peaks (neighbour support), ``peak_steps`` :
-    (Q,) their centre steps;
-    ``log_range_of(pix, j)`` : log range of pixel ``pix`` at step ``j``: given, support
-    is by range (:func:`mems_stereo.pipeline.peaks.support_ranges`), optional.  The
-    confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)``
-    in pass 2, as the first stage's for a cluster one footprint wide.
-    """
+    Returns (C,) arrays ``found`` (bool: the box passes its test's per-pixel level),
+    ``best`` (C, 4) (centre step, centre code, count, background), ``p_best``,
+    ``p_frame`` (the box's scan p-value over the whole scan) and ``level``."""
     C = len(cands)
     W = system.receiver.width
-    P = W * system.receiver.height
     n_bins = system.tdc.n_bins
     S = table.n_steps
     bw = system.tdc.bin_width
@@ -186,6 +176,72 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
         # per-pixel level it kept 36 of sweep case 30018's 88 points)
         found[i] = p_best[i] < level[i]
         p_frame[i] = scan_box_sf(n_box, b_box, max(1.0, n_windows[i]), n_code_pos)
+    return {"found": found, "best": best, "p_best": p_best, "p_frame": p_frame,
+            "level": level}
+
+
+def candidates_block(cands: Peaks, n_windows, i0: int, i1: int):
+    """``(candidates i0..i1−1, their n_windows)``: the fields :func:`score_candidates`
+    reads (no ``background_by_step``), for a block scored elsewhere."""
+    sub = Peaks(**{f: np.asarray(getattr(cands, f))[i0:i1]
+                   for f in Peaks.__dataclass_fields__ if f != "background_by_step"})
+    for name in ("local_lo", "local_hi"):
+        v = getattr(cands, name, None)
+        if v is not None:
+            setattr(sub, name, np.asarray(v)[i0:i1])
+    return sub, np.asarray(n_windows)[i0:i1]
+
+
+def split_candidate_counts(counts: PeakCounts, edges, n_steps: int,
+                           n_codes: int) -> list[PeakCounts]:
+    """The counts of candidates ``i0..i1−1`` for each ``(i0, i1)`` of ``edges``,
+    renumbered from 0 (keys of :func:`~mems_stereo.pipeline.pass2.encode_peak_keys`,
+    sorted: contiguous slices)."""
+    span = np.int64(n_steps) * np.int64(n_codes)
+    out = []
+    for i0, i1 in edges:
+        a, b = np.searchsorted(counts.keys, [np.int64(i0) * span, np.int64(i1) * span])
+        out.append(PeakCounts(counts.keys[a:b] - np.int64(i0) * span, counts.counts[a:b]))
+    return out
+
+
+def join_scores(parts) -> dict:
+    """:func:`score_candidates`'s results of consecutive blocks, joined."""
+    parts = list(parts)
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
+            settings: Settings, width: int, n_windows, peak_pixels, peak_steps=None,
+            log_range_of=None, scores: dict | None = None) -> Peaks:
+    """The candidates that the matched filter confirms, as :class:`Peaks`.
+
+    ``cands`` : candidate peaks (their ``step_lo..step_hi`` the steps counted in
+    ``counts``, ``code`` unused, ``background_by_step`` over a band that holds
+    every confirmed peak's); ``counts`` : their pass-2 counts; ``table`` :
+    the run's interval table; ``n_per_step`` : (S,) valid shots per step;
+    ``width`` : footprint in steps; ``n_windows`` : (C,) footprint-window
+    positions of each candidate's scan (the first stage's); ``peak_pixels`` : (Q,)
+    flat pixels of the first stage's peaks (neighbour support), ``peak_steps`` :
+    (Q,) their centre steps;
+    ``log_range_of(pix, j)`` : log range of pixel ``pix`` at step ``j``: given, support
+    is by range (:func:`mems_stereo.pipeline.peaks.support_ranges`), optional.  The
+    confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)``
+    in pass 2, as the first stage's for a cluster one footprint wide.
+    ``scores`` : :func:`score_candidates`'s result, if computed elsewhere (``counts``
+    is then not read).
+    """
+    C = len(cands)
+    W = system.receiver.width
+    P = W * system.receiver.height
+    n_bins = system.tdc.n_bins
+    S = table.n_steps
+    if scores is None:
+        scores = score_candidates(system, cands, counts, table, n_per_step, settings, width,
+                                  n_windows)
+    found = np.array(scores["found"], bool)
+    best, p_frame = scores["best"], scores["p_frame"]
+    pix = cands.pixel(W)
     # support grows from the first stage's peaks only (a chain of confirmations may
     # extend a surface they found); a confirmation without good support carries the
     # look-elsewhere of the whole sensor (two neighbouring near misses of
@@ -356,8 +412,9 @@ def _smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
         n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
         dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
         valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
+    p = np.ones(N_box.shape)  # the tail at the valid boxes only (pdtrc is the cost)
     with np.errstate(invalid="ignore"):
-        p = np.where(valid, pdtrc(np.maximum(N_box - 1, 0), np.maximum(B_box, 1e-12)), 1.0)
+        p[valid] = pdtrc(np.maximum(N_box[valid] - 1, 0), np.maximum(B_box[valid], 1e-12))
     k = int(np.argmin(p))
     jj, ci = divmod(k, D.shape[1])
     return p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci]

@@ -282,7 +282,8 @@ def process_recording(path, system: System | None = None,
 def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, st: Settings,
                       timings: dict, count_peaks=None, progress=None,
                       table: IntervalTable | None = None, make_points=None,
-                      count_candidates=None, detect=None) -> ProcessResult:
+                      count_candidates=None, detect=None,
+                      score_candidates=None) -> ProcessResult:
     """Peaks, background and points from the accumulated histograms.
 
     ``count_peaks(peaks) -> PeakCounts`` runs pass 2 over the whole recording
@@ -297,6 +298,9 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     ``detect(signal, noise) -> (Peaks, background_hz)`` runs the peak detector
     (default: :func:`~mems_stereo.pipeline.peaks.find_peaks` here, on
     ``acc.hist_angle``; the Dask runner scores blocks of pixels on its workers).
+    ``score_candidates(candidates, counts) -> dict`` the matched filter's
+    per-candidate search (default: :func:`~mems_stereo.pipeline.matched.score_candidates`
+    here; the Dask runner scores blocks of candidates where their counts are).
     """
     from mems_stereo.pipeline.peaks import find_peaks
 
@@ -320,7 +324,7 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
     if big:  # the detector's (P, S) temporaries are freed: give them back
         release_freed_memory()
     peaks = matched_stage(path, sysm, theta, valid, st, peaks, table, acc.n_per_step,
-                          count_candidates)
+                          count_candidates, score_candidates)
     timings["peaks"] = time.perf_counter() - t2
     t3 = time.perf_counter()
     if count_peaks is None:
@@ -348,7 +352,7 @@ def finish_processing(path, sysm, header, theta, valid, acc: RangeAccumulation, 
 
 
 def matched_stage(path, sysm, theta, valid, st: Settings, peaks, table, n_per_step,
-                  count_candidates=None):
+                  count_candidates=None, score_candidates=None):
     """The first stage's peaks plus the near misses that the matched filter over
     angle × code confirms (:mod:`mems_stereo.pipeline.matched`; their detections
     are counted here, in one pass over the candidates' steps, or by
@@ -362,9 +366,11 @@ def matched_stage(path, sysm, theta, valid, st: Settings, peaks, table, n_per_st
     cc = (peak_counts_range(path, sysm, theta, valid, st, cands, table=table)
           if count_candidates is None else count_candidates(cands))
     W = sysm.receiver.width
+    scores = None if score_candidates is None else score_candidates(cands, cc)
     new = confirm(sysm, cands, cc, table, n_per_step, st, cands.width, cands.n_windows,
                   peaks.pixel(W), (peaks.step_lo + peaks.step_hi) // 2,
-                  log_range_of=lambda pix, j: pixel_log_range(sysm, table, pix, j))
+                  log_range_of=lambda pix, j: pixel_log_range(sysm, table, pix, j),
+                  scores=scores)
     return merge_peaks(peaks, new)
 
 
