@@ -59,6 +59,9 @@ CELLS_PER_HALF_BOX = 24
 #: (a whole scan's band of steps: candidates search it all, see
 #: :data:`~mems_stereo.pipeline.peaks.CANDIDATE_WHOLE_SCAN`), coarse to fine
 FULL_SCAN_CELLS = 400_000
+#: the same for a whole scan's grid (thousands of steps × a narrow interval: the
+#: exhaustive search took 40–50 ms a pixel on the dense floodlight, the coarse one 5)
+WHOLE_SCAN_FULL_CELLS = 50_000
 #: coarse blocks per box side in the coarse search (a box quantised to within 1/4;
 #: sweep case 30003 keeps the 68 points of 1/8 with a quarter of the coarse grid)
 COARSE_BOX_UNITS = 4
@@ -131,7 +134,8 @@ def score_candidates(system: System, cands: Peaks, counts: PeakCounts, table, n_
         grid = _BoxGrid(e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi,
                         n_per_step[steps], c_lo, cell, np.log1p(-min(h, 1 - 1e-15)),
                         steps.size, n_cell)
-        box = grid.best(width, 2 * half_c + 1, settings.min_counts)
+        box = grid.best(width, 2 * half_c + 1, settings.min_counts,
+                        WHOLE_SCAN_FULL_CELLS if whole else None)
         if box is None:
             return None
         p_min, jj, ci, n_box, b_box = box
@@ -341,17 +345,18 @@ class _BoxGrid:
                      starts.size, self.n_cell)
         return g.background(0, starts.size, 0, self.n_cell, 1, fc)
 
-    def best(self, box_s: int, box_c: int, min_counts: int):
+    def best(self, box_s: int, box_c: int, min_counts: int, full_cells: int | None = None):
         """``(p, j, k, count, background)`` of the box (``box_s`` steps × ``box_c``
         cells, whole in steps) with the smallest Poisson p-value, or None.
 
-        Every box position where the grid holds at most :data:`FULL_SCAN_CELLS`
-        cells; a larger one (a scan's whole band of steps) is searched coarse to
-        fine: boxes of blocks of about 1/:data:`COARSE_BOX_UNITS` of a box, then the
+        Every box position where the grid holds at most ``full_cells`` (default
+        :data:`FULL_SCAN_CELLS`) cells; a larger one (a scan's whole band of steps)
+        is searched coarse to fine: boxes of blocks of about
+        1/:data:`COARSE_BOX_UNITS` of a box, then the
         exact boxes around the :data:`COARSE_TOP` best of them (a subset of the
         positions: the false-alarm level, set for all of them, holds)."""
         n, nc = self.n_steps, self.n_cell
-        if n * nc <= FULL_SCAN_CELLS:
+        if n * nc <= (FULL_SCAN_CELLS if full_cells is None else full_cells):
             return _smallest_p(self.counts(0, n, 0, nc), self.background(0, n, 0, nc),
                                box_s, box_c, min_counts)
         fs = max(1, box_s // COARSE_BOX_UNITS)
