@@ -24,6 +24,18 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+
+#: the first lines of a child snippet that imports another commit's package: the
+#: folder in ``BENCH_PACKAGE_SRC`` (a ``git archive`` of ``mems_stereo``) ahead of the
+#: editable install's finder
+PACKAGE_PRELUDE = r"""
+import json, os, sys, time
+src = os.environ.get("BENCH_PACKAGE_SRC")
+if src:  # another commit's package: ahead of the editable install's finder
+    sys.meta_path[:] = [f for f in sys.meta_path
+                        if "__editable__" not in getattr(f, "__module__", "")]
+    sys.path.insert(0, src)
+"""
 SEGMENT = 50_000  # shots simulated at a time
 
 

@@ -41,7 +41,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _dense import make_dense_recording, measure_child, read_copy_seconds  # noqa: E402
+from _dense import (  # noqa: E402
+    PACKAGE_PRELUDE,
+    make_dense_recording,
+    measure_child,
+    read_copy_seconds,
+)
 
 from mems_stereo.io.recording import RecordingWriter, read_recording  # noqa: E402
 
@@ -80,13 +85,7 @@ def make_recording(path: Path, gigabytes: float) -> int:
     return n
 
 
-PROCESS = r"""
-import json, os, sys, time
-src = os.environ.get("BENCH_PACKAGE_SRC")
-if src:  # another commit's package: ahead of the editable install's finder
-    sys.meta_path[:] = [f for f in sys.meta_path
-                        if "__editable__" not in getattr(f, "__module__", "")]
-    sys.path.insert(0, src)
+PROCESS = PACKAGE_PRELUDE + r"""
 t0 = time.perf_counter()
 from mems_stereo.pipeline.run import process_recording
 t1 = time.perf_counter()

@@ -34,14 +34,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from _dense import PACKAGE_PRELUDE  # noqa: E402
 
-CHILD = r"""
-import json, os, sys
-src = os.environ.get("BENCH_PACKAGE_SRC")
-if src:  # another commit's package, ahead of the editable install's finder
-    sys.meta_path[:] = [f for f in sys.meta_path
-                        if "__editable__" not in getattr(f, "__module__", "")]
-    sys.path.insert(0, src)
+CHILD = PACKAGE_PRELUDE + r"""
 import numpy as np
 import mems_stereo as ms
 from mems_stereo.calib.calibrate import calibrate_system, read_target_distances

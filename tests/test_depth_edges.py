@@ -9,8 +9,9 @@ from mems_stereo.model.system import burkard2022
 from mems_stereo.pipeline.peak_means import PeakMeans
 
 
-def _edges(ranges, sigma):
-    """Edge flags of one row of points at ``ranges`` (m, NaN: no point) along +z."""
+def _row(ranges, sigma):
+    """``(PeakMeans, x, C, keep)`` of one row of points at ``ranges`` (m, NaN: no point)
+    along +z, σ ``sigma`` in range."""
     r = np.asarray(ranges, np.float64)
     Q = r.size
     x = np.zeros((Q, 3))
@@ -22,7 +23,13 @@ def _edges(ranges, sigma):
     pm.system, pm.k, pm.Q = burkard2022(), 2.97, Q
     pm.rows = np.zeros(Q, np.int64)
     pm.cols = np.arange(Q, dtype=np.int64) + 50
-    return pm._depth_edges(x, C, np.isfinite(r))
+    return pm, x, C, np.isfinite(r)
+
+
+def _edges(ranges, sigma):
+    """Edge flags of one row of points (see :func:`_row`)."""
+    pm, x, C, keep = _row(ranges, sigma)
+    return pm._depth_edges(x, C, keep)
 
 
 def test_inclined_surface_is_not_an_edge():
@@ -46,19 +53,8 @@ def test_silhouette_and_straddling_pixel_are_edges():
 
 
 def _mixed(ranges, sigma):
-    """Mixed-pixel σ (m) of one row of points at ``ranges`` (NaN: no point)."""
-    r = np.asarray(ranges, np.float64)
-    Q = r.size
-    x = np.zeros((Q, 3))
-    x[:, 2] = np.nan_to_num(r)
-    C = np.zeros((Q, 3, 3))
-    C[:, 2, 2] = sigma ** 2
-    C[:, 0, 0] = C[:, 1, 1] = 1e-12
-    pm = PeakMeans.__new__(PeakMeans)
-    pm.system, pm.k, pm.Q = burkard2022(), 2.97, Q
-    pm.rows = np.zeros(Q, np.int64)
-    pm.cols = np.arange(Q, dtype=np.int64) + 50
-    keep = np.isfinite(r)
+    """Mixed-pixel σ (m) of one row of points (see :func:`_row`)."""
+    pm, x, C, keep = _row(ranges, sigma)
     return pm._mixed_pixels(x, C, keep, pm._depth_edges(x, C, keep))
 
 
