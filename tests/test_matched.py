@@ -52,7 +52,7 @@ def test_far_wall_short_baseline_is_found_by_the_matched_filter():
 
 def test_background_alone_gives_no_point():
     """A black scene under 0.5–25 MHz of background: neither stage finds a peak in the
-    pixels × recordings (nominal: ≤ 1.5·10⁻³ per pixel; 0 of 5,760 pixels in 30 sweep
+    pixels × recordings (nominal: ≤ 2·10⁻³ per pixel; 0 of 5,760 pixels in 30 sweep
     systems, docs/pipeline.md)."""
     from mems_stereo.model.system import burkard2022
     from mems_stereo.pipeline.run import process_recording

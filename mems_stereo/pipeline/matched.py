@@ -10,19 +10,24 @@ the footprint of steps in which the beam crosses the pixel: under the
 hypothesis "a return at step j0 and code c0", the detections lie within one
 footprint of j0 in angle and within ± one pulse FWHM of c0 in code.
 
-For the pixels whose strongest footprint window missed the threshold but is
-not far from it (candidates, :func:`mems_stereo.pipeline.peaks.candidate_rows`), pass 2 counts the
-accepted detections by (step, code) over a few footprints around the window
-(:func:`mems_stereo.pipeline.pass2.peak_counts_range`); :func:`confirm` slides
-the (footprint × 2·FWHM) box over them, compares each box count with its
-exactly known background — per step the valid shots times the first-photon
-probability ``h·(1 − h)^(c−1)`` of each accepted code, ``h = 1 − exp(−λΔt)``,
-the free-running expectation (signal that fires a shot first only lowers it:
-conservative) — and keeps the pixel when the smallest Poisson p-value passes
-``false_alarm / 2`` spread (Bonferroni) over every box position the whole scan
-allows: the footprint windows of the scan times the code boxes of the widest
-accepted interval.  Background alone therefore passes one of the two stages
-with probability at most 1.5·``false_alarm`` per pixel (nominal: Bonferroni).  A
+Every pixel without a first-stage peak is a candidate
+(:func:`mems_stereo.pipeline.peaks.peaks_of_scores`); pass 2 counts its accepted
+detections by (step, code) over its whole scan
+(:func:`mems_stereo.pipeline.pass2.peak_counts_range`), and
+:func:`score_candidates` slides the (footprint × 2·FWHM) box over them, comparing
+each box count with its exactly known background — per step the valid shots
+times the first-photon probability ``h·(1 − h)^(c−1)`` of each accepted code,
+``h = 1 − exp(−λΔt)``, the free-running expectation (signal that fires a shot
+first only lowers it: conservative).  Two tests, each at ``false_alarm / 2``
+(Bonferroni over its box positions): for a near miss of the first stage
+(its strongest window's adjusted p below
+:data:`~mems_stereo.pipeline.peaks.CANDIDATE_P`) the boxes within a few
+footprints of that window, against the footprint windows of the scan times the
+code boxes of that window's widest accepted interval; then the boxes of the
+whole scan, against the scan's accepted (step, code) area over one box's.
+Background alone therefore passes one of the stages with probability at most
+2·``false_alarm`` per pixel (nominal: Bonferroni).  Large grids are searched
+coarse to fine (:class:`_BoxGrid`).  A
 confirmation that no neighbour on the same surface supports — no first-stage
 peak or confirmation grown from them within
 :data:`~mems_stereo.pipeline.peaks.SUPPORT_COLUMNS` at an agreeing range

@@ -20,8 +20,9 @@ class Settings:
     smoothing_bins : width of the moving-average filter of the histograms
         (default: the laser pulse's FWHM in bins, at least 1).
     false_alarm : per-pixel probability that background alone crosses the
-        peak threshold (first stage; the matched filter of near misses uses
-        half of it: ≤ 1.5·false_alarm per pixel in all, nominal Bonferroni; a
+        peak threshold (first stage; the matched filter's two tests, around a
+        near miss's window and over the whole scan, half of it each: ≤
+        2·false_alarm per pixel in all, nominal Bonferroni; a
         peak that no neighbour on its surface supports must pass the per-frame
         level ``peaks.FRAME_FALSE_ALARMS`` / pixels, docs/pipeline.md section 5).
     min_counts : fewest signal counts for a peak.
