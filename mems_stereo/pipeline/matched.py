@@ -321,18 +321,16 @@ class _BoxGrid:
         np.add.at(D, ((self.ds[m] - j0) // fs, (self.dc[m] - k0) // fc), self.cnt[m])
         return D
 
-    def background(self, j0, j1, k0, k1, fs=1, fc=1):
-        """The expected background of the same blocks (see :meth:`counts`)."""
+    def background(self, j0, j1, k0, k1, fc=1):
+        """The expected background of steps j0..j1−1 × cells k0..k1−1, the cells summed
+        in blocks of fc (see :meth:`counts`; :meth:`coarse_background` blocks steps)."""
         e_lo = self.c_lo + self.cell * (k0 + fc * np.arange(-(-(k1 - k0) // fc)))
         e_hi = np.minimum(e_lo + self.cell * fc - 1, self.c_lo + self.cell * k1 - 1)
         a_c = np.maximum(e_lo[None, :], self.lo[j0:j1, None])
         b_c = np.minimum(e_hi[None, :], self.hi[j0:j1, None])
         pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * self.log1mh)
                       - np.exp(b_c * self.log1mh), 0.0)
-        B = self.nps[j0:j1, None] * pr
-        if fs > 1:
-            B = np.add.reduceat(B, np.arange(0, j1 - j0, fs), axis=0)
-        return B
+        return self.nps[j0:j1, None] * pr
 
     def coarse_background(self, fs: int, fc: int):
         """The background of blocks of ``fs`` steps × ``fc`` cells over the whole grid,
@@ -348,7 +346,7 @@ class _BoxGrid:
         nps = np.add.reduceat(np.where(shot, self.nps, 0.0), starts)
         g = _BoxGrid(None, None, None, lo, hi, nps, self.c_lo, self.cell, self.log1mh,
                      starts.size, self.n_cell)
-        return g.background(0, starts.size, 0, self.n_cell, 1, fc)
+        return g.background(0, starts.size, 0, self.n_cell, fc)
 
     def best(self, box_s: int, box_c: int, min_counts: int, full_cells: int | None = None):
         """``(p, j, k, count, background)`` of the box (``box_s`` steps × ``box_c``
