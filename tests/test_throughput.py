@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from mems_stereo.model.system import burkard2022
+from mems_stereo.model.tdc import path_length_from_codes
 from mems_stereo.pipeline.intervals import IntervalTable, interval_table
 from mems_stereo.pipeline.pass1 import (
     RangeAccumulation,
@@ -298,7 +299,7 @@ def test_shared_evaluations_give_the_reference_detection_points_bit_for_bit(seed
 
 @pytest.mark.parametrize("seed", [2, 3])
 def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatch, seed):
-    """_cov compiled (numba loaded, at least COV_COMPILED_ROWS rows) equals its NumPy
+    """_cov compiled (numba loaded, at least COMPILED_ROWS rows) equals its NumPy
     form; detection_points(fused_only=True) equals the full result's fused fields; the
     accumulator's fused ranges for the inlier margins equal those of its _points."""
     pytest.importorskip("numba")
@@ -310,18 +311,34 @@ def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatc
     n = 6000
     args = _random_detection_args(s, rng, n, 300)
     theta = args[4]
-    assert det._compiled_cov() is not None and n >= det.COV_COMPILED_ROWS
-    a = det.detection_points(s, *args)
-    x, C, ok = det.detection_points(s, *args, fused_only=True)
-    monkeypatch.setattr(det, "COV_COMPILED_ROWS", 10 ** 9)  # NumPy
-    b = det.detection_points(s, *args)
-    assert 0.05 < a.ok.mean() < 0.95  # NaN rows too
-    for f in ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused", "weight_stereo",
-              "ok", "dtof_dL"):
-        assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
-    assert np.array_equal(x, a.fused, equal_nan=True)
-    assert np.array_equal(C, a.cov_fused, equal_nan=True)
-    assert np.array_equal(ok, a.ok)
+    args[3][::4] = rng.uniform(0.5, 3.0, n // 4)  # a quarter below 2|b| of path length
+    # a second set in runs of equal (pixel, step), several codes each, as the fusion's
+    # entries come: the kernel reads each run's stereo geometry by its run index
+    first = rng.integers(0, n, n // 8)
+    rep = np.sort(np.repeat(first, 8))
+    runs = tuple(a[rep] for a in args[:3]) + (args[3][rng.permutation(n)], theta)
+    fields = ("stereo", "cov_stereo", "tof", "cov_tof", "fused", "cov_fused",
+              "weight_stereo", "ok", "dtof_dL")
+    assert det._compiled_cov() is not None and det.compiled_entries() is not None
+    assert n >= det.COMPILED_ROWS
+    for args_ in (args, runs):
+        a = det.detection_points(s, *args_)
+        x, C, ok = det.detection_points(s, *args_, fused_only=True)
+        monkeypatch.setattr(det, "COMPILED_ROWS", 10 ** 9)  # NumPy
+        b = det.detection_points(s, *args_)
+        x1, C1, ok1 = det.detection_points(s, *args_, fused_only=True)
+        monkeypatch.setattr(det, "COMPILED_ROWS", 4096)
+        assert 0.05 < a.ok.mean() < 0.95  # NaN rows too
+        linear = (path_length_from_codes(args_[3], s.tdc, s.speed_of_light)
+                  < 2 * np.linalg.norm(s.scanner.position))  # the ToF's linear part
+        assert np.sum(linear & a.ok) > 200
+        for f in fields:
+            assert np.array_equal(getattr(a, f), getattr(b, f), equal_nan=True), f
+        assert np.array_equal(x, a.fused, equal_nan=True)
+        assert np.array_equal(C, a.cov_fused, equal_nan=True)
+        assert np.array_equal(ok, a.ok)
+        for u, v in ((x, x1), (C, C1), (ok, ok1)):
+            assert np.array_equal(u, v, equal_nan=True)
     Q = 40
     acc = PeakAccumulator(s, rng.integers(0, s.receiver.height, Q),
                           rng.integers(0, s.receiver.width, Q), rng.integers(1, 200, Q))

@@ -29,6 +29,7 @@ from mems_stereo.geometry.uncertainty import (
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.pipeline.detection_kernel import compiled_entries, entries
 from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 
@@ -178,6 +179,14 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     # per run of equal (u, v, θ): scan directions and the stereo geometry
     R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
          else stereo_cache.get(system, sp, Ur, Vr, Tr))
+    kernel = compiled_entries() if U.size >= COMPILED_ROWS else None
+    if kernel is not None:  # the per-detection part below in one compiled pass (same bits)
+        bb = float(p @ p)
+        scal = [bb, TOF_LINEAR_BELOW * math.sqrt(bb), hL, 2.0 * hu, 2.0 * hv, 2.0 * hL,
+                2.0 * ht, *var_in, sp.sigma_L(system) ** 2]
+        out = entries(np.arange(U.size) if run is None else run, Lx, p, scal, R,
+                      not fused_only, kernel)
+        return out[4:6] + out[7:8] if fused_only else DetectionPoints(*out)
     c_st = None if fused_only else gather(R["c_st"])
     var_st = gather(R["var_st"])
     x_st = None if fused_only else gather(R["x0"])
@@ -323,11 +332,11 @@ def _cov(terms, n: int) -> np.ndarray:
     the order given: as ``einsum("nik,k,njk->nij")`` over these columns, bit for bit
     (the same products ``(J_i·var)·J_j`` added one column after the other from 0).
 
-    At least :data:`COV_COMPILED_ROWS` rows where numba is loaded already (a dense
+    At least :data:`COMPILED_ROWS` rows where numba is loaded already (a dense
     run's pass 1 loaded it): one compiled pass (:func:`_cov_py`, the same IEEE
     operations in the same order, so the same bits; tested), without the (n, 3, 3)
     temporaries of each column; otherwise, and without numba, in NumPy."""
-    kernel = _compiled_cov() if n >= COV_COMPILED_ROWS else None
+    kernel = _compiled_cov() if n >= COMPILED_ROWS else None
     if kernel is not None and terms:
         J = np.ascontiguousarray(np.stack([np.asarray(t[0], np.float64) for t in terms]))
         var = np.array([float(t[1]) for t in terms])
@@ -340,8 +349,10 @@ def _cov(terms, n: int) -> np.ndarray:
     return C
 
 
-#: rows from which :func:`_cov` runs compiled (when numba is loaded already)
-COV_COMPILED_ROWS = 4096
+#: rows from which :func:`_cov` and the per-detection part of :func:`detection_points`
+#: (:mod:`~mems_stereo.pipeline.detection_kernel`) run compiled (when numba is loaded
+#: already)
+COMPILED_ROWS = 4096
 
 
 def _cov_py(J, var, C):

@@ -705,11 +705,14 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
     r, sr, ok = np.empty(M), np.empty(M), np.empty(M, bool)
     for a in range(0, M, ENTRY_BLOCK):
         e = slice(a, a + ENTRY_BLOCK)
-        pts = acc._points(shot[e], peak[e], code[e], theta, m[e])
+        if keep:
+            pts = acc._points(shot[e], peak[e], code[e], theta, m[e])
+            kept.append(pts[2])
+        else:  # the fused ranges alone (the same bits): sub-pass 2 computes the inliers'
+            pts = acc._fused_ranges(peak[e], code[e], theta[shot[e]])
+            pts = (pts[0], None, None, *pts[1:], m[e])
         acc._add_mode_points(pts)
         r[e], sr[e], ok[e] = pts[3], pts[4], pts[5]
-        if keep:
-            kept.append(pts[2])
         del pts
     acc.finish_mode()
     for i, a in enumerate(range(0, M, ENTRY_BLOCK)):
@@ -720,7 +723,8 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
             if keep:  # each entry's points are its own: the same bits as recomputing
                 return kept[i].subset(inl)
             return detection_points(system, se[inl], acc.rows[pe[inl]], acc.cols[pe[inl]],
-                                    ce[inl], theta, acc.spreads)
+                                    ce[inl], theta, acc.spreads,
+                                    stereo_cache=acc._stereo_cache())
 
         acc._add_inliers_sums(pe, ce, r[e], sr[e], ok[e], m[e], dp_of, se, theta,
                               None if bg is None else bg[e],
@@ -738,10 +742,16 @@ def _add_inlier_background(acc: PeakAccumulator, entries) -> None:
     for a in range(0, peak.size, ENTRY_BLOCK):
         e = slice(a, a + ENTRY_BLOCK)
         sh = np.arange(peak[e].size)
-        pts = acc._points(sh, peak[e], code[e], theta[e], -b[e])
-        pe, ce, dp, r, sr, ok, m = pts
-        acc._add_inliers_sums(pe, ce, r, sr, ok, m, lambda inl, dp=dp: dp.subset(inl), sh,
-                              theta[e], b[e], count_window=False)
+        pe, ce, te = peak[e], code[e], theta[e]
+        _, r, sr, ok = acc._fused_ranges(pe, ce, te)
+
+        def dp_of(inl, pe=pe, ce=ce, te=te):  # the inliers' points alone (the same bits)
+            return detection_points(acc.system, np.arange(int(inl.sum())), acc.rows[pe[inl]],
+                                    acc.cols[pe[inl]], ce[inl], te[inl], acc.spreads,
+                                    stereo_cache=acc._stereo_cache())
+
+        acc._add_inliers_sums(pe, ce, r, sr, ok, -b[e], dp_of, sh, te, b[e],
+                              count_window=False)
 
 
 #: entries (detections, or distinct (peak, step, code) keys) evaluated at once by
