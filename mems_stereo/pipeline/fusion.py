@@ -694,34 +694,24 @@ def accumulate_entries(acc: PeakAccumulator, shot, peak, code, theta, weight=Non
         acc._stereo = None  # (the sub-passes' stereo geometry: no longer needed)
         return acc
     # blocks of entries: temporaries bounded by ENTRY_BLOCK whatever M.  Sub-pass 1
-    # keeps each entry's fused range, its σ and ok (17 bytes an entry) and, up to
-    # KEEP_ENTRIES entries, its points (≈ 330 bytes); sub-pass 2 uses those, or
-    # computes the points of the inliers alone
-    keep = M <= KEEP_ENTRIES
-    kept = []
+    # keeps each entry's fused range, its σ and ok (17 bytes an entry), from the fused
+    # points alone; sub-pass 2 computes the points of the inliers (the same bits: each
+    # entry's points are its own)
     peak = np.asarray(peak, dtype=np.int64).ravel()
     code = np.asarray(code, dtype=np.float64).ravel()
     m = (np.ones(M) if weight is None else np.asarray(weight, dtype=np.float64).ravel())
     r, sr, ok = np.empty(M), np.empty(M), np.empty(M, bool)
+    th = np.asarray(theta, dtype=np.float64)
     for a in range(0, M, ENTRY_BLOCK):
         e = slice(a, a + ENTRY_BLOCK)
-        if keep:
-            pts = acc._points(shot[e], peak[e], code[e], theta, m[e])
-            kept.append(pts[2])
-        else:  # the fused ranges alone (the same bits): sub-pass 2 computes the inliers'
-            pts = acc._fused_ranges(peak[e], code[e], theta[shot[e]])
-            pts = (pts[0], None, None, *pts[1:], m[e])
-        acc._add_mode_points(pts)
-        r[e], sr[e], ok[e] = pts[3], pts[4], pts[5]
-        del pts
+        pe, r[e], sr[e], ok[e] = acc._fused_ranges(peak[e], code[e], th[shot[e]])
+        acc._add_mode_points((pe, None, None, r[e], sr[e], ok[e], m[e]))
     acc.finish_mode()
-    for i, a in enumerate(range(0, M, ENTRY_BLOCK)):
+    for a in range(0, M, ENTRY_BLOCK):
         e = slice(a, a + ENTRY_BLOCK)
         pe, ce, se = peak[e], code[e], shot[e]
 
-        def dp_of(inl, pe=pe, ce=ce, se=se, i=i):
-            if keep:  # each entry's points are its own: the same bits as recomputing
-                return kept[i].subset(inl)
+        def dp_of(inl, pe=pe, ce=ce, se=se):
             return detection_points(system, se[inl], acc.rows[pe[inl]], acc.cols[pe[inl]],
                                     ce[inl], theta, acc.spreads,
                                     stereo_cache=acc._stereo_cache())
@@ -758,9 +748,6 @@ def _add_inlier_background(acc: PeakAccumulator, entries) -> None:
 #: :func:`points_from_peak_detections`; sums are sequential in entry order, so the
 #: blocks change no bit of the result
 ENTRY_BLOCK = 1 << 15
-#: inputs of at most this many entries keep sub-pass 1's points for sub-pass 2 (≈ 330
-#: bytes an entry: 43 MB) instead of computing the inliers' again
-KEEP_ENTRIES = 1 << 17
 
 
 def consistent_points(cloud: PointCloud, confidence: float = 0.997) -> PointCloud:
