@@ -78,3 +78,36 @@ def test_recording_chunks_same_with_and_without_libdeflate(tmp_path, monkeypatch
     assert len(fast) == len(slow)
     for (a, x), (b, y) in zip(fast, slow):
         assert a == b and np.array_equal(x, y)
+
+
+def test_a_range_from_inside_a_chunk_inflates_each_stored_chunk_once(tmp_path, monkeypatch):
+    """iter_shot_chunks from a shot inside a stored chunk (a Dask part's range): blocks
+    end at whole multiples of the storage's chunks, so every stored chunk is inflated
+    once (it was twice: once for each block straddling it); the shots are the file's."""
+    from pathlib import Path
+
+    from mems_stereo.io.recording import RecordingWriter, iter_shot_chunks, read_recording
+
+    rec = read_recording(Path(__file__).resolve().parents[1] / "samples" / "room.h5")
+    src = tmp_path / "r.h5"  # the sample (800 shots) gzip'd in stored chunks of 16 shots
+    with RecordingWriter(src, rec.system, rec.n_shots, rec.zero_crossings, rec.rising,
+                         compression="gzip", chunk_shots=16) as w:
+        w.append(rec.shot_time, rec.bins)
+    bins = rec.bins
+    with h5py.File(src) as f:
+        assert f["shots/bins"].chunks[0] == 16 and dc.chunk_reader(f["shots/bins"])
+    calls = []
+    real = dc.ChunkReader._inflate
+
+    def counting(self, k0, out):
+        calls.append(k0)
+        return real(self, k0, out)
+
+    monkeypatch.setattr(dc.ChunkReader, "_inflate", counting)
+    start, stop = 101, bins.shape[0] - 3
+    blocks = list(iter_shot_chunks(src, 70, start, stop))  # blocks of 64 shots (4 chunks)
+    assert [b[0] for b in blocks[:3]] == [101, 128, 192]  # first block shorter, then aligned
+    assert all(s0 % 64 == 0 for s0, _t, _b in blocks[1:])
+    assert np.array_equal(np.concatenate([b for _s, _t, b in blocks]), bins[start:stop])
+    assert sorted(calls) == sorted(set(calls))  # no stored chunk inflated twice
+    assert len(calls) == -(-stop // 16) - start // 16

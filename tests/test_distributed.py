@@ -329,10 +329,19 @@ def test_fusion_work_counts_entries_and_steps():
     assert np.array_equal(fusion_work(PeakCounts(), Q, S, nb), np.zeros(Q))
 
 
-def test_select_counts_filters_and_renumbers_exactly():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_select_counts_filters_and_renumbers_exactly(monkeypatch, compiled):
     """pass2.select_counts: the counts of some peaks over sub-windows of their steps,
-    renumbered, equal the counts of exactly those keys (random keys and windows)."""
+    renumbered, equal the counts of exactly those keys (random keys and windows), in
+    NumPy and in its compiled pass (numba loaded, any number of keys)."""
+    import mems_stereo.pipeline.pass2 as pass2
     from mems_stereo.pipeline.pass2 import decode_peak_keys, select_counts
+
+    if compiled:
+        pytest.importorskip("numba")
+        monkeypatch.setattr(pass2, "MERGE_COMPILED_KEYS", 0)
+    else:
+        monkeypatch.setattr(pass2, "MERGE_COMPILED_KEYS", 10 ** 12)
 
     rng = np.random.default_rng(1419)
     S, nb = 50, 9
@@ -353,3 +362,24 @@ def test_select_counts_filters_and_renumbers_exactly():
                 want[int((d_ * S + step[k]) * nb + code[k])] = pc.counts[k]
         assert np.all(np.diff(got.keys) > 0)
         assert dict(zip(got.keys.tolist(), got.counts.tolist())) == want
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_peak_counts_sum_compiled_equals_numpy(monkeypatch, seed):
+    """PeakCounts + PeakCounts merged in one compiled pass (numba loaded) equals the
+    NumPy merge (merge_sorted_counts): keys in one, the other or both, and empty sets."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.pass2 as pass2
+
+    rng = np.random.default_rng(seed)
+    for na, nb in ((3000, 5000), (1, 4000), (0, 10), (2500, 0)):
+        pool = np.unique(rng.integers(0, 20000, 9000))
+        a = np.sort(rng.choice(pool, min(na, pool.size), replace=False))
+        b = np.sort(rng.choice(pool, min(nb, pool.size), replace=False))
+        ca, cb = rng.integers(1, 50, a.size), rng.integers(1, 50, b.size)
+        monkeypatch.setattr(pass2, "MERGE_COMPILED_KEYS", 0)
+        got = PeakCounts(a, ca) + PeakCounts(b, cb)
+        monkeypatch.setattr(pass2, "MERGE_COMPILED_KEYS", 10 ** 12)
+        want = PeakCounts(a, ca) + PeakCounts(b, cb)
+        assert np.array_equal(got.keys, want.keys) and np.array_equal(got.counts, want.counts)
+        assert np.intersect1d(a, b).size > 0 or min(a.size, b.size) <= 1

@@ -367,7 +367,9 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
     Memory is bounded by the chunk, whatever the recording's length.  Codes
     above n_bins raise :class:`FormatError` for the chunk that holds them.
     With ``truth_labels`` a fourth item, the chunk of ``/truth/label`` (or
-    None), is yielded.  ``path`` may also be a :class:`Recording` in memory
+    None), is yielded.  Chunks end at multiples of ``chunk_shots`` (rounded down to
+    whole chunks of the file's storage) counted from shot 0, so the first chunk of a
+    range that starts elsewhere is shorter.  ``path`` may also be a :class:`Recording` in memory
     (the chunks are views of its arrays).
     """
     if isinstance(path, Recording):
@@ -398,8 +400,15 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
         from mems_stereo.io.deflate_chunks import chunk_reader
 
         fast = chunk_reader(b_ds)
-        for s0 in range(start, n, chunk_shots):
-            s1 = min(n, s0 + chunk_shots)
+        # blocks end at multiples of ``step`` counted from shot 0, a whole number of the
+        # file's chunks: a range that starts inside a chunk (a Dask part's) reads each
+        # stored chunk once, not twice (once for each block it would straddle: 0.1 s
+        # more inflating in 0.8 s for the second half of a 1,600,000-shot recording)
+        c = int(b_ds.chunks[0]) if b_ds.chunks else 1
+        step = chunk_shots - chunk_shots % c if chunk_shots >= c else chunk_shots
+        s0 = start
+        while s0 < n:
+            s1 = min(n, (s0 // step + 1) * step)
             blk = (fast.read(s0, s1) if fast is not None
                    else h5.read(b_ds, source, np.s_[s0:s1]))
             if blk.size and int(blk.max()) > system.tdc.n_bins:
@@ -411,6 +420,7 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
                 item = item + ((h5.read(lab, source, np.s_[s0:s1]) if lab is not None
                                 else None),)
             yield item
+            s0 = s1
 
 
 def _iter_memory_chunks(rec: Recording, chunk_shots: int, start: int, stop: int | None,

@@ -11,6 +11,7 @@ from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.pass1 import COMPILE_SLOTS
 from mems_stereo.pipeline.peaks import Peaks
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 # --------------------------------------------------------------------------
 # the key of a (peak, angle step, code) triple: written and decoded only here
@@ -155,6 +156,41 @@ def merge_sorted_counts(keys, counts, new_keys, new_counts):
             np.insert(counts, pos[miss], new_counts[miss]))
 
 
+def _merge_two_py(ka, ca, kb, cb, keys, counts) -> int:
+    """Merge two sorted unique key sets with their counts into ``keys, counts`` (room
+    for both): returns the number of merged keys (the keys sorted unique, the counts
+    of a key in both added) — :func:`merge_sorted_counts`' result in one linear pass."""
+    i = j = m = 0
+    na, nb = ka.shape[0], kb.shape[0]
+    while i < na and j < nb:
+        a, b = ka[i], kb[j]
+        if a < b:
+            keys[m], counts[m] = a, ca[i]
+            i += 1
+        elif b < a:
+            keys[m], counts[m] = b, cb[j]
+            j += 1
+        else:
+            keys[m], counts[m] = a, ca[i] + cb[j]
+            i += 1
+            j += 1
+        m += 1
+    while i < na:
+        keys[m], counts[m] = ka[i], ca[i]
+        i += 1
+        m += 1
+    while j < nb:
+        keys[m], counts[m] = kb[j], cb[j]
+        j += 1
+        m += 1
+    return m
+
+
+#: both key sets at least this large: :meth:`PeakCounts.__add__` merges them in one
+#: compiled pass where numba is loaded already (a dense run's pass 1 loaded it)
+MERGE_COMPILED_KEYS = 1 << 14
+
+
 class PeakCounts:
     """How often each distinct (peak, scan-angle step, code) occurs among the signal
     detections inside the peak windows: integers, so sums over chunks and workers
@@ -195,6 +231,13 @@ class PeakCounts:
     def __add__(self, other: PeakCounts) -> PeakCounts:
         self._merge()
         other._merge()
+        kernel = (compiled_if_loaded(_merge_two_py)
+                  if min(self.keys.size, other.keys.size) >= MERGE_COMPILED_KEYS else None)
+        if kernel is not None:  # one linear merge of the two sorted key sets
+            n = self.keys.size + other.keys.size
+            keys, counts = np.empty(n, np.int64), np.empty(n, np.int64)
+            m = kernel(self.keys, self.counts, other.keys, other.counts, keys, counts)
+            return PeakCounts(keys[:m].copy(), counts[:m].copy())
         return PeakCounts(*merge_sorted_counts(self.keys, self.counts.copy(), other.keys,
                                                other.counts))
 
@@ -236,6 +279,26 @@ def peak_counts_range(path, system: System, theta, valid, settings: Settings, pe
 # one pass for the matched filter's candidates and the first stage's peaks
 
 
+def _select_py(keys_in, counts_in, to, lo, hi, span, n_codes, n_steps, keys, counts) -> int:
+    """:func:`select_counts`' selection in one pass: the keys of peaks with ``to`` ≥ 0
+    and steps within ``lo..hi`` renumbered, in input order, written to ``keys,
+    counts``; returns their number."""
+    m = 0
+    for i in range(keys_in.shape[0]):
+        k = keys_in[i]
+        q = k // span
+        t = to[q]
+        if t < 0:
+            continue
+        step = (k // n_codes) % n_steps
+        if step < lo[q] or step > hi[q]:
+            continue
+        keys[m] = t * span + k % span
+        counts[m] = counts_in[i]
+        m += 1
+    return m
+
+
 def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
                   n_codes: int) -> PeakCounts:
     """The counts of peaks ``src`` (M,) of ``pc`` (distinct) renumbered ``dst`` (M,),
@@ -246,14 +309,25 @@ def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
     src = np.asarray(src, np.int64)
     if pc.keys.size == 0 or src.size == 0:
         return PeakCounts()
-    q = pc.keys // span
-    n = int(max(q.max(), src.max())) + 1
+    n = int(max(pc.keys[-1] // span, src.max())) + 1  # (keys sorted: the last's peak)
     to = np.full(n, -1, np.int64)
     lo = np.zeros(n, np.int64)
     hi = np.full(n, -1, np.int64)
     to[src] = dst
     lo[src] = step_lo
     hi[src] = step_hi
+    kernel = (compiled_if_loaded(_select_py) if pc.keys.size >= MERGE_COMPILED_KEYS
+              else None)
+    if kernel is not None:  # the same selection in one compiled pass
+        keys, counts = np.empty(pc.keys.size, np.int64), np.empty(pc.keys.size, np.int64)
+        m = kernel(pc.keys, pc.counts, to, lo, hi, span, np.int64(n_codes),
+                   np.int64(n_steps), keys, counts)
+        keys, counts = keys[:m].copy(), counts[:m].copy()
+        if m < 2 or bool(np.all(keys[1:] > keys[:-1])):
+            return PeakCounts(keys, counts)
+        order = np.argsort(keys, kind="stable")
+        return PeakCounts(keys[order], counts[order])
+    q = pc.keys // span
     step = (pc.keys // np.int64(n_codes)) % np.int64(n_steps)
     m = (to[q] >= 0) & (step >= lo[q]) & (step <= hi[q])
     keys = to[q[m]] * span + pc.keys[m] % span

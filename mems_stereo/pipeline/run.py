@@ -437,8 +437,7 @@ def fused_sums(system, peaks, counts: PeakCounts, settings: Settings, n_per_step
     :data:`FUSE_ENTRIES`; cut at multiples of ``FP_BLOCK`` peaks) and joined
     (:meth:`~mems_stereo.pipeline.fusion.PeakAccumulator.joined`): a peak's sums are its
     entries' alone, so the result is the one accumulator of every entry, bit for bit.
-    The fusion's cost per entry grows with the block (its temporaries, and above
-    ``fusion.KEEP_ENTRIES`` sub-pass 1's points are computed again), so the Dask
+    The fusion's cost per entry grows with the block (its temporaries), so the Dask
     runner's blocks of peaks are cut the same way on their workers."""
     cap = FUSE_ENTRIES if max_entries is None else max_entries
     light = {k: v for k, v in peaks.items() if k != "background_by_step" and v is not None}
