@@ -158,7 +158,7 @@ def merge_sorted_counts(keys, counts, new_keys, new_counts):
 
 def _merge_two_py(ka, ca, kb, cb, keys, counts) -> int:
     """Merge two sorted unique key sets with their counts into ``keys, counts`` (room
-    for both): returns the number of merged keys (the keys sorted unique, the counts
+    for at least the merged keys): returns the number of merged keys (the keys sorted unique, the counts
     of a key in both added) — :func:`merge_sorted_counts`' result in one linear pass."""
     i = j = m = 0
     na, nb = ka.shape[0], kb.shape[0]
@@ -186,9 +186,42 @@ def _merge_two_py(ka, ca, kb, cb, keys, counts) -> int:
     return m
 
 
-#: both key sets at least this large: :meth:`PeakCounts.__add__` merges them in one
-#: compiled pass where numba is loaded already (a dense run's pass 1 loaded it)
+#: both key sets at least this large: :func:`_merged` merges them in one compiled pass
+#: where numba is loaded already (a dense run's pass 1 loaded it)
 MERGE_COMPILED_KEYS = 1 << 14
+
+
+def _merged(keys, counts, new_keys, new_counts):
+    """:func:`merge_sorted_counts` (``counts`` may be updated in place), in one compiled
+    linear pass (:func:`_merge_two_py`, the same arrays) where both sets hold at least
+    :data:`MERGE_COMPILED_KEYS` keys and numba is loaded already: the searches and
+    insertions cost 0.24 s of pass 2's 0.58 s on 1,600,000 dense shots."""
+    kernel = (compiled_if_loaded(_merge_two_py)
+              if min(keys.size, new_keys.size) >= MERGE_COMPILED_KEYS else None)
+    if kernel is None:
+        return merge_sorted_counts(keys, counts, new_keys, new_counts)
+    keys, new_keys = np.asarray(keys, np.int64), np.asarray(new_keys, np.int64)
+    # the merged size first (a pass without writes), so the output is allocated once
+    n = keys.size + new_keys.size - compiled_if_loaded(_common_keys_py)(keys, new_keys)
+    out_k, out_c = np.empty(n, np.int64), np.empty(n, np.int64)
+    kernel(keys, np.asarray(counts, np.int64), new_keys, np.asarray(new_counts, np.int64),
+           out_k, out_c)
+    return out_k, out_c
+
+
+def _common_keys_py(ka, kb) -> int:
+    """How many keys two sorted unique key sets share (one linear pass)."""
+    i = j = n = 0
+    while i < ka.shape[0] and j < kb.shape[0]:
+        if ka[i] < kb[j]:
+            i += 1
+        elif kb[j] < ka[i]:
+            j += 1
+        else:
+            n += 1
+            i += 1
+            j += 1
+    return n
 
 
 class PeakCounts:
@@ -225,21 +258,13 @@ class PeakCounts:
         self._pending, self._n_pending = [], 0
         k, c = np.unique(new, return_counts=True)
         del new
-        self.keys, self.counts = merge_sorted_counts(self.keys, self.counts, k,
-                                                     c.astype(np.int64, copy=False))
+        self.keys, self.counts = _merged(self.keys, self.counts, k,
+                                         c.astype(np.int64, copy=False))
 
     def __add__(self, other: PeakCounts) -> PeakCounts:
         self._merge()
         other._merge()
-        kernel = (compiled_if_loaded(_merge_two_py)
-                  if min(self.keys.size, other.keys.size) >= MERGE_COMPILED_KEYS else None)
-        if kernel is not None:  # one linear merge of the two sorted key sets
-            n = self.keys.size + other.keys.size
-            keys, counts = np.empty(n, np.int64), np.empty(n, np.int64)
-            m = kernel(self.keys, self.counts, other.keys, other.counts, keys, counts)
-            return PeakCounts(keys[:m].copy(), counts[:m].copy())
-        return PeakCounts(*merge_sorted_counts(self.keys, self.counts.copy(), other.keys,
-                                               other.counts))
+        return PeakCounts(*_merged(self.keys, self.counts.copy(), other.keys, other.counts))
 
     def finished(self) -> PeakCounts:
         self._merge()
