@@ -26,13 +26,15 @@ process goes: the worker's CPU beyond one process's, the client's serial
 work, and the rest (the client's round trips between the stages, transfers).
 
 Every worker is warmed up first (compiled kernels loaded from numba's disk
-cache), as on a long-lived cluster; cluster start-up is printed apart.  The
+cache), as on a long-lived cluster; cluster start-up is printed apart.  Every
+timing is taken ``--repeats`` times (default 3) and the medians are compared:
+on a shared VM one run's wall time varies by ±5 %.  The
 interval table's rows come from a private disk cache filled before any timed
 run (warm), so no timed run computes rows.
 Open3D is not needed (the core never imports it).
 
 Run:  .venv/bin/python benchmarks/bench_scale.py [--workers 1 2 4 8 16] [--shots 400000]
-      [--recordings 8] [--many-shots 50000] [--dir /tmp]
+      [--recordings 8] [--many-shots 50000] [--repeats 3] [--dir /tmp]
 """
 
 from __future__ import annotations
@@ -132,6 +134,14 @@ def tile_recording(src, dst, n_copies: int, compression: str | None = "gzip") ->
     return K * n_copies
 
 
+def _median(xs) -> float:
+    return float(np.median(np.asarray(xs, dtype=np.float64)))
+
+
+def _spread(xs) -> str:
+    return ", ".join(f"{x:.2f}" for x in xs)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workers", type=int, nargs="+", default=None,
@@ -143,6 +153,9 @@ def main():
     ap.add_argument("--many-shots", type=int, default=50_000,
                     help="shots per recording for process_many (default 50000)")
     ap.add_argument("--seed", type=int, default=20261123)
+    ap.add_argument("--repeats", type=int, default=3,
+                    help="timed runs of each (one process, each worker count): medians are "
+                         "compared (default 3)")
     ap.add_argument("--dir", default=None, help="where to write the recordings")
     ap.add_argument("--source", default=None,
                     help="tile this recording (a whole number of mirror periods long) instead "
@@ -184,21 +197,29 @@ def main():
         for p in (big, paths[0]):
             IntervalTable.for_settings(read_system(p), Settings()).fill_all().save_cache()
         process_recording(paths[0])  # warm up: compiled kernels from the disk cache
-        t0 = time.perf_counter()
-        c0 = time.process_time()
-        f0 = _usage()[1]
-        one_split = process_recording(big)
-        t1_split = time.perf_counter() - t0
-        c1_split = time.process_time() - c0
-        f1_split = _usage()[1] - f0
-        t0 = time.perf_counter()
-        c0 = time.process_time()
-        one_many = [process_recording(p) for p in paths]
-        t1_many = time.perf_counter() - t0
-        c1_many = time.process_time() - c0
+        R = max(1, args.repeats)
+        runs = {"split": [], "split_cpu": [], "split_faults": [], "many": [], "many_cpu": []}
+        for _ in range(R):  # every timing R times: the medians are compared (noisy VMs)
+            t0 = time.perf_counter()
+            c0 = time.process_time()
+            f0 = _usage()[1]
+            one_split = process_recording(big)
+            runs["split"].append(time.perf_counter() - t0)
+            runs["split_cpu"].append(time.process_time() - c0)
+            runs["split_faults"].append(_usage()[1] - f0)
+        for _ in range(R):
+            t0 = time.perf_counter()
+            c0 = time.process_time()
+            one_many = [process_recording(p) for p in paths]
+            runs["many"].append(time.perf_counter() - t0)
+            runs["many_cpu"].append(time.process_time() - c0)
+        t1_split, c1_split = _median(runs["split"]), _median(runs["split_cpu"])
+        f1_split = int(_median(runs["split_faults"]))
+        t1_many, c1_many = _median(runs["many"]), _median(runs["many_cpu"])
         rt_split = args.shots / 20e3
-        print(f"one process: split recording {t1_split:.2f} s wall, {c1_split:.2f} s CPU "
-              f"({rt_split / t1_split:.1f}x real time), {n_rec} recordings {t1_many:.2f} s")
+        print(f"one process (median of {R} runs): split recording {t1_split:.2f} s wall "
+              f"({_spread(runs['split'])}), {c1_split:.2f} s CPU ({rt_split / t1_split:.1f}x real "
+              f"time), {n_rec} recordings {t1_many:.2f} s ({_spread(runs['many'])})")
 
         rows = []
         for n in workers:
@@ -207,33 +228,40 @@ def main():
                 t_start = time.perf_counter() - t0
                 # warm up: a dense recording loads the compiled kernels (small ones do not)
                 client.run(process_recording, str(paths[0]))
-                w0 = client.run(_usage)
-                t0 = time.perf_counter()
-                sp = process_split(big, scheduler=client)
-                t_split = time.perf_counter() - t0
-                w1 = client.run(_usage)
-                sp.timings["worker_cpu"] = sorted(w1[k][0] - w0[k][0] for k in w0)
-                sp.timings["worker_faults"] = sorted(w1[k][1] - w0[k][1] for k in w0)
-                w0 = client.run(_cpu_seconds)
-                c0 = time.process_time()
-                t0 = time.perf_counter()
-                many = process_many(paths, scheduler=client)
-                t_many = time.perf_counter() - t0
-                w1 = client.run(_cpu_seconds)
-                sp.timings["many_client_cpu"] = time.process_time() - c0
-                sp.timings["many_worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
-            ok_split = same(one_split, sp)
-            ok_many = all(same(a, b) for a, b in zip(one_many, many))
-            rows.append((n, t_start, t_split, ok_split, t_many, ok_many, sp.timings))
+                ts_runs, tm_runs, ok_split, ok_many = [], [], True, True
+                for _ in range(R):  # the CPU figures below are those of the last run
+                    w0 = client.run(_usage)
+                    t0 = time.perf_counter()
+                    sp = process_split(big, scheduler=client)
+                    ts_runs.append(time.perf_counter() - t0)
+                    w1 = client.run(_usage)
+                    sp.timings["worker_cpu"] = sorted(w1[k][0] - w0[k][0] for k in w0)
+                    sp.timings["worker_faults"] = sorted(w1[k][1] - w0[k][1] for k in w0)
+                    ok_split = ok_split and same(one_split, sp)
+                for _ in range(R):
+                    w0 = client.run(_cpu_seconds)
+                    c0 = time.process_time()
+                    t0 = time.perf_counter()
+                    many = process_many(paths, scheduler=client)
+                    tm_runs.append(time.perf_counter() - t0)
+                    w1 = client.run(_cpu_seconds)
+                    sp.timings["many_client_cpu"] = time.process_time() - c0
+                    sp.timings["many_worker_cpu"] = sorted(w1[k] - w0[k] for k in w0)
+                    ok_many = ok_many and all(same(a, b) for a, b in zip(one_many, many))
+            sp.timings["split_runs"], sp.timings["many_runs"] = ts_runs, tm_runs
+            rows.append((n, t_start, _median(ts_runs), ok_split, _median(tm_runs), ok_many,
+                         sp.timings))
 
     print()
+    print(f"(medians of {R} runs each, the runs in brackets; speed-ups are median against "
+          f"median)")
     print("| workers | process_split s | speed-up | efficiency | identical | process_many s | "
           "speed-up | efficiency | identical | cluster start s |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for n, t_start, t_split, ok_s, t_many, ok_m, _ in rows:
-        print(f"| {n} | {t_split:.2f} | {t1_split / t_split:.2f}x | {t1_split / t_split / n:.0%} | "
-              f"{ok_s} | {t_many:.2f} | {t1_many / t_many:.2f}x | {t1_many / t_many / n:.0%} | "
-              f"{ok_m} | {t_start:.1f} |")
+    for n, t_start, t_split, ok_s, t_many, ok_m, tm in rows:
+        print(f"| {n} | {t_split:.2f} ({_spread(tm['split_runs'])}) | {t1_split / t_split:.2f}x | "
+              f"{t1_split / t_split / n:.0%} | {ok_s} | {t_many:.2f} ({_spread(tm['many_runs'])}) "
+              f"| {t1_many / t_many:.2f}x | {t1_many / t_many / n:.0%} | {ok_m} | {t_start:.1f} |")
     print()
     print("what bounds process_split (client side, per worker count):")
     t1w = next((r[2] for r in rows if r[0] == 1), None)

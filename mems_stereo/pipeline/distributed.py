@@ -101,14 +101,14 @@ PARTS_PER_WORKER = 1
 
 #: blocks of peaks fused per worker (at most: blocks are cut at multiples of
 #: ``FP_BLOCK`` peaks), dealt to the workers by their work (:func:`deal_blocks`)
-BLOCKS_PER_WORKER = 8
+BLOCKS_PER_WORKER = 4
 
 #: blocks of pixels per worker in which :func:`process_split` runs the peak detector
 #: (its per-pixel stages; the neighbour support between them on the client)
 PEAK_BLOCKS_PER_WORKER = 1
 #: blocks of the matched filter's candidates scored per worker (their whole-scan
 #: searches differ in cost: a few blocks each even the load)
-SCORE_BLOCKS_PER_WORKER = 4
+SCORE_BLOCKS_PER_WORKER = 2
 
 #: Dask settings of the LocalCluster that :func:`dask_client` starts (see there)
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
@@ -411,12 +411,22 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             shared["first"] = peaks  # the first stage's peaks (see count_candidates)
             return peaks, rate.reshape(sysm.receiver.height, sysm.receiver.width)
 
+        def pass2_parts(peaks_f):
+            # each part counts the windows of ``peaks_f`` (its store or its shots): one
+            # future per part, on the part's worker
+            return [client.submit(_pass2_part, str(path), sysm, ang, st, peaks_f, a, b,
+                                  table_f, store, pure=False)
+                    for ang, (a, b), store in zip(angle_f, parts, stores)]
+
         def pass2_sum(peaks_f):
-            # each part counts the windows of ``peaks_f`` (its store or its shots); the
-            # parts' counts are summed on the workers: one future
-            return tree_sum(client, [client.submit(_pass2_part, str(path), sysm, ang, st,
-                                                   peaks_f, a, b, table_f, store, pure=False)
-                                     for ang, (a, b), store in zip(angle_f, parts, stores)])
+            # the parts' counts summed on the workers: one future
+            return tree_sum(client, pass2_parts(peaks_f))
+
+        def selected_sum(parts_f, sel):
+            # select_counts of each part where it lies, then the (smaller) selections
+            # summed: the selection of the sum (each key's count is its parts' sum)
+            return tree_sum(client, [client.submit(select_counts, f, *sel, S, n_codes,
+                                                   pure=False) for f in parts_f])
 
         def count_peaks(peaks):
             # (the peak stage ends here: what of it the client spent waiting on workers)
@@ -433,7 +443,8 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                 # (each peak's counts are its own: the PeakCounts of counting ``peaks``)
                 sel = merged_selection(shared["first"], shared["cands"], peaks,
                                        sysm.receiver.width)
-                total_f = client.submit(select_counts, both_f, *sel, S, n_codes, pure=False)
+                total_f = selected_sum(both_f, sel)
+                shared.pop("both_f")
             stores.clear()  # released once their pass 2 has run
             return total_f  # stays on the workers
 
@@ -476,12 +487,10 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             if first is None:  # pragma: no cover - detect always runs first
                 return waits(pass2_sum(_scatter_one(client, cands)).result)
             both = with_widened_candidates(first, cands, S)
-            shared["both_f"] = pass2_sum(_scatter_one(client, both))
+            shared["both_f"] = pass2_parts(_scatter_one(client, both))  # one per part
             shared["cands"] = cands
             # stays on the workers: score_cands reads it there
-            return client.submit(select_counts, shared["both_f"],
-                                 *candidate_selection(len(first), cands), S, n_codes,
-                                 pure=False)
+            return selected_sum(shared["both_f"], candidate_selection(len(first), cands))
 
         def score_cands(cands, cc_f):
             # the matched filter's search per candidate (a pixel's whole scan: the
