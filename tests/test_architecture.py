@@ -15,7 +15,8 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
           "viz", "cli"]
 #: pipeline stages in data-flow order; a stage may import only stages before it
 STAGES = ["consistency", "intervals", "settings", "angles", "histograms", "pass1", "peaks",
-          "pass2", "matched", "signal_store", "cloud", "detections", "sums", "peak_means",
+          "pass2", "matched", "signal_store", "cloud", "detection_kernel", "detections", "sums",
+          "peak_means",
           "window_background", "first_photon_correction", "peak_geometry", "fusion", "run",
           "distributed", "timetags", "gate_check", "twoaxis"]
 

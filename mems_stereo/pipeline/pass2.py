@@ -158,8 +158,9 @@ def merge_sorted_counts(keys, counts, new_keys, new_counts):
 
 def _merge_two_py(ka, ca, kb, cb, keys, counts) -> int:
     """Merge two sorted unique key sets with their counts into ``keys, counts`` (room
-    for at least the merged keys): returns the number of merged keys (the keys sorted unique, the counts
-    of a key in both added) — :func:`merge_sorted_counts`' result in one linear pass."""
+    for at least the merged keys): returns the number of merged keys (the keys sorted
+    unique, the counts of a key in both added) — :func:`merge_sorted_counts`' result
+    in one linear pass."""
     i = j = m = 0
     na, nb = ka.shape[0], kb.shape[0]
     while i < na and j < nb:
