@@ -141,3 +141,45 @@ def test_sparse_band_keeps_the_detections_steps_background():
     shots = rng.integers(0, 3, 200)  # 1 shot per step on average
     full, sel, _ = _band_trials(shots, rng, trials=50)
     assert full == sel
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_compiled_entry_loop_and_sorted_groups_give_the_same_bits(monkeypatch, seed):
+    """window_background's per-entry loop compiled (numba loaded, at least
+    COMPILED_ENTRIES entries) equals its NumPy form bit for bit, sorted groups (one
+    pass) or not (np.unique), with empty intervals (a > b), codes outside [a, b] and
+    a NaN rate."""
+    pytest.importorskip("numba")
+    import mems_stereo.pipeline.window_background as wb
+
+    rng = np.random.default_rng(seed)
+    G, M = 700, 9000
+    g = np.sort(rng.integers(0, G, M))
+    code = rng.integers(1, 400, M).astype(np.float64)
+    key = np.unique(g * 1000 + code.astype(np.int64))  # distinct (group, code), sorted
+    g, code = key // 1000, (key % 1000).astype(np.float64)
+    cnt = rng.integers(1, 30, g.size).astype(np.float64)
+    per = lambda x: x[g]  # noqa: E731 - the group's value per entry
+    lo = rng.integers(1, 150, G).astype(np.float64)
+    a = lo + rng.integers(0, 60, G)
+    b = a + rng.integers(-5, 200, G)  # some empty
+    a[::113] = np.nan  # NaN propagates as in NumPy's np.maximum
+    rate = rng.uniform(1e5, 2e7, G)
+    rate[::97] = np.nan
+    args = (g, code, cnt, per(a), per(b), per(rng.integers(1, 50, G).astype(np.float64)),
+            per(lo), per(rate), 3.125e-10)
+    assert g.size >= wb.COMPILED_ENTRIES and wb.compiled_if_loaded(wb._closed_py)
+    got = wb.window_background(*args)
+    monkeypatch.setattr(wb, "COMPILED_ENTRIES", 10 ** 12)
+    want = wb.window_background(*args)
+    for x, y in zip(got, want):
+        assert np.array_equal(x, y, equal_nan=True)
+    assert np.any(want[1] > 0) and np.any(np.isnan(want[1]))
+    # groups not sorted: np.unique's first and inverse, the same as the one pass's
+    perm = rng.permutation(g.size)
+    f1, i1 = wb._groups(g)
+    _, f2, i2 = np.unique(g, return_index=True, return_inverse=True)
+    assert np.array_equal(f1, f2) and np.array_equal(i1, i2)
+    f3, i3 = wb._groups(g[perm])
+    _, f4, i4 = np.unique(g[perm], return_index=True, return_inverse=True)
+    assert np.array_equal(f3, f4) and np.array_equal(i3, i4)

@@ -9,7 +9,11 @@ entries (:func:`mems_stereo.pipeline.fusion.peak_sums_from_counts`).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 #: segments of each (peak, step)'s accepted code interval over which its expected
 #: background is spread (as negative-weight entries at the segments' centroids)
@@ -48,7 +52,7 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
     group = np.asarray(group, np.int64)
     code = np.asarray(code, np.float64)
     cnt = np.asarray(count, np.float64)
-    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
+    first, inv = _groups(group)
     G = first.size
     h = -np.expm1(-np.nan_to_num(np.asarray(rate_hz, np.float64)[first]) * bin_width)
     s0 = np.asarray(n_shots, np.float64)[first] * np.exp(
@@ -66,19 +70,65 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
 
     tot = s0[:, None] * length
     tot_c = s0[:, None] * csum(s_lo, s_hi)
-    ce1 = code + 1.0
     closed = np.zeros((G, J))
     closed_c = np.zeros((G, J))
-    for j in range(J):  # one segment at a time: (M,) temporaries, no (M, J)
-        start = np.maximum(s_lo[inv, j], ce1)  # codes of the segment after the detection
-        hi_j = s_hi[inv, j]
-        m = np.maximum(hi_j - start + 1.0, 0.0)
-        closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
-        closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start, hi_j), minlength=G)
+    kernel = compiled_if_loaded(_closed_py) if inv.size >= COMPILED_ENTRIES else None
+    if kernel is not None:  # the loop below in one compiled pass over the entries
+        kernel(inv, code, cnt, np.ascontiguousarray(s_lo), np.ascontiguousarray(s_hi),
+               closed, closed_c)
+    else:
+        ce1 = code + 1.0
+        for j in range(J):  # one segment at a time: (M,) temporaries, no (M, J)
+            start = np.maximum(s_lo[inv, j], ce1)  # codes of the segment after the detection
+            hi_j = s_hi[inv, j]
+            m = np.maximum(hi_j - start + 1.0, 0.0)
+            closed[:, j] = np.bincount(inv, weights=cnt * m, minlength=G)
+            closed_c[:, j] = np.bincount(inv, weights=cnt * csum(start, hi_j), minlength=G)
     S_sum = np.maximum(tot - closed, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
         centroid = np.where(S_sum > 0, (tot_c - closed_c) / S_sum, 0.5 * (s_lo + s_hi))
     return first, h[:, None] * S_sum, centroid
+
+
+#: entries from which :func:`window_background` runs its per-entry loop compiled (where
+#: numba is loaded already: a dense run's pass 1 loaded it)
+COMPILED_ENTRIES = 4096
+
+
+def _groups(group):
+    """``(first, inv)`` of ``np.unique(group, return_index=True, return_inverse=True)``:
+    in one pass where ``group`` is sorted (the fusion's entries are), else by
+    ``np.unique``."""
+    if group.size and bool(np.all(group[1:] >= group[:-1])):
+        new = np.empty(group.size, bool)
+        new[0] = True
+        np.not_equal(group[1:], group[:-1], out=new[1:])
+        return np.flatnonzero(new), np.cumsum(new) - 1
+    _, first, inv = np.unique(group, return_index=True, return_inverse=True)
+    return first, inv
+
+
+def _closed_py(inv, code, cnt, s_lo, s_hi, closed, closed_c):
+    """Per entry i of group g = inv[i] and segment j: the counted detections' closed
+    share of the segment's codes after them, added to ``closed[g, j]`` and
+    ``closed_c[g, j]`` (zeros on entry) in entry order — the same IEEE operations
+    in the same order as :func:`window_background`'s NumPy loop (``np.bincount``
+    adds its weights in input order from 0.0), so the same bits."""
+    J = s_lo.shape[1]
+    for i in range(inv.shape[0]):
+        g = inv[i]
+        ce1 = code[i] + 1.0
+        c = cnt[i]
+        for j in range(J):
+            lo = s_lo[g, j]  # start = np.maximum(lo, ce1): NaN if either is
+            start = (lo if math.isnan(lo) else ce1 if math.isnan(ce1)
+                     else lo if lo >= ce1 else ce1)
+            hi = s_hi[g, j]
+            m = hi - start + 1.0
+            m = m if math.isnan(m) or m >= 0.0 else 0.0  # np.maximum(m, 0.0)
+            closed[g, j] += c * m
+            cs = (start + hi) * (hi - start + 1.0) / 2.0 if hi >= start else 0.0
+            closed_c[g, j] += c * cs
 
 
 #: nodes (equally spaced codes, ends included) at which :func:`inlier_codes`
