@@ -254,14 +254,18 @@ def main():
 
     print()
     print(f"(medians of {R} runs each, the runs in brackets; speed-ups are median against "
-          f"median)")
-    print("| workers | process_split s | speed-up | efficiency | identical | process_many s | "
-          "speed-up | efficiency | identical | cluster start s |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          f"median: over one process, and over one worker, as the issue states its targets)")
+    print("| workers | process_split s | speed-up | efficiency | ÷ 1 worker | identical | "
+          "process_many s | speed-up | efficiency | ÷ 1 worker | identical | cluster start s |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    one_w = next((r for r in rows if r[0] == 1), None)
     for n, t_start, t_split, ok_s, t_many, ok_m, tm in rows:
+        ws = "—" if one_w is None else f"{one_w[2] / t_split:.2f}x"
+        wm = "—" if one_w is None else f"{one_w[4] / t_many:.2f}x"
         print(f"| {n} | {t_split:.2f} ({_spread(tm['split_runs'])}) | {t1_split / t_split:.2f}x | "
-              f"{t1_split / t_split / n:.0%} | {ok_s} | {t_many:.2f} ({_spread(tm['many_runs'])}) "
-              f"| {t1_many / t_many:.2f}x | {t1_many / t_many / n:.0%} | {ok_m} | {t_start:.1f} |")
+              f"{t1_split / t_split / n:.0%} | {ws} | {ok_s} | {t_many:.2f} "
+              f"({_spread(tm['many_runs'])}) | {t1_many / t_many:.2f}x | "
+              f"{t1_many / t_many / n:.0%} | {wm} | {ok_m} | {t_start:.1f} |")
     print()
     print("what bounds process_split (client side, per worker count):")
     t1w = next((r[2] for r in rows if r[0] == 1), None)
@@ -332,15 +336,28 @@ def main():
     best_m = max(t1_many / r[4] for r in rows)
     print(f"best speed-up: process_split {best_s:.2f}x, process_many {best_m:.2f}x on "
           f"{max(workers)} workers max; all identical: {all(r[3] and r[5] for r in rows)}")
-    # the issue's targets, read off the figures above
+    one_w = next((r for r in rows if r[0] == 1), None)
+    if one_w is not None:  # the issue states its targets "over one worker"
+        bw_s = max(one_w[2] / r[2] for r in rows)
+        bw_m = max(one_w[4] / r[4] for r in rows)
+        print(f"over one worker ({one_w[2]:.2f} s split, {one_w[4]:.2f} s many, medians): "
+              f"process_split {bw_s:.2f}x, process_many {bw_m:.2f}x")
+    # the issue's targets, read off the figures above: over one worker as the issue
+    # words them, and over one process (stricter: one worker carries Dask's overhead)
     cores = os.cpu_count() or 1
-    want = 10.0 if max(workers) >= 16 else 1.8
-    print(f"targets (issue 14; this machine has {cores} cores, so {max(workers)} workers at "
-          f"most): process_split >= {want:g}x by wall: "
-          f"{'met' if best_s >= want else 'NOT met'} ({best_s:.2f}x); process_many >= "
-          f"{12.0 if max(workers) >= 16 else 1.8:g}x: "
-          f"{'met' if best_m >= (12.0 if max(workers) >= 16 else 1.8) else 'NOT met'} "
-          f"({best_m:.2f}x)")
+    want_s = 10.0 if max(workers) >= 16 else 1.8
+    want_m = 12.0 if max(workers) >= 16 else 1.8
+
+    def verdict(x, want):
+        return f"{'met' if x >= want else 'NOT met'} ({x:.2f}x)"
+
+    over = [("one process", best_s, best_m)]
+    if one_w is not None:
+        over.insert(0, ("one worker", bw_s, bw_m))
+    for name, xs, xm in over:
+        print(f"targets (issue 14; this machine has {cores} cores, so {max(workers)} workers "
+              f"at most), over {name}: process_split >= {want_s:g}x by wall: "
+              f"{verdict(xs, want_s)}; process_many >= {want_m:g}x: {verdict(xm, want_m)}")
     for n, *_, tm in rows:
         if "client_serial" in tm:
             f = tm["client_serial"] / t1_split

@@ -18,10 +18,14 @@ What keeps the client's serial share small (``docs/throughput.md``):
   workers in parallel (:func:`fill_table`), assembled on the client and
   scattered to every worker once;
 * each part receives only its own slice of the scan angles;
-* the parts' results are summed on the workers in a tree of groups of
-  :data:`FAN_IN` (:func:`tree_sum`), so the client receives ONE pass-1 result
-  whatever the number of parts; the pass-1 counts travel
-  as uint32, as their non-zero entries where that is smaller;
+* the parts' pass-1 results are reduced and scattered by blocks of pixels on
+  the workers (each part's rows of a block sliced where the part lies, each
+  block's slices summed on the block's worker, where the peak detector's
+  per-pixel stage then runs), and pass 2's in a tree of groups of
+  :data:`FAN_IN` (:func:`tree_sum`), so the client receives one pass-1 result
+  (without the per-angle counts) and one pass-2 result whatever the number of
+  parts; the pass-1 counts travel as uint32, as their non-zero entries where
+  that is smaller;
 * each part keeps its signal detections on its worker
   (:class:`~mems_stereo.pipeline.signal_store.SignalStore`), and its pass 2
   counts from them instead of reading the shots again — one pass for the
@@ -370,25 +374,34 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
         stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
         del p1
-        acc_f = tree_sum(client, accs)
-        del accs
-        # the peak detector's per-pixel stage in blocks of pixels on the workers, from
-        # the summed pass 1 there: submitted at once, it runs while the client gathers
-        # what it needs of pass 1 (the (P, S) per-angle counts stay on the workers)
+        # the parts' sum reduced and scattered by blocks of pixels: each part's rows of
+        # each block are sliced where the part lies, and each block's slices summed on
+        # the block's worker (no part's whole arrays move, no worker sums the whole);
+        # there the peak detector's per-pixel stage runs on its block, while the
+        # client gathers what it needs of pass 1 (the (P, S) per-angle counts stay on
+        # the workers)
         P = sysm.receiver.width * sysm.receiver.height
         edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
         addr = _worker_addresses(client)
-        rows_f = client.submit(_pixel_rows, acc_f, edges, pure=False)
-        scores_f = [client.submit(_scores_block, client.submit(operator.getitem, rows_f, i,
+        slices = [client.submit(_pixel_slices, a, edges, pure=False) for a in accs]
+        del accs
+        blocks_p1 = [client.submit(_block_rows,
+                                   *[client.submit(operator.getitem, sl, i, pure=False)
+                                     for sl in slices], pure=False,
+                                   workers=[addr[i % len(addr)]] if addr else None,
+                                   allow_other_workers=True)
+                     for i in range(len(edges))]
+        del slices
+        scores_f = [client.submit(_scores_block, client.submit(operator.itemgetter(0), b,
                                                                pure=False),
                                   sysm, st, table_f, p0, p1, pure=False,
                                   workers=[addr[i % len(addr)]] if addr else None,
                                   allow_other_workers=True)
-                    for i, (p0, p1) in enumerate(edges)]
+                    for i, (b, (p0, p1)) in enumerate(zip(blocks_p1, edges))]
         sup_f = [client.submit(_support_inputs, f, pure=False) for f in scores_f]
-        del rows_f
-        acc = waits(client.submit(_without_angle, acc_f, pure=False).result)
-        del acc_f
+        acc = _joined_pixel_blocks(waits(client.gather, [
+            client.submit(operator.itemgetter(1), b, pure=False) for b in blocks_p1]))
+        del blocks_p1
         timings["classify_histogram"] = time.perf_counter() - t1
         nbytes = sum(a.nbytes for a in (acc.hist_raw, acc.hist_signal, acc.hist_angle))
         shared = {}
@@ -572,15 +585,38 @@ def _without_angle(acc):
                                                         acc.hist_angle.dtype))
 
 
-def _pixel_rows(acc, edges):
-    """Per block ``(p0, p1)`` of ``edges``: ``(signal, noise, angle)`` of its pixels, the
-    int64 code histograms (codes 1..n_bins) and the signal detections per angle step."""
-    out = []
-    for p0, p1 in edges:
-        raw = acc.hist_raw[p0:p1, 1:].astype(np.int64)
-        sig = acc.hist_signal[p0:p1, 1:].astype(np.int64)
-        out.append((sig, raw - sig, acc.hist_angle[p0:p1].copy(), acc.n_per_step))
-    return out
+def _pixel_slices(acc, edges):
+    """Per block ``(p0, p1)`` of ``edges``: ``acc`` of those pixels alone (its count
+    arrays' rows p0..p1−1, copied; the per-shot sums as they are)."""
+    import dataclasses
+
+    return [dataclasses.replace(acc, hist_raw=acc.hist_raw[p0:p1].copy(),
+                                hist_signal=acc.hist_signal[p0:p1].copy(),
+                                hist_angle=acc.hist_angle[p0:p1].copy()) for p0, p1 in edges]
+
+
+def _block_rows(*slices):
+    """The parts' slices of one block of pixels summed (exact integers: the rows of the
+    whole's sum): ``((signal, noise, angle, n_per_step), the sum without its per-angle
+    counts)`` — the int64 code histograms (codes 1..n_bins) and the signal detections
+    per angle step for :func:`_scores_block`, and what the client gathers."""
+    acc = _sum(*slices)
+    raw = acc.hist_raw[:, 1:].astype(np.int64)
+    sig = acc.hist_signal[:, 1:].astype(np.int64)
+    return (sig, raw - sig, acc.hist_angle, acc.n_per_step), _without_angle(acc)
+
+
+def _joined_pixel_blocks(blocks):
+    """The sums without per-angle counts of consecutive blocks of pixels joined into the
+    whole sensor's (the blocks' per-shot sums are the same: each summed every part)."""
+    import dataclasses
+
+    first = blocks[0]
+    return dataclasses.replace(
+        first, hist_raw=np.concatenate([b.hist_raw for b in blocks]),
+        hist_signal=np.concatenate([b.hist_signal for b in blocks]),
+        hist_angle=np.zeros((sum(b.hist_angle.shape[0] for b in blocks), 0),
+                            first.hist_angle.dtype))
 
 
 def _scores_block(rows, system, settings, table, p0, p1):
