@@ -211,12 +211,34 @@ def tree_sum(client, futures: list, fan_in: int = FAN_IN):
     Exact for integer results (any grouping gives the same sum); the client
     only ever receives the final sum.
     """
+    futures = tree_reduce(client, futures, fan_in, fan_in)
+    return futures[0] if len(futures) == 1 else client.submit(_sum, *futures, pure=False)
+
+
+def tree_reduce(client, futures: list, most: int, fan_in: int = FAN_IN) -> list:
+    """``futures`` summed on the workers in groups of ``fan_in`` until at most ``most``
+    remain (a list): a task that sums them itself before its own work saves the
+    last sum's round trip."""
     futures = list(futures)
-    while len(futures) > 1:
+    while len(futures) > max(1, most):
         futures = [futures[i] if len(futures[i:i + fan_in]) == 1 else
                    client.submit(_sum, *futures[i:i + fan_in], pure=False)
                    for i in range(0, len(futures), fan_in)]
-    return futures[0]
+    return futures
+
+
+def _split_candidates_of_sum(edges, n_steps, n_codes, *parts):
+    """:func:`~mems_stereo.pipeline.matched.split_candidate_counts` of the parts' sum."""
+    from mems_stereo.pipeline.matched import split_candidate_counts
+
+    return split_candidate_counts(_sum(*parts), edges, n_steps, n_codes)
+
+
+def _split_peaks_of_sum(n_peaks, n_steps, n_codes, n_blocks, *parts):
+    """``(blocks, work)``: :func:`split_peak_counts` of the parts' sum and each block's
+    fusion work (:func:`_block_work`)."""
+    blocks = split_peak_counts(_sum(*parts), n_peaks, n_steps, n_codes, n_blocks)
+    return blocks, _block_work(blocks, n_steps, n_codes)
 
 
 def _table_rows(system: System, settings: Settings, rows):
@@ -435,20 +457,21 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             # the parts' counts summed on the workers: one future
             return tree_sum(client, pass2_parts(peaks_f))
 
-        def selected_sum(parts_f, sel):
-            # select_counts of each part where it lies, then the (smaller) selections
-            # summed: the selection of the sum (each key's count is its parts' sum)
-            return tree_sum(client, [client.submit(select_counts, f, *sel, S, n_codes,
-                                                   pure=False) for f in parts_f])
+        def selected_parts(parts_f, sel):
+            # select_counts of each part where it lies; the (smaller) selections are
+            # summed by the task that reads them (the selection of the sum: each key's
+            # count is its parts' sum), after a tree down to FAN_IN of them
+            return tree_reduce(client, [client.submit(select_counts, f, *sel, S, n_codes,
+                                                      pure=False) for f in parts_f], FAN_IN)
 
         def count_peaks(peaks):
             # (the peak stage ends here: what of it the client spent waiting on workers)
             timings["peaks_wait"] = waits.seconds - shared.get("wait_peaks", waits.seconds)
-            # pass 2 needs only the pixels, windows and bands; send them once
-            shared["peaks"] = _scatter_one(client, peak_fields(peaks))
             both_f = shared.get("both_f")
             if both_f is None:
-                total_f = pass2_sum(shared["peaks"])
+                # pass 2 needs only the pixels, windows and bands; send them once
+                shared["peaks"] = _scatter_one(client, peak_fields(peaks))
+                total_f = [pass2_sum(shared["peaks"])]
             else:
                 # the first stage's peaks and the candidates' widened windows were counted
                 # in one pass (count_candidates): the first stage's counts renumbered into
@@ -456,23 +479,27 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                 # (each peak's counts are its own: the PeakCounts of counting ``peaks``)
                 sel = merged_selection(shared["first"], shared["cands"], peaks,
                                        sysm.receiver.width)
-                total_f = selected_sum(both_f, sel)
+                total_f = selected_parts(both_f, sel)
                 shared.pop("both_f")
+                # the fusion's blocks read the peaks' fields: sent once, while the
+                # selections run (a scatter waits for its data to arrive)
+                shared["peaks"] = _scatter_one(client, peak_fields(peaks))
             stores.clear()  # released once their pass 2 has run
-            return total_f  # stays on the workers
+            return total_f  # futures of counts to sum: they stay on the workers
 
         def make_points(peaks, total_f):
             Q = len(peaks["row"])
             nps_f = client.scatter(acc.n_per_step, broadcast=True)
-            blocks_f = client.submit(split_peak_counts, total_f, Q, S, n_codes,
-                                     BLOCKS_PER_WORKER * n_w,
-                                     pure=False)
-            # each block's work (a few numbers back), so that the blocks are dealt to the
-            # workers by it, the largest first to the least loaded (cuts at multiples of
-            # FP_BLOCK peaks leave blocks of unequal work).  Left to itself the scheduler
-            # runs every block where ``blocks_f`` lies (data locality): one worker fused
-            # most of them (2 workers, 1,600,000 shots: 4.55 / 5.25 s of CPU)
-            work = waits(client.submit(_block_work, blocks_f, S, n_codes, pure=False).result)
+            # the counts summed and split into blocks of peaks by one task, which also
+            # returns each block's work (a few numbers back), so that the blocks are dealt
+            # to the workers by it, the largest first to the least loaded (cuts at
+            # multiples of FP_BLOCK peaks leave blocks of unequal work).  Left to itself
+            # the scheduler runs every block where the blocks lie (data locality): one
+            # worker fused most of them (2 workers, 1,600,000 shots: 4.55 / 5.25 s of CPU)
+            split_f = client.submit(_split_peaks_of_sum, Q, S, n_codes,
+                                    BLOCKS_PER_WORKER * n_w, *total_f, pure=False)
+            blocks_f = client.submit(operator.itemgetter(0), split_f, pure=False)
+            work = waits(client.submit(operator.itemgetter(1), split_f, pure=False).result)
             owner = deal_blocks(work, _worker_addresses(client))
             means_f = [client.submit(_means_nth_block, sysm, shared["peaks"], blocks_f, i,
                                      st, nps_f, table_f, pure=False,
@@ -500,26 +527,25 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             if first is None:  # pragma: no cover - detect always runs first
                 return waits(pass2_sum(_scatter_one(client, cands)).result)
             both = with_widened_candidates(first, cands, S)
-            shared["both_f"] = pass2_parts(_scatter_one(client, both))  # one per part
+            # one pass per part; ``both`` (a few numbers per window) travels with the
+            # tasks, not scattered first (a scatter is a round trip of its own)
+            shared["both_f"] = pass2_parts(both)
             shared["cands"] = cands
-            # stays on the workers: score_cands reads it there
-            return selected_sum(shared["both_f"], candidate_selection(len(first), cands))
+            # futures of counts to sum: they stay on the workers, score_cands reads them
+            return selected_parts(shared["both_f"], candidate_selection(len(first), cands))
 
         def score_cands(cands, cc_f):
             # the matched filter's search per candidate (a pixel's whole scan: the
             # costly part of the stage) in blocks on the workers, next to the counts;
             # the client joins a few numbers per candidate and runs the support test
-            from mems_stereo.pipeline.matched import (
-                candidates_block,
-                join_scores,
-                split_candidate_counts,
-            )
+            from mems_stereo.pipeline.matched import candidates_block, join_scores
 
             C = len(cands)
             if C == 0:
                 return None
             edges = shot_ranges(C, min(C, n_w * SCORE_BLOCKS_PER_WORKER))
-            split_f = client.submit(split_candidate_counts, cc_f, edges, S, n_codes,
+            parts_cc = cc_f if isinstance(cc_f, list) else [cc_f]
+            split_f = client.submit(_split_candidates_of_sum, edges, S, n_codes, *parts_cc,
                                     pure=False)
             # (hash=False: the fusion scatters the same array later; a content-hashed
             # key released here would be lost to it)
