@@ -128,33 +128,35 @@ def compiled_entries():
     return compiled_if_loaded(_entries_py)
 
 
+#: the outputs of :func:`_entries_py`, in :class:`~mems_stereo.pipeline.detections.
+#: DetectionPoints` order, with their shapes per detection (the first four, ``w`` and
+#: ``dxdL`` have no rows unless ``full``)
+_OUTPUTS = (("x_st", (3,), True), ("c_st", (3, 3), True), ("x_tf", (3,), True),
+            ("c_tf", (3, 3), True), ("x_f", (3,), False), ("c_f", (3, 3), False),
+            ("w", (), True), ("ok", (), False), ("dxdL", (3,), True))
+
+
 def entries(run, L, p, scal, R: dict, full: bool, kernel=None):
     """Run :func:`_entries_py` (``kernel``, default its compiled form) over the
     detections; R the per-run stereo geometry of ``_stereo_runs`` (``c_st`` and ``x0``
     read only when ``full``).  Returns ``(x_st, c_st, x_tf, c_tf, x_f, c_f, w, ok,
-    dxdL)``, the first four, ``w`` and ``dxdL`` None unless ``full``."""
+    dxdL)`` (the fields of ``DetectionPoints``) with ``full``, else ``(x_f, c_f, ok)``."""
     kernel = compiled_entries() if kernel is None else kernel
     M = run.shape[0]
-    S = np.ascontiguousarray(np.stack([R["s" + k] for k in ("0", "u+", "u-", "v+", "v-",
-                                                            "t+", "t-")]), dtype=np.float64)
-    D = np.ascontiguousarray(np.stack([R["d" + k] for k in ("0", "t+", "t-")]),
-                             dtype=np.float64)
-    DB = np.ascontiguousarray(np.stack([R["db" + k] for k in ("0", "t+", "t-")]),
-                              dtype=np.float64)
-    n_full = M if full else 0
+
+    def stacked(keys):
+        return np.ascontiguousarray(np.stack([R[k] for k in keys]), dtype=np.float64)
+
+    S = stacked(["s" + k for k in ("0", "u+", "u-", "v+", "v-", "t+", "t-")])
+    D = stacked(["d" + k for k in ("0", "t+", "t-")])
+    DB = stacked(["db" + k for k in ("0", "t+", "t-")])
     X0 = np.ascontiguousarray(R["x0"] if full else np.zeros((0, 3)), dtype=np.float64)
     C0 = np.ascontiguousarray(R["c_st"] if full else np.zeros((0, 3, 3)), dtype=np.float64)
-    out = dict(x_st=np.empty((n_full, 3)), c_st=np.empty((n_full, 3, 3)),
-               x_tf=np.empty((n_full, 3)), c_tf=np.empty((n_full, 3, 3)),
-               x_f=np.empty((M, 3)), c_f=np.empty((M, 3, 3)), w=np.empty(n_full),
-               ok=np.empty(M, np.bool_), dxdL=np.empty((n_full, 3)))
+    out = [np.empty(((M if full or not only_full else 0),) + shape,
+                    np.bool_ if name == "ok" else np.float64)
+           for name, shape, only_full in _OUTPUTS]
     kernel(np.ascontiguousarray(run, dtype=np.int64), np.ascontiguousarray(L, np.float64),
            np.ascontiguousarray(p, np.float64), np.asarray(scal, np.float64), S,
            np.ascontiguousarray(R["var_st"], np.float64),
-           np.ascontiguousarray(R["ok_st"], np.bool_), X0, C0, D, DB, bool(full),
-           out["x_st"], out["c_st"], out["x_tf"], out["c_tf"], out["x_f"], out["c_f"],
-           out["w"], out["ok"], out["dxdL"])
-    if not full:
-        return None, None, None, None, out["x_f"], out["c_f"], None, out["ok"], None
-    return (out["x_st"], out["c_st"], out["x_tf"], out["c_tf"], out["x_f"], out["c_f"],
-            out["w"], out["ok"], out["dxdL"])
+           np.ascontiguousarray(R["ok_st"], np.bool_), X0, C0, D, DB, bool(full), *out)
+    return tuple(out) if full else (out[4], out[5], out[7])

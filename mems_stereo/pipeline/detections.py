@@ -186,7 +186,7 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
                 2.0 * ht, *var_in, sp.sigma_L(system) ** 2]
         out = entries(np.arange(U.size) if run is None else run, Lx, p, scal, R,
                       not fused_only, kernel)
-        return out[4:6] + out[7:8] if fused_only else DetectionPoints(*out)
+        return out if fused_only else DetectionPoints(*out)
     c_st = None if fused_only else gather(R["c_st"])
     var_st = gather(R["var_st"])
     x_st = None if fused_only else gather(R["x0"])
