@@ -272,6 +272,43 @@ def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
     np.testing.assert_array_equal(whole.n_per_step, t.shots_per_step(th, va))
 
 
+@pytest.mark.parametrize("raw16_shots", [1 << 16, 250, 50])
+def test_compiled_range_counts_raw_codes_in_uint16_between_flushes(monkeypatch, raw16_shots):
+    """accumulate_range's compiled path counts raw codes into one uint16 table added to
+    the range's counts every RAW16_SHOTS shots (250: flushed every 2-3 chunks of 97;
+    50: chunks too large for it, counted straight into the range's table), with its
+    signal keys through one reused buffer: the same counts as the NumPy path."""
+    import mems_stereo.pipeline.pass1 as pass1
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.signal_store import SignalStore
+
+    path = SAMPLES / "floodlight.h5"
+    h = read_header(path)
+    th, va = shot_angles(h, h.system)
+    st = Settings(chunk_shots=97)
+    t = IntervalTable.for_settings(h.system, st)
+    monkeypatch.setattr(pass1, "RAW16_SHOTS", raw16_shots)
+    out = []
+    for slots in (0, 1 << 40):  # compiled, then NumPy
+        monkeypatch.setattr(pass1, "COMPILE_SLOTS", slots)
+        with SignalStore() as store:
+            acc = accumulate_range(path, h.system, th, va, st, table=t, signal_store=store)
+            keys = np.concatenate(list(store.blocks())) if store.complete else None
+        out.append((acc, keys))
+    (a, keys), (b, _) = out
+    assert a.hist_raw.dtype == np.uint32 and a.hist_raw[:, 1:].sum() > 0
+    for k in ("hist_raw", "hist_signal", "hist_angle", "n_per_step"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+    # the keys: one per signal count, each the (pixel, step, code) it was counted at
+    assert keys.size == int(b.hist_signal[:, 1:].sum())
+    span = t.n_steps * (h.system.tdc.n_bins + 1)
+    per_pixel_code = np.bincount((keys // span) * (h.system.tdc.n_bins + 1)
+                                 + keys % (h.system.tdc.n_bins + 1),
+                                 minlength=b.hist_signal.size).reshape(b.hist_signal.shape)
+    np.testing.assert_array_equal(per_pixel_code, b.hist_signal)
+
+
 def _random_detection_args(system, rng, n, n_steps):
     """detection_points' positional arguments for n random detections over n_steps
     scan-angle steps (steps, rows, columns, codes, step angles in rad)."""

@@ -150,7 +150,8 @@ def _compiled():
 def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: int,
                             hist_raw=None, hist_signal=None, want_labels: bool = True,
                             hist_angle=None, rows=None, compiled: bool | None = None,
-                            codes_checked: bool = False, keys_out=None):
+                            codes_checked: bool = False, keys_out=None, raw_scratch=None,
+                            keys_scratch=None):
     """Label a block of shots and add it to the raw and signal histograms.
 
     Parameters
@@ -177,6 +178,13 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         (pixel, angle step, code), int64), for pass 2 to count from instead of
         reading the shots again; only on the compiled path (the list is left
         untouched otherwise, and the caller reads the shots).
+    raw_scratch : a (H*W, n_bins + 1) uint16 table that the compiled kernel counts
+        the raw codes into instead of ``hist_raw`` (left untouched); the caller adds
+        it to ``hist_raw`` before it could hold 2**16 shots (:func:`accumulate_range`
+        does, every :data:`RAW16_SHOTS` shots).  Ignored on the NumPy path.
+    keys_scratch : an int64 buffer of at least K*H*W that the compiled kernel writes
+        the signal keys into before they are copied to ``keys_out`` (reused between
+        blocks: no fresh buffer of 8 bytes a pixel-slot per block).
 
     Returns
     -------
@@ -212,19 +220,23 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
     # a block of fewer than 2**16 shots counts into a uint16 table of half the size
     # (it stays in the cache more: ~17 % less kernel time on a dense recording),
     # added to hist_raw after (exact: no cell can count more than the block's shots)
-    raw = np.zeros(hist_raw.shape, np.uint16) if K < RAW16_SHOTS else hist_raw
+    if raw_scratch is not None:
+        raw = raw_scratch
+    else:
+        raw = np.zeros(hist_raw.shape, np.uint16) if K < RAW16_SHOTS else hist_raw
     if want_labels:
         kernels[0](b2, rows, table.lo, table.hi, labels, raw, hist_signal, hist_angle)
         if keys_out is not None:
             keys_out.append(signal_keys(b2, rows, labels, table.n_steps, n_bins + 1))
     elif keys_out is not None:
-        buf = np.empty(b2.size, np.int64)
+        buf = (keys_scratch if keys_scratch is not None and keys_scratch.size >= b2.size
+               else np.empty(b2.size, np.int64))
         n = kernels[2](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle,
                        table.n_steps, n_bins + 1, buf)
         keys_out.append(buf[:n].copy())
     else:
         kernels[1](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle)
-    if raw is not hist_raw:
+    if raw is not hist_raw and raw is not raw_scratch:
         hist_raw += raw
     return (labels.reshape(b.shape) if want_labels else None), hist_raw, hist_signal
 
@@ -358,9 +370,23 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
     conf = np.zeros((3, 3), np.int64)
     has_truth = True
     n_shots = n_unknown = 0
+    # the compiled kernel counts raw codes into a uint16 table (half the size of a
+    # uint32 one: it stays in the cache more), added to ``raw`` every RAW16_SHOTS
+    # shots (no cell can overflow before) instead of once a block; its signal keys go
+    # through one buffer reused by every block
+    raw16 = np.zeros((P, n_bins + 1), np.uint16) if compiled else None
+    in_raw16 = 0
+    keys_buf = None
     for s0, _t, bins, truth in iter_shot_chunks(path, settings.chunk_shots, start, stop,
                                                 truth_labels=True):
         s1 = s0 + bins.shape[0]
+        if raw16 is not None and in_raw16 + (s1 - s0) >= RAW16_SHOTS:
+            raw += raw16
+            raw16[:] = 0
+            in_raw16 = 0
+        if compiled and signal_store is not None and (
+                keys_buf is None or keys_buf.size < bins.size):
+            keys_buf = np.empty(bins.size, np.int64)
         a, b = s0 - angle_offset, s1 - angle_offset
         th, v = theta[a:b], valid[a:b]
         rows = table.rows(th, v)
@@ -376,7 +402,12 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         labels, _, _ = classify_and_accumulate(bins, th, v, table, n_bins, raw, sig,
                                                want_labels=want, hist_angle=angle, rows=rows,
                                                compiled=compiled, codes_checked=True,
-                                               keys_out=keys)
+                                               keys_out=keys,
+                                               raw_scratch=(raw16 if s1 - s0 < RAW16_SHOTS
+                                                            else None),
+                                               keys_scratch=keys_buf)
+        if raw16 is not None and s1 - s0 < RAW16_SHOTS:
+            in_raw16 += s1 - s0
         if signal_store is not None:
             if keys:
                 signal_store.append(keys[0])
@@ -394,6 +425,8 @@ def accumulate_range(path, system: System, theta, valid, settings: Settings,
         n_unknown += int(np.count_nonzero(~v))
         if progress is not None:
             progress(s1 - s0)
+    if raw16 is not None and in_raw16:
+        raw += raw16
     return RangeAccumulation(raw, sig, angle, n_per_step, n_shots, n_unknown, conf, has_truth)
 
 
