@@ -46,6 +46,47 @@ def _same(a, b):
     for k in a.cloud.attributes:
         np.testing.assert_array_equal(a.cloud[k], b.cloud[k])
     assert a.counts == b.counts and a.truth == b.truth
+    # the shots' angles (process_split's parts compute their own on the workers)
+    np.testing.assert_array_equal(a.theta, b.theta)
+    np.testing.assert_array_equal(a.valid, b.valid)
+
+
+@pytest.mark.parametrize("table_state", ["cold", "complete"])
+def test_split_computes_angles_on_the_workers_and_fills_missing_rows(client, monkeypatch,
+                                                                     tmp_path, table_state):
+    """The parts compute their shots' angles; the table rows they need and lack are
+    filled on the workers before pass 1 (cold: an empty disk cache), and none are
+    asked for when the table holds every row (complete: no round trip)."""
+    import mems_stereo.pipeline.distributed as D
+    from mems_stereo.io.recording import read_header
+    from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.intervals import IntervalTable
+    from mems_stereo.pipeline.settings import Settings
+
+    one = process_recording(SAMPLES / "room.h5")
+    monkeypatch.setenv("MEMS_STEREO_CACHE", str(tmp_path))  # cold: nothing cached
+    filled = []
+    fill = D.fill_table
+
+    def counting_fill(client_, table, rows=None, **kw):
+        filled.append(np.asarray(rows))
+        return fill(client_, table, rows, **kw)
+
+    monkeypatch.setattr(D, "fill_table", counting_fill)
+    h = read_header(SAMPLES / "room.h5")
+    th, va = shot_angles(h, h.system)
+    table = IntervalTable.for_settings(h.system, Settings())
+    used = table.missing(table.rows(th, va))
+    if table_state == "complete":  # the rows the sample uses, and every other marked held
+        table.ensure(used)  # (never read: no shot falls there)
+        table.filled[:] = True
+        monkeypatch.setattr(D.IntervalTable, "for_settings", lambda *a, **k: table)
+    split = process_split(SAMPLES / "room.h5", scheduler=client, n_parts=3)
+    _same(one, split)
+    if table_state == "cold":
+        assert len(filled) == 1 and np.array_equal(filled[0], used)  # the rows needed
+    else:
+        assert filled == []
 
 
 def test_split_recording_equals_one_process(client):
@@ -309,6 +350,33 @@ def test_deal_blocks_balances_by_work():
     assert worst <= 4 / 3 + 1e-9
     assert deal_blocks([1.0, 2.0], []) == [None, None]
     print(f"busiest worker / lower bound, worst of 200: {worst:.3f}")
+
+
+def test_block_slots_hold_every_block_once_within_each_workers_slots():
+    """Slot s runs on worker s mod n: every block in exactly one slot, at most
+    ``per_worker`` a worker, each worker's blocks those deal_blocks gives it (capped),
+    in block order; empty slots -1."""
+    from mems_stereo.pipeline.distributed import block_slots, deal_blocks
+
+    rng = np.random.default_rng(15)
+    for _ in range(200):
+        n_w, per = int(rng.integers(1, 5)), int(rng.integers(1, 5))
+        n = int(rng.integers(0, n_w * per + 1))
+        work = rng.exponential(1.0, n).tolist()
+        slots = block_slots(work, n_w, per)
+        assert len(slots) == n_w * per
+        assert sorted(b for b in slots if b >= 0) == list(range(n))
+        owner = deal_blocks(work, list(range(n_w)), per)
+        for w in range(n_w):
+            mine = [b for b in slots[w::n_w] if b >= 0]
+            assert mine == sorted(mine) == [b for b in range(n) if owner[b] == w]
+            assert len(mine) <= per
+    # the cap: one large block and four small on two workers: 1 + 4 by work alone,
+    # 2 + 3 with three slots each
+    assert sorted(np.bincount(np.array(deal_blocks([10.0, 1, 1, 1, 1], [0, 1])))) == [1, 4]
+    assert sorted(np.bincount(np.array(deal_blocks([10.0, 1, 1, 1, 1], [0, 1], 3)))) == [2, 3]
+    with pytest.raises(ValueError):
+        deal_blocks([1.0] * 5, [0, 1], 2)
 
 
 def test_fusion_work_counts_entries_and_steps():

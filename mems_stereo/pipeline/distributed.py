@@ -104,7 +104,7 @@ FAN_IN = 4
 PARTS_PER_WORKER = 1
 
 #: blocks of peaks fused per worker (at most: blocks are cut at multiples of
-#: ``FP_BLOCK`` peaks), dealt to the workers by their work (:func:`deal_blocks`)
+#: ``FP_BLOCK`` peaks), dealt to the workers' slots by their work (:func:`block_slots`)
 BLOCKS_PER_WORKER = 4
 
 #: blocks of pixels per worker in which :func:`process_split` runs the peak detector
@@ -234,11 +234,15 @@ def _split_candidates_of_sum(edges, n_steps, n_codes, *parts):
     return split_candidate_counts(_sum(*parts), edges, n_steps, n_codes)
 
 
-def _split_peaks_of_sum(n_peaks, n_steps, n_codes, n_blocks, *parts):
-    """``(blocks, work)``: :func:`split_peak_counts` of the parts' sum and each block's
-    fusion work (:func:`_block_work`)."""
-    blocks = split_peak_counts(_sum(*parts), n_peaks, n_steps, n_codes, n_blocks)
-    return blocks, _block_work(blocks, n_steps, n_codes)
+def _split_peaks_of_sum(n_peaks, n_steps, n_codes, n_workers, per_worker, *parts):
+    """``(blocks, slots)``: :func:`split_peak_counts` of the parts' sum in at most
+    ``n_workers * per_worker`` blocks, and :func:`block_slots` of them: the block that
+    slot s (run on worker s mod ``n_workers``) fuses, dealt here by the blocks' work
+    (:func:`_block_work`), so that the client submits the slots' tasks at once,
+    without waiting for the work to come back."""
+    blocks = split_peak_counts(_sum(*parts), n_peaks, n_steps, n_codes,
+                               n_workers * per_worker)
+    return blocks, block_slots(_block_work(blocks, n_steps, n_codes), n_workers, per_worker)
 
 
 def _table_rows(system: System, settings: Settings, rows):
@@ -368,24 +372,40 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     c_all = time.process_time()
     m_all = time.thread_time()
     waits = _Waits()
-    header = read_header(path)
+    header = read_header(path)  # (validates the shot times and zero crossings)
     sysm = header.system if system is None else system
-    theta, valid = shot_angles(header, sysm)
-    header.shot_time = None
+    header.shot_time = None  # each part computes its own shots' angles (below)
     K = header.shape[0]
     timings = {"read_header": time.perf_counter() - t_all}
     table = IntervalTable.for_settings(sysm, st)
+    table.load_cache()
     S, n_codes = table.n_steps, sysm.tdc.n_bins + 1
+    # the shots' angles, filled from the parts' (see make_points: the result's)
+    theta = np.empty(K, np.float64)
+    valid = np.zeros(K, bool)
     with dask_client(scheduler, n_workers) as client:
         t_run = time.perf_counter()  # (a local cluster's start-up is not the run's)
         n_w = _n_workers(client)
         parts = shot_ranges(K, n_parts or n_w * PARTS_PER_WORKER)
         t0 = time.perf_counter()
-        rows = table.rows(theta, valid)
-        fill_table(client, table, rows, settings=st, waits=waits)
-        del rows
+        # each part's angles computed on the workers from its shot times (the same
+        # elementwise arithmetic as shot_angles here) and kept there for its passes;
+        # the table's rows they need and lack (none once the cache holds them all) are
+        # filled on the workers first.  The client computes and sends no angle.
         table_f = client.scatter(table, broadcast=True)
-        angle_f = client.scatter([(theta[a:b], valid[a:b]) for a, b in parts])
+        zc_f = _scatter_one(client, (header.zero_crossings, header.rising))
+        complete = bool(table.filled.all())  # then nothing can be missing: no round trip
+        ang_missing = [client.submit(_part_angles, str(path), sysm, zc_f, a, b,
+                                     None if complete else table_f, pure=False)
+                       for a, b in parts]
+        angle_f = [client.submit(operator.itemgetter(0), f, pure=False) for f in ang_missing]
+        if not complete:
+            need = np.unique(np.concatenate(waits(client.gather, [
+                client.submit(operator.itemgetter(1), f, pure=False) for f in ang_missing])))
+            if need.size:
+                fill_table(client, table, need, settings=st, waits=waits)
+                table_f = client.scatter(table, broadcast=True)
+        del ang_missing
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
@@ -491,21 +511,26 @@ def process_split(path, system: System | None = None, settings: Settings | None 
             Q = len(peaks["row"])
             nps_f = client.scatter(acc.n_per_step, broadcast=True)
             # the counts summed and split into blocks of peaks by one task, which also
-            # returns each block's work (a few numbers back), so that the blocks are dealt
-            # to the workers by it, the largest first to the least loaded (cuts at
-            # multiples of FP_BLOCK peaks leave blocks of unequal work).  Left to itself
-            # the scheduler runs every block where the blocks lie (data locality): one
-            # worker fused most of them (2 workers, 1,600,000 shots: 4.55 / 5.25 s of CPU)
-            split_f = client.submit(_split_peaks_of_sum, Q, S, n_codes,
-                                    BLOCKS_PER_WORKER * n_w, *total_f, pure=False)
-            blocks_f = client.submit(operator.itemgetter(0), split_f, pure=False)
-            work = waits(client.submit(operator.itemgetter(1), split_f, pure=False).result)
-            owner = deal_blocks(work, _worker_addresses(client))
-            means_f = [client.submit(_means_nth_block, sysm, shared["peaks"], blocks_f, i,
+            # deals them to the workers' slots by their work, the largest first to the
+            # least loaded (cuts at multiples of FP_BLOCK peaks leave blocks of unequal
+            # work); the slots' tasks are submitted with it, each pinned to its worker,
+            # so no round trip comes between.  Left to itself the scheduler runs every
+            # block where the blocks lie (data locality): one worker fused most of them
+            # (2 workers, 1,600,000 shots: 4.55 / 5.25 s of CPU)
+            addr = _worker_addresses(client)
+            n_slot_w = max(1, len(addr))
+            split_f = client.submit(_split_peaks_of_sum, Q, S, n_codes, n_slot_w,
+                                    BLOCKS_PER_WORKER, *total_f, pure=False)
+            means_f = [client.submit(_means_of_slot, sysm, shared["peaks"], split_f, i,
                                      st, nps_f, table_f, pure=False,
-                                     workers=None if owner[i] is None else [owner[i]],
-                                     allow_other_workers=True) for i in range(len(work))]
-            means = [m for m in waits(client.gather, means_f) if m is not None]
+                                     workers=[addr[i % n_slot_w]] if addr else None,
+                                     allow_other_workers=True)
+                       for i in range(n_slot_w * BLOCKS_PER_WORKER)]
+            # the shots' angles gathered from the parts while the blocks are fused
+            for (a, b), (th, va) in zip(parts, waits(client.gather, angle_f)):
+                theta[a:b], valid[a:b] = th, va
+            means = [m for _, m in sorted((m for m in waits(client.gather, means_f)
+                                           if m is not None), key=operator.itemgetter(0))]
             if not means:  # no peaks: the (empty) cloud of the whole
                 return points_block(sysm, {k: v for k, v in peaks.items()
                                             if k != "background_by_step"},
@@ -582,6 +607,25 @@ def process_split(path, system: System | None = None, settings: Settings | None 
     t["parts"] = float(len(parts))
     t["peak_blocks"] = float(getattr(make_points, "blocks", 0))
     return res
+
+
+def _part_angles(path, system, crossings, start, stop, table):
+    """``((theta, valid), missing)`` of shots [start, stop): their scan angles
+    (:func:`~mems_stereo.pipeline.angles.shot_angles` of the part's shot times, read
+    here, with the recording's validated zero crossings ``crossings``: the same
+    values as over the whole, the arithmetic being elementwise) and the rows of
+    ``table`` they need that it does not hold (none asked for: ``table`` None)."""
+    from mems_stereo.io import hdf5 as h5
+    from mems_stereo.io.recording import RecordingHeader
+
+    with h5.open_h5(path) as f:
+        t = np.asarray(f["/shots/time"][start:stop], np.float64)
+    zc, rising = crossings
+    theta, valid = shot_angles(RecordingHeader(system, t, zc, rising, (stop - start,),
+                                               str(path)), system)
+    missing = (np.zeros(0, np.int64) if table is None
+               else table.missing(table.rows(theta, valid)))
+    return (theta, valid), missing
 
 
 def _pass1_part(path, system, angles, settings, start, stop, table):
@@ -683,27 +727,46 @@ def _block_work(blocks, n_steps: int, n_codes: int) -> list[float]:
     return [float(fusion_work(c, q1 - q0, n_steps, n_codes).sum()) for q0, q1, c in blocks]
 
 
-def deal_blocks(work, workers: Sequence) -> list:
+def deal_blocks(work, workers: Sequence, most: int | None = None) -> list:
     """The worker of each block: the blocks by decreasing ``work``, each to the worker
-    with the least work so far (longest processing time first); None for every block
-    when ``workers`` is empty."""
+    with the least work so far (longest processing time first) among those holding
+    fewer than ``most`` blocks (None: no limit); None for every block when
+    ``workers`` is empty."""
     if not workers:
         return [None] * len(work)
+    if most is not None and most * len(workers) < len(work):
+        raise ValueError(f"{len(work)} blocks do not fit {len(workers)} workers x {most}")
     load = dict.fromkeys(workers, 0.0)
+    held = dict.fromkeys(workers, 0)
     owner: list = [None] * len(work)
     for i in sorted(range(len(work)), key=lambda i: -work[i]):
-        w = min(load, key=load.get)
+        w = min((w for w in load if most is None or held[w] < most), key=load.get)
         owner[i] = w
         load[w] += work[i]
+        held[w] += 1
     return owner
 
 
-def _means_nth_block(system, peaks, blocks, i, settings, n_per_step, table):
-    """The peak means of block ``i`` of ``blocks`` (:func:`split_peak_counts`), None past
-    the end."""
-    if i >= len(blocks):
+def block_slots(work, n_workers: int, per_worker: int) -> list[int]:
+    """(n_workers * per_worker,) the block each slot fuses (-1: none), slot s on worker
+    s mod ``n_workers``: the blocks dealt by :func:`deal_blocks` (at most
+    ``per_worker`` each), a worker's blocks in its slots in block order."""
+    owner = deal_blocks(work, list(range(n_workers)), per_worker)
+    slots = [-1] * (n_workers * per_worker)
+    used = [0] * n_workers
+    for b, w in enumerate(owner):
+        slots[w + n_workers * used[w]] = b
+        used[w] += 1
+    return slots
+
+
+def _means_of_slot(system, peaks, split, s, settings, n_per_step, table):
+    """``(block, means)`` of the block in slot ``s`` of ``split`` (:func:`_split_peaks_of_sum`;
+    :func:`means_block`), None for an empty slot."""
+    blocks, slots = split
+    if s >= len(slots) or slots[s] < 0:
         return None
-    return means_block(system, peaks, blocks, i, settings, n_per_step, table)
+    return slots[s], means_block(system, peaks, blocks, slots[s], settings, n_per_step, table)
 
 
 def _nbytes(means) -> int:
