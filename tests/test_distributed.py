@@ -356,6 +356,7 @@ def test_block_slots_hold_every_block_once_within_each_workers_slots():
     """Slot s runs on worker s mod n: every block in exactly one slot, at most
     ``per_worker`` a worker, each worker's blocks those deal_blocks gives it (capped),
     in block order; empty slots -1."""
+    from mems_stereo.errors import OptionError
     from mems_stereo.pipeline.distributed import block_slots, deal_blocks
 
     rng = np.random.default_rng(15)
@@ -375,7 +376,7 @@ def test_block_slots_hold_every_block_once_within_each_workers_slots():
     # 2 + 3 with three slots each
     assert sorted(np.bincount(np.array(deal_blocks([10.0, 1, 1, 1, 1], [0, 1])))) == [1, 4]
     assert sorted(np.bincount(np.array(deal_blocks([10.0, 1, 1, 1, 1], [0, 1], 3)))) == [2, 3]
-    with pytest.raises(ValueError):
+    with pytest.raises(OptionError, match="do not fit"):
         deal_blocks([1.0] * 5, [0, 1], 2)
 
 

@@ -735,7 +735,8 @@ def deal_blocks(work, workers: Sequence, most: int | None = None) -> list:
     if not workers:
         return [None] * len(work)
     if most is not None and most * len(workers) < len(work):
-        raise ValueError(f"{len(work)} blocks do not fit {len(workers)} workers x {most}")
+        raise OptionError(f"{len(work)} blocks do not fit {len(workers)} workers x {most}",
+                          field="most")
     load = dict.fromkeys(workers, 0.0)
     held = dict.fromkeys(workers, 0)
     owner: list = [None] * len(work)
