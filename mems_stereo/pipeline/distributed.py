@@ -409,34 +409,28 @@ def process_split(path, system: System | None = None, settings: Settings | None 
         timings["table"] = time.perf_counter() - t0
 
         t1 = time.perf_counter()
-        # each part keeps its signal detections on its worker for its pass 2
+        # the parts' sum reduced and scattered by blocks of pixels: each part slices its
+        # rows of each block where it lies (``_pass1_part``: its signal store first,
+        # then one slice per block), and each block's slices are summed on the block's
+        # worker (no part's whole arrays move, no worker sums the whole); there the
+        # peak detector's per-pixel stage runs on its block, while the client gathers
+        # what it needs of pass 1 (the (P, S) per-angle counts stay on the workers).
+        # Each part keeps its signal detections on its worker for its pass 2
         # (SignalStore: no second read of the shots; compiled-size parts only)
-        p1 = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, pure=False)
-              for ang, (a, b) in zip(angle_f, parts)]
-        accs = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
-        stores = [client.submit(operator.itemgetter(1), f, pure=False) for f in p1]
-        del p1
-        # the parts' sum reduced and scattered by blocks of pixels: each part's rows of
-        # each block are sliced where the part lies, and each block's slices summed on
-        # the block's worker (no part's whole arrays move, no worker sums the whole);
-        # there the peak detector's per-pixel stage runs on its block, while the
-        # client gathers what it needs of pass 1 (the (P, S) per-angle counts stay on
-        # the workers)
         P = sysm.receiver.width * sysm.receiver.height
         edges = shot_ranges(P, min(P, n_w * PEAK_BLOCKS_PER_WORKER))
         addr = _worker_addresses(client)
-        slices = [client.submit(_pixel_slices, a, edges, pure=False) for a in accs]
-        del accs
+        p1 = [client.submit(_pass1_part, str(path), sysm, ang, st, a, b, table_f, edges,
+                            pure=False) for ang, (a, b) in zip(angle_f, parts)]
+        stores = [client.submit(operator.itemgetter(0), f, pure=False) for f in p1]
         blocks_p1 = [client.submit(_block_rows,
-                                   *[client.submit(operator.getitem, sl, i, pure=False)
-                                     for sl in slices], pure=False,
+                                   *[client.submit(operator.getitem, f, 1 + i, pure=False)
+                                     for f in p1], pure=False,
                                    workers=[addr[i % len(addr)]] if addr else None,
                                    allow_other_workers=True)
                      for i in range(len(edges))]
-        del slices
-        scores_f = [client.submit(_scores_block, client.submit(operator.itemgetter(0), b,
-                                                               pure=False),
-                                  sysm, st, table_f, p0, p1, pure=False,
+        del p1
+        scores_f = [client.submit(_scores_block, b, sysm, st, table_f, p0, p1, pure=False,
                                   workers=[addr[i % len(addr)]] if addr else None,
                                   allow_other_workers=True)
                     for i, (b, (p0, p1)) in enumerate(zip(blocks_p1, edges))]
@@ -628,15 +622,20 @@ def _part_angles(path, system, crossings, start, stop, table):
     return (theta, valid), missing
 
 
-def _pass1_part(path, system, angles, settings, start, stop, table):
-    """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``."""
+def _pass1_part(path, system, angles, settings, start, stop, table, edges=None):
+    """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``; with
+    ``edges`` (blocks of pixels ``(p0, p1)``), ``(SignalStore or None, slice_0, ...)``,
+    the accumulation cut into one slice per block (:func:`_pixel_slices`)."""
     theta, valid = angles
     P = system.receiver.width * system.receiver.height
     store = (SignalStore() if (stop - start) * P >= COMPILE_SLOTS
              and rereading_decompresses(path) else None)
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
-    return acc, (store if store is not None and store.complete else None)
+    store = store if store is not None and store.complete else None
+    if edges is None:
+        return acc, store
+    return (store, *_pixel_slices(acc, edges))
 
 
 def _scatter_one(client, obj):
@@ -689,10 +688,11 @@ def _joined_pixel_blocks(blocks):
                             first.hist_angle.dtype))
 
 
-def _scores_block(rows, system, settings, table, p0, p1):
-    """:class:`~mems_stereo.pipeline.peaks.PeakScores` of pixels p0..p1−1 (stays on its
-    worker for :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`)."""
-    sig, noise, angle, n_per_step = rows
+def _scores_block(block, system, settings, table, p0, p1):
+    """:class:`~mems_stereo.pipeline.peaks.PeakScores` of pixels p0..p1−1 from their
+    :func:`_block_rows` (stays on its worker for
+    :func:`~mems_stereo.pipeline.peaks.peaks_of_scores`)."""
+    sig, noise, angle, n_per_step = block[0]
     return peak_scores(system, sig, noise, angle, n_per_step, table, settings,
                        np.arange(p0, p1))
 
