@@ -94,11 +94,17 @@ def test_signal_keys_kernel_and_labels_agree():
         hr, hs, ha = (np.zeros((P, nb), np.int64), np.zeros((P, nb), np.int64),
                       np.zeros((P, S), np.int64))
         out = np.empty(K * P, np.int64)
-        n = _kernel_keys_py(bins, rows, lo, hi, hr, hs, ha, S, nb, out)
+        n = _kernel_keys_py(bins, rows, lo, hi, hr, hs, ha, *pass1.signal_key_shifts(S, nb), out)
         lab = np.zeros((K, P), np.uint8)
         pass1._kernel_py(bins, rows, lo, hi, lab, *(np.zeros_like(a) for a in (hr, hs, ha)))
         np.testing.assert_array_equal(out[:n], signal_keys(bins, rows, lab, S, nb))
         assert n == int(hs[:, 1:].sum())
+        # each key holds its detection's pixel, step and code (bit fields)
+        p, j, c = pass1.decode_signal_keys(out[:n], S, nb)
+        k_, p_ = np.nonzero(lab == 1)
+        np.testing.assert_array_equal(p, p_)
+        np.testing.assert_array_equal(j, rows[k_])
+        np.testing.assert_array_equal(c, bins[k_, p_])
 
 
 def test_process_recording_with_the_store_is_identical(monkeypatch):
@@ -145,7 +151,8 @@ def test_window_keys_compiled_equal_vectorised(seed):
     hi = np.minimum(nb - 1, lo + rng.integers(0, nb, Q))
     s_lo = rng.integers(0, S, Q)
     s_hi = np.minimum(S, s_lo + rng.integers(0, S, Q))
-    keys = (rng.integers(0, P, 5000) * S + rng.integers(0, S, 5000)) * nb + rng.integers(0, nb, 5000)
+    keys = pass1.encode_signal_keys(rng.integers(0, P, 5000), rng.integers(0, S, 5000),
+                                    rng.integers(0, nb, 5000), S, nb)
     want = np.sort(ss.window_keys_from_signal(keys, S, nb, first, order, lo, hi, s_lo, s_hi))
     for kernel in (None, ss._window_keys_py):
         got = ss.window_keys_compiled(keys, S, nb, first, order, lo, hi, s_lo, s_hi,

