@@ -12,7 +12,7 @@ every result is identical to one process (histograms, cloud, counts).
 
 What bounds the speed-up on any machine is printed too: the client's serial
 seconds in ``process_split`` (its wall time less the time it waited on its
-workers: header and angles, table rows, scatters, the neighbour support of the
+workers: the header, the table's scatter, the neighbour support of the
 peak detector and the matched filter's confirmation — the detector's per-pixel
 stages run in blocks of pixels on the workers —, joining the peak blocks' means)
 and the bytes the client gathers, per part, against T1 and against one worker's
@@ -282,7 +282,7 @@ def main():
         print(f"  {n:>2} workers: {int(tm['parts'])} shot parts, "
               f"{int(tm.get('peak_blocks', 0))} peak blocks fused on the workers; client "
               f"serial {tm['client_serial']:.2f} s (wall less {tm.get('client_wait', 0):.2f} s "
-              f"waiting on the workers; header+angles {tm['read_header']:.2f}, peak stage "
+              f"waiting on the workers; header {tm['read_header']:.2f}, peak stage "
               f"{tm['peaks'] - tm.get('peaks_wait', 0.0):.2f} = {tm['peaks']:.2f} less "
               f"{tm.get('peaks_wait', 0.0):.2f} waiting on the workers' blocks of pixels "
               f"and candidate counts); gathered {mb:.1f} MB in all = {mb / tm['parts']:.2f} MB per "

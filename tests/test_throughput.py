@@ -642,3 +642,17 @@ def test_add_rows_equals_add_at(monkeypatch, form):
         np.add.at(A, q, rows[run] * m[:, None])
         add_rows_gathered(B, q, rows, run, m)
         assert np.array_equal(A, B)
+
+
+def test_is_in_equals_numpy_isin():
+    """fusion._is_in (binary search into sorted values) against np.isin: sorted and
+    unsorted, empty, repeated and out-of-range values."""
+    from mems_stereo.pipeline.fusion import _is_in
+
+    rng = np.random.default_rng(16)
+    for _ in range(200):
+        b = rng.integers(-5, 60, int(rng.integers(0, 40)))
+        if rng.random() < 0.7:
+            b = np.sort(b)
+        a = rng.integers(-10, 70, int(rng.integers(0, 50)))
+        assert np.array_equal(_is_in(a, b), np.isin(a, b))

@@ -185,6 +185,16 @@ def peak_sums_from_counts(system: System, peaks: dict, counts: PeakCounts, setti
 DENSE_BAND_SHOTS = 2.0
 
 
+def _is_in(a, b) -> np.ndarray:
+    """``np.isin(a, b)`` (int64 arrays); by binary search where ``b`` is sorted (the
+    fusion's entries are, by peak and step), without sorting both arrays."""
+    b = np.asarray(b)
+    if b.size == 0 or not bool(np.all(b[1:] >= b[:-1])):
+        return np.isin(a, b)
+    i = np.minimum(np.searchsorted(b, a), b.size - 1)
+    return b[i] == a
+
+
 def _with_empty_steps(band, q, step, code, weight, shots_per_step, table):
     """The entries (q, step, code, weight, theta), each (M',), with one entry of
     weight 0 added for every step of a peak's band ``[step_lo, step_hi]`` (a
@@ -213,7 +223,7 @@ def _with_empty_steps(band, q, step, code, weight, shots_per_step, table):
         valid = nsh[sb] > 0
         per_band = (np.bincount(qb, weights=np.where(valid, nsh[sb], 0), minlength=n.size)
                     / np.maximum(np.bincount(qb, weights=valid, minlength=n.size), 1))
-        has = (np.isin(qb * S + sb, q * S + step) | ~valid
+        has = (_is_in(qb * S + sb, q * S + step) | ~valid
                | (per_band[qb] < DENSE_BAND_SHOTS))
         qb, sb = qb[~has], sb[~has]
     if qb.size == 0:
