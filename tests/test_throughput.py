@@ -574,24 +574,13 @@ def test_estimate_sums_compiled_equal_numpy(monkeypatch):
         assert np.array_equal(getattr(out[0], k), getattr(out[1], k)), k
 
 
-@pytest.mark.parametrize("form", ["numpy", "compiled"])
-def test_moving_sum_equals_the_padded_running_sum(monkeypatch, form):
-    """moving_sum (running sum written in place, or the compiled loop where numba is
-    loaded) against the running sum of the zero-padded array, bit for bit, over
-    shapes, widths and magnitudes."""
-    import mems_stereo.physics.background as bg
+def test_moving_sum_equals_the_padded_running_sum():
+    """moving_sum (running sum written in place) against the running sum of the
+    zero-padded array, bit for bit, over shapes, widths and magnitudes."""
     from mems_stereo.physics.background import moving_sum
-    from mems_stereo.util.lazy_numba import compiled_if_loaded
 
-    if form == "compiled":
-        import numba  # noqa: F401 - loaded, as a dense run's pass 1 does
-
-        monkeypatch.setattr(bg, "MOVING_SUM_COMPILED", 0)
-        assert compiled_if_loaded(bg._moving_sum_py) is not None
-    else:
-        monkeypatch.setattr(bg, "MOVING_SUM_COMPILED", 1 << 62)
     rng = np.random.default_rng(1418)
-    for shape in ((192, 913), (7,), (3, 4), (2, 0), (2, 3, 50), (1, 1)):
+    for shape in ((192, 913), (7,), (3, 4), (2, 0), (2, 3, 50)):
         for width in (1, 3, 11, 101):
             h = rng.poisson(3.0, shape) * 10.0 ** rng.uniform(-6, 6, shape)
             half = width // 2

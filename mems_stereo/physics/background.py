@@ -231,36 +231,6 @@ def expected_background_by_angle(table, n_per_step, rate_hz, pixels=None) -> np.
 
 
 # --------------------------------------------------------------------------- filter, threshold
-#: elements from which :func:`moving_sum` runs compiled (where numba is loaded already:
-#: a dense run's pass 1 loaded it); the peak detector's (P, S) sums, 1.75 M elements
-#: each, eight of them a run: 14 ms each in NumPy, a few ms compiled
-MOVING_SUM_COMPILED = 1 << 16
-
-
-def _moving_sum_py(h, width, out):
-    """Rows of ``h`` (R, n) float64: ``out[r, k] = c[k + width] − c[k]``, c the running sum
-    of row r (added in order from its first element, as ``np.cumsum``) after half + 1
-    zeros and followed by its last value half times — :func:`moving_sum`'s NumPy
-    operations in the same order, so the same bits, without its (R, n + width)
-    temporary."""
-    R, n = h.shape
-    half = width // 2
-    c = np.empty(n + width)
-    for r in range(R):
-        for m in range(half + 1):
-            c[m] = 0.0
-        if n > 0:
-            acc = h[r, 0]
-            c[half + 1] = acc
-            for k in range(1, n):
-                acc = acc + h[r, k]
-                c[half + 1 + k] = acc
-        for m in range(half + 1 + n, n + width):
-            c[m] = c[half + n]
-        for k in range(n):
-            out[r, k] = c[k + width] - c[k]
-
-
 def moving_sum(hist, width: int) -> np.ndarray:
     """Centred moving sum of ``width`` (odd) bins along the last axis; zeros beyond the ends."""
     width = int(width)
@@ -269,15 +239,6 @@ def moving_sum(hist, width: int) -> np.ndarray:
     h = np.asarray(hist, dtype=np.float64)
     half = width // 2
     n = h.shape[-1]
-    if h.size >= MOVING_SUM_COMPILED and h.size > 0:
-        from mems_stereo.util.lazy_numba import compiled_if_loaded
-
-        kernel = compiled_if_loaded(_moving_sum_py)
-        if kernel is not None:
-            rows = np.ascontiguousarray(h).reshape(-1, n)
-            out = np.empty(rows.shape)
-            kernel(rows, width, out)
-            return out.reshape(h.shape)
     # the running sum of h padded with half + 1 zeros before and half after, written
     # in place (no padded copy): the same sums, as the zeros add nothing
     c = np.empty(h.shape[:-1] + (n + width,))
