@@ -350,11 +350,14 @@ def process_split(path, system: System | None = None, settings: Settings | None 
                   ) -> ProcessResult:
     """Process one (large) recording split by shot ranges over Dask workers.
 
-    Pass 1 per shot range, summed in a tree on the workers; the peak detector
-    per block of pixels on the workers (the neighbour support and the matched
-    filter's confirmation on the client); pass 2 per shot range, summed in a
-    tree; the fusion per block of peaks on the workers
-    (:func:`split_peak_counts`), the client only joining the blocks' means.
+    Each shot range's scan angles (from its shot times, on its worker) and
+    pass 1, reduced and scattered by blocks of pixels on the workers; the peak
+    detector per block of pixels on the workers (the neighbour support and the
+    matched filter's confirmation on the client); pass 2 per shot range (from
+    its signal store), its selections summed on the workers; the fusion per
+    block of peaks on the workers (:func:`split_peak_counts`, dealt to the
+    workers' slots by :func:`block_slots`), the client only joining the
+    blocks' means.  The result is the one process's, bit for bit.
     ``n_parts`` : shot ranges (default: one per worker, :data:`PARTS_PER_WORKER`).
     ``timings`` of the result add the client's own serial seconds
     (``client_serial``: the wall time less the time it waited on its workers,
