@@ -625,20 +625,18 @@ def _part_angles(path, system, crossings, start, stop, table):
     return (theta, valid), missing
 
 
-def _pass1_part(path, system, angles, settings, start, stop, table, edges=None):
-    """Pass 1 of shots [start, stop): ``(RangeAccumulation, SignalStore or None)``; with
-    ``edges`` (blocks of pixels ``(p0, p1)``), ``(SignalStore or None, slice_0, ...)``,
-    the accumulation cut into one slice per block (:func:`_pixel_slices`)."""
+def _pass1_part(path, system, angles, settings, start, stop, table, edges):
+    """Pass 1 of shots [start, stop): ``(SignalStore or None, slice_0, ...)``, its
+    accumulation cut into one slice per block of pixels ``(p0, p1)`` of ``edges``
+    (:func:`_pixel_slices`)."""
     theta, valid = angles
     P = system.receiver.width * system.receiver.height
     store = (SignalStore() if (stop - start) * P >= COMPILE_SLOTS
              and rereading_decompresses(path) else None)
     acc = accumulate_range(path, system, theta, valid, settings, start, stop, table=table,
                            angle_offset=start, signal_store=store)
-    store = store if store is not None and store.complete else None
-    if edges is None:
-        return acc, store
-    return (store, *_pixel_slices(acc, edges))
+    return (store if store is not None and store.complete else None,
+            *_pixel_slices(acc, edges))
 
 
 def _scatter_one(client, obj):
