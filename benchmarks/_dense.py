@@ -44,7 +44,7 @@ def make_dense_recording(path, n_shots: int, seed: int, background_hz: float = 6
     """Simulate a dense recording of ``n_shots`` shots into ``path``; returns its facts."""
     from mems_stereo.io.recording import RecordingWriter
     from mems_stereo.model.system import burkard2022
-    from mems_stereo.sim import load_scene, simulate
+    from mems_stereo.sim import SimulationOptions, load_scene, simulate
     from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
 
     s = burkard2022()
@@ -60,8 +60,10 @@ def make_dense_recording(path, n_shots: int, seed: int, background_hz: float = 6
             b = min(n_shots, a + SEGMENT)
             t0 = a / s.laser.f_rep
             rec = simulate(s, sc, b - a, rng=np.random.default_rng([seed, a]),
-                           background_hz=background_hz, start_time=t0,
-                           phase=float(traj.monitor_phase(t0)), drift=0.0)
+                           background_hz=background_hz,
+                           options=SimulationOptions(start_time=t0,
+                                                     phase=float(traj.monitor_phase(t0)),
+                                                     drift=0.0))
             w.append(times[a:b], rec.bins)
     return {"shots": n_shots, "pixels": s.receiver.width * s.receiver.height,
             "f_rep": s.laser.f_rep, "bytes_on_disk": Path(path).stat().st_size,

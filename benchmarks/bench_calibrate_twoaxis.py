@@ -41,8 +41,12 @@ from mems_stereo.calib.twoaxis import (  # noqa: E402
 )
 
 from mems_stereo.errors import NotObservableError  # noqa: E402
-from mems_stereo.model.scanner2d import lissajous64  # noqa: E402
-from mems_stereo.sim.simulate2d import default_link, simulate_2d  # noqa: E402
+from mems_stereo.model.presets import lissajous64  # noqa: E402
+from mems_stereo.sim.simulate2d import (  # noqa: E402
+    Simulation2DOptions,
+    default_link,
+    simulate_2d,
+)
 
 ANGLES = ("theta0", "theta_mech_max", "phase_offset", "theta0_2", "theta_mech_max_2",
           "phase_offset_2")
@@ -76,7 +80,8 @@ def main(argv=None) -> int:
             scene = wall_scene(rng.uniform(lo, hi), rng.uniform(-0.25, 0.25),
                                rng.uniform(-0.25, 0.25))
             recs.append(simulate_2d(nom, scene, args.shots, rng=rng, true_system=true,
-                                    link=link, truth_per_shot=False))
+                                    options=Simulation2DOptions(link=link,
+                                                                truth_per_shot=False)))
         intr = None
         if args.intrinsics_error:
             K = nom.receiver.camera_matrix.copy()

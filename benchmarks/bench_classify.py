@@ -23,9 +23,9 @@ os.environ.setdefault("NUMBA_THREADING_LAYER", "omp")
 import numpy as np  # noqa: E402
 
 from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.classify_kernel import Pass1Histograms, classify_and_accumulate
 from mems_stereo.pipeline.consistency import classify_bins
 from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.pass1 import classify_and_accumulate
 
 REALTIME_SLOTS = 20000 * 192
 
@@ -87,12 +87,13 @@ def main():
 
     raw = np.zeros((192, s.tdc.n_bins + 1), np.int32)
     sig = np.zeros_like(raw)
-    classify_and_accumulate(bins[:8], theta[:8], valid[:8], table, s.tdc.n_bins, raw, sig)
+    hists = Pass1Histograms(raw, sig, np.zeros((192, table.n_steps), np.int32))
+    classify_and_accumulate(bins[:8], theta[:8], valid[:8], table, s.tdc.n_bins, hists)
 
     def fast(labels=True):
         raw[:] = 0
         sig[:] = 0
-        classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins, raw, sig,
+        classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins, hists,
                                 want_labels=labels)
 
     t_fast = best_of(fast)

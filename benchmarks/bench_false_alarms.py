@@ -1,4 +1,4 @@
-"""The peak detector's false alarms on background alone (issue 13, docs/pipeline.md).
+"""The peak detector's false alarms on background alone (issue 13, docs/accuracy.md).
 
 Draws the systems, shot counts and backgrounds of the scenario sweep's family
 (:func:`bench_scenarios.draw_case`: 10 kHz–30 MHz, 400–400,000 shots ×
@@ -31,6 +31,7 @@ from bench_scenarios import DARK_HZ, draw_case  # noqa: E402
 
 import mems_stereo.pipeline.matched as matched_mod  # noqa: E402
 import mems_stereo.pipeline.peaks as peaks_mod  # noqa: E402
+from mems_stereo.pipeline.peak_support import scan_sf  # noqa: E402
 from mems_stereo.pipeline.run import process_recording  # noqa: E402
 from mems_stereo.sim import scene_from_dict, simulate  # noqa: E402
 
@@ -52,11 +53,11 @@ def main(argv=None) -> int:
 
     def recording(*a, **k):
         out = orig(*a, **k)
-        j, cnt, mu, keep, n_windows = out
+        cnt, mu, n_windows = out.cnt, out.mu, out.n_windows
         with np.errstate(invalid="ignore"):
             p = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
         seen.append(np.where(cnt >= 1, p, 1.0))
-        seen_scan.append(np.where(cnt >= 1, peaks_mod.scan_sf(cnt, np.maximum(mu, 1e-12),
+        seen_scan.append(np.where(cnt >= 1, scan_sf(cnt, np.maximum(mu, 1e-12),
                                                               n_windows), 1.0))
         return out
 

@@ -36,10 +36,14 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_twoaxis import random_room  # noqa: E402
 
-from mems_stereo.model.scanner2d import lissajous64, raster128x96  # noqa: E402
+from mems_stereo.model.presets import lissajous64, raster128x96  # noqa: E402
 from mems_stereo.pipeline.twoaxis import process_recording_2d  # noqa: E402
 from mems_stereo.sim.scene import scene_from_dict  # noqa: E402
-from mems_stereo.sim.simulate2d import default_gate_spec, simulate_2d  # noqa: E402
+from mems_stereo.sim.simulate2d import (  # noqa: E402
+    Simulation2DOptions,
+    default_gate_spec,
+    simulate_2d,
+)
 
 
 def random_system(rng: np.random.Generator):
@@ -66,7 +70,7 @@ def throughput(args, background_hz: float) -> None:
     s = lissajous64()
     scene = scene_from_dict(random_room(rng))
     n = args.throughput_shots
-    kw = {"phase": 0.3, "phase2": 1.7, "background_hz": background_hz}
+    kw = {"options": Simulation2DOptions(phase=0.3, phase2=1.7), "background_hz": background_hz}
     full = simulate_2d(s, scene, n, rng=np.random.default_rng(1), gate=None, **kw)
     gated = simulate_2d(s, scene, n, rng=np.random.default_rng(1), **kw)
     npix = s.receiver.image_size[0] * s.receiver.image_size[1]
@@ -109,7 +113,7 @@ def main(argv=None) -> int:
         scene = scene_from_dict(random_room(rng))
         spec = default_gate_spec(nominal)
         rec = simulate_2d(nominal, scene, args.shots, rng=rng, true_system=true, gate=spec,
-                          truth_per_shot=False)
+                          options=Simulation2DOptions(truth_per_shot=False))
         tot, lost = int(rec.truth["signal_total"]), int(rec.truth["signal_lost"])
         w, h = nominal.receiver.image_size
         k = 1.0 - lost / max(1, tot)

@@ -17,7 +17,7 @@ Prints, measured in this one run on samples/room.h5 (100 kHz background,
    looser peak false-alarm probability (``VARIANTS``);
 4. the time of each stage.
 
-Tables are Markdown, ready for docs/pipeline.md.
+Tables are Markdown, ready for docs/accuracy.md.
 
 Run:  .venv/bin/python benchmarks/bench_pipeline.py [--samples DIR]
 """
@@ -241,7 +241,7 @@ def evaluate(name: str, path: Path, scene_path: Path, variants=(), system=None) 
     c_raw = code_raw[clear]
     code_s = np.argmax(moving_average(sig, width), axis=-1)[clear] + 1  # same filter on S
     code_p = np.zeros((H, W), np.int64)                              # the pipeline's peaks
-    code_p[res.peaks["row"], res.peaks["col"]] = res.peaks["code"]
+    code_p[res.peaks.row, res.peaks.col] = res.peaks.code
     code_p = code_p[clear]
     d_s = code_s - c_raw
     has_p = code_p > 0

@@ -1,7 +1,7 @@
 """Scenario sweep: processing on random recordings it has never seen (issue 13).
 
 Draws random cases from a wide family (seeded; documented in
-docs/pipeline.md, "Scenario sweep"), simulates each with the package's
+docs/accuracy.md, "Scenario sweep"), simulates each with the package's
 simulator (truth labels and points), processes it with the default
 ``process_recording`` and prints per case:
 
@@ -42,7 +42,7 @@ Family (each case independently): background log-uniform 10 kHz–30 MHz
 The recording carries the true system (no calibration error: the sweep
 measures processing, not calibration).
 
-Run (2-core machine; figures in docs/pipeline.md):
+Run (2-core machine; figures in docs/accuracy.md):
 
     .venv/bin/python benchmarks/bench_scenarios.py                   # 50 cases + ladder
     .venv/bin/python benchmarks/bench_scenarios.py --scale 0.1 --cases 12   # development

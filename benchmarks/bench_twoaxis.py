@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 
 from mems_stereo.io.recording2d import read_recording_2d  # noqa: E402
 from mems_stereo.model.camera import pixels_to_rays  # noqa: E402
-from mems_stereo.model.scanner2d import lissajous64  # noqa: E402
+from mems_stereo.model.presets import lissajous64  # noqa: E402
 from mems_stereo.pipeline.twoaxis import process_recording_2d  # noqa: E402
 from mems_stereo.sim.scene import load_scene, scene_from_dict  # noqa: E402
 from mems_stereo.sim.simulate2d import simulate_2d  # noqa: E402

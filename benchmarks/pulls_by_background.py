@@ -4,7 +4,7 @@ Reads the points that ``bench_scenarios.py --dump FILE.npz`` saved (one file or
 several, joined) and prints, per range band and background band, the median
 error/σ of the fused point and of its time-of-flight and stereo estimates
 (each against its own σ) with their median error in cm: a lean of one
-estimate, which an RMS near 1 hides, shows here (docs/pipeline.md section 6).
+estimate, which an RMS near 1 hides, shows here (docs/accuracy.md, "Scenario sweep").
 
     .venv/bin/python benchmarks/bench_scenarios.py --cases 50 --seed 28000 --dump s28000.npz
     .venv/bin/python benchmarks/pulls_by_background.py s28000.npz

@@ -4,8 +4,9 @@
   :class:`~mems_stereo.calib.result.CalibrationResult`, or a
   :class:`~mems_stereo.calib.result.CalibrationFailure` that tests false and
   has no system;
-* :func:`calibrate_scanner_camera` — the same in OpenCV calib3d's shape:
-  ``(rms, system, std, per_target)``, raising on failure;
+* :func:`calibrate_scanner_camera` — the same in OpenCV calib3d's terms
+  (a :class:`ScannerCameraCalibration`: RMS, system, σ, per target), raising
+  on failure;
 * :func:`read_target_distances` — measured wall distances from a JSON file.
 """
 
@@ -14,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from dataclasses import dataclass
 
 from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.fit import fit_walls
@@ -101,16 +103,30 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     return out
 
 
-def calibrate_scanner_camera(recordings, system=None, *, target_distances=None,
-                             distance_std=1e-3, fix=(), free=None, **kwargs):
-    """Calibrate in OpenCV calib3d's shape (as ``cv2.stereoCalibrate`` returns RMS first).
+@dataclass(frozen=True, slots=True)
+class ScannerCameraCalibration:
+    """A calibration in OpenCV calib3d's terms (:func:`calibrate_scanner_camera`).
 
-    Returns
-    -------
-    (rms, system, std, per_target): rms — dict {"pixel": px, "time": s};
-    system — the calibrated System; std — dict name → σ (SI);
-    per_target — list of dicts (source, distance along the optical axis and its σ,
-    tilt, signal photons per shot, consistency p-value, ...).
+    Attributes
+    ----------
+    rms : dict {"pixel": px, "time": s}, RMS of the signal-weighted residuals.
+    system : the calibrated System.
+    std : dict name → σ (SI) of the estimated parameters.
+    targets : per wall a dict (source, distance along the optical axis and its
+        σ, tilt, signal photons per shot, consistency p-value, ...).
+    """
+
+    rms: dict
+    system: System
+    std: dict
+    targets: list
+
+
+def calibrate_scanner_camera(recordings, system=None, *, target_distances=None,
+                             distance_std=1e-3, fix=(), free=None,
+                             **kwargs) -> ScannerCameraCalibration:
+    """Calibrate in OpenCV calib3d's terms: the RMS, the system, the σ, per target
+    (``cv2.stereoCalibrate`` returns the RMS with the estimate), raising on failure.
 
     Raises
     ------
@@ -123,7 +139,7 @@ def calibrate_scanner_camera(recordings, system=None, *, target_distances=None,
         if out.kind == "input":
             raise NotObservableError(out.reason)
         raise MemsStereoError(out.reason)
-    return out.rms, out.system, dict(out.std), list(out.targets)
+    return ScannerCameraCalibration(out.rms, out.system, dict(out.std), list(out.targets))
 
 
 DISTANCES_FORMAT = "mems-stereo/target-distances"

@@ -23,6 +23,7 @@ and correct fits fail it.  The expected information has no such noise.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, spot_share
@@ -73,16 +74,33 @@ def cell_fisher(tau: np.ndarray, m: np.ndarray, lam: np.ndarray, t_max: float,
     return out
 
 
+@dataclass(frozen=True, slots=True)
+class WallRows:
+    """Per-cell chain rows of one wall (:func:`wall_rows`), N cells, G geometry
+    parameters.
+
+    m : (N,) float64, the cell's signal photons (0 where the prediction fails).
+    a : (N, G + 2) float64, ∂τ/∂θ (s per parameter unit) for the geometry
+        parameters, log μ and log s (the order of
+        :meth:`~mems_stereo.calib.problem.Problem.wall_terms`).
+    b : (N, G + 2) float64, ∂m/∂θ (photons per parameter unit), same columns.
+    bu : (N,) float64, ∂m/∂u (photons per px): the column-shift direction of the
+        consistency test.
+    """
+
+    m: np.ndarray
+    a: np.ndarray
+    b: np.ndarray
+    bu: np.ndarray
+
+
 def wall_rows(cells, pred: np.ndarray, ok: np.ndarray, Jc: np.ndarray, logmu: float,
-              logspot: float, two_d: bool, pitch_ratio: float = 1.0):
-    """Per-cell chain rows of one wall.
+              logspot: float, two_d: bool, pitch_ratio: float = 1.0) -> WallRows:
+    """Per-cell chain rows of one wall (a :class:`WallRows`).
 
     cells : :class:`~mems_stereo.calib.problem.Cells`; pred : (N, 4) per-cell
     [τ, u, v, log g]; ok : (N,) bool; Jc : (N, 4, G) ∂[τ, u, v, log g]/∂(geometry
-    parameters).  Returns ``m`` (N,) the cell's signal photons, ``a`` (N, G + 2)
-    ∂τ/∂θ and ``b`` (N, G + 2) ∂m/∂θ for the geometry parameters, log μ and
-    log s (the order of :meth:`~mems_stereo.calib.problem.Problem.wall_terms`),
-    and ``bu`` (N,) ∂m/∂u (the column-shift direction of the test).
+    parameters); logmu, logspot : the wall's log μ and log s (s: spot σ, px).
     """
     u, v, lg = pred[:, 1], pred[:, 2], pred[:, 3]
     s = min(max(math.exp(logspot), SPOT_MIN), SPOT_MAX)
@@ -104,7 +122,7 @@ def wall_rows(cells, pred: np.ndarray, ok: np.ndarray, Jc: np.ndarray, logmu: fl
     b[:, G] = m
     b[:, G + 1] = mu * dss * okf * (1.0 if SPOT_MIN < s < SPOT_MAX else 0.0)
     bu = np.where(ok, mu * dsu, 0.0)
-    return m, a, b, bu
+    return WallRows(m, a, b, bu)
 
 
 def information(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -128,7 +146,8 @@ def consistency_information(cells, pc: np.ndarray, ok: np.ndarray, Jc: np.ndarra
     ok : (N,) bool; Jc : (N, 4, G) their Jacobian; wall : (5,) α, β, D, log μ,
     log s; sigma : s, pulse σ; width : sensor columns.
     """
-    m, a, b, bu = wall_rows(cells, pc, ok, Jc, wall[3], wall[4], two_d, pitch_ratio)
+    rows = wall_rows(cells, pc, ok, Jc, wall[3], wall[4], two_d, pitch_ratio)
+    m, a, b, bu = rows.m, rows.a, rows.b, rows.bu
     F = cell_fisher(pc[:, 0], m, cells.lam, cells.t_max, sigma)
     q = np.clip((cells.col / width * 4).astype(np.int64), 0, 3)
     aE = np.zeros((m.size, 8))
@@ -152,8 +171,9 @@ def expected_information(prob, x) -> np.ndarray:
         pred, ok, (J, geo) = prob.predictions(x, j, c.shots, steps=True)
         pos = np.searchsorted(c.shots, c.shot)
         pc = np.where(ok[pos, None], pred[pos], [0.0, -1e6, -1e6, 0.0])
-        m, a, b, _ = wall_rows(c, pc, ok[pos], J[pos], walls[j, 3], walls[j, 4], lay.two_d,
-                               prob.pitch_ratio)
+        rows = wall_rows(c, pc, ok[pos], J[pos], walls[j, 3], walls[j, 4], lay.two_d,
+                         prob.pitch_ratio)
+        m, a, b = rows.m, rows.a, rows.b
         ws = lay.wall_slice(j)
         idx = geo + [ws.start + lay.wall_names.index("logmu"),
                      ws.start + lay.wall_names.index("logspot")]

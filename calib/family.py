@@ -6,7 +6,7 @@ simulates its recordings with :func:`mems_stereo.sim.simulate`.  The Monte-Carlo
 benchmark (``benchmarks/bench_calibrate_mc.py``) and the tests use it; the
 family is documented in ``docs/calibration.md``.
 
-Family (issue 12), every draw independent and uniform unless said otherwise:
+Family, every draw independent and uniform unless said otherwise:
 
 * 2–6 walls, one recording each; distance along the optical axis 0.6–6 m
   (log-uniform); yaw (about the camera's y axis) and pitch (about x) within ±15°;
@@ -187,7 +187,7 @@ def link_for_flux(system: System, wall: Wall):
 
 def simulate_case(case: Case, nominal: System, shot_scale: float = 1.0):
     """The recordings of ``case`` (one per wall), nominal system inside, truth kept."""
-    from mems_stereo.sim import simulate
+    from mems_stereo.sim import SimulationOptions, simulate
 
     true = case.true_system(nominal)
     recs = []
@@ -196,7 +196,7 @@ def simulate_case(case: Case, nominal: System, shot_scale: float = 1.0):
         rec = simulate(nominal, wall_scene(w), n,
                        rng=np.random.default_rng([case.seed, i]),
                        background_hz=w.background_hz, true_system=true,
-                       link=link_for_flux(true, w))
+                       options=SimulationOptions(link=link_for_flux(true, w)))
         rec.source = f"case{case.seed}_wall{i}"
         recs.append(rec)
     return recs

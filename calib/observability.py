@@ -18,6 +18,7 @@ observability verdict, and the consistency checks of a fitted calibration.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from mems_stereo.calib.model import PARAM_UNIT
@@ -103,9 +104,26 @@ def weak_parameters(std: dict, limits: dict, trade: list) -> tuple[list, str]:
     return weak, "; ".join(parts)
 
 
+@dataclass(frozen=True, slots=True)
+class ConsistencyTest:
+    """The flat-wall score test of one wall (:func:`consistency_scores`).
+
+    p_value : one-sided p-value of the χ² statistic (1.0 where nothing is tested).
+    time_shifts : (4,) float64 s, the TDC-time shift per quarter of the sensor the
+        data ask for beyond the fitted model.
+    column_shifts : (4,) float64 px, the column shift per quarter.
+    z : (8,) float64, each shift over its σ, time shifts first.
+    """
+
+    p_value: float
+    time_shifts: np.ndarray
+    column_shifts: np.ndarray
+    z: np.ndarray
+
+
 def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray,
                        H_inv_block: np.ndarray | None = None, width: int = 192,
-                       info: np.ndarray | None = None):
+                       info: np.ndarray | None = None) -> ConsistencyTest:
     """Score test of per-quarter time and column shifts of one wall.
 
     d_cells : (N, 2) ∂ℓ/∂τ and ∂ℓ/∂u of each cell at the fit.
@@ -118,11 +136,10 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
         outer product of a weak wall's few signal cells is too noisy for the
         small information left to a shift once the nuisance is fitted).
 
-    Returns (p_value, time shifts (4,) s, column shifts (4,) px, and the
-    significance of each shift (8,): shift / its σ, time shifts first): the
-    shifts the data ask for, each beyond the fitted model.
+    Returns a :class:`ConsistencyTest`: the shifts the data ask for, each beyond
+    the fitted model, and their significance.
     """
-    none = (1.0, np.zeros(4), np.zeros(4), np.zeros(8))
+    none = ConsistencyTest(1.0, np.zeros(4), np.zeros(4), np.zeros(8))
     q = np.clip((col / width * 4).astype(np.int64), 0, 3)
     E = np.zeros((col.size, 8))
     for i in range(4):
@@ -183,7 +200,7 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
     full[used] = shift
     z = np.zeros(8)
     z[used] = shift / np.sqrt(np.maximum(var, 1e-300))
-    return p, full[:4], full[4:], z
+    return ConsistencyTest(p, full[:4], full[4:], z)
 
 
 def sigma_of_p(p: float) -> float:

@@ -29,7 +29,7 @@ class CalibrationResult:
     n_detections : expected signal detections explained by the fit.
     fixed : parameters held at their given value; unobservable : parameters
         the data cannot determine (held at their given value).
-    tradeoffs : [(a, b, correlation)] for |correlation| > 0.9.
+    tradeoffs : [(a, b, correlation)] for ``|correlation| > 0.9``.
     planes : (T, 3) α (rad), β (rad), D (m) of each wall; planes_std : (T, 3).
     targets : per wall dict (source, distance along the optical axis and σ,
         signal photons per shot, spot σ, consistency pulls, signal share).
@@ -105,6 +105,8 @@ class CalibrationFailure:
     """A calibration that must not be used: ``bool(failure)`` is False and it has no
     ``system``.
 
+    Attributes
+    ----------
     reason : one line saying why (what was found, what to do).
     kind : "input" (the recordings cannot calibrate: no wall return, not flat
         walls, nothing to observe) or "estimate" (the fit did not converge, or

@@ -84,7 +84,7 @@ def with_params_2d(system: System, **params: float) -> System:
     return out
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
 class WallObservations:
     """Per-shot observations of one wall recording.
 
@@ -92,7 +92,8 @@ class WallObservations:
     theta2_mech : (M,) rad, the position channel (raster) or NaN (resonant);
     uv : (M, 2) px centroid of the shot's signal pixels; n : (M,) detections;
     L_raw : (M,) m, mean c·(N − ½)·bin_width (pile-up corrected);
-    mu : the wall's mean return photons per shot (from the detection rate).
+    mu : the wall's mean return photons per shot (from the detection rate);
+    source : the recording's name, for messages.
     """
 
     phase1: np.ndarray
@@ -105,33 +106,10 @@ class WallObservations:
     source: str
 
 
-def wall_observations(rec: Recording2D, system: System, margin_px: float = 2.5,
-                      timing_jitter: float = 50e-12) -> WallObservations:
-    """Classify a wall recording with ``system`` (wide margin) and reduce it to shots."""
-    from mems_stereo.physics.first_photon import first_photon_mean_delay
-    from mems_stereo.physics.pulse import PulseShape
-
-    _, _, d, valid = shot_directions(rec, system)
-    st = Settings2D(margin_px=margin_px)
-    r_min = rec.readout.get("r_min", 0.3)
-    r_max = rec.readout.get("r_max", 30.0)
-    lab = classify_events(system, d, rec.event_shot, rec.event_pixel, rec.event_code, r_min,
-                          r_max, st)
-    sig = lab == 1
-    tdc = system.tdc
-    c = system.speed_of_light
-    L_all = c * ((rec.event_code.astype(float) - 0.5) * tdc.bin_width - tdc.offset)
-    # the wall: a robust plane through the detections' beam points (RANSAC), then
-    # only detections within 5 timing σ of that plane's path length are kept
-    from mems_stereo.geometry.triangulation import scanner_ray_point
-
-    idx = np.flatnonzero(sig)
-    x = scanner_ray_point(system.scanner.position, d[rec.event_shot[idx]], L_all[idx])[0]
-    good = np.all(np.isfinite(x), axis=1)
-    idx, x = idx[good], x[good]
-    if idx.size < 10:
-        raise NotObservableError(f"{rec.source}: fewer than 10 signal detections on the wall")
-    sl = c * timing_sigma(system, timing_jitter)
+def _plane_ransac(x: np.ndarray, sl: float):
+    """A robust plane through the points ``x`` (N, 3) m: of 300 random triples (fixed
+    seed), the plane with the most points within ``2·sl`` m.  Returns (unit normal
+    (3,), offset m)."""
     rng = np.random.default_rng(0)
     best, best_in = None, -1
     for _ in range(300):
@@ -144,7 +122,34 @@ def wall_observations(rec: Recording2D, system: System, margin_px: float = 2.5,
         n_in = int(np.count_nonzero(np.abs((x - a) @ nrm) < 2 * sl))
         if n_in > best_in:
             best, best_in = (nrm, float(nrm @ a)), n_in
-    nrm, dist = best
+    return best
+
+
+def _wall_detections(rec: Recording2D, system: System, d: np.ndarray, margin_px: float,
+                     timing_jitter: float) -> np.ndarray:
+    """(E,) bool: the signal detections on the wall.  Classified with ``system``
+    (beam directions ``d`` (M, 3) per shot, wide margin); then a robust plane
+    through their beam points (RANSAC), and only detections within 5 timing σ of
+    that plane's path length kept."""
+    from mems_stereo.geometry.triangulation import scanner_ray_point
+
+    st = Settings2D(margin_px=margin_px)
+    r_min = rec.readout.get("r_min", 0.3)
+    r_max = rec.readout.get("r_max", 30.0)
+    lab = classify_events(system, d, rec.event_shot, rec.event_pixel, rec.event_code, r_min,
+                          r_max, st)
+    sig = lab == 1
+    tdc = system.tdc
+    c = system.speed_of_light
+    L_all = c * ((rec.event_code.astype(float) - 0.5) * tdc.bin_width - tdc.offset)
+    idx = np.flatnonzero(sig)
+    x = scanner_ray_point(system.scanner.position, d[rec.event_shot[idx]], L_all[idx])[0]
+    good = np.all(np.isfinite(x), axis=1)
+    idx, x = idx[good], x[good]
+    if idx.size < 10:
+        raise NotObservableError(f"{rec.source}: fewer than 10 signal detections on the wall")
+    sl = c * timing_sigma(system, timing_jitter)
+    nrm, dist = _plane_ransac(x, sl)
     p = np.asarray(system.scanner.position, float)
     dd = d[rec.event_shot[idx]]
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -154,6 +159,34 @@ def wall_observations(rec: Recording2D, system: System, margin_px: float = 2.5,
     keep = np.abs(L_all[idx] - L_pred) < 5 * sl
     sel = np.zeros(lab.shape, bool)
     sel[idx[keep]] = True
+    return sel
+
+
+def _shot_phases(rec: Recording2D, system: System, t: np.ndarray):
+    """The monitors at the shot times ``t`` (M,) s: axis 1's phase (rad), axis 2's
+    phase (rad, resonant; else NaN) and its position channel (rad, raster; else NaN)."""
+    ph1, _ = phase_from_zero_crossings(t, rec.zero_crossings, rec.rising)
+    a2 = require_two_axis(system)
+    if a2.mode == "resonant":
+        ph2, _ = phase_from_zero_crossings(t, rec.monitor2.zero_crossings, rec.monitor2.rising)
+        th2m = np.full(t.shape, np.nan)
+    else:
+        ph2 = np.full(t.shape, np.nan)
+        th2m = np.interp(t, rec.monitor2.time, rec.monitor2.position)
+    return ph1, ph2, th2m
+
+
+def wall_observations(rec: Recording2D, system: System, margin_px: float = 2.5,
+                      timing_jitter: float = 50e-12) -> WallObservations:
+    """Classify a wall recording with ``system`` (wide margin) and reduce it to shots."""
+    from mems_stereo.physics.first_photon import first_photon_mean_delay
+    from mems_stereo.physics.pulse import PulseShape
+
+    sd = shot_directions(rec, system)
+    d, valid = sd.direction, sd.valid
+    sel = _wall_detections(rec, system, d, margin_px, timing_jitter)
+    tdc = system.tdc
+    c = system.speed_of_light
     es = rec.event_shot[sel]
     w = system.receiver.image_size[0]
     u = (rec.event_pixel[sel] % w).astype(float)
@@ -169,20 +202,12 @@ def wall_observations(rec: Recording2D, system: System, margin_px: float = 2.5,
     bias = float(first_photon_mean_delay(np.array([mu]), pulse)[0]
                  - first_photon_mean_delay(np.array([1e-12]), pulse)[0])
     L = L - system.speed_of_light * bias
-    t = rec.shot_time[shots]
-    ph1, _ = phase_from_zero_crossings(t, rec.zero_crossings, rec.rising)
-    a2 = require_two_axis(system)
-    if a2.mode == "resonant":
-        ph2, _ = phase_from_zero_crossings(t, rec.monitor2.zero_crossings, rec.monitor2.rising)
-        th2m = np.full(t.shape, np.nan)
-    else:
-        ph2 = np.full(t.shape, np.nan)
-        th2m = np.interp(t, rec.monitor2.time, rec.monitor2.position)
+    ph1, ph2, th2m = _shot_phases(rec, system, rec.shot_time[shots])
     ok = np.isfinite(ph1) & (np.isfinite(ph2) | np.isfinite(th2m))
     return WallObservations(ph1[ok], ph2[ok], th2m[ok], uv[ok], n[ok], L[ok], mu, rec.source)
 
 
-@dataclass
+@dataclass(frozen=True, slots=True)
 class TwoAxisCalibration:
     """Result of :func:`calibrate_two_axis`.
 
@@ -300,6 +325,86 @@ class _Problem:
         return r if keep is None else r[keep]
 
 
+def _inputs(recordings, system: System | None, observations):
+    """The recordings (read, their monitors and gate checked) and the starting system;
+    no recordings where ``observations`` are given."""
+    if observations is not None:  # already reduced (tests, custom front ends)
+        recs = []
+        if system is None or len(observations) < 2:
+            raise NotObservableError("two-axis calibration from observations: expected a "
+                                     "system and >= 2 walls")
+    else:
+        recs = [r if isinstance(r, Recording2D) else read_recording_2d(r, truth=False)
+                for r in recordings]
+        if len(recs) < 2:
+            raise NotObservableError("two-axis calibration: expected walls at >= 2 distances, "
+                                     f"found {len(recs)} recording(s)")
+        for r in recs:  # monitors and gate must agree (a FormatError naming the field)
+            check_gate(r)
+    return recs, (recs[0].system if system is None else system)
+
+
+def _intrinsics_prior(sys0: System, intrinsics) -> dict:
+    """name → (mean, σ) px of the Gaussian prior on fx, fy, cx, cy from the ChArUco σ."""
+    prior = {}
+    std_i = np.asarray(intrinsics.std, float).ravel()
+    std4 = np.zeros(4)
+    std4[:min(4, std_i.size)] = std_i[:4]
+    if std4[0] <= 0 < std4[1] or std4[1] <= 0 < std4[0]:
+        std4[:2] = max(std4[0], std4[1])  # fixed aspect ratio: fx and fy move together
+    for j, n in enumerate(("fx", "fy", "cx", "cy")):
+        sd = float(std4[j]) if std4[j] > 0 else None
+        if sd is not None:
+            prior[n] = (get_param_2d(sys0, n), sd)
+    return prior
+
+
+def _solve(prob: _Problem, z0: np.ndarray):
+    """Soft-ℓ1 least squares from ``z0``, then plain least squares without the > 5σ
+    residuals (a ``scipy.optimize.OptimizeResult``)."""
+    fit = least_squares(prob.resid, z0, loss="soft_l1", f_scale=3.0, x_scale="jac",
+                        max_nfev=100)
+    keep = np.abs(prob.resid(fit.x)) < 5.0
+    fit = least_squares(prob.resid, fit.x, args=(keep,), x_scale="jac", max_nfev=100)
+    if not fit.success:
+        raise NotObservableError(f"two-axis calibration did not converge: {fit.message}")
+    return fit
+
+
+def _calibration(prob: _Problem, fit) -> TwoAxisCalibration:
+    """Covariance ``(JᵀJ)⁻¹ · χ²/dof`` and RMS of the fit ``fit`` of ``prob``."""
+    free, scale, obs = prob.free, prob.scale, prob.obs
+    J = fit.jac
+    dof = max(1, J.shape[0] - J.shape[1])
+    chi2 = float(fit.fun @ fit.fun) / dof
+    JTJ = J.T @ J
+    if np.linalg.cond(JTJ) > 1e14:
+        raise NotObservableError("two-axis calibration: singular normal matrix (walls too few "
+                                 "or too alike to separate the parameters)")
+    cov_z = np.linalg.inv(JTJ) * chi2
+    npar = len(free)
+    cov = cov_z[:npar, :npar] * np.outer(scale, scale)
+    std = np.sqrt(np.diag(cov))
+    est, walls = prob.unpack(fit.x)
+    vals = np.array([get_param_2d(est, n) for n in free])
+    # RMS of the kept residuals in their own units
+    uv_res, L_res, n_obs = [], [], 0
+    for i, o in enumerate(obs):
+        uv, L = predict_wall(est, o, walls[i])
+        uv_res.append(np.linalg.norm(o.uv - uv, axis=1))
+        L_res.append(o.L_raw - L)
+        n_obs += o.n.size
+    uv_res, L_res = np.concatenate(uv_res), np.concatenate(L_res)
+    ok = np.isfinite(uv_res) & (uv_res < 5) & np.isfinite(L_res)
+    rms_px = float(np.sqrt(np.mean(uv_res[ok] ** 2)))
+    rms_L = float(np.sqrt(np.mean(L_res[ok] ** 2)))
+    calib = {"method": "two-axis walls", "std": dict(zip(free, std.tolist())),
+             "rms_px": rms_px, "rms_path_m": rms_L, "chi2_dof": chi2, "n_shots": int(n_obs),
+             "walls": walls.tolist()}
+    est = est.replace(calibration=calib)
+    return TwoAxisCalibration(est, free, vals, std, cov, walls, rms_px, rms_L, int(n_obs), chi2)
+
+
 def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=None,
                        free=None, refine_intrinsics: bool = True,
                        timing_jitter: float = 50e-12, spot_sigma_px: float = 0.25,
@@ -323,20 +428,7 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
 
     Raises :class:`NotObservableError` when the fit fails (no result is made).
     """
-    if observations is not None:  # already reduced (tests, custom front ends)
-        recs = []
-        if system is None or len(observations) < 2:
-            raise NotObservableError("two-axis calibration from observations: expected a "
-                                     "system and >= 2 walls")
-    else:
-        recs = [r if isinstance(r, Recording2D) else read_recording_2d(r, truth=False)
-                for r in recordings]
-        if len(recs) < 2:
-            raise NotObservableError("two-axis calibration: expected walls at >= 2 distances, "
-                                     f"found {len(recs)} recording(s)")
-        for r in recs:  # monitors and gate must agree (a FormatError naming the field)
-            check_gate(r)
-    sys0 = recs[0].system if system is None else system
+    recs, sys0 = _inputs(recordings, system, observations)
     a2 = require_two_axis(sys0)
     if intrinsics is not None:
         sys0 = sys0.replace(receiver=replace(
@@ -348,15 +440,7 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
     free = tuple(free)
     prior = {}
     if intrinsics is not None and refine_intrinsics:
-        std_i = np.asarray(intrinsics.std, float).ravel()
-        std4 = np.zeros(4)
-        std4[:min(4, std_i.size)] = std_i[:4]
-        if std4[0] <= 0 < std4[1] or std4[1] <= 0 < std4[0]:
-            std4[:2] = max(std4[0], std4[1])  # fixed aspect ratio: fx and fy move together
-        for j, n in enumerate(("fx", "fy", "cx", "cy")):
-            sd = float(std4[j]) if std4[j] > 0 else None
-            if sd is not None:
-                prior[n] = (get_param_2d(sys0, n), sd)
+        prior = _intrinsics_prior(sys0, intrinsics)
         free = free + tuple(n for n in prior if n not in free)
     x0 = np.array([get_param_2d(sys0, n) for n in free])
     scale = np.array([1e-3 if "theta" in n or "phase" in n else
@@ -366,7 +450,6 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
     p_mean = np.array([prior[n][0] for n in prior])
     p_std = np.array([prior[n][1] for n in prior])
 
-    obs, walls0 = [], []
     current = sys0
     for _ in range(1 if observations is not None else 2):  # classify, fit, reclassify, refit
         obs = (list(observations) if observations is not None
@@ -374,44 +457,9 @@ def calibrate_two_axis(recordings, system: System | None = None, *, intrinsics=N
         walls0 = [_initial_wall(current, o) for o in obs]
         sl = current.speed_of_light * timing_sigma(current, timing_jitter)
         s_uv = math.sqrt(1.0 / 12.0 + spot_sigma_px ** 2)
-
         prob = _Problem(sys0, free, x0, scale, obs, s_uv, sl, p_idx, p_mean, p_std)
-        unpack, resid = prob.unpack, prob.resid
         z0 = np.concatenate([(np.array([get_param_2d(current, n) for n in free]) - x0) / scale,
                              np.concatenate(walls0)])
-        fit = least_squares(resid, z0, loss="soft_l1", f_scale=3.0, x_scale="jac",
-                            max_nfev=100)
-        keep = np.abs(resid(fit.x)) < 5.0
-        fit = least_squares(resid, fit.x, args=(keep,), x_scale="jac", max_nfev=100)
-        if not fit.success:
-            raise NotObservableError(f"two-axis calibration did not converge: {fit.message}")
-        current = unpack(fit.x)[0]
-    J = fit.jac
-    dof = max(1, J.shape[0] - J.shape[1])
-    chi2 = float(fit.fun @ fit.fun) / dof
-    JTJ = J.T @ J
-    if np.linalg.cond(JTJ) > 1e14:
-        raise NotObservableError("two-axis calibration: singular normal matrix (walls too few "
-                                 "or too alike to separate the parameters)")
-    cov_z = np.linalg.inv(JTJ) * chi2
-    npar = len(free)
-    cov = cov_z[:npar, :npar] * np.outer(scale, scale)
-    std = np.sqrt(np.diag(cov))
-    est, walls = unpack(fit.x)
-    vals = np.array([get_param_2d(est, n) for n in free])
-    # RMS of the kept residuals in their own units
-    uv_res, L_res, n_obs = [], [], 0
-    for i, o in enumerate(obs):
-        uv, L = predict_wall(est, o, walls[i])
-        uv_res.append(np.linalg.norm(o.uv - uv, axis=1))
-        L_res.append(o.L_raw - L)
-        n_obs += o.n.size
-    uv_res, L_res = np.concatenate(uv_res), np.concatenate(L_res)
-    ok = np.isfinite(uv_res) & (uv_res < 5) & np.isfinite(L_res)
-    rms_px = float(np.sqrt(np.mean(uv_res[ok] ** 2)))
-    rms_L = float(np.sqrt(np.mean(L_res[ok] ** 2)))
-    calib = {"method": "two-axis walls", "std": dict(zip(free, std.tolist())),
-             "rms_px": rms_px, "rms_path_m": rms_L, "chi2_dof": chi2, "n_shots": int(n_obs),
-             "walls": walls.tolist()}
-    est = est.replace(calibration=calib)
-    return TwoAxisCalibration(est, free, vals, std, cov, walls, rms_px, rms_L, int(n_obs), chi2)
+        fit = _solve(prob, z0)
+        current = prob.unpack(fit.x)[0]
+    return _calibration(prob, fit)

@@ -25,6 +25,7 @@ distance narrows the distances searched and with them the threshold.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from mems_stereo.calib.model import beam_hits, plane_normal
@@ -52,8 +53,9 @@ def threshold(n_poses: int, false_alarm: float = FALSE_ALARM) -> float:
 
 
 def poisson_z(n, e):
-    """Signed Poisson likelihood-ratio significance of ``n`` counts where ``e``
-    are expected."""
+    """Signed significance of ``n`` counts where ``e`` are expected (Poisson
+    likelihood ratio, ``sign(n − e)·√(2(n ln(n/e) − n + e))``): right for the few
+    counts of a weak wall at a low background, where ``(n − e)/√e`` is not."""
     n = np.asarray(n, dtype=np.float64)
     e = np.maximum(np.asarray(e, dtype=np.float64), 1e-12)
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -106,9 +108,28 @@ class PooledRecording:
         return n, e, ok
 
 
+@dataclass(frozen=True, slots=True)
+class PoseSearch:
+    """The most significant pose of a wall (:func:`search_pose`).
+
+    alpha : rad, the plane's tilt; dist : m, the plane offset D; mu : rough
+    signal photons per shot; z : the pose's significance; z_needed : the
+    recording's threshold (:func:`threshold` over ``n_poses`` poses tested);
+    excess : counts over the background along the pose.
+    """
+
+    alpha: float
+    dist: float
+    mu: float
+    z: float
+    z_needed: float
+    n_poses: int
+    excess: float
+
+
 def search_pose(w: WallData, system, values: dict, sigma: float, *, distance=None,
                 distance_tol: float = 0.0, pooled: PooledRecording | None = None,
-                false_alarm: float = FALSE_ALARM):
+                false_alarm: float = FALSE_ALARM) -> PoseSearch | None:
     """The most significant pose of a wall over all its shots, given a system.
 
     Parameters
@@ -122,10 +143,7 @@ def search_pose(w: WallData, system, values: dict, sigma: float, *, distance=Non
 
     Returns
     -------
-    dict with alpha (rad), dist (plane offset D, m), mu (rough signal photons
-    per shot), z (significance), z_needed (the recording's threshold), n_poses,
-    excess (counts over the background along the best pose); or None when the
-    recording has no detection early enough.
+    PoseSearch, or None when the recording has no detection early enough.
     """
     inv = np.arange(1.0 / DIST_RANGE[1], 1.0 / DIST_RANGE[0], INV_DIST_STEP)
     dists = 1.0 / inv
@@ -167,8 +185,8 @@ def search_pose(w: WallData, system, values: dict, sigma: float, *, distance=Non
                     "excess": float(ns[i] - es[i]), "frac": float((ns[i] - es[i]) / n_on)}
     if best is None or not np.isfinite(best["z"]):
         return None
-    frac = max(best.pop("frac"), 1e-3)
-    best["mu"] = -math.log(max(1.0 - min(frac / 0.8, 0.95), 1e-3))
-    best["n_poses"] = n_poses
-    best["z_needed"] = threshold(n_poses, false_alarm)
-    return best
+    frac = max(best["frac"], 1e-3)
+    return PoseSearch(alpha=best["alpha"], dist=best["dist"],
+                      mu=-math.log(max(1.0 - min(frac / 0.8, 0.95), 1e-3)), z=best["z"],
+                      z_needed=threshold(n_poses, false_alarm), n_poses=n_poses,
+                      excess=best["excess"])

@@ -18,10 +18,13 @@ layer imports only the layers above it in this list:
 * :mod:`mems_stereo.viz`       export, render, plots (Open3D, matplotlib);  ``cli``  the commands
 
 Frames, units and angles: ``docs/conventions.md``.  The core never imports
-Open3D or matplotlib; those load in :mod:`mems_stereo.viz` only.
+:mod:`mems_stereo.viz`, Open3D or matplotlib; those load in the viz layer only
+(``mems_stereo.viz.cloud_to_open3d(cloud)`` gives an Open3D point cloud).
 """
 
-from mems_stereo import _deprecated, data
+import importlib
+
+from mems_stereo import data
 from mems_stereo.errors import FormatError, GeometryError, MemsStereoError, NotObservableError
 from mems_stereo.geometry.epipolar import (
     epipolar_pixels,
@@ -53,8 +56,6 @@ from mems_stereo.model.system import (
 from mems_stereo.physics.background import background_rate_mle
 from mems_stereo.pipeline.histograms import accumulate_histograms, moving_average
 
-_deprecated.install()
-
 #: loaded on first use (the pipeline loads numba): ``ms.process_recording``, ...
 _LAZY = {"process_recording": "mems_stereo.pipeline.run",
          "classify_recording": "mems_stereo.pipeline.pass1",
@@ -64,8 +65,6 @@ _LAZY = {"process_recording": "mems_stereo.pipeline.run",
 
 def __getattr__(name):
     if name in _LAZY:
-        import importlib
-
         return getattr(importlib.import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'mems_stereo' has no attribute {name!r}")
 

@@ -9,7 +9,16 @@ from __future__ import annotations
 
 
 class MemsStereoError(Exception):
-    """Base class of every error the package raises on purpose."""
+    """Base class of every error the package raises on purpose.
+
+    Examples
+    --------
+    >>> try:
+    ...     ms.preset("no-such-preset")
+    ... except ms.MemsStereoError as err:       # any error the package raises on purpose
+    ...     print("caught", type(err).__name__)  # doctest: +ELLIPSIS
+    caught Unknown...Error
+    """
 
 
 class FormatError(MemsStereoError, ValueError):
@@ -24,6 +33,14 @@ class FormatError(MemsStereoError, ValueError):
     field : str, optional
         Dotted path of the bad field (``"receiver.camera_matrix"``) or the HDF5
         dataset (``"/shots/bins"``).
+
+    Examples
+    --------
+    >>> try:
+    ...     ms.data.path("rom.h5")
+    ... except ms.FormatError as err:
+    ...     print(err.field, isinstance(err, ValueError))
+    mems_stereo.data.path True
     """
 
     def __init__(self, message: str, source: str | None = None, field: str | None = None):
@@ -40,11 +57,23 @@ class FormatError(MemsStereoError, ValueError):
 
 
 class GeometryError(MemsStereoError, ValueError):
-    """Geometric input that cannot be used (degenerate basis, wrong shape...)."""
+    """Geometric input that cannot be used (degenerate basis, wrong shape...).
+
+    Examples
+    --------
+    >>> issubclass(ms.GeometryError, ValueError), issubclass(ms.GeometryError, ms.MemsStereoError)
+    (True, True)
+    """
 
 
 class NotObservableError(MemsStereoError):
-    """A calibration parameter the data cannot determine."""
+    """A calibration parameter the data cannot determine.
+
+    Examples
+    --------
+    >>> issubclass(ms.NotObservableError, ms.MemsStereoError)
+    True
+    """
 
 
 class ShapeError(FormatError, GeometryError):

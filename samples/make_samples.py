@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.model.system import System, burkard2022, save_system
-from mems_stereo.sim import load_scene, simulate, write_simulation
+from mems_stereo.sim import SimulationOptions, load_scene, simulate, write_simulation
 
 HERE = Path(__file__).resolve().parent
 
@@ -72,7 +72,7 @@ def make_sample(s: Sample, out: Path) -> Path:
     true = calib_true_system() if s.true_system == "calib" else nominal
     rec = simulate(nominal, load_scene(HERE / s.scene), s.n_shots,
                    rng=np.random.default_rng(s.seed), background_hz=s.background_hz,
-                   true_system=true, drift=s.drift)
+                   true_system=true, options=SimulationOptions(drift=s.drift))
     path = write_simulation(out / f"{s.name}.h5", rec)
     path.chmod(0o644)  # atomic_output's temporary file is created 0600
     return path

@@ -25,10 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.io.recording2d import write_recording_2d
-from mems_stereo.model.scanner2d import TWO_AXIS_PRESETS
+from mems_stereo.model.presets import TWO_AXIS_PRESETS
 from mems_stereo.model.system import save_system
 from mems_stereo.sim.scene import load_scene
-from mems_stereo.sim.simulate2d import simulate_2d
+from mems_stereo.sim.simulate2d import Simulation2DOptions, simulate_2d
 
 HERE = Path(__file__).resolve().parent
 
@@ -87,8 +87,8 @@ def make_calib(out: Path) -> list[Path]:
     paths = []
     for dist, a, b, seed in CALIB_WALLS:
         rec = simulate_2d(nom, wall_scene(dist, a, b), CALIB_SHOTS,
-                          rng=np.random.default_rng(seed), true_system=true, link=link,
-                          truth_per_shot=False)
+                          rng=np.random.default_rng(seed), true_system=true,
+                          options=Simulation2DOptions(link=link, truth_per_shot=False))
         paths.append(write_recording_2d(out / f"lissajous64_calib_{dist:.1f}m.h5", rec))
     return paths
 
@@ -98,7 +98,8 @@ def make(sample: Sample2D, out: Path) -> Path:
     save_system(system, out / f"{sample.name}_system.json")
     rec = simulate_2d(system, load_scene(HERE / "twoaxis_scene.json"), sample.n_shots,
                       rng=np.random.default_rng(sample.seed),
-                      background_hz=sample.background_hz, truth_per_shot=False)
+                      background_hz=sample.background_hz,
+                      options=Simulation2DOptions(truth_per_shot=False))
     return write_recording_2d(out / f"{sample.name}.h5", rec)
 
 

@@ -29,6 +29,11 @@ def _n(x: int) -> str:
     return f"{x:,}"
 
 
+def _field(obj, name: str):
+    """A field of a typed result (``Counts``, truth scores), or the item of a plain dict."""
+    return obj[name] if isinstance(obj, dict) else getattr(obj, name)
+
+
 def compute() -> dict:
     from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
 
@@ -76,7 +81,8 @@ def regions(f: dict) -> dict[str, str]:
     row("noise rejection against the truth", lambda r: f"{r['noise_rejection']:.3f}")
     row("illuminated pixels with a point (coverage)",
         lambda r: f"{r['coverage'] * 100:.0f} % ({r['covered']} / {r['illuminated']})")
-    cr, cf = c["room"]["process"], c["floodlight"]["process"]
+    cr = {k: _field(c["room"]["process"], k) for k in ("raw", "signal", "shots")}
+    cf = {k: _field(c["floodlight"]["process"], k) for k in ("raw", "signal", "shots")}
     e = f["errors"]
     headline = "\n".join(lines) + (
         f"\n\nRaw counts / classified signal / shots with the calibrated system: room "
@@ -90,8 +96,9 @@ def regions(f: dict) -> dict[str, str]:
          "| --- | --- | --- | --- | --- | --- |"]
     for name, bg in (("room", "1e5 Hz/pixel"), ("floodlight", "6 MHz/pixel")):
         k, tr = c[name]["classify_true"], c[name]["classify_true_truth"]
-        t.append(f"| {name} ({bg}) | {_n(k['shots'])} | {_n(k['raw'])} | {_n(k['signal'])} | "
-                 f"**{tr['recall']:.4f}** | **{tr['noise_rejection']:.4f}** |")
+        t.append(f"| {name} ({bg}) | {_n(_field(k, 'shots'))} | {_n(_field(k, 'raw'))} | "
+                 f"{_n(_field(k, 'signal'))} | **{_field(tr, 'recall'):.4f}** | "
+                 f"**{_field(tr, 'noise_rejection'):.4f}** |")
     classify = "\n".join(t) + "\n"
     cal_time = (f"The calibration of the bundled walls (3 × 4000 shots, with the shipped "
                 f"distances) takes {f['t_cal']:.0f} s in one process on the machine that last "

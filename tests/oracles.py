@@ -196,7 +196,8 @@ def find_code_peaks(system: System, signal, noise, theta, valid, settings):
         width = max(1, int(round(system.laser.pulse_fwhm / bw)))
     width += 1 - width % 2  # odd
     B = expected_background_in_signal(A, np.nan_to_num(rate), bw)
-    j, cnt, mu, keep = strongest_window(S, B, width, A > 0, settings)
+    ws = strongest_window(S, B, width, A > 0, settings)
+    j, cnt, mu, keep = ws.j, ws.cnt, ws.mu, ws.keep
     keep &= np.isfinite(rate)
     code = j + 1
     half = max(1, width)
@@ -286,8 +287,10 @@ def peak_points(system: System, bins, labels, theta, rows, cols, code_lo, code_h
     from mems_stereo.pipeline.consistency import k_from_confidence
 
     k = k_from_confidence(confidence)
-    r_i, _, sr_i, _ = polar_from_cartesian(dp.fused, dp.cov_fused)
-    _, _, srt_i, _ = polar_from_cartesian(dp.tof, dp.cov_tof)
+    pol = polar_from_cartesian(dp.fused, dp.cov_fused)
+    r_i, sr_i = pol.r, pol.sigma_r
+    pol = polar_from_cartesian(dp.tof, dp.cov_tof)
+    srt_i = pol.sigma_r
     idx_all = np.where(good, det_p, P)  # bad detections go to a dummy group
     med = _group_median(idx_all, P + 1, np.where(good, r_i, 0.0))[det_p]
     n_in = np.bincount(idx_all, minlength=P + 1)[det_p].astype(np.float64)
@@ -307,9 +310,12 @@ def peak_points(system: System, bins, labels, theta, rows, cols, code_lo, code_h
     w_mean, _ = _group_mean(gi, P, dp.weight_stereo[good])
     keep = cnt >= max(1, int(min_counts))
     xf, Cf = mean["fused"]
-    r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-    r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-    r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+    pol = polar_from_cartesian(xf, Cf)
+    r, sr, sphi = pol.r, pol.sigma_r, pol.sigma_phi
+    pol = polar_from_cartesian(*mean["stereo"])
+    r_st, sr_st = pol.r, pol.sigma_r
+    pol = polar_from_cartesian(*mean["tof"])
+    r_tf, sr_tf = pol.r, pol.sigma_r
     sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
     attrs = {
         "counts": cnt.astype(np.int32), "pixel": cols.astype(np.int32),

@@ -38,18 +38,18 @@ def test_first_photon_table_from_cache_equals_fresh(tmp_path, monkeypatch):
     from mems_stereo.physics import first_photon as fp
 
     monkeypatch.setenv("MEMS_STEREO_CACHE", str(tmp_path))
-    fp._first_photon_table.cache_clear()
+    fp.first_photon_table.cache_clear()
     try:
-        fresh = fp._first_photon_table()
+        fresh = fp.first_photon_table()
         assert len(list(tmp_path.glob("first-photon-*.npz"))) == 1
-        fp._first_photon_table.cache_clear()
-        again = fp._first_photon_table()
-        for x, y in zip(fresh, again):
-            assert np.array_equal(x, y)
-        m, v = fp.first_photon_moments(fresh[0][7], np.exp(fresh[1][11]))
-        assert abs(m - again[2][7, 11]) < 1e-12 and abs(v - again[3][7, 11]) < 1e-12
+        fp.first_photon_table.cache_clear()
+        again = fp.first_photon_table()
+        for name in ("a_grid", "logmu_grid", "mean", "var"):
+            assert np.array_equal(getattr(fresh, name), getattr(again, name))
+        m, v = fp.first_photon_moments(fresh.a_grid[7], np.exp(fresh.logmu_grid[11]))
+        assert abs(m - again.mean[7, 11]) < 1e-12 and abs(v - again.var[7, 11]) < 1e-12
     finally:
-        fp._first_photon_table.cache_clear()
+        fp.first_photon_table.cache_clear()
 
 
 def test_interval_table_read_from_the_cache_counts_as_used(tmp_path, monkeypatch):

@@ -1,5 +1,5 @@
-"""The track search of the initialisation on weak walls (issue 12: walls missed by
-the association were a main cause of failed calibrations)."""
+"""The track search of the initialisation on weak walls (a wall the association
+misses makes a calibration fail)."""
 
 from __future__ import annotations
 
@@ -9,13 +9,9 @@ import numpy as np
 import pytest
 from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.family import Case, Wall, simulate_case
-from mems_stereo.calib.initialisation import (
-    MIN_TRACK_POINTS,
-    find_track,
-    poisson_z,
-    track_from_pose,
-)
 from mems_stereo.calib.problem import shot_model
+from mems_stereo.calib.track import MIN_TRACK_POINTS, find_track, track_from_pose
+from mems_stereo.calib.wall_search import poisson_z
 from scipy.stats import norm, poisson
 
 from mems_stereo.errors import NotObservableError
@@ -107,8 +103,8 @@ def test_walls_the_track_search_misses_are_found_by_the_pose_search(nominal):
 
 @pytest.mark.slow
 def test_a_wall_too_weak_for_any_phase_bin_gets_its_track_from_the_pose_search(nominal):
-    """Issue 12 (family seed 1084: no wall of three had a track, the calibration was
-    refused although the data determine the system): 0.05 photons per shot over
+    """A family draw where no wall of three has a track, although the data determine
+    the system: 0.05 photons per shot over
     2,500 shots is one significant phase bin at most; the pose search over the
     whole recording with the *nominal* system (the truth 9 mrad, 9 mm and 2.5 ns
     away) finds it, and the columns measured around its image lie on the true

@@ -48,7 +48,7 @@ SAMPLES = __import__("pathlib").Path(__file__).resolve().parents[1] / "samples"
 
 
 def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys):
-    """Issue 12: the room and floodlight recordings are no calibration walls: exit 1,
+    """The room and floodlight recordings are no calibration walls: exit 1,
     one line saying why, no system file; the report says why too."""
     out, rep = tmp_path / "s.json", tmp_path / "r.json"
     rc = main(["calibrate", str(SAMPLES / "room.h5"), str(SAMPLES / "floodlight.h5"),

@@ -131,8 +131,9 @@ def test_no_return_is_an_input_failure(nominal):
 def test_calib3d_shaped_api(nominal):
     case = _case(GOOD, 7)
     recs = simulate_case(case, nominal)
-    rms, system, std, per_target = calibrate_scanner_camera(
-        recs, nominal, target_distances=case.measured, distance_std=2e-3)
+    cal = calibrate_scanner_camera(recs, nominal, target_distances=case.measured,
+                                   distance_std=2e-3)
+    rms, system, std, per_target = cal.rms, cal.system, cal.std, cal.targets
     assert set(rms) == {"pixel", "time"} and 0 < rms["pixel"] < 1.5
     assert abs(system.scanner.theta0 - case.true_system(nominal).scanner.theta0) < 4 * std["theta0"]
     assert len(per_target) == 3 and "distance_axis" in per_target[0]
@@ -140,9 +141,9 @@ def test_calib3d_shaped_api(nominal):
 
 @pytest.mark.slow
 def test_collapsed_spot_is_not_written_with_an_overconfident_sigma(nominal):
-    """Family member 1005 at 1/8 of its shots: from the track-search start one wall's
-    fitted spot σ collapsed onto its lower bound, which inflated the pixel
-    information (phase lag written 4.1σ off).  The spot is reset and refitted; the
+    """A family draw at 1/8 of its shots where, from the track-search start, one
+    wall's fitted spot σ collapses onto its lower bound, which inflates the pixel
+    information (an overconfident σ).  The spot is reset and refitted; the
     written system lies within 4σ of the truth and no wall's spot sits at the bound."""
     from mems_stereo.calib.family import draw_case
     from mems_stereo.calib.problem import SPOT_MIN
@@ -158,8 +159,7 @@ def test_collapsed_spot_is_not_written_with_an_overconfident_sigma(nominal):
 
 
 def test_consistency_needs_a_large_and_significant_shift():
-    """Issue 12 (family seeds 1064, 1098: correct fits refused as "not a flat wall"):
-    a quarter's shift counts only when it is large (beyond 1 ns and half the pulse σ,
+    """A quarter's shift counts only when it is large (beyond 1 ns and half the pulse σ,
     or 0.3 px) and significant on its own (> SHIFT_Z σ)."""
     from mems_stereo.calib import observability as obs
 

@@ -1,7 +1,6 @@
 """The matched-filter pose search over every shot (calib/wall_search.py): its
 false-alarm threshold holds on pure background, and it finds walls far too faint
-for a phase bin (issue 12: family seeds 5034, 5051, 5095 were refused because
-their walls were missed)."""
+for a phase bin (a calibration whose walls are missed is refused)."""
 
 from __future__ import annotations
 
@@ -55,8 +54,8 @@ def test_background_alone_is_not_a_wall(nominal):
     for shots, rate in [(3000, 1e4), (8000, 3e5), (4000, 2e6), (2500, 6e6)]:
         f = search_pose(_background_only(rng, nominal, shots, rate), nominal, vals, sigma)
         assert f is not None
-        zs.append(f["z"])
-        assert f["z"] < f["z_needed"], (shots, rate, f)
+        zs.append(f.z)
+        assert f.z < f.z_needed, (shots, rate, f)
     assert max(zs) < 5.0, zs
 
 
@@ -73,5 +72,5 @@ def test_a_faint_near_wall_is_found_with_the_nominal_system(nominal):
     sigma = pulse_sigma(nominal.laser.pulse_fwhm, 50e-12)
     vals = {n: nominal.get_param(n) for n in ("theta0", "tdc_offset", "baseline_x")}
     f = search_pose(w, nominal, vals, sigma)
-    assert f["z"] > f["z_needed"], f
-    assert abs(f["alpha"] - math.radians(5)) < 0.2 and abs(f["dist"] - 0.7) < 0.2, f
+    assert f.z > f.z_needed, f
+    assert abs(f.alpha - math.radians(5)) < 0.2 and abs(f.dist - 0.7) < 0.2, f

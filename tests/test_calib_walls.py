@@ -4,7 +4,7 @@ One ``mems-stereo calibrate`` run (from a foreign working directory) on
 samples/calib_{1.5,2.5,4.0}m.h5 with samples/calib_distances.json: the
 written system JSON must read back, every estimate must lie within 3 of its
 reported σ of samples/calib_true_system.json (θ0 within 0.3 mrad), the σ
-targets of issue 5 must be met, and the pipeline's points of each wall must
+targets must be met, and the pipeline's points of each wall must
 lie at least 5x closer to the true plane (from the scene JSON) than with the
 nominal system.
 """
@@ -85,7 +85,7 @@ def test_cli_calibration_within_3_sigma_of_truth(calibrated):
         err = p["value"] - true.get_param(name)
         assert abs(err) < 3 * p["std"], (name, err, p["std"])
     assert abs(system.scanner.theta0 - true.scanner.theta0) < 0.3e-3
-    # the σ targets of issue 5, met with the measured distances
+    # the σ targets, met with the measured distances
     assert params["baseline_x"]["std"] <= 2e-3
     assert params["tdc_offset"]["std"] <= 0.2e-9
     # what the data cannot tell is said, not estimated

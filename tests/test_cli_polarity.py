@@ -1,4 +1,4 @@
-"""Inverted zero-crossing polarity (issue 15, group 3): detected from the detections.
+"""Inverted zero-crossing polarity: detected from the detections.
 
 Families of simulated recordings (scenes × background × seeds, own seeds):
 every control passes without a warning, every inverted copy with a usable

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from mems_stereo.viz import cloud_to_open3d
 
 import mems_stereo as ms
 from mems_stereo.cli import main
@@ -86,13 +87,13 @@ def test_cloud_conversions(room):
     assert a.shape == (len(cloud),) and a.dtype.names[:3] == ("x", "y", "z")
     assert np.array_equal(a["z"], cloud.points[:, 2]) and np.array_equal(a["range"],
                                                                          cloud["range"])
-    pcd = cloud.to_open3d(color_by="range")
+    pcd = cloud_to_open3d(cloud, color_by="range")
     assert np.allclose(np.asarray(pcd.points), cloud.points)
     col = np.asarray(pcd.colors)
     assert col.shape == (len(cloud), 3)
     # colours follow the attribute: the nearest and the farthest point differ
     assert not np.allclose(col[np.argmin(cloud["range"])], col[np.argmax(cloud["range"])])
-    assert len(cloud.to_open3d(color_by=None).colors) == 0
+    assert len(cloud_to_open3d(cloud, color_by=None).colors) == 0
     try:
         import pandas  # noqa: F401
     except ImportError:

@@ -19,10 +19,9 @@ def _row(ranges, sigma):
     C = np.zeros((Q, 3, 3))
     C[:, 2, 2] = sigma ** 2
     C[:, 0, 0] = C[:, 1, 1] = 1e-12
-    pm = PeakMeans.__new__(PeakMeans)
-    pm.system, pm.k, pm.Q = burkard2022(), 2.97, Q
-    pm.rows = np.zeros(Q, np.int64)
-    pm.cols = np.arange(Q, dtype=np.int64) + 50
+    one = np.ones(Q)
+    pm = PeakMeans(burkard2022(), 2.97, np.zeros(Q, np.int64), np.arange(Q, dtype=np.int64) + 50,
+                   None, (x, C), (x, C), one, one, one, np.zeros(Q), one, None, None, None)
     return pm, x, C, np.isfinite(r)
 
 

@@ -8,23 +8,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mems_stereo.pipeline.distributed import (
-    WORKER_MALLOC_ENV,
-    _n_slots,
-    dask_client,
-    join_clouds,
-    peak_blocks,
-    process_many,
-    process_split,
-    shot_ranges,
-    split_peak_counts,
-)
+from mems_stereo.pipeline.block_fusion import join_clouds, peak_blocks, split_peak_counts
+from mems_stereo.pipeline.dask_plan import shot_ranges
+from mems_stereo.pipeline.dask_setup import WORKER_MALLOC_ENV, dask_client
+from mems_stereo.pipeline.distributed import process_many, process_split, recording_slots
 from mems_stereo.pipeline.first_photon_correction import FP_BLOCK
 from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
-_ENV_BEFORE = {k: os.environ.get(k) for k in WORKER_MALLOC_ENV}  # before any cluster
+#: the client's environment before any cluster (restored once the workers started)
+_ENV_KEYS = [*WORKER_MALLOC_ENV, "NUMBA_THREADING_LAYER"]
+_ENV_BEFORE = {k: os.environ.get(k) for k in _ENV_KEYS}
 
 
 def test_shot_ranges_cover_everything_once():
@@ -57,7 +52,7 @@ def test_split_computes_angles_on_the_workers_and_fills_missing_rows(client, mon
     """The parts compute their shots' angles; the table rows they need and lack are
     filled on the workers before pass 1 (cold: an empty disk cache), and none are
     asked for when the table holds every row (complete: no round trip)."""
-    import mems_stereo.pipeline.distributed as D
+    import mems_stereo.pipeline.dask_split as D
     from mems_stereo.io.recording import read_header
     from mems_stereo.pipeline.angles import shot_angles
     from mems_stereo.pipeline.intervals import IntervalTable
@@ -113,9 +108,9 @@ def test_split_recording_equals_one_process(client):
 def test_many_recordings_equal_one_process(client):
     paths = [SAMPLES / "room.h5", SAMPLES / "calib_2.5m.h5", SAMPLES / "room.h5"]
     # submitted largest first: the results still come back in the order given
-    sizes = [_n_slots(p) for p in paths]
+    sizes = [recording_slots(p) for p in paths]
     assert sizes[0] != sizes[1] and min(sizes) > 0
-    assert _n_slots(SAMPLES / "no such file.h5") == 0
+    assert recording_slots(SAMPLES / "no such file.h5") == 0
     res = process_many(paths, scheduler=client)
     for p, r in zip(paths, res):
         _same(process_recording(p), r)
@@ -124,8 +119,11 @@ def test_many_recordings_equal_one_process(client):
 def test_local_workers_get_one_malloc_arena_and_the_client_keeps_its_environ(client):
     got = client.run(lambda: {k: os.environ.get(k) for k in WORKER_MALLOC_ENV})
     assert got and all(v == WORKER_MALLOC_ENV for v in got.values())
-    # Dask's pre-spawn environment lands in the spawning process: restored there
-    assert {k: os.environ.get(k) for k in WORKER_MALLOC_ENV} == _ENV_BEFORE
+    # Dask's pre-spawn environment lands in the spawning process, and the workers'
+    # threading layer is set there for them to inherit: both restored there
+    assert {k: os.environ.get(k) for k in _ENV_KEYS} == _ENV_BEFORE
+    threading = client.run(lambda: os.environ.get("NUMBA_THREADING_LAYER"))
+    assert threading and all(v is not None for v in threading.values())
 
 
 def test_peak_blocks_cut_at_the_fusion_block_and_balance_work():
@@ -156,8 +154,9 @@ def test_split_peak_counts_renumbers_each_block():
     pc.add_keys(k)
     pc = pc.finished()
     blocks = split_peak_counts(pc, Q, S, nb, 3)
-    assert sum(len(b[2].keys) for b in blocks) == pc.keys.size
-    for q0, q1, sub in blocks:
+    assert sum(len(b.counts.keys) for b in blocks) == pc.keys.size
+    for b in blocks:
+        q0, q1, sub = b.start, b.stop, b.counts
         back = sub.keys + q0 * S * nb
         a, b = np.searchsorted(pc.keys, [q0 * S * nb, q1 * S * nb])
         np.testing.assert_array_equal(back, pc.keys[a:b])
@@ -182,9 +181,9 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
     bit for bit (its first-photon step works in blocks of FP_BLOCK peaks by index, and
     each block fuses a halo of its row neighbours for the depth edges; with the run
     ends counted as edges nearly every cut separates two neighbours)."""
+    from mems_stereo.pipeline import block_fusion as R
     from mems_stereo.pipeline import peak_means
-    from mems_stereo.pipeline import run as R
-    from mems_stereo.pipeline.distributed import cloud_of_means, means_block, points_block
+    from mems_stereo.pipeline.block_fusion import cloud_of_means, means_block, points_block
 
     monkeypatch.setattr(peak_means, "EDGE_RUN_ENDS", run_ends)
 
@@ -203,8 +202,8 @@ def test_fusion_of_peak_blocks_equals_the_whole(monkeypatch, run_ends):
             whole = process_recording(SAMPLES / name).cloud
         finally:
             R.points_from_counts = orig
-        light = {k: v for k, v in seen["peaks"].items() if k != "background_by_step"}
-        Q = len(light["row"])
+        light = seen["peaks"].light()
+        Q = len(light)
         S, nb = seen["table"].n_steps, seen["system"].tdc.n_bins + 1
         for n in (2, 3, 7, Q):
             blocks = split_peak_counts(seen["counts"], Q, S, nb, n)
@@ -241,7 +240,7 @@ def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     """Bounded memory: the fusion of a run in blocks of at most FUSE_ENTRIES entries
     (each block's per-peak sums, joined into one accumulator) gives the cloud of one
     block, bit for bit."""
-    from mems_stereo.pipeline import run as R
+    from mems_stereo.pipeline import block_fusion as R
 
     one = process_recording(SAMPLES / "room.h5")
     monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
@@ -266,7 +265,7 @@ def test_peak_counts_merge_equals_unique_count():
             for sub in np.array_split(chunk, int(rng.integers(1, 5))):
                 pc.add_keys(sub)
                 if rng.random() < 0.5:
-                    pc._merge()
+                    pc.merge_pending()
             parts.append(pc.finished())
         total = parts[0]
         for p in parts[1:]:
@@ -281,17 +280,18 @@ def test_trimming_the_heap_between_stages_changes_nothing(monkeypatch):
     """With TRIM_SLOTS = 0 every run hands freed heap back between its stages
     (glibc malloc_trim; a no-op elsewhere): same result, and it did run."""
     from mems_stereo.pipeline import run as R
+    from mems_stereo.util import memory
 
     one = process_recording(SAMPLES / "room.h5")
     calls = []
-    orig = R.release_freed_memory
+    orig = memory.release_freed_memory
 
     def spy():
         calls.append(orig())
         return calls[-1]
 
     monkeypatch.setattr(R, "TRIM_SLOTS", 0)
-    monkeypatch.setattr(R, "release_freed_memory", spy)
+    monkeypatch.setattr(memory, "release_freed_memory", spy)
     _same(one, process_recording(SAMPLES / "room.h5"))
     assert len(calls) == 4
 
@@ -304,7 +304,7 @@ def test_split_with_signal_stores_equals_one_process(monkeypatch):
 
     from distributed import Client, LocalCluster
 
-    import mems_stereo.pipeline.distributed as D
+    import mems_stereo.pipeline.dask_tasks as D
     import mems_stereo.pipeline.pass1 as pass1
     from mems_stereo.pipeline.signal_store import SignalStore
 
@@ -333,7 +333,7 @@ def test_split_with_signal_stores_equals_one_process(monkeypatch):
 def test_deal_blocks_balances_by_work():
     """Largest first to the least loaded worker: on random work the busiest worker
     carries at most 4/3 of the optimum's bound (Graham), every block once."""
-    from mems_stereo.pipeline.distributed import deal_blocks
+    from mems_stereo.pipeline.dask_plan import deal_blocks
 
     rng = np.random.default_rng(14)
     worst = 0.0
@@ -357,7 +357,7 @@ def test_block_slots_hold_every_block_once_within_each_workers_slots():
     ``per_worker`` a worker, each worker's blocks those deal_blocks gives it (capped),
     in block order; empty slots -1."""
     from mems_stereo.errors import OptionError
-    from mems_stereo.pipeline.distributed import block_slots, deal_blocks
+    from mems_stereo.pipeline.dask_plan import block_slots, deal_blocks
 
     rng = np.random.default_rng(15)
     for _ in range(200):
@@ -382,7 +382,7 @@ def test_block_slots_hold_every_block_once_within_each_workers_slots():
 
 def test_fusion_work_counts_entries_and_steps():
     """Per peak: its distinct (step, code) keys plus BACKGROUND_SEGMENTS per distinct step."""
-    from mems_stereo.pipeline.run import fusion_work
+    from mems_stereo.pipeline.block_fusion import fusion_work
     from mems_stereo.pipeline.window_background import BACKGROUND_SEGMENTS
 
     rng = np.random.default_rng(3)
@@ -404,7 +404,7 @@ def test_select_counts_filters_and_renumbers_exactly(monkeypatch, compiled):
     renumbered, equal the counts of exactly those keys (random keys and windows), in
     NumPy and in its compiled pass (numba loaded, any number of keys)."""
     import mems_stereo.pipeline.pass2 as pass2
-    from mems_stereo.pipeline.pass2 import decode_peak_keys, select_counts
+    from mems_stereo.pipeline.pass2 import CountSelection, decode_peak_keys, select_counts
 
     if compiled:
         pytest.importorskip("numba")
@@ -423,7 +423,7 @@ def test_select_counts_filters_and_renumbers_exactly(monkeypatch, compiled):
         dst = rng.permutation(src.size)
         lo = rng.integers(0, S, src.size)
         hi = lo + rng.integers(-1, S, src.size)
-        got = select_counts(pc, src, dst, lo, hi, S, nb)
+        got = select_counts(pc, CountSelection(src, dst, lo, hi), S, nb)
         q, step, code = decode_peak_keys(pc.keys, S, nb)
         want = {}
         for s_, d_, a, b in zip(src, dst, lo, hi):

@@ -75,21 +75,22 @@ def test_midpoint_matches_cv_triangulate_on_consistent_pairs(x, c2, rv1, rv2):
     X = (X[:3] / X[3]).ravel()
     d1 = pixels_to_rays(u1, K)[0]
     d2 = R2.T @ pixels_to_rays(u2, K)[0]
-    mid, k, gap, ok = triangulate_midpoint(c1, d1, c2, d2)
-    assert ok[0] and gap[0] < 1e-6
-    np.testing.assert_allclose(mid[0], x, atol=1e-6 * np.linalg.norm(x))
-    np.testing.assert_allclose(mid[0], X, atol=1e-5 * np.linalg.norm(x))
+    res = triangulate_midpoint(c1, d1, c2, d2)
+    assert res.ok[0] and res.gap[0] < 1e-6
+    np.testing.assert_allclose(res.points[0], x, atol=1e-6 * np.linalg.norm(x))
+    np.testing.assert_allclose(res.points[0], X, atol=1e-5 * np.linalg.norm(x))
 
 
 def test_midpoint_of_skew_rays_is_the_middle_of_the_common_perpendicular():
     o1, d1 = np.array([0.0, 0, 0]), np.array([1.0, 0, 0])
     o2, d2 = np.array([0.0, 1, 1]), np.array([0.0, 1, 0])
-    mid, k, gap, ok = triangulate_midpoint(o1, d1, o2, d2)
-    np.testing.assert_allclose(mid[0], [0, 0, 0.5])
-    assert gap[0] == pytest.approx(1.0)
+    res = triangulate_midpoint(o1, d1, o2, d2)
+    np.testing.assert_allclose(res.points[0], [0, 0, 0.5])
+    np.testing.assert_allclose(res.k[0], [0.0, -1.0])
+    assert res.gap[0] == pytest.approx(1.0)
     # parallel rays: no unique solution -> NaN and flag
-    mid, k, gap, ok = triangulate_midpoint(o1, d1, o2, d1)
-    assert not ok[0] and np.isnan(mid).all()
+    res = triangulate_midpoint(o1, d1, o2, d1)
+    assert not res.ok[0] and np.isnan(res.points).all()
 
 
 def test_path_for_range_gives_points_at_that_range(system):

@@ -8,10 +8,15 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from mems_stereo.model.system import burkard2022
+from mems_stereo.pipeline.classify_kernel import (
+    Pass1Histograms,
+    _kernel_nolabels_py,
+    _kernel_py,
+    classify_and_accumulate,
+)
 from mems_stereo.pipeline.consistency import classify_bins
 from mems_stereo.pipeline.histograms import accumulate_histograms
 from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.pass1 import _kernel_nolabels_py, _kernel_py, classify_and_accumulate
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +40,8 @@ def test_fast_labels_equal_the_reference_on_snapped_angles(table, seed, k):
     rng = np.random.default_rng(seed)
     s = burkard2022()
     bins, theta, valid = _random_block(rng, s, k)
-    labels, raw, sig = classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins)
+    labels, hists = classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins)
+    raw, sig = hists.raw, hists.signal
     ref = classify_bins(s, bins, table.snap(theta), valid)
     np.testing.assert_array_equal(labels, ref)
     # the NumPy reference of histogram formation (only valid shots are read)
@@ -48,7 +54,8 @@ def test_fast_labels_equal_the_reference_on_snapped_angles(table, seed, k):
     assert raw[:, 0].sum() == int(((bins == 0) & valid[:, None, None]).sum())
     # signal detections per pixel and angle step
     angle = np.zeros((192, table.n_steps), np.int64)
-    classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins, hist_angle=angle)
+    classify_and_accumulate(bins, theta, valid, table, s.tdc.n_bins,
+                            Pass1Histograms(np.zeros_like(raw), np.zeros_like(sig), angle))
     kk, pp = np.nonzero(ref.reshape(k, 192) == 1)
     expect = np.zeros_like(angle)
     np.add.at(expect, (pp, table.index(theta)[kk]), 1)
@@ -67,8 +74,8 @@ def test_compiled_kernel_equals_its_python_semantics(table, rng):
         raw = np.zeros((192, 4097), np.int32)
         sig = np.zeros_like(raw)
         if fn is None:
-            lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096)
-            lab = lab.reshape(64, 192)
+            lab, h = classify_and_accumulate(bins, theta, valid, table, 4096)
+            lab, raw, sig = lab.reshape(64, 192), h.raw, h.signal
         else:
             fn(bins.reshape(64, 192), rows, table.lo, table.hi, lab, raw, sig,
                np.zeros((192, table.n_steps), np.int64))
@@ -80,12 +87,13 @@ def test_compiled_kernel_equals_its_python_semantics(table, rng):
 def test_histograms_add_over_chunks(table, rng):
     s = burkard2022()
     bins, theta, valid = _random_block(rng, s, 200)
-    _, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
-    raw2 = np.zeros_like(raw)
-    sig2 = np.zeros_like(sig)
+    _, h = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
+    raw, sig = h.raw, h.signal
+    h2 = Pass1Histograms.zeros(192, 4096, table.n_steps)
     for a in range(0, 200, 37):
         classify_and_accumulate(bins[a:a + 37], theta[a:a + 37], valid[a:a + 37], table, 4096,
-                                raw2, sig2, want_labels=False)
+                                h2, want_labels=False)
+    raw2, sig2 = h2.raw, h2.signal
     np.testing.assert_array_equal(raw, raw2)
     np.testing.assert_array_equal(sig, sig2)
 
@@ -97,14 +105,15 @@ def test_snapping_is_within_half_a_step(table, rng):
 
 
 def test_peak_window_keys_equal_a_numpy_reference(table, rng):
-    from mems_stereo.pipeline.pass2 import _window_keys_py, peak_window_keys
+    from mems_stereo.pipeline.pass2 import PeakWindows, _window_keys_py, peak_window_keys
 
     s = burkard2022()
     bins, theta, valid = _random_block(rng, s, 120)
     pix = np.array([5, 60, 61, 150])
     lo = np.array([1, 100, 900, 30])
     hi = np.array([4096, 800, 1500, 60])
-    keys = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096)
+    keys = peak_window_keys(bins, theta, valid, table, PeakWindows(pix, lo, hi, None, None),
+                            4096)
     labels = classify_bins(s, bins, table.snap(theta), valid).reshape(120, -1)
     b = bins.reshape(120, -1).astype(np.int64)
     rows = table.index(theta)
@@ -132,7 +141,8 @@ def test_kernel_without_labels_counts_the_same(table, rng):
     sig_a = np.zeros_like(raw_a)
     _kernel_nolabels_py(bins.reshape(50, 192), rows, table.lo, table.hi, raw_a, sig_a,
                         np.zeros((192, table.n_steps), np.int64))
-    _, raw_b, sig_b = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
+    _, hb = classify_and_accumulate(bins, theta, valid, table, 4096, want_labels=False)
+    raw_b, sig_b = hb.raw, hb.signal
     np.testing.assert_array_equal(raw_a, raw_b)
     np.testing.assert_array_equal(sig_a, sig_b)
 

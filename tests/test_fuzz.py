@@ -1,4 +1,4 @@
-"""The fuzz suite of issue 15: malformed inputs through every command.
+"""The fuzz suite: malformed inputs through every command.
 
 Every case must end with exit 2, exactly one line on stderr that names the
 file or the option, no traceback, and no file created or changed.  Cases are

@@ -35,11 +35,12 @@ def test_window_sums_are_exact_integers():
     bg = np.full((1, 2168), 1.019 / width)
     counts = np.zeros((1, 2168))
     counts[0, [1000, 1003, 1010, 1021, 1030, 1034, 1047]] = 1  # seven in one footprint
-    j, cnt, mu, keep = strongest_window(counts, bg, width, bg > 0, Settings())
+    ws = strongest_window(counts, bg, width, bg > 0, Settings())
+    cnt, keep = ws.cnt, ws.keep
     assert cnt[0] == 7.0 and float(cnt[0]).is_integer()
     assert not keep[0]
     counts[0, 1040] = 1  # an eighth: now significant
-    assert strongest_window(counts, bg, width, bg > 0, Settings())[3][0]
+    assert strongest_window(counts, bg, width, bg > 0, Settings()).keep[0]
 
 
 def test_window_sums_are_not_rescaled_at_the_ends():
@@ -47,7 +48,7 @@ def test_window_sums_are_not_rescaled_at_the_ends():
     bg = np.full((1, 200), 0.001)
     counts = np.zeros((1, 200))
     counts[0, :3] = 1
-    _, cnt, _, _ = strongest_window(counts, bg, 51, bg > 0, Settings())
+    cnt = strongest_window(counts, bg, 51, bg > 0, Settings()).cnt
     assert cnt[0] == 3.0
 
 

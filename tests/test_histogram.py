@@ -336,7 +336,7 @@ def test_histogram_file_format_and_version_checked(tmp_path, key, value, field):
 
     h = np.zeros((1, 4, 8), np.int32)
     p = write_histograms(tmp_path / "h.h5", h, h, h)
-    assert read_histograms(p)[0].shape == (1, 4, 8)
+    assert read_histograms(p).raw.shape == (1, 4, 8)
     with h5py.File(p, "r+") as f:
         f.attrs[key] = value
     with pytest.raises(FormatError) as e:

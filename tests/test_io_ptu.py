@@ -28,12 +28,8 @@ from mems_stereo.io.ptu import (
 )
 from mems_stereo.io.realdata import load_realdata_npz
 from mems_stereo.io.recording import read_recording
-from mems_stereo.io.tttr import (
-    events_to_recording,
-    events_to_timetags,
-    load_map,
-    map_from_dict,
-)
+from mems_stereo.io.tttr import events_to_recording, events_to_timetags
+from mems_stereo.io.tttr_map import load_map, map_from_dict
 from mems_stereo.model.system import burkard2022
 from mems_stereo.sim import load_scene, simulate
 

@@ -6,14 +6,15 @@ from __future__ import annotations
 import numpy as np
 from test_generalise import _error, _sweep_case
 
-import mems_stereo.pipeline.matched as matched
-from mems_stereo.pipeline.matched import _box_sums, _BoxGrid, merge_peaks
-from mems_stereo.pipeline.peaks import Peaks
+import mems_stereo.pipeline.matched_boxes as matched_boxes
+from mems_stereo.pipeline.matched import merge_peaks
+from mems_stereo.pipeline.matched_boxes import BoxGrid, box_sums
+from mems_stereo.pipeline.peak_table import Peaks
 
 
 def test_box_sums_equal_brute_force(rng):
     A = rng.poisson(1.0, size=(17, 40)).astype(float)
-    got = _box_sums(A, 5, 7)
+    got = box_sums(A, 5, 7)
     pad = np.pad(A, ((2, 2), (3, 3)))
     want = np.array([[pad[i:i + 5, j:j + 7].sum() for j in range(40)] for i in range(17)])
     np.testing.assert_array_equal(got, want)
@@ -77,15 +78,14 @@ def _planted_grid(rng, n_steps, n_cell, j0, k0, signal):
     hi = np.full(n_steps, cell * n_cell)
     nps = np.full(n_steps, 3.0)
     log1mh = np.log1p(-2e-3)
-    g = _BoxGrid(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), lo, hi, nps,
-                 c_lo, cell, log1mh, n_steps, n_cell)
+    g = BoxGrid(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0), lo, hi, nps,
+                c_lo, cell, log1mh, n_cell)
     B = g.background(0, n_steps, 0, n_cell)
     D = rng.poisson(B)
     for _ in range(signal):
         D[j0 + rng.integers(-10, 11), k0 + rng.integers(-2, 3)] += 1
     ds, dc = np.nonzero(D)
-    return _BoxGrid(ds, dc, D[ds, dc].astype(float), lo, hi, nps, c_lo, cell, log1mh,
-                    n_steps, n_cell)
+    return BoxGrid(ds, dc, D[ds, dc].astype(float), lo, hi, nps, c_lo, cell, log1mh, n_cell)
 
 
 def test_coarse_to_fine_search_finds_the_exact_best_box(rng, monkeypatch):
@@ -96,15 +96,15 @@ def test_coarse_to_fine_search_finds_the_exact_best_box(rng, monkeypatch):
     for trial in range(4):
         j0, k0 = int(rng.integers(60, 2940)), int(rng.integers(20, 380))
         g = _planted_grid(rng, 3000, 400, j0, k0, 60 if trial < 3 else 0)
-        monkeypatch.setattr(matched, "FULL_SCAN_CELLS", 10 ** 9)
+        monkeypatch.setattr(matched_boxes, "FULL_SCAN_CELLS", 10 ** 9)
         exact = g.best(41, 25, 3)
-        monkeypatch.setattr(matched, "FULL_SCAN_CELLS", 1000)
+        monkeypatch.setattr(matched_boxes, "FULL_SCAN_CELLS", 1000)
         fast = g.best(41, 25, 3)
         assert fast is not None and exact is not None
-        assert fast[0] >= exact[0] * (1 - 1e-9)  # (sums in another order)
+        assert fast.p >= exact.p * (1 - 1e-9)  # (sums in another order)
         if trial < 3:
-            assert np.isclose(fast[0], exact[0], rtol=1e-9, atol=0)
-            assert abs(fast[1] - j0) <= 20 and abs(fast[2] - k0) <= 12
+            assert np.isclose(fast.p, exact.p, rtol=1e-9, atol=0)
+            assert abs(fast.j - j0) <= 20 and abs(fast.k - k0) <= 12
 
 
 _CASE_30003 = {"objects": [

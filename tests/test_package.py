@@ -20,7 +20,7 @@ def test_core_imports_without_open3d_or_matplotlib():
 
 
 def test_process_to_ply_loads_no_heavy_module(tmp_path):
-    """``mems-stereo process samples/room.h5 -o x.ply`` (the start-up figure of issue 14)
+    """``mems-stereo process samples/room.h5 -o x.ply`` (the start-up path)
     loads neither Open3D, matplotlib, Dask nor numba (small recordings run in NumPy),
     nor the simulator; the PLY is written by NumPy."""
     code = ("import sys; from mems_stereo.cli import main; "

@@ -10,7 +10,8 @@ from oracles import find_code_peaks
 from mems_stereo.model.system import burkard2022
 from mems_stereo.physics.background import expected_background_by_angle
 from mems_stereo.pipeline.intervals import interval_table
-from mems_stereo.pipeline.peaks import SUPPORT_COLUMNS, neighbour_support, strongest_window
+from mems_stereo.pipeline.peak_support import SUPPORT_COLUMNS, neighbour_support
+from mems_stereo.pipeline.peaks import strongest_window
 from mems_stereo.pipeline.run import process_recording
 from mems_stereo.pipeline.settings import Settings
 
@@ -40,7 +41,8 @@ def test_strongest_window_finds_an_injected_cluster(rng):
     bg = np.full((3, 400), 0.5)
     counts = rng.poisson(bg).astype(float)
     counts[1, 200:211] += 6  # a clear cluster in row 1 only
-    j, cnt, mu, keep = strongest_window(counts, bg, 11, bg > 0, Settings())
+    ws = strongest_window(counts, bg, 11, bg > 0, Settings())
+    j, cnt, mu, keep = ws.j, ws.cnt, ws.mu, ws.keep
     assert keep[1] and abs(j[1] - 205) <= 3
     assert cnt[1] >= 60 and mu[1] == 5.5
 
@@ -66,9 +68,10 @@ def test_unsupported_peaks_pass_the_per_frame_level(rng):
     P, S, w = 200, 2000, 21
     bg = np.full((P, S), 0.02)
     counts = rng.poisson(bg).astype(float)
-    _, c0, mu0, keep0 = strongest_window(counts, bg, w, bg > 0, st)
+    ws0 = strongest_window(counts, bg, w, bg > 0, st)
+    keep0 = ws0.keep
     n_fa = int(keep0.sum())
-    _, _, _, keep1 = strongest_window(counts, bg, w, bg > 0, st, support_pixels=(P, P))
+    keep1 = strongest_window(counts, bg, w, bg > 0, st, support_pixels=(P, P)).keep
     assert keep1.sum() <= n_fa and keep1.sum() <= 1
     # 6 counts over 0.42 expected (p 5e-6 per window): past the per-pixel threshold
     # (1e-3 over ~95 windows), short of the frame's (scan p 2.6e-3 > 1e-3 / 200)
@@ -78,8 +81,9 @@ def test_unsupported_peaks_pass_the_per_frame_level(rng):
         cl[p, 1000:1006] = 1
     cl[150] = 0
     cl[150, 1000:1012] = 1  # 12 counts: significant for the whole sensor too
-    _, cnt, mu, keep = strongest_window(cl, bg, w, bg > 0, st, support_pixels=(P, P))
-    _, _, _, keep_pix = strongest_window(cl, bg, w, bg > 0, st)
+    ws = strongest_window(cl, bg, w, bg > 0, st, support_pixels=(P, P))
+    keep = ws.keep
+    keep_pix = strongest_window(cl, bg, w, bg > 0, st).keep
     assert keep_pix[50] and keep_pix[52] and keep_pix[120]
     assert keep[50] and keep[52] and not keep[120] and keep[150]
 
@@ -91,14 +95,16 @@ def test_scan_p_value_is_calibrated_where_bonferroni_is_not(rng):
     p-value (first-order clumping) is not optimistic."""
     from scipy.special import pdtrc
 
-    from mems_stereo.pipeline.peaks import scan_isf, scan_sf, window_scores
+    from mems_stereo.pipeline.peak_support import scan_isf, scan_sf
+    from mems_stereo.pipeline.peaks import window_scores
 
     st = Settings()
     w = 21
     for lam in (0.05, 0.5):  # per step: ~1 and ~10 per window
         bg = np.full((20000, 420), lam)
         counts = rng.poisson(bg).astype(float)
-        _, cnt, mu, _, nw = window_scores(counts, bg, w, bg > 0, st)
+        ws = window_scores(counts, bg, w, bg > 0, st)
+        cnt, mu, nw = ws.cnt, ws.mu, ws.n_windows
         p_bonf = pdtrc(np.maximum(cnt - 1, 0), mu) * nw
         p_scan = scan_sf(cnt, mu, nw)
         for x in (0.1, 0.01):
@@ -115,7 +121,7 @@ def test_per_frame_false_peaks_within_budget(rng):
     one per frame): the peaks that survive the neighbour support stay within the
     per-frame budget FRAME_FALSE_ALARMS (expected ≤ 3 in all; per pixel the first
     stage lets ~10⁻³ through, ~58 in all)."""
-    from mems_stereo.pipeline.peaks import FRAME_FALSE_ALARMS
+    from mems_stereo.pipeline.peak_support import FRAME_FALSE_ALARMS
 
     st = Settings()
     P, S, w = 192, 600, 21
@@ -123,8 +129,8 @@ def test_per_frame_false_peaks_within_budget(rng):
     for lam in np.geomspace(1e-3, 5.0, n_frames):
         bg = np.full((P, S), lam)
         counts = rng.poisson(bg).astype(float)
-        _, _, _, k_pix = strongest_window(counts, bg, w, bg > 0, st)
-        _, _, _, k = strongest_window(counts, bg, w, bg > 0, st, support_pixels=(P, P))
+        k_pix = strongest_window(counts, bg, w, bg > 0, st).keep
+        k = strongest_window(counts, bg, w, bg > 0, st, support_pixels=(P, P)).keep
         n_pix += int(k_pix.sum())
         n_sup += int(k.sum())
     assert n_pix >= 10  # the per-pixel level does let background through
@@ -159,7 +165,7 @@ def test_angle_detector_covers_more_than_the_papers_code_detector():
     sig, noise = res.histograms["signal"], res.histograms["noise"]
     code_peaks, _ = find_code_peaks(res.system, sig, noise, np.nan_to_num(res.theta), res.valid,
                                     Settings())
-    assert len(res.peaks["row"]) > 3 * len(code_peaks["row"])
+    assert len(res.peaks) > 3 * len(code_peaks["row"])
     assert len(res.cloud) >= 0.5 * 180  # at least half of the ~180 illuminated pixels
 
 

@@ -108,7 +108,8 @@ def test_room_sample_detection_accuracy():
     L = path_length_from_codes(rec.bins[k, r, c], true.tdc, true.speed_of_light)
     g &= L >= TOF_LINEAR_BELOW * np.linalg.norm(true.scanner.position)
     for name in ("stereo", "tof", "fused"):
-        rr, _, sr, _ = polar_from_cartesian(getattr(dp, name)[g], getattr(dp, "cov_" + name)[g])
+        pol = polar_from_cartesian(getattr(dp, name)[g], getattr(dp, "cov_" + name)[g])
+        rr, sr = pol.r, pol.sigma_r
         z = (rr - np.linalg.norm(X[g], axis=1)) / sr
         assert np.sqrt(np.mean(z ** 2)) < 1.5, name
 
@@ -124,6 +125,7 @@ def test_room_peaks_tof_first_photon_correction():
     from mems_stereo.pipeline.pass2 import peak_counts_range
     from mems_stereo.pipeline.run import process_recording
     from mems_stereo.pipeline.settings import Settings
+    from mems_stereo.pipeline.shot_range import ShotRange
     from mems_stereo.sim import load_scene
 
     path = SAMPLES / "room.h5"
@@ -132,7 +134,7 @@ def test_room_peaks_tof_first_photon_correction():
     th, va = np.nan_to_num(res.theta), res.valid
     sps = shots_per_step(interval_table(res.system, st.confidence, min_range=st.min_range),
                          th, va)
-    counts = peak_counts_range(path, res.system, th, va, st, res.peaks)
+    counts = peak_counts_range(path, res.system, ShotRange(th, va), st, res.peaks)
     scene = load_scene(SAMPLES / "room_scene.json")
     ratios = {}
     for corrected in (False, True):
@@ -158,6 +160,7 @@ def test_no_point_from_inliers_consistent_with_background(system, rng, share, ex
     their detections are not significant against the background subtracted from
     them (Poisson, at the confidence), there is no point; 20 % background leaves one."""
     from mems_stereo.pipeline.fusion import points_from_peak_detections
+    from mems_stereo.pipeline.fusion_inputs import FusionEntries, FusionPeaks
 
     _, x, col, code, th = _shots(system, rng, 20000, 3.0)
     c0 = np.bincount(col).argmax()
@@ -169,7 +172,7 @@ def test_no_point_from_inliers_consistent_with_background(system, rng, share, ex
     code2 = np.concatenate([code[sel], code[sel]])
     weight = np.concatenate([np.ones(n), np.full(n, -share)])
     bg = np.concatenate([np.zeros(n), np.full(n, share)])
-    pc = points_from_peak_detections(system, shot, np.zeros(2 * n, np.int64), code2, th,
-                                     np.array([0]), np.array([c0]), weight=weight,
-                                     background=bg)
+    entries = FusionEntries(shot, np.zeros(2 * n, np.int64), code2, th, weight=weight,
+                            background=bg)
+    pc = points_from_peak_detections(system, entries, FusionPeaks(np.array([0]), np.array([c0])))
     assert (len(pc) == 1) is expect_point

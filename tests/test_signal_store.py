@@ -8,15 +8,19 @@ import h5py
 import numpy as np
 import pytest
 
+import mems_stereo.pipeline.classify_kernel as classify_kernel
 import mems_stereo.pipeline.pass1 as pass1
 import mems_stereo.pipeline.run as run
 from mems_stereo.io.recording import read_header
 from mems_stereo.pipeline.angles import shot_angles
+from mems_stereo.pipeline.classify_kernel import _kernel_keys_py, signal_keys
 from mems_stereo.pipeline.intervals import IntervalTable
-from mems_stereo.pipeline.pass1 import _kernel_keys_py, accumulate_range, signal_keys
+from mems_stereo.pipeline.pass1 import accumulate_range
 from mems_stereo.pipeline.pass2 import peak_counts_range
+from mems_stereo.pipeline.peak_table import Peaks
 from mems_stereo.pipeline.peaks import find_peaks
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.shot_range import ShotRange
 from mems_stereo.pipeline.signal_store import SignalStore, peak_counts_from_store
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
@@ -53,17 +57,17 @@ def test_store_counts_equal_reading_the_shots(monkeypatch, tmp_path, name):
             if labels:
                 with h5py.File(tmp_path / "l.h5", "w") as f:
                     ds = f.create_dataset("label", shape=h.shape, dtype=np.uint8)
-                    acc = accumulate_range(path, s, theta, valid, st, table=table,
+                    acc = accumulate_range(path, s, ShotRange(theta, valid), st, table=table,
                                            labels_out=ds, signal_store=store)
             else:
-                acc = accumulate_range(path, s, theta, valid, st, table=table,
+                acc = accumulate_range(path, s, ShotRange(theta, valid), st, table=table,
                                        signal_store=store)
             assert store.complete
             assert (store._file is not None) == (budget == 1000)
             assert store.n_keys == int(acc.hist_signal[:, 1:].sum())
             if ref is None:
                 _, theta, valid, peaks = _peaks(path, st, table, acc)
-                ref = peak_counts_range(path, s, theta, valid, st, peaks, table=table)
+                ref = peak_counts_range(path, s, ShotRange(theta, valid), st, peaks, table=table)
                 assert ref.keys.size > 0
             got = peak_counts_from_store(store, s, peaks, table.n_steps)
         np.testing.assert_array_equal(got.keys, ref.keys)
@@ -76,10 +80,11 @@ def test_small_ranges_leave_the_store_incomplete(tmp_path):
     theta, valid = shot_angles(h, h.system)
     st = Settings()
     with SignalStore(directory=tmp_path) as store:
-        accumulate_range(path, h.system, theta, valid, st, signal_store=store)
+        accumulate_range(path, h.system, ShotRange(theta, valid), st, signal_store=store)
         assert not store.complete and store.n_keys == 0
         with pytest.raises(ValueError):
-            peak_counts_from_store(store, h.system, {"row": np.zeros(0, int)}, 1)
+            z = np.zeros(0, np.int64)
+            peak_counts_from_store(store, h.system, Peaks(*[z] * 10), 1)
 
 
 def test_signal_keys_kernel_and_labels_agree():
@@ -94,13 +99,13 @@ def test_signal_keys_kernel_and_labels_agree():
         hr, hs, ha = (np.zeros((P, nb), np.int64), np.zeros((P, nb), np.int64),
                       np.zeros((P, S), np.int64))
         out = np.empty(K * P, np.int64)
-        n = _kernel_keys_py(bins, rows, lo, hi, hr, hs, ha, *pass1.signal_key_shifts(S, nb), out)
+        n = _kernel_keys_py(bins, rows, lo, hi, hr, hs, ha, *classify_kernel.signal_key_shifts(S, nb), out)
         lab = np.zeros((K, P), np.uint8)
-        pass1._kernel_py(bins, rows, lo, hi, lab, *(np.zeros_like(a) for a in (hr, hs, ha)))
+        classify_kernel._kernel_py(bins, rows, lo, hi, lab, *(np.zeros_like(a) for a in (hr, hs, ha)))
         np.testing.assert_array_equal(out[:n], signal_keys(bins, rows, lab, S, nb))
         assert n == int(hs[:, 1:].sum())
         # each key holds its detection's pixel, step and code (bit fields)
-        p, j, c = pass1.decode_signal_keys(out[:n], S, nb)
+        p, j, c = classify_kernel.decode_signal_keys(out[:n], S, nb)
         k_, p_ = np.nonzero(lab == 1)
         np.testing.assert_array_equal(p, p_)
         np.testing.assert_array_equal(j, rows[k_])
@@ -151,7 +156,7 @@ def test_window_keys_compiled_equal_vectorised(seed):
     hi = np.minimum(nb - 1, lo + rng.integers(0, nb, Q))
     s_lo = rng.integers(0, S, Q)
     s_hi = np.minimum(S, s_lo + rng.integers(0, S, Q))
-    keys = pass1.encode_signal_keys(rng.integers(0, P, 5000), rng.integers(0, S, 5000),
+    keys = classify_kernel.encode_signal_keys(rng.integers(0, P, 5000), rng.integers(0, S, 5000),
                                     rng.integers(0, nb, 5000), S, nb)
     want = np.sort(ss.window_keys_from_signal(keys, S, nb, first, order, lo, hi, s_lo, s_hi))
     for kernel in (None, ss._window_keys_py):

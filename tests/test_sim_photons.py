@@ -13,6 +13,7 @@ from mems_stereo.sim import (
     LinkBudget,
     PulseShape,
     Scene,
+    SimulationOptions,
     SpotModel,
     background_first_arrivals,
     emitted_photons,
@@ -72,7 +73,7 @@ def test_pile_up_codes_are_geometric():
                                           "normal": [0, 0, 1], "size": [1, 1],
                                           "reflectivity": 0.5}]})
     rec = simulate(sysm, scene, 400, rng=np.random.default_rng(3), background_hz=rate,
-                   dark_count_hz=0.0, phase=0.0)
+                   dark_count_hz=0.0, options=SimulationOptions(phase=0.0))
     codes = rec.bins[rec.bins > 0].astype(np.int64)
     assert np.all(rec.truth["label"][rec.bins > 0] == 2)
     n_total = rec.bins.size
@@ -188,7 +189,7 @@ def test_mean_signal_counts_per_shot_monte_carlo():
     link = LinkBudget(peak_power=0.002)  # ~0.05 photons per shot
     n = 20_000
     rec = simulate(sysm, _wall(2.0), n, rng=np.random.default_rng(4), background_hz=0.0,
-                   dark_count_hz=0.0, link=link, phase=0.4)
+                   dark_count_hz=0.0, options=SimulationOptions(link=link, phase=0.4))
     det = int((rec.truth["label"] == 1).sum())
     assert int((rec.truth["label"] == 2).sum()) == 0
     mu = rec.truth["signal_mean"]
@@ -205,8 +206,8 @@ def test_window_loses_early_photons():
     scene: Scene = _wall(2.0)
     link = LinkBudget(peak_power=0.004)
     n = 20_000
-    kw = dict(background_hz=0.0, dark_count_hz=0.0, link=link, phase=0.4,
-              timing_jitter=0.0)
+    kw = dict(background_hz=0.0, dark_count_hz=0.0,
+              options=SimulationOptions(link=link, phase=0.4, timing_jitter=0.0))
     ref = simulate(sysm, scene, n, rng=np.random.default_rng(8), **kw)
     L = ref.truth["path_length"]
     # shift the TDC so that tau = L/c + offset = 0 for a mean path length

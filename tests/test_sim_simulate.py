@@ -18,6 +18,7 @@ from mems_stereo.model.scanner import scan_angles, scan_direction
 from mems_stereo.model.system import burkard2022, load_system, system_to_dict
 from mems_stereo.sim import (
     LinkBudget,
+    SimulationOptions,
     Trajectory,
     load_scene,
     scene_from_dict,
@@ -64,7 +65,7 @@ def test_scan_angle_recovered_from_zero_crossings(room, drift, jitter, tol):
     nominal = burkard2022()
     true = perturbed(nominal)
     rec = simulate(nominal, room, 3000, rng=np.random.default_rng(1), true_system=true,
-                   drift=drift, zc_jitter=jitter, start_time=0.25)
+                   options=SimulationOptions(drift=drift, zc_jitter=jitter, start_time=0.25))
     theta, valid = scan_angles(rec.shot_time, rec.zero_crossings, rec.rising, true.scanner)
     assert np.all(valid)
     assert np.max(np.abs(theta - rec.truth["theta"])) < tol
@@ -78,7 +79,8 @@ def test_truth_geometry_and_time_of_flight(room):
     nominal = burkard2022()
     true = perturbed(nominal)
     rec = simulate(nominal, room, 4000, rng=np.random.default_rng(2), true_system=true,
-                   link=LinkBudget(peak_power=0.01), background_hz=0.0, dark_count_hz=0.0)
+                   options=SimulationOptions(link=LinkBudget(peak_power=0.01)),
+                   background_hz=0.0, dark_count_hz=0.0)
     x = rec.truth["point"]
     hit = np.isfinite(x[:, 0])
     assert hit.mean() > 0.99
@@ -101,8 +103,10 @@ def test_truth_geometry_and_time_of_flight(room):
     # with a 20 ps pulse and no jitter only the TDC quantisation is left: |res| <= bin / 2
     short = true.replace(laser=dataclasses.replace(true.laser, pulse_fwhm=20e-12))
     rec2 = simulate(nominal, room, 1000, rng=np.random.default_rng(2), true_system=short,
-                    background_hz=0.0, dark_count_hz=0.0, timing_jitter=0.0,
-                    link=LinkBudget(peak_power=20.0))  # same pulse energy as 27 mW x 14.9 ns
+                    background_hz=0.0, dark_count_hz=0.0,
+                    options=SimulationOptions(timing_jitter=0.0,
+                                              # same pulse energy as 27 mW x 14.9 ns
+                                              link=LinkBudget(peak_power=20.0)))
     k2, _, _ = np.nonzero(rec2.truth["label"] == 1)
     t_tof = (rec2.bins[rec2.truth["label"] == 1] - 0.5) * short.tdc.bin_width - short.tdc.offset
     res = t_tof - rec2.truth["path_length"][k2] / short.speed_of_light
@@ -119,7 +123,7 @@ def test_truth_geometry_and_time_of_flight(room):
 def test_recording_system_is_nominal_and_round_trips(tmp_path, room):
     nominal = burkard2022()
     rec = simulate(nominal, room, 500, rng=np.random.default_rng(3),
-                   true_system=perturbed(nominal), crosstalk=0.05)
+                   true_system=perturbed(nominal), options=SimulationOptions(crosstalk=0.05))
     p = write_simulation(tmp_path / "r.h5", rec)
     back = read_recording(p)
     assert system_to_dict(back.system) == system_to_dict(nominal)
@@ -136,9 +140,10 @@ def test_recording_system_is_nominal_and_round_trips(tmp_path, room):
 
 def test_deterministic_for_a_seed(room):
     sysm = burkard2022()
-    a = simulate(sysm, room, 300, rng=np.random.default_rng(7), crosstalk=0.02)
-    b = simulate(sysm, room, 300, rng=np.random.default_rng(7), crosstalk=0.02)
-    c = simulate(sysm, room, 300, rng=np.random.default_rng(8), crosstalk=0.02)
+    opt = SimulationOptions(crosstalk=0.02)
+    a = simulate(sysm, room, 300, rng=np.random.default_rng(7), options=opt)
+    b = simulate(sysm, room, 300, rng=np.random.default_rng(7), options=opt)
+    c = simulate(sysm, room, 300, rng=np.random.default_rng(8), options=opt)
     np.testing.assert_array_equal(a.bins, b.bins)
     np.testing.assert_array_equal(a.truth["label"], b.truth["label"])
     np.testing.assert_array_equal(a.zero_crossings, b.zero_crossings)
@@ -150,10 +155,11 @@ def test_crosstalk_fires_neighbours():
     wall = scene_from_dict({"objects": [{"type": "plane", "center": [0, 0, 2.0],
                                          "normal": [0, 0, -1], "size": [20, 4],
                                          "reflectivity": 0.5}]})
-    kw = dict(background_hz=0.0, dark_count_hz=0.0, phase=0.1,
-              link=LinkBudget(peak_power=0.004))
-    a = simulate(sysm, wall, 3000, rng=np.random.default_rng(5), **kw)
-    b = simulate(sysm, wall, 3000, rng=np.random.default_rng(5), crosstalk=0.5, **kw)
+    opt = SimulationOptions(phase=0.1, link=LinkBudget(peak_power=0.004))
+    kw = dict(background_hz=0.0, dark_count_hz=0.0)
+    a = simulate(sysm, wall, 3000, rng=np.random.default_rng(5), options=opt, **kw)
+    b = simulate(sysm, wall, 3000, rng=np.random.default_rng(5),
+                 options=dataclasses.replace(opt, crosstalk=0.5), **kw)
     na, nb = (a.bins > 0).sum(), (b.bins > 0).sum()
     # each detection fires left or right (never up/down on a line sensor) with p = 0.5:
     # about a quarter more detections, minus collisions

@@ -11,22 +11,27 @@ import pytest
 
 from mems_stereo.model.system import burkard2022
 from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.pipeline.classify_kernel import (
+    KernelOptions,
+    _kernel_nolabels_py,
+    _kernel_py,
+    classify_and_accumulate,
+)
 from mems_stereo.pipeline.intervals import IntervalTable, interval_table
 from mems_stereo.pipeline.pass1 import (
     RangeAccumulation,
-    _kernel_nolabels_py,
-    _kernel_py,
     accumulate_range,
-    classify_and_accumulate,
     sum_accumulations,
 )
 from mems_stereo.pipeline.pass2 import (
+    PeakWindows,
     _window_keys_py,
     decode_peak_keys,
     encode_peak_keys,
     peak_window_keys,
 )
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.pipeline.shot_range import ShotRange
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
@@ -49,20 +54,19 @@ def _block(rng, k, p_zero=0.3):
 @pytest.mark.parametrize("seed", [1, 2, 3])
 @pytest.mark.parametrize("want_labels", [True, False])
 def test_pass1_numpy_compiled_and_python_kernels_agree(table, seed, want_labels, monkeypatch):
-    import mems_stereo.pipeline.pass1 as pass1
+    import mems_stereo.pipeline.classify_kernel as classify_kernel
 
     rng = np.random.default_rng(seed)
     bins, theta, valid = _block(rng, 97)
     out = []
     # compiled with the raw histogram counted in uint16 first (seeds 1, 3) or straight
     # into the uint32 one (seed 2); the NumPy form
-    monkeypatch.setattr(pass1, "RAW16_SHOTS", 1 << 16 if seed != 2 else 0)
+    monkeypatch.setattr(classify_kernel, "RAW16_SHOTS", 1 << 16 if seed != 2 else 0)
     for compiled in (True, False):
-        angle = np.zeros((192, table.n_steps), np.uint32)
-        lab, raw, sig = classify_and_accumulate(bins, theta, valid, table, 4096,
-                                                want_labels=want_labels, hist_angle=angle,
-                                                compiled=compiled)
-        out.append((lab, raw, sig, angle))
+        lab, h = classify_and_accumulate(bins, theta, valid, table, 4096,
+                                         want_labels=want_labels,
+                                         options=KernelOptions(compiled=compiled))
+        out.append((lab, h.raw, h.signal, h.angle))
     rows = table.rows(theta, valid)
     raw = np.zeros((192, 4097), np.int64)
     sig = np.zeros_like(raw)
@@ -93,9 +97,9 @@ def test_pass2_numpy_compiled_and_python_kernels_agree(table, seed):
     lo, hi = np.array([1, 100, 1, 200]), np.array([4096, 3000, 800, 4096])
     s_lo = np.array([0, 1000, 0, 3000])
     s_hi = np.array([table.n_steps, 8000, 5000, 9000])
-    a = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096, s_lo, s_hi, compiled=True)
-    b = peak_window_keys(bins, theta, valid, table, pix, lo, hi, 4096, s_lo, s_hi,
-                         compiled=False)
+    w = PeakWindows(pix, lo, hi, s_lo, s_hi)
+    a = peak_window_keys(bins, theta, valid, table, w, 4096, compiled=True)
+    b = peak_window_keys(bins, theta, valid, table, w, 4096, compiled=False)
     out = np.empty(600 * 4, np.int64)
     n = _window_keys_py(bins.reshape(600, -1), table.rows(theta, valid), table.lo, table.hi,
                         pix, lo, hi, s_lo, s_hi, table.n_steps, 4097, out)
@@ -164,7 +168,7 @@ class _NowClient:
 
 
 def test_tree_sum_equals_the_serial_sum():
-    from mems_stereo.pipeline.distributed import tree_sum
+    from mems_stereo.pipeline.dask_reduce import tree_sum
 
     rng = np.random.default_rng(9)
     parts = [_acc(rng, 10, 0.5) for _ in range(11)]
@@ -263,9 +267,9 @@ def test_chunked_range_with_angle_offset_equals_the_whole(tmp_path):
     th, va = shot_angles(h, h.system)
     st = Settings(chunk_shots=97)
     t = IntervalTable.for_settings(h.system, st)
-    whole = accumulate_range(SAMPLES / "room.h5", h.system, th, va, st, table=t)
-    parts = [accumulate_range(SAMPLES / "room.h5", h.system, th[a:b], va[a:b], st, a, b,
-                              table=t, angle_offset=a) for a, b in ((0, 300), (300, 800))]
+    whole = accumulate_range(SAMPLES / "room.h5", h.system, ShotRange(th, va), st, table=t)
+    parts = [accumulate_range(SAMPLES / "room.h5", h.system, ShotRange(th[a:b], va[a:b], a, b, a),
+                              st, table=t) for a, b in ((0, 300), (300, 800))]
     s = sum_accumulations(parts)
     for k in ("hist_raw", "hist_signal", "hist_angle", "n_per_step"):
         np.testing.assert_array_equal(getattr(s, k), getattr(whole, k))
@@ -278,6 +282,7 @@ def test_compiled_range_counts_raw_codes_in_uint16_between_flushes(monkeypatch, 
     the range's counts every RAW16_SHOTS shots (250: flushed every 2-3 chunks of 97;
     50: chunks too large for it, counted straight into the range's table), with its
     signal keys through one reused buffer: the same counts as the NumPy path."""
+    import mems_stereo.pipeline.classify_kernel as classify_kernel
     import mems_stereo.pipeline.pass1 as pass1
     from mems_stereo.io.recording import read_header
     from mems_stereo.pipeline.angles import shot_angles
@@ -289,11 +294,13 @@ def test_compiled_range_counts_raw_codes_in_uint16_between_flushes(monkeypatch, 
     st = Settings(chunk_shots=97)
     t = IntervalTable.for_settings(h.system, st)
     monkeypatch.setattr(pass1, "RAW16_SHOTS", raw16_shots)
+    monkeypatch.setattr(classify_kernel, "RAW16_SHOTS", raw16_shots)
     out = []
     for slots in (0, 1 << 40):  # compiled, then NumPy
         monkeypatch.setattr(pass1, "COMPILE_SLOTS", slots)
         with SignalStore() as store:
-            acc = accumulate_range(path, h.system, th, va, st, table=t, signal_store=store)
+            acc = accumulate_range(path, h.system, ShotRange(th, va), st, table=t,
+                                   signal_store=store)
             keys = np.concatenate(list(store.blocks())) if store.complete else None
         out.append((acc, keys))
     (a, keys), (b, _) = out
@@ -302,7 +309,7 @@ def test_compiled_range_counts_raw_codes_in_uint16_between_flushes(monkeypatch, 
         np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
     # the keys: one per signal count, each the (pixel, step, code) it was counted at
     assert keys.size == int(b.hist_signal[:, 1:].sum())
-    p, j, c = pass1.decode_signal_keys(keys, t.n_steps, h.system.tdc.n_bins + 1)
+    p, j, c = classify_kernel.decode_signal_keys(keys, t.n_steps, h.system.tdc.n_bins + 1)
     assert j.max() < t.n_steps
     per_pixel_code = np.bincount(p * (h.system.tdc.n_bins + 1) + c,
                                  minlength=b.hist_signal.size).reshape(b.hist_signal.shape)
@@ -341,7 +348,8 @@ def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatc
     accumulator's fused ranges for the inlier margins equal those of its _points."""
     pytest.importorskip("numba")
     import mems_stereo.pipeline.detections as det
-    from mems_stereo.pipeline.fusion import PeakAccumulator
+    from mems_stereo.pipeline.fusion_inputs import FusionPeaks
+    from mems_stereo.pipeline.peak_accumulator import PeakAccumulator
 
     s = burkard2022()
     rng = np.random.default_rng(seed)
@@ -377,13 +385,16 @@ def test_compiled_covariances_and_fused_only_points_are_the_same_bits(monkeypatc
         for u, v in ((x, x1), (C, C1), (ok, ok1)):
             assert np.array_equal(u, v, equal_nan=True)
     Q = 40
-    acc = PeakAccumulator(s, rng.integers(0, s.receiver.height, Q),
-                          rng.integers(0, s.receiver.width, Q), rng.integers(1, 200, Q))
+    acc = PeakAccumulator(s, FusionPeaks(rng.integers(0, s.receiver.height, Q),
+                                         rng.integers(0, s.receiver.width, Q),
+                                         rng.integers(1, 200, Q)))
     pk = rng.integers(0, Q, n)
     code = rng.uniform(0.5, s.tdc.n_bins, n)
     th = theta[rng.integers(0, 300, n)]
-    p0, _, _, r0, sr0, ok0, _ = acc._points(np.arange(n), pk, code, th, None)
-    p1, r1, sr1, ok1 = acc._fused_ranges(pk, code, th)
+    e0 = acc.entry_points(np.arange(n), pk, code, th, None)
+    e1 = acc.fused_ranges(pk, code, th)
+    p0, r0, sr0, ok0 = e0.peak, e0.r, e0.sigma_r, e0.ok
+    p1, r1, sr1, ok1 = e1.peak, e1.r, e1.sigma_r, e1.ok
     assert np.array_equal(p0, p1) and np.array_equal(ok0, ok1) and 0.05 < ok0.mean() < 1
     assert np.array_equal(r0, r1, equal_nan=True) and np.array_equal(sr0, sr1, equal_nan=True)
 
@@ -395,19 +406,20 @@ def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
     candidates (with their background rows) and rates, bit for bit."""
     from mems_stereo.io.recording import read_header
     from mems_stereo.pipeline.angles import shot_angles
+    from mems_stereo.pipeline.peak_support import SupportInputs
+    from mems_stereo.pipeline.peak_table import PEAK_ARRAYS
     from mems_stereo.pipeline.peaks import (
         concat_peaks,
         find_peaks,
         peak_scores,
         peaks_of_scores,
-        supported,
     )
 
     h = read_header(SAMPLES / name)
     s, st = h.system, Settings()
     th, va = shot_angles(h, s)
     t = IntervalTable.for_settings(s, st)
-    acc = accumulate_range(SAMPLES / name, s, th, va, st, table=t)
+    acc = accumulate_range(SAMPLES / name, s, ShotRange(th, va), st, table=t)
     P, nb = s.receiver.width * s.receiver.height, s.tdc.n_bins
     sig = acc.hist_signal[:, 1:].astype(np.int64)
     noise = acc.hist_raw[:, 1:].astype(np.int64) - sig
@@ -420,14 +432,13 @@ def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
         edges = np.unique(np.concatenate([[0, P], rng.integers(1, P, 4)]))
         scores = [peak_scores(s, sig[a:b], noise[a:b], acc.hist_angle[a:b], acc.n_per_step, t,
                               st, np.arange(a, b)) for a, b in zip(edges[:-1], edges[1:])]
-        keep = supported(*(np.concatenate(x) for x in zip(*(c.support_inputs()
-                                                           for c in scores))), W)
+        keep = SupportInputs.concat(c.support_inputs() for c in scores).supported(W)
         got = concat_peaks([peaks_of_scores(s, c, keep[c.pixels], acc.n_per_step, t, st)
                             for c in scores])
         assert np.array_equal(np.concatenate([c.rate for c in scores]), rate.ravel(),
                               equal_nan=True)
         for a, b in ((whole, got), (whole.candidates, got.candidates)):
-            for k in a.__dataclass_fields__:
+            for k in (*PEAK_ARRAYS, "background_by_step"):
                 u, v = getattr(a, k), getattr(b, k)
                 if k == "background_by_step":
                     assert u.shape == v.shape
@@ -435,7 +446,8 @@ def test_peak_detector_in_blocks_of_pixels_equals_the_whole(name):
                         assert np.array_equal(getattr(u, f), getattr(v, f)), f
                 else:
                     assert u.dtype == v.dtype and np.array_equal(u, v, equal_nan=True), k
-        assert np.array_equal(whole.candidates.n_windows, got.candidates.n_windows)
+        for k in ("n_windows", "local_lo", "local_hi", "width"):
+            assert np.array_equal(getattr(whole.candidates, k), getattr(got.candidates, k)), k
 
 
 def test_stereo_cache_gives_the_same_detection_points():
@@ -524,7 +536,7 @@ def test_detection_points_in_runs_equal_reference():
 def test_background_by_step_is_stored_over_the_counted_steps_only():
     """Peaks.background_by_step: the rows of the (P, S) expected background over each
     peak's steps step_lo..step_hi, sparse, zero elsewhere (checked densely)."""
-    from mems_stereo.pipeline.peaks import window_rows
+    from mems_stereo.pipeline.peak_table import window_rows
 
     rng = np.random.default_rng(5)
     B = rng.random((12, 40))
@@ -634,9 +646,9 @@ def test_add_rows_equals_add_at(monkeypatch, form):
 
 
 def test_is_in_equals_numpy_isin():
-    """fusion._is_in (binary search into sorted values) against np.isin: sorted and
+    """background_entries.is_in (binary search into sorted values) against np.isin: sorted and
     unsorted, empty, repeated and out-of-range values."""
-    from mems_stereo.pipeline.fusion import _is_in
+    from mems_stereo.pipeline.background_entries import is_in
 
     rng = np.random.default_rng(16)
     for _ in range(200):
@@ -644,4 +656,4 @@ def test_is_in_equals_numpy_isin():
         if rng.random() < 0.7:
             b = np.sort(b)
         a = rng.integers(-10, 70, int(rng.integers(0, 50)))
-        assert np.array_equal(_is_in(a, b), np.isin(a, b))
+        assert np.array_equal(is_in(a, b), np.isin(a, b))

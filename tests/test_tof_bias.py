@@ -12,15 +12,23 @@ from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.physics.first_photon import (
     MU_GRID,
-    _detection_log_odds,
-    _firing_probability,
     _table_lookup,
+    detection_log_odds,
+    firing_probability,
     first_photon_delay,
     first_photon_moments,
 )
 from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA, spot_fraction
-from mems_stereo.pipeline.fusion import PeakAccumulator, points_from_peak_detections
+from mems_stereo.pipeline.fusion import points_from_peak_detections
+from mems_stereo.pipeline.fusion_inputs import FusionEntries, FusionOptions, FusionPeaks
+from mems_stereo.pipeline.peak_accumulator import PeakAccumulator
 
+
+def _fuse(system, shot, peak, code, theta, rows, cols, min_counts=1, **options):
+    """:func:`points_from_peak_detections` of detections and peaks given as arrays."""
+    return points_from_peak_detections(system, FusionEntries(shot, peak, code, theta),
+                                       FusionPeaks(rows, cols), FusionOptions(**options),
+                                       min_counts)
 
 def _first_arrivals(rng, mu_w, a, size):
     """Monte-Carlo first photons (σ units): Poisson(μ_w) arrivals from N(0, 1) cut to u ≥ a;
@@ -85,8 +93,8 @@ def _synthetic_peaks(rng, Q, mu0, a, sigma):
         t = np.concatenate([_first_arrivals(rng, mu0 * f[s], a, 1) for s in shots])
         hit = np.isfinite(t)
         n_det[q] = hit.sum()
-        ll[q] = (_detection_log_odds(f[shots[hit]]).sum(axis=0)
-                 + (n_band[q][:, None] * np.log1p(-_firing_probability(f))).sum(axis=0))
+        ll[q] = (detection_log_odds(f[shots[hit]]).sum(axis=0)
+                 + (n_band[q][:, None] * np.log1p(-firing_probability(f))).sum(axis=0))
         tau_mean[q] = (t[hit].mean() - a) * sigma if hit.any() else np.nan
     return ll, f_band, n_band, tau_mean, n_det
 
@@ -188,10 +196,9 @@ def test_wall_points_corrected_and_unchanged_without_shots(system):
     args = (system, shot, peak, code, th_snap, rows, cols)
     kw = {"min_counts": 5, "spot_sigma": DEFAULT_SPOT_SIGMA}  # the spot the data were made with
     # (the angle grid alone adds its quantisation to the stereo σ: both runs know it)
-    plain = points_from_peak_detections(*args, **kw, step_grid=(t0, dtheta))
-    off = points_from_peak_detections(*args, **kw, shots_per_step=sps,
-                                      step_grid=(t0, dtheta), first_photon=False)
-    on = points_from_peak_detections(*args, **kw, shots_per_step=sps, step_grid=(t0, dtheta))
+    plain = _fuse(*args, **kw, step_grid=(t0, dtheta))
+    off = _fuse(*args, **kw, shots_per_step=sps, step_grid=(t0, dtheta), first_photon=False)
+    on = _fuse(*args, **kw, shots_per_step=sps, step_grid=(t0, dtheta))
     # without the shot counts (or switched off) the result is the uncorrected one
     assert set(plain.attributes) == set(off.attributes)
     for k in plain.attributes:
@@ -234,9 +241,8 @@ def test_streamed_halves_equal_one_pass(system):
     sps = np.bincount(steps, minlength=steps.max() + 2)
     rows = np.zeros_like(cols)
     kw = dict(shots_per_step=sps, step_grid=(t0, dtheta))
-    one = points_from_peak_detections(system, shot, peak, code, th, rows, cols, min_counts=3,
-                                      **kw)
-    acc = PeakAccumulator(system, rows, cols, **kw)
+    one = _fuse(system, shot, peak, code, th, rows, cols, min_counts=3, **kw)
+    acc = PeakAccumulator(system, FusionPeaks(rows, cols), FusionOptions(**kw))
     half = np.arange(shot.size) % 2 == 0
     parts = [acc.empty_copy(), acc.empty_copy()]
     for part, sel in zip(parts, (half, ~half)):
@@ -276,10 +282,10 @@ def test_mu_pinned_at_the_grid_top_keeps_the_mean_angles_scatter_spread(system, 
 
     args, kw = _snapped(system, mu0=60.0, seed=5)
     kw.update(min_counts=5, spot_sigma=DEFAULT_SPOT_SIGMA / 4)
-    on = points_from_peak_detections(*args, **kw)
+    on = _fuse(*args, **kw)
     assert np.median(on["signal_photons"]) >= fpc.MU_PINNED_FRACTION * MU_MAX
     monkeypatch.setattr(fpc, "MU_PINNED_FRACTION", np.inf)
-    off = points_from_peak_detections(*args, **kw)
+    off = _fuse(*args, **kw)
     assert len(on) == len(off)
     np.testing.assert_array_equal(on["pixel"], off["pixel"])
     # (not every point: a depth edge (PeakMeans.cloud) is marked where neighbours differ
@@ -297,10 +303,10 @@ def test_mu_pinned_at_the_grid_top_keeps_the_mean_angles_scatter_spread(system, 
     for mu0, pinned in ((8.0, False), (4 * MU_MAX, True)):
         args, kw = _snapped(system, mu0=mu0, seed=6)
         kw.update(min_counts=5, spot_sigma=DEFAULT_SPOT_SIGMA)
-        good = points_from_peak_detections(*args, **kw)
+        good = _fuse(*args, **kw)
         assert (np.median(good["signal_photons"]) >= fpc.MU_PINNED_FRACTION * MU_MAX) == pinned
         monkeypatch.setattr(fpc, "MU_PINNED_FRACTION", np.inf)
-        same = points_from_peak_detections(*args, **kw)
+        same = _fuse(*args, **kw)
         monkeypatch.undo()
         np.testing.assert_array_equal(good["sigma_r_stereo"], same["sigma_r_stereo"])
 

@@ -67,12 +67,11 @@ def test_no_solution_and_grazing_give_nan_and_flags():
     assert np.all(np.isnan(x)) and np.all(np.isnan(s))
     assert np.all(fl & FLAG_NO_SOLUTION)
     # parallel stereo rays
-    pts, s, rho, gap, fl = stereo_point(p, np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]))
-    assert np.all(np.isnan(pts)) and fl[0] & FLAG_GRAZING
+    sp = stereo_point(p, np.array([[0, 0, 1.0]]), np.array([[0, 0, 1.0]]))
+    assert np.all(np.isnan(sp.points)) and sp.flags[0] & FLAG_GRAZING
     # rays that meet behind the receiver
-    pts, *_, fl = stereo_point(p, np.array([[-0.3, 0, 1.0]]) / np.hypot(0.3, 1),
-                               np.array([[0, 0, 1.0]]))
-    assert np.all(np.isnan(pts)) and fl[0] & FLAG_BEHIND
+    sp = stereo_point(p, np.array([[-0.3, 0, 1.0]]) / np.hypot(0.3, 1), np.array([[0, 0, 1.0]]))
+    assert np.all(np.isnan(sp.points)) and sp.flags[0] & FLAG_BEHIND
 
 
 @settings(max_examples=60, deadline=None)
@@ -89,16 +88,17 @@ def test_stereo_and_tof_agree_on_a_noise_free_detection(dtheta, dist):
         return
     l = x / np.linalg.norm(x)
     L = path_length_of_point(x, p)
-    xs, s, rho, gap, fl = stereo_point(p, d, l)
-    assert fl[0] == 0 and np.allclose(xs, x, atol=1e-7 * dist) and gap[0] < 1e-7
+    sp = stereo_point(p, d, l)
+    assert sp.flags[0] == 0 and np.allclose(sp.points, x, atol=1e-7 * dist) and sp.gap[0] < 1e-7
+    assert np.allclose([sp.s[0], sp.rho[0]], [dist, np.linalg.norm(x)], rtol=1e-6)
     assert np.allclose(scanner_ray_point(p, d, L)[0], x, atol=1e-9 * dist)
     assert np.allclose(pixel_ray_point(p, l, L)[0], x, atol=1e-9 * dist)
-    xe, se, *_, fe = epipolar_stereo_point(p, d, l)
-    assert fe[0] == 0 and np.allclose(xe, x, atol=1e-7 * dist)
+    ep = epipolar_stereo_point(p, d, l)
+    assert ep.flags[0] == 0 and np.allclose(ep.points, x, atol=1e-7 * dist)
     # a pixel ray tilted out of the epipolar plane projects back onto the same point
     tilt = l + np.array([[0.0, 0.01, 0.0]])
-    xt, *_ = epipolar_stereo_point(p, d, tilt / np.linalg.norm(tilt))
-    assert np.allclose(xt, x, atol=1e-6 * dist)
+    ep = epipolar_stereo_point(p, d, tilt / np.linalg.norm(tilt))
+    assert np.allclose(ep.points, x, atol=1e-6 * dist) and abs(ep.out_of_plane[0]) > 1e-3
     s2, rho2 = coplanar_ray_intersection(p, d, l)
     assert np.allclose([s2[0], rho2[0]], [dist, np.linalg.norm(x)], rtol=1e-7)
 

@@ -17,7 +17,7 @@ from mems_stereo.calib.twoaxis import (
 )
 
 from mems_stereo.errors import NotObservableError
-from mems_stereo.model.scanner2d import lissajous64
+from mems_stereo.model.presets import lissajous64
 
 ROOT = Path(__file__).resolve().parents[1]
 OFFSETS = {"theta0": 3e-3, "theta0_2": -2e-3, "theta_mech_max": 8e-4,
@@ -120,7 +120,7 @@ def test_charuco_intrinsics_feed_the_raster_calibration():
     import cv2
     from mems_stereo.calib.intrinsics import calibrate_charuco, make_board, synthetic_charuco_views
 
-    from mems_stereo.model.scanner2d import raster128x96
+    from mems_stereo.model.presets import raster128x96
 
     nom = raster128x96()
     offs = {"theta0": 2e-3, "theta0_2": -1.5e-3, "baseline_x": 0.003, "baseline_y": -0.002,

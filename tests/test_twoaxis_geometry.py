@@ -25,7 +25,8 @@ from mems_stereo.geometry.twoaxis import (
     pixel_point_2d,
     propagate_2d,
 )
-from mems_stereo.model.scanner2d import lissajous64, scan_direction_2d
+from mems_stereo.model.presets import lissajous64
+from mems_stereo.model.scanner2d import scan_direction_2d
 from mems_stereo.pipeline.twoaxis import path_length_interval
 
 DIST = np.array([-0.12, 0.05, 1e-3, -5e-4, 0.0])

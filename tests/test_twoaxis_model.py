@@ -12,14 +12,13 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mems_stereo.errors import FormatError
+from mems_stereo.model.presets import lissajous64, raster128x96
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.scanner2d import (
     Axis2Monitor,
     fast_axis,
     is_two_axis,
-    lissajous64,
     mirror_normal_2d,
-    raster128x96,
     scan_angles_2d,
     scan_direction_2d,
     scan_direction_2d_jacobian,

@@ -18,7 +18,7 @@ from mems_stereo.io.recording2d import (
     write_recording_2d,
 )
 from mems_stereo.model.camera import pixels_to_rays
-from mems_stereo.model.scanner2d import lissajous64, raster128x96
+from mems_stereo.model.presets import lissajous64, raster128x96
 from mems_stereo.pipeline.twoaxis import process_recording_2d
 from mems_stereo.sim.scene import load_scene
 from mems_stereo.sim.simulate2d import simulate_2d

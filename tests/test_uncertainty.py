@@ -92,7 +92,8 @@ def test_paper_polar_uncertainty_matches_monte_carlo(system, rng):
     """Paper Eqs. 14–17: (u, t) → (r, φ), uniform pixel over a SPAD and uniform bin."""
     th, x, uv, L = _truth(system, 2.0)
     code = np.floor(L / system.speed_of_light / system.tdc.bin_width + 1.0)
-    mu_r, mu_phi, s_r, s_phi = paper_polar_uncertainty(system, uv[:, 0], code, th)
+    pol = paper_polar_uncertainty(system, uv[:, 0], code, th)
+    mu_r, s_r, s_phi = pol.r, pol.sigma_r, pol.sigma_phi
     sp = paper_spreads(system)
     n = 20000
     from mems_stereo.geometry.uncertainty import paper_point
@@ -101,7 +102,8 @@ def test_paper_polar_uncertainty_matches_monte_carlo(system, rng):
     u = uv[0, 0] + rng.uniform(-0.5, 0.5, n) * sp.sigma_u * np.sqrt(12)
     t = (path_length_from_codes(code, system.tdc, system.speed_of_light)[0]
          + system.speed_of_light * rng.uniform(-0.5, 0.5, n) * system.tdc.bin_width)
-    r, phi, _, _ = polar_from_cartesian(paper_point(system, u, 0.0, t, np.full(n, th[0])))
+    mc = polar_from_cartesian(paper_point(system, u, 0.0, t, np.full(n, th[0])))
+    r, phi = mc.r, mc.phi
     assert abs(np.std(r) / s_r[0] - 1) < 0.05
     assert abs(np.std(phi) / s_phi[0] - 1) < 0.05
     assert abs(np.mean(r) - mu_r[0]) < 3 * s_r[0] / np.sqrt(n) + 1e-6

@@ -99,20 +99,20 @@ def test_residuals_and_triangulation_against_the_true_planes():
     bw = res.system.tdc.bin_width
     for (a, d), w in zip(PLANES, walls):
         r = wall_residuals(res.system, w, (a, 0.0, d))
-        assert r["pixel"].size > 200
+        assert r.pixel.size > 200
         # the detections are the rounded projections: |residual| <= 1/2 px, 1/2 bin
-        assert np.max(np.abs(r["res_pixel"])) <= 0.5 + 1e-9
-        assert np.max(np.abs(r["res_time"])) <= 0.5 * bw + 1e-15
+        assert np.max(np.abs(r.res_pixel)) <= 0.5 + 1e-9
+        assert np.max(np.abs(r.res_time)) <= 0.5 * bw + 1e-15
         # the triangulated points lie on the plane within the pixel quantisation's depth
         # error z²/(f·b)·Δpx for |Δpx| ≤ ½ (first order, plus the tilt): uniform within it
-        off = r["points"] @ plane_normal(a) - d
+        off = r.points @ plane_normal(a) - d
         bound = d**2 / (197.2 * 0.122) * 0.5
         assert np.nanmax(np.abs(off)) < 1.3 * bound
         assert 0.3 * bound < np.nanmedian(np.abs(off)) < 0.7 * bound
     # a wrong plane (10 cm farther) shows as a time residual of about 2·10 cm / c
     a, d = PLANES[1]
     r = wall_residuals(res.system, walls[1], (a, 0.0, d + 0.1), radius=10, window=5e-9)
-    assert r["res_time"].size > 100 and -0.9e-9 < np.median(r["res_time"]) < -0.4e-9
+    assert r.res_time.size > 100 and -0.9e-9 < np.median(r.res_time) < -0.4e-9
 
 
 def test_verdict_and_what_to_record_next():
@@ -186,5 +186,5 @@ def test_report_for_the_bundled_walls(tmp_path):
                             res.planes[j])
         ok = inliers(rr)
         assert ok.sum() > 1000
-        assert abs(np.median(rr["res_pixel"][ok])) < 0.1
-        assert np.std(rr["res_pixel"][ok]) < 1.0
+        assert abs(np.median(rr.res_pixel[ok])) < 0.1
+        assert np.std(rr.res_pixel[ok]) < 1.0

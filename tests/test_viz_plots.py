@@ -117,12 +117,13 @@ def test_histogram_file_round_trip(tmp_path):
     raw, sig, noise = _hist(np.random.default_rng(6))
     p = write_histograms(tmp_path / "h.h5", raw[None], sig[None], noise[None],
                          {"bin_width": 312.5e-12, "source": "room.h5"})
-    r, s, n, attrs = read_histograms(p)
+    h = read_histograms(p)
+    r, s, n, attrs = h.raw, h.signal, h.noise, h.attrs
     for got, ref in ((r, raw), (s, sig), (n, noise)):
         assert got.dtype == np.int32 and got.shape == (1,) + ref.shape
         np.testing.assert_array_equal(got[0], ref)
     assert attrs == {"bin_width": 312.5e-12, "source": "room.h5"}
-    r2, *_ = read_histograms(write_histograms(tmp_path / "h2.h5", raw, sig, noise))
+    r2 = read_histograms(write_histograms(tmp_path / "h2.h5", raw, sig, noise)).raw
     np.testing.assert_array_equal(r2, r)  # (W, n_bins) is stored as (1, W, n_bins)
 
 

@@ -6,14 +6,8 @@ import cv2
 import numpy as np
 import pytest
 from mems_stereo.viz.colormap import apply_colormap
-from mems_stereo.viz.render import (
-    Decorations,
-    nice_step,
-    render_available,
-    render_cloud,
-    render_image,
-    sigma_axes,
-)
+from mems_stereo.viz.render import render_available, render_cloud, render_image
+from mems_stereo.viz.render_decorations import Decorations, nice_step, sigma_axes
 
 from mems_stereo.cli import main as cli_main
 from mems_stereo.errors import FormatError
@@ -90,7 +84,8 @@ def test_hardware_grid_and_colour_bar_land_where_expected():
     for row in (2, bh // 2, bh - 3):
         np.testing.assert_allclose(img[y0 + row, x], np.rint(apply_colormap([t[row]])[0] * 255),
                                    atol=1)
-    assert deco._grid_step == 0.5
+    # the legend names the grid's spacing: 0.5 m for this wall
+    assert deco.geometry(cloud, np.zeros((len(cloud), 3))).grid_step == 0.5
 
 
 @needs_gl

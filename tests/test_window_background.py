@@ -84,16 +84,16 @@ def test_background_over_a_sub_window_is_the_recorded_one():
 
 def _band_trials(shots, rng, trials=300):
     """Mean background expected over a 200-step band by :func:`window_background`,
-    with the steps without a detection added (:func:`fusion._with_empty_steps`) and
+    with the steps without a detection added (:func:`background_entries.with_empty_steps`) and
     without, and the mean background recorded (a faint return on 30 of the steps)."""
     from types import SimpleNamespace
 
-    from mems_stereo.pipeline.fusion import _with_empty_steps
+    from mems_stereo.pipeline.background_entries import StepEntries, with_empty_steps
 
     S, lo, hi, bw, lam = shots.size, 20, 400, 3.125e-10, 0.5e6
     h = -np.expm1(-lam * bw)
     table = SimpleNamespace(theta_min=0.0, step=1e-4, n_steps=S)
-    band = {"step_lo": np.array([0]), "step_hi": np.array([S - 1])}
+    band = (np.array([0]), np.array([S - 1]))
     full, sel, rec = [], [], []
     for _ in range(trials):
         step = np.repeat(np.arange(S), shots)
@@ -105,11 +105,10 @@ def _band_trials(shots, rng, trials=300):
         rec.append(np.sum(ok & (t_bg < t_sig)))
         key, cnt = np.unique(step[ok] * 4096 + first[ok].astype(np.int64), return_counts=True)
         q, st, code = np.zeros(key.size, np.int64), key // 4096, key % 4096
-        for out, entries in ((full, _with_empty_steps(band, q, st, code, cnt.astype(float),
-                                                      shots, table)),
-                             (sel, (q, st, code, cnt.astype(float)))):
-            qe, se, ce, we = entries[:4]
-            one = np.ones(qe.size)
+        counted = StepEntries(q, st, code, cnt.astype(float), np.zeros(q.size))
+        for out, e in ((full, with_empty_steps(band, counted, shots, table)), (sel, counted)):
+            se, ce, we = e.step, e.code, e.weight
+            one = np.ones(se.size)
             _, bg, _ = window_background(se, ce, we, lo * one, hi * one, shots[se], lo * one,
                                          lam * one, bw)
             out.append(bg.sum())
@@ -122,7 +121,7 @@ def test_dense_band_background_counts_the_steps_without_detections():
     every counted step, detections or not, and matches the background recorded; over
     the steps that hold a detection alone it falls short (sweep case 28036: 5-24 of
     ~120 steps empty, the stereo and ToF of a 4.7 m wall 9 and 13 cm short)."""
-    from mems_stereo.pipeline.fusion import DENSE_BAND_SHOTS
+    from mems_stereo.pipeline.background_entries import DENSE_BAND_SHOTS
 
     rng = np.random.default_rng(7)
     shots = rng.integers(1, 6, 200)

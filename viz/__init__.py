@@ -3,6 +3,8 @@
 * :mod:`mems_stereo.viz.export`   – ``write_cloud`` / ``read_cloud``: .ply, .pcd (Open3D
   tensor clouds), .las
 * :mod:`mems_stereo.viz.render`   – ``render_cloud``: headless PNG through Open3D + Mesa EGL
+  (what is drawn besides the points: :mod:`mems_stereo.viz.render_decorations`)
+* :mod:`mems_stereo.viz.convert`  – ``cloud_to_open3d``: a cloud as an Open3D point cloud
 * :mod:`mems_stereo.viz.view`     – ``view_cloud``: interactive Open3D window (needs a display)
 * :mod:`mems_stereo.viz.plots`    – the paper's figures with matplotlib (Agg)
 * :mod:`mems_stereo.viz.colormap` – NumPy colormaps (no matplotlib)
@@ -18,12 +20,12 @@ import importlib
 
 _LAZY = {
     "write_cloud": "export", "read_cloud": "export",
-    "render_cloud": "render", "render_image": "render",
+    "render_cloud": "render", "render_image": "render", "Decorations": "render_decorations",
     "view_cloud": "view",
     "plot_acquisition": "plots", "plot_histograms": "plots", "plot_peaks": "plots",
     "plot_uncertainty_bounds": "plots", "plot_calibration_residuals": "plots",
     "plot_cloud_topview": "plots",
-    "apply_colormap": "colormap", "cloud_colors": "colormap",
+    "apply_colormap": "colormap", "cloud_colors": "colormap", "ColorScale": "colormap",
     "write_calibration_report": "calib_report", "write_ros2_bag": "export",
     "cloud_to_open3d": "convert",
 }

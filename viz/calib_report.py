@@ -35,14 +35,17 @@ from __future__ import annotations
 
 import math
 import os
+import textwrap
 from pathlib import Path
 
 import numpy as np
+from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.result import CalibrationFailure
 from mems_stereo.viz.calib_report_data import (  # noqa: F401  (public names re-exported)
     ADVICE,
     UNITS,
     ReportData,
+    WallResiduals,
     check_text,
     fmt_param,
     inliers,
@@ -55,6 +58,7 @@ from mems_stereo.viz.calib_report_data import (  # noqa: F401  (public names re-
 )
 
 from mems_stereo.errors import FormatError
+from mems_stereo.io.recording import Recording, read_recording
 from mems_stereo.model.system import System
 from mems_stereo.util.atomic import atomic_output
 
@@ -85,8 +89,6 @@ def _text_page(pdf, title: str, blocks: list[tuple[str, list[str]]], color: str 
 
 
 def _wrap(s: str, n: int) -> list[str]:
-    import textwrap
-
     return textwrap.wrap(s, n, subsequent_indent="    ") or [""]
 
 
@@ -227,30 +229,41 @@ def _estimates_page(pdf, d: ReportData):
     pdf.savefig(fig)
 
 
-def _residual_page(pdf, d: ReportData, res: list):
+def _shift_page(pdf, d: ReportData):
+    """Without the recordings: what the result carries, each wall's consistency shifts
+    per quarter of the sensor."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(11.69, 8.27))
-    if not res:  # what the result carries: per-wall shifts per quarter of the sensor
-        ax = fig.subplots(1, 2)
-        for j, t in enumerate(d.walls):
-            nm = d.target_names[j] if j < len(d.target_names) else f"wall {j}"
-            for a, key, f in ((ax[0], "column_shifts", 1.0), (ax[1], "time_shifts", 1e9)):
-                v = np.asarray(t.get(key, []), dtype=np.float64) * f
-                a.plot(np.arange(v.size) + 1, v, "o-", color=f"C{j % 10}", label=nm)
-        ax[0].set_ylabel("column shift (px)")
-        ax[1].set_ylabel("TDC-time shift (ns)")
-        for a in ax:
-            a.axhline(0, color="k", lw=0.8)
-            a.set_xlabel("quarter of the sensor (left → right)")
-            a.grid(alpha=0.3)
-        ax[0].legend(fontsize=8)
-        fig.suptitle("no recordings given: per-detection residuals against scan angle and "
-                     "pixel need them (--report with the recordings).\nShown instead: what "
-                     "the result carries, each wall's consistency shifts per quarter of the "
-                     "sensor (a flat wall: all near 0)", fontsize=10)
-        pdf.savefig(fig)
+    ax = fig.subplots(1, 2)
+    for j, t in enumerate(d.walls):
+        nm = d.target_names[j] if j < len(d.target_names) else f"wall {j}"
+        for a, key, f in ((ax[0], "column_shifts", 1.0), (ax[1], "time_shifts", 1e9)):
+            v = np.asarray(t.get(key, []), dtype=np.float64) * f
+            a.plot(np.arange(v.size) + 1, v, "o-", color=f"C{j % 10}", label=nm)
+    ax[0].set_ylabel("column shift (px)")
+    ax[1].set_ylabel("TDC-time shift (ns)")
+    for a in ax:
+        a.axhline(0, color="k", lw=0.8)
+        a.set_xlabel("quarter of the sensor (left → right)")
+        a.grid(alpha=0.3)
+    ax[0].legend(fontsize=8)
+    fig.suptitle("no recordings given: per-detection residuals against scan angle and "
+                 "pixel need them (--report with the recordings).\nShown instead: what "
+                 "the result carries, each wall's consistency shifts per quarter of the "
+                 "sensor (a flat wall: all near 0)", fontsize=10)
+    pdf.savefig(fig)
+
+
+def _residual_page(pdf, d: ReportData, res: list):
+    """Every wall's pixel and time residuals against scan angle and pixel (the
+    recordings' detections, ``res``); without them :func:`_shift_page`."""
+    from matplotlib.figure import Figure
+
+    if not res:
+        _shift_page(pdf, d)
         return
+    fig = Figure(figsize=(11.69, 8.27))
     ax = fig.subplots(2, 2)
     lim = {"res_pixel": [0.0, 0.0], "res_time": [0.0, 0.0]}
     n_out = 0
@@ -260,12 +273,13 @@ def _residual_page(pdf, d: ReportData, res: list):
         nm = d.target_names[j] if j < len(d.target_names) else f"wall {j}"
         ok = inliers(r)
         n_out += int((~ok).sum())
-        for key, f, row in (("res_pixel", 1.0, 0), ("res_time", 1e9, 1)):
-            v = r[key] * f
+        for key, resid, f, row in (("res_pixel", r.res_pixel, 1.0, 0),
+                                   ("res_time", r.res_time, 1e9, 1)):
+            v = resid * f
             if ok.any():
                 lo, hi = np.percentile(v[ok], [0.5, 99.5])
                 lim[key] = [min(lim[key][0], lo), max(lim[key][1], hi)]
-            for col, x in enumerate((r["theta"] * 1e3, r["pixel"])):
+            for col, x in enumerate((r.theta * 1e3, r.pixel)):
                 a = ax[row, col]
                 a.scatter(x[~ok], v[~ok], s=1, color="0.75")
                 a.scatter(x[ok], v[ok], s=2, alpha=0.5, color=f"C{j % 10}",
@@ -304,7 +318,7 @@ def _planes_page(pdf, d: ReportData, res: list, system: System):
         r = res[j] if j < len(res) else None
         x = None
         if r is not None:
-            p = r["points"]
+            p = r.points
             ok = np.isfinite(p[:, 0]) & inliers(r)
             ax.scatter(p[ok, 0], p[ok, 2], s=3, alpha=0.4, color=f"C{j % 10}", label=nm)
             if ok.any():
@@ -381,10 +395,6 @@ def write_calibration_report(result, path: str | os.PathLike, *, recordings=None
     if targets is not None:
         walls = list(targets)
     elif recordings is not None:
-        from mems_stereo.calib.association import wall_data
-
-        from mems_stereo.io.recording import Recording, read_recording
-
         walls = []
         for r in recordings:
             rec = r if isinstance(r, Recording) else read_recording(r, truth=False)

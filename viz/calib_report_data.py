@@ -14,10 +14,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mems_stereo.calib.model import PARAM_UNIT
+from mems_stereo.calib.association import wall_data
+from mems_stereo.calib.model import PARAM_UNIT, beam_hits, code_time, plane_normal
 from mems_stereo.calib.observability import DEFAULT_MAX_STD
+from mems_stereo.calib.problem import WallData
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
+from mems_stereo.model.camera import normalized_coordinates
+from mems_stereo.model.scanner import scan_angle_from_phase
 from mems_stereo.model.system import System
 
 #: display factor and unit per parameter (SI value × factor)
@@ -242,8 +246,27 @@ def fmt_param(name: str, v: float) -> str:
     return f"{v * f:.4g} {unit}".strip() if math.isfinite(v) else "—"
 
 
+@dataclass(frozen=True, slots=True)
+class WallResiduals:
+    """The detections of one wall recording near its predicted return, and their
+    residuals under the calibrated model (M detections; receiver camera frame).
+
+    theta : (M,) float64, scan angle, rad.
+    pixel : (M,) float64, the fired column.
+    res_pixel : (M,) float64, column − predicted column, px.
+    res_time : (M,) float64, TDC time − (path/c + TDC offset), s.
+    points : (M, 3) float64, m: the detections triangulated (camera ray ∩ scan beam).
+    """
+
+    theta: np.ndarray
+    pixel: np.ndarray
+    res_pixel: np.ndarray
+    res_time: np.ndarray
+    points: np.ndarray
+
+
 def wall_residuals(system: System, wall, plane, radius: int = 3,
-                   window: float = 40e-9) -> dict:
+                   window: float = 40e-9) -> WallResiduals:
     """Residuals of one wall recording under the calibrated model.
 
     wall : :class:`~mems_stereo.calib.problem.WallData` (or a Recording, reduced
@@ -251,17 +274,8 @@ def wall_residuals(system: System, wall, plane, radius: int = 3,
     of the wall (rad, rad, m).  Every fired pixel within ``radius`` columns of
     a shot's predicted image and within ``window`` of its predicted time counts.
 
-    Returns a dict of (M,) float64 arrays: ``theta`` scan angle (rad),
-    ``pixel`` column, ``res_pixel`` column − predicted column (px),
-    ``res_time`` TDC time − (path/c + tdc offset) (s), and ``points`` (M, 3) m,
-    the detections triangulated (camera ray ∩ scan beam), receiver camera frame.
+    Returns the detections and their residuals (:class:`WallResiduals`).
     """
-    from mems_stereo.calib.association import wall_data
-    from mems_stereo.calib.model import beam_hits, code_time, plane_normal
-    from mems_stereo.calib.problem import WallData
-
-    from mems_stereo.model.scanner import scan_angle_from_phase
-
     w = wall if isinstance(wall, WallData) else wall_data(wall)
     K, H, W = w.bins.shape
     hits = beam_hits(system, {}, w.phase, plane_normal(plane[0], plane[1]), float(plane[2]))
@@ -283,16 +297,14 @@ def wall_residuals(system: System, wall, plane, radius: int = 3,
     keep = (code > 0) & (np.abs(t - tau[sh]) < window)
     sh, cols, rr, t, uu = sh[keep], cols[keep], rr[keep], t[keep], uu[keep]
     theta = scan_angle_from_phase(w.phase[sh], system.scanner)
-    return {"theta": theta, "pixel": cols.astype(np.float64),
-            "res_pixel": cols - uu, "res_time": t - tau[sh],
-            "points": _triangulate(system, cols.astype(np.float64), rr.astype(np.float64),
-                                   theta)}
+    return WallResiduals(theta=theta, pixel=cols.astype(np.float64),
+                         res_pixel=cols - uu, res_time=t - tau[sh],
+                         points=_triangulate(system, cols.astype(np.float64),
+                                             rr.astype(np.float64), theta))
 
 
 def _triangulate(system: System, col, row, theta) -> np.ndarray:
     """(M, 3) m: camera ray of pixel (col, row) ∩ scan beam at angle θ, in x–z."""
-    from mems_stereo.model.camera import normalized_coordinates
-
     m = col.size
     pts = np.full((m, 3), np.nan)
     if not m:
@@ -314,20 +326,18 @@ def _triangulate(system: System, col, row, theta) -> np.ndarray:
     return pts
 
 
-def inliers(r: dict, k: float = 5.0) -> np.ndarray:
+def inliers(r: WallResiduals, k: float = 5.0) -> np.ndarray:
     """Detections within ``k`` robust σ (1.4826·MAD) of the median in both residuals.
 
     The window around the predicted return also holds background detections
     and returns of neighbouring pixels; the fit's likelihood weighs them
     against the background, the report draws them apart (grey).
     """
-    ok = np.isfinite(r["res_pixel"]) & np.isfinite(r["res_time"])
-    for key in ("res_pixel", "res_time"):
-        v = r[key]
+    ok = np.isfinite(r.res_pixel) & np.isfinite(r.res_time)
+    for v, floor in ((r.res_pixel, 0.5), (r.res_time, 1e-10)):  # px, s
         if ok.sum() < 3:
             return ok
         med = np.median(v[ok])
         mad = 1.4826 * np.median(np.abs(v[ok] - med))
-        floor = 0.5 if key == "res_pixel" else 1e-10
         ok &= np.abs(v - med) <= k * max(mad, floor)
     return ok

@@ -7,9 +7,27 @@ and interpolated linearly; the largest difference from matplotlib's own
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mems_stereo.errors import FormatError
+
+
+@dataclass(frozen=True, slots=True)
+class ColorScale:
+    """How values become colours: the colormap and the values at its two ends.
+
+    Attributes
+    ----------
+    cmap : ``turbo`` or ``viridis``.
+    vmin, vmax : the values mapped to the colormap's start and end, in the
+        coloured attribute's unit; None: the values' 2nd and 98th percentile.
+    """
+
+    cmap: str = "turbo"
+    vmin: float | None = None
+    vmax: float | None = None
 
 _VIRIDIS = np.array([
     [0.267, 0.0049, 0.3294], [0.277, 0.0503, 0.3757], [0.2823, 0.095, 0.4173],

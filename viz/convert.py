@@ -12,6 +12,7 @@ def cloud_to_open3d(cloud, color_by: str | None = "range", cmap: str = "turbo",
 
     color_by : attribute name or ``x``/``y``/``z`` (see
         :func:`~mems_stereo.viz.colormap.cloud_colors`), None for no colours.
+
     Points with a non-finite coordinate are kept (Open3D ignores them in
     drawing); NaN attribute values get the grey ``NAN_COLOR``.
     """

@@ -30,6 +30,7 @@ written here are read back by any PLY/PCD/LAS tool (CloudCompare, PDAL).
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,8 @@ from mems_stereo.viz.export_ros2 import (  # noqa: F401  (public names re-export
 from mems_stereo.errors import FormatError
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.util.atomic import atomic_output
+from mems_stereo.util.limits import check_allocation
+from mems_stereo.util.paths import require_input_file
 
 FORMATS = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
 
@@ -125,8 +128,8 @@ def _ply_header(n: int, names: list, dtypes: list) -> bytes:
 
 
 def _write_ply(tmp: Path, points: np.ndarray, attrs: dict) -> None:
-    """Binary little-endian PLY written with NumPy (no Open3D import: it costs
-    0.5–1 s of start-up).  The properties and their types are those Open3D
+    """Binary little-endian PLY written with NumPy (no Open3D import: it would
+    dominate a short run's start-up).  The properties and their types are those Open3D
     writes (``x, y, z`` double, then one scalar property per attribute, in the
     cloud's order); Open3D, CloudCompare and PDAL read it."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -207,8 +210,6 @@ def read_cloud(path: str | os.PathLike) -> PointCloud:
     of foreign files (colours, normals) are left out.  Raises FormatError for
     an unknown extension or an unreadable file, FileNotFoundError when missing.
     """
-    from mems_stereo.util.paths import require_input_file
-
     path = Path(path)
     sfx = _suffix(path)
     if sfx in (".mcap", ".db3"):
@@ -269,13 +270,27 @@ def _read_header_lines(path: Path, end: str, limit: int = 4096) -> tuple[list[st
                       source=str(path))
 
 
-def _check_ply_header(path: Path) -> None:
-    """Refuse a PLY whose header lacks x, y, z or whose data are shorter than declared."""
-    lines, head = _read_header_lines(path, "end_header")
-    if not lines or lines[0] != "ply":
-        raise FormatError("expected a PLY file (first line 'ply')", source=str(path))
+@dataclass
+class PlyElement:
+    """One ``element`` of a PLY header, filled while the header is parsed.
+
+    name, n : the element's name and declared count; props : its property
+    names in order; size : bytes per row of its scalar properties;
+    has_list : whether a ``property list`` makes its rows variable-sized.
+    """
+
+    name: str
+    n: int
+    props: list[str] = field(default_factory=list)
+    size: int = 0
+    has_list: bool = False
+
+
+def _parse_ply_elements(lines: list[str], path: Path) -> tuple[str | None, list[PlyElement]]:
+    """The format (``ascii``, ``binary_little_endian``, ...) and the elements of a PLY
+    header's lines (without the first, ``ply``)."""
     fmt, elements, cur = None, [], None
-    for ln in lines[1:]:
+    for ln in lines:
         w = ln.split()
         if not w:
             continue
@@ -289,49 +304,61 @@ def _check_ply_header(path: Path) -> None:
                                   source=str(path)) from None
             if n < 0:
                 raise FormatError(f"element {w[1]}: negative count {n}", source=str(path))
-            cur = {"name": w[1], "n": n, "props": [], "size": 0, "list": False}
+            cur = PlyElement(w[1], n)
             elements.append(cur)
         elif w[0] == "property" and cur is not None:
             if len(w) >= 2 and w[1] == "list":
-                cur["list"] = True
-                cur["props"].append(w[-1])
+                cur.has_list = True
+                cur.props.append(w[-1])
             elif len(w) == 3 and w[1] in _PLY_SIZES:
-                cur["props"].append(w[2])
-                cur["size"] += _PLY_SIZES[w[1]]
+                cur.props.append(w[2])
+                cur.size += _PLY_SIZES[w[1]]
             else:
                 raise FormatError(f"unknown property line {ln!r}", source=str(path))
-    vert = next((e for e in elements if e["name"] == "vertex"), None)
-    if vert is None:
-        raise FormatError("no 'element vertex' in the header", source=str(path))
-    missing = [c for c in ("x", "y", "z") if c not in vert["props"]]
-    if missing:
-        raise FormatError(f"the vertices lack the coordinate(s) {', '.join(missing)}",
-                          source=str(path), field="vertex")
+    return fmt, elements
+
+
+def _check_ply_data_length(path: Path, fmt: str | None, elements: list[PlyElement],
+                           vert: PlyElement, head: int) -> None:
+    """Refuse a PLY whose data (after the ``head`` header bytes) are shorter than declared."""
     real = path.stat().st_size - head
     if fmt in ("binary_little_endian", "binary_big_endian"):
         need, exact = 0, True
         for e in elements:
-            if e["list"]:
+            if e.has_list:
                 exact = False
                 break
-            need += e["n"] * e["size"]
+            need += e.n * e.size
         if exact and real < need:
-            raise FormatError(f"truncated: the header declares {vert['n']} vertices "
+            raise FormatError(f"truncated: the header declares {vert.n} vertices "
                               f"({need} bytes of data), the file holds {real}",
                               source=str(path))
     elif fmt == "ascii":
         with open(path, "rb") as f:
             f.seek(head)
             rows = sum(1 for line in f if line.strip())
-        if rows < sum(e["n"] for e in elements):
-            raise FormatError(f"truncated: the header declares {vert['n']} vertices, the file "
+        if rows < sum(e.n for e in elements):
+            raise FormatError(f"truncated: the header declares {vert.n} vertices, the file "
                               f"holds {rows} data lines", source=str(path))
     else:
         raise FormatError(f"unknown PLY format {fmt!r}", source=str(path))
-    from mems_stereo.util.limits import check_allocation
 
-    check_allocation(vert["n"] * (24 + 8 * len(vert["props"])), f"{vert['n']} points",
-                     str(path))
+
+def _check_ply_header(path: Path) -> None:
+    """Refuse a PLY whose header lacks x, y, z or whose data are shorter than declared."""
+    lines, head = _read_header_lines(path, "end_header")
+    if not lines or lines[0] != "ply":
+        raise FormatError("expected a PLY file (first line 'ply')", source=str(path))
+    fmt, elements = _parse_ply_elements(lines[1:], path)
+    vert = next((e for e in elements if e.name == "vertex"), None)
+    if vert is None:
+        raise FormatError("no 'element vertex' in the header", source=str(path))
+    missing = [c for c in ("x", "y", "z") if c not in vert.props]
+    if missing:
+        raise FormatError(f"the vertices lack the coordinate(s) {', '.join(missing)}",
+                          source=str(path), field="vertex")
+    _check_ply_data_length(path, fmt, elements, vert, head)
+    check_allocation(vert.n * (24 + 8 * len(vert.props)), f"{vert.n} points", str(path))
 
 
 def _check_pcd_header(path: Path) -> None:
@@ -362,6 +389,4 @@ def _check_pcd_header(path: Path) -> None:
         if real < need:
             raise FormatError(f"truncated: the header declares {n} points ({need} bytes of "
                               f"data), the file holds {real}", source=str(path))
-    from mems_stereo.util.limits import check_allocation
-
     check_allocation(n * (24 + 8 * len(fields)), f"{n} points", str(path))

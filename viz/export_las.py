@@ -15,6 +15,7 @@ from mems_stereo.viz.cloud_common import ordered_attributes
 from mems_stereo.errors import FormatError
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.util.atomic import atomic_output
+from mems_stereo.util.limits import check_allocation
 
 #: LAS coordinate resolution, m (quantisation error at most half of it)
 LAS_SCALE = 1e-4
@@ -97,8 +98,6 @@ def read_las(path: Path) -> PointCloud:
                     raise FormatError(f"truncated: the header declares {n} points "
                                       f"({n * size} bytes), the file holds {max(real, 0)}",
                                       source=str(path))
-            from mems_stereo.util.limits import check_allocation
-
             check_allocation(n * (size + 48), f"{n} points", str(path))
             las = rd.read()
     except FormatError:

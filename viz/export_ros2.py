@@ -4,6 +4,9 @@
 from __future__ import annotations
 
 import os
+import shutil
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -61,10 +64,6 @@ def write_ros2_bag(path: str | os.PathLike, cloud: PointCloud, *, frame_id: str 
     the pure-Python ``rosbags`` (ROS 2 Humble message definitions); returns the
     bag directory.
     """
-    import shutil
-    import tempfile
-    import time
-
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 

@@ -9,17 +9,26 @@ indented advice line where there is advice), exit code 2 and no traceback;
 :func:`mems_stereo.cli._common.run_command` checks options, inputs and
 outputs before any work and commits all outputs together
 (docs/reliability.md).
+
+Every command module loads when the parser is built, so a command imports
+the pipeline, the calibration, the simulator, the viz writers and the
+format readers inside ``run``: a command loads only what it uses.  The
+helper modules form layers (``_signals``, ``_ux``, ``_pathcheck`` →
+``_options``, ``_outputs`` → ``_common`` → ``_twoaxis`` → the commands);
+each imports only those before it.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import signal
 import sys
 
+from mems_stereo.cli import _signals
 from mems_stereo.cli._common import add_safety_arguments, run_command
-from mems_stereo.cli._ux import HelpfulParser
+from mems_stereo.cli._ux import HelpfulParser, epilog, examples
 
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
@@ -39,18 +48,6 @@ def _load_commands():
             raise
         cmds.append(mod)
     return cmds
-
-
-def examples(mod) -> list[str]:
-    """A command module's example command lines (``EXAMPLE``: a string or a list)."""
-    ex = mod.EXAMPLE
-    return [ex] if isinstance(ex, str) else list(ex)
-
-
-def epilog(lines: list[str]) -> str:
-    """The ``--help`` epilog: one example command per line."""
-    return ("examples (run in order from any folder):\n" if len(lines) > 1 else "example:\n") \
-        + "\n".join("  " + x for x in lines)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -78,7 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="print more detail")
         add_safety_arguments(p)
         mod.add_arguments(p)
-        p.set_defaults(_run=mod.run)
+        p.set_defaults(command_run=mod.run)
     return parser
 
 
@@ -98,8 +95,6 @@ def main(argv: list[str] | None = None) -> int:
         rc = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
         if not isinstance(e.code, (int, type(None))):
             print(e.code, file=sys.stderr)
-    from mems_stereo.cli import _signals
-
     _signals.exit_now(rc)
     return rc  # not reached
 
@@ -111,8 +106,6 @@ QUIET_LOGGERS = ("ptufile", "h5py", "numba", "distributed", "laspy")
 
 
 def _quiet_library_loggers() -> None:
-    import logging
-
     for name in QUIET_LOGGERS:
         lg = logging.getLogger(name)
         if not any(isinstance(h, logging.NullHandler) for h in lg.handlers):
@@ -120,8 +113,6 @@ def _quiet_library_loggers() -> None:
 
 
 def _main(argv: list[str] | None) -> int:
-    from mems_stereo.cli import _signals
-
     _quiet_library_loggers()
 
     # first: an interrupt while loading the commands is handled too

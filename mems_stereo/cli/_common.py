@@ -3,14 +3,20 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
 
-
-def _emit(msg: str) -> None:
-    from mems_stereo.cli._outputs import emit
-
-    emit(msg)
-
+from mems_stereo.cli import _signals
+from mems_stereo.cli._crosscheck import check_polarity
+from mems_stereo.cli._options import check_options
+from mems_stereo.cli._outputs import OutputPlan, emit, translate
+from mems_stereo.cli._ux import format_error, progress_bar
+from mems_stereo.errors import FormatError, MemsStereoError
+from mems_stereo.io.recording import read_header
+from mems_stereo.io.recording2d import is_two_axis_recording, read_recording_2d
+from mems_stereo.model.system import resolve_system, system_to_dict
+from mems_stereo.util.limits import limits, parse_size
 
 
 class Reporter:
@@ -22,16 +28,14 @@ class Reporter:
 
     def info(self, msg: str = "") -> None:
         if not self.quiet:
-            _emit(msg)
+            emit(msg)
 
     def detail(self, msg: str) -> None:
         if self.verbose and not self.quiet:
-            _emit(msg)
+            emit(msg)
 
     def progress(self, total: int, desc: str, unit: str = "shot"):
         """A tqdm progress bar on stderr (disabled when quiet or not a terminal)."""
-        from mems_stereo.cli._ux import progress_bar
-
         return progress_bar(total, desc, unit, quiet=self.quiet)
 
 
@@ -59,8 +63,6 @@ def _one_line(text: str) -> str:
 
 def error_line(command: str, message: str) -> None:
     """The one line on stderr of a refused run."""
-    from mems_stereo.cli._outputs import translate
-
     print(f"mems-stereo {command}: error: {_one_line(translate(message))}", file=sys.stderr)
 
 
@@ -86,14 +88,6 @@ def run_command(args) -> int:
     staged and temporary files are removed, one line says what was kept,
     exit 128 + signal.
     """
-    import os
-
-    from mems_stereo.cli import _signals
-    from mems_stereo.cli._options import check_options
-    from mems_stereo.cli._outputs import OutputPlan
-    from mems_stereo.errors import MemsStereoError
-    from mems_stereo.util.limits import limits, parse_size
-
     cmd = args.command
     plan = None
     with _signals.signal_guard():  # nests inside main()'s
@@ -107,7 +101,7 @@ def run_command(args) -> int:
                 check_input_consistency(key, args)
                 with plan:
                     plan.stage()
-                    rc = int(args._run(args) or 0)
+                    rc = int(args.command_run(args) or 0)
                     sig = _signals.received()
                     if sig is not None:  # a library swallowed the interrupt
                         raise _signals.Interrupted(sig)
@@ -128,8 +122,6 @@ def run_command(args) -> int:
                     raise _signals.Interrupted(sig) from None
                 return _report_interrupt(cmd, plan, sig)
             if isinstance(e, MemsStereoError):
-                from mems_stereo.cli._ux import format_error
-
                 print(format_error(cmd, e, bool(getattr(args, "verbose", False))),
                       file=sys.stderr)
             elif isinstance(e, OSError):
@@ -150,8 +142,6 @@ def run_command(args) -> int:
 
 def _report_interrupt(cmd: str, plan, sig: int) -> int:
     """The one line of an interrupted run (what was kept, truthfully); 128 + signal."""
-    import signal
-
     kept = plan.committed if plan is not None else []
     in_place = [p for _n, p, k in (plan.outputs if plan else []) if k == "dir"]
     if in_place:
@@ -180,9 +170,6 @@ def check_input_consistency(command: str, args) -> None:
         _check_polarities(command, args)
     if command != "calibrate" or len(args.recordings) < 2:
         return
-    from mems_stereo.errors import FormatError
-    from mems_stereo.io.recording import read_header
-    from mems_stereo.model.system import system_to_dict
 
     def flat(d, pre=""):
         for k, v in d.items():
@@ -190,8 +177,6 @@ def check_input_consistency(command: str, args) -> None:
                 yield from flat(v, f"{pre}{k}.")
             else:
                 yield f"{pre}{k}", v
-
-    from mems_stereo.io.recording2d import is_two_axis_recording, read_recording_2d
 
     def system_of(path):
         if is_two_axis_recording(path):  # the two-axis extension (docs/formats.md §5)
@@ -209,9 +194,6 @@ def check_input_consistency(command: str, args) -> None:
 
 
 def _check_polarities(command: str, args) -> None:
-    from mems_stereo.cli._crosscheck import check_polarity
-    from mems_stereo.io.recording2d import is_two_axis_recording
-
     system = settings = None
     if command == "process":
         from mems_stereo.pipeline.settings import Settings
@@ -219,8 +201,6 @@ def _check_polarities(command: str, args) -> None:
         # the run's consistency settings: the check shares the run's interval table
         settings = Settings(confidence=args.confidence, min_range=args.min_range)
         if getattr(args, "system", None):
-            from mems_stereo.model.system import resolve_system
-
             system = resolve_system(args.system)
     quiet = bool(getattr(args, "quiet", False))
 
@@ -231,3 +211,18 @@ def _check_polarities(command: str, args) -> None:
     for r in args.recordings:
         if not is_two_axis_recording(r):
             check_polarity(r, system, warn, settings)
+
+
+def report_peaks_truth_outputs(rep: Reporter, res, outputs=()) -> None:
+    """The common tail of a processing report (one- and two-axis): peaks and points,
+    scores against the truth, outputs written, stage timings (with ``-v``)."""
+    c = res.counts
+    rep.info(f"  peaks {c['peaks']}, points {c['points']}")
+    if res.truth is not None:
+        t = res.truth
+        rep.info(f"  against the truth: signal recall {t['recall']:.4f}, noise rejection "
+                 f"{t['noise_rejection']:.4f} ({t['true_signal']} laser returns, "
+                 f"{t['true_background']} background detections)")
+    for o in outputs:
+        rep.info(f"  wrote {o}")
+    rep.detail("  timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items()))

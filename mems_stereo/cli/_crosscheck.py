@@ -32,6 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mems_stereo.errors import FormatError
+from mems_stereo.io import hdf5 as h5
+from mems_stereo.io.recording import read_header
+
 #: z from which a recording's crossing polarity is refused as inverted
 REFUSE_Z = 5.0
 #: z from which it is reported as probably inverted (a warning)
@@ -101,8 +105,7 @@ def polarity_evidence(path, system=None, settings=None) -> PolarityEvidence:
     default ``Settings()``).  Reads the header and a sample of
     :data:`SAMPLE_BLOCKS` × :data:`SAMPLE_BLOCK_SHOTS` shots.
     """
-    from mems_stereo.io import hdf5 as h5
-    from mems_stereo.io.recording import read_header
+    # the pipeline loads on use: every command's start-up imports this module
     from mems_stereo.pipeline.angles import shot_angles
     from mems_stereo.pipeline.intervals import IntervalTable
     from mems_stereo.pipeline.settings import Settings
@@ -153,8 +156,6 @@ def polarity_evidence(path, system=None, settings=None) -> PolarityEvidence:
 def check_polarity(path, system=None, warn=None, settings=None) -> PolarityEvidence:
     """Refuse a recording whose crossing polarity is inverted (FormatError naming
     ``/scanner/rising``); call ``warn(text)`` where it is only probably inverted."""
-    from mems_stereo.errors import FormatError
-
     ev = polarity_evidence(path, system, settings)
     if ev.z >= REFUSE_Z:
         raise FormatError("the zero-crossing polarity looks inverted: " + ev.text(),

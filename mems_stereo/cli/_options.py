@@ -14,6 +14,7 @@ import socket
 from collections.abc import Callable
 from urllib.parse import urlsplit
 
+from mems_stereo.cli._pathcheck import opt, samples_dir
 from mems_stereo.errors import OptionError
 
 #: seconds to wait for a Dask scheduler's TCP port before giving up
@@ -95,8 +96,6 @@ def calib_names(which: str) -> Callable:
 
 def sample_folder(v, o):
     """A folder holding the bundled sample recordings (``demo --samples``)."""
-    from mems_stereo.cli.demo import samples_dir
-
     samples_dir(v)
 
 
@@ -129,8 +128,6 @@ RULES: dict[str, dict[str, Callable]] = {
 
 def check_options(command: str, args) -> None:
     """Run the rules of ``command`` on ``args`` and the cross-option checks."""
-    from mems_stereo.cli._pathcheck import opt
-
     for name, rule in RULES.get(command, {}).items():
         v = getattr(args, name, None)
         if v is not None:

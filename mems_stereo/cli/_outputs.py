@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from mems_stereo.cli._pathcheck import check_outputs, opt, resolve_inputs, resolve_outputs
+from mems_stereo.cli._signals import committed
 from mems_stereo.errors import OptionError
 from mems_stereo.util.atomic import signals_blocked
 
@@ -169,8 +170,6 @@ class OutputPlan:
                     self.committed.append(p)
             # a partial commit (a failed run's diagnostics): the rest is aborted on exit
             self.state = "committed" if names is None else "partial"
-            from mems_stereo.cli._signals import committed
-
             committed(self.committed)
         return self.committed
 

@@ -15,11 +15,16 @@ Each check raises :class:`~mems_stereo.errors.OptionError` naming the option.
 from __future__ import annotations
 
 import contextlib
+import difflib
 import os
 import stat
 from pathlib import Path
 
+from mems_stereo import data
 from mems_stereo.errors import FormatError, OptionError
+from mems_stereo.model.presets import TWO_AXIS_PRESETS
+from mems_stereo.model.system import PRESETS
+from mems_stereo.util.jsonfile import read_json_file
 from mems_stereo.util.paths import file_kind, require_input_file
 
 CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
@@ -33,11 +38,19 @@ def opt(name: str) -> str:
     return {"output": "--output"}.get(name, "--" + name.replace("_", "-"))
 
 
+def samples_dir(explicit=None) -> Path:
+    """The sample folder: ``explicit``, else the bundled samples (:mod:`mems_stereo.data`)."""
+    if not explicit:
+        return data.root()
+    c = Path(explicit)
+    if not (c / "room.h5").exists():
+        raise FormatError(f"no sample recordings in {c} (expected room.h5 there)\n"
+                          "leave --samples out to use the bundled ones", field="--samples")
+    return c
+
+
 def _preset_names() -> list[str]:
     """Every preset name a ``--system`` option takes (one- and two-axis)."""
-    from mems_stereo.model.scanner2d import TWO_AXIS_PRESETS
-    from mems_stereo.model.system import PRESETS
-
     return sorted(PRESETS) + sorted(TWO_AXIS_PRESETS)
 
 
@@ -65,8 +78,6 @@ def describe(p: Path) -> str:
 def _missing_named_input(name: str, kind: str, v) -> OptionError:
     """The error for a ``--system``/``--target-distances-file`` value that is no file."""
     if kind == "system":
-        import difflib
-
         names = _preset_names()
         close = difflib.get_close_matches(str(v), names, n=1, cutoff=0.5)
         return OptionError(f"{v!r} is neither a preset nor a system file (file not found)\n"
@@ -136,8 +147,6 @@ def resolve_inputs(command: str, inputs: dict, args) -> list[tuple[str, Path]]:
         out += [("scene", m) for m in _scene_meshes(getattr(args, "scene", None))]
     if command == "demo" and getattr(args, "samples", None) is None:
         with contextlib.suppress(Exception):
-            from mems_stereo.cli.demo import samples_dir
-
             out.append(("samples", samples_dir(None)))
     return out
 
@@ -147,8 +156,6 @@ def _scene_meshes(scene) -> list[Path]:
     if scene is None:
         return []
     try:
-        from mems_stereo.util.jsonfile import read_json_file
-
         d = read_json_file(scene)
         base = Path(scene).parent
         return [base / o["file"] for o in d.get("objects", [])

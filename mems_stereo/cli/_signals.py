@@ -15,7 +15,9 @@ that received one never commits its outputs and never exits 0.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import os
 import signal
 import sys
 import threading
@@ -76,9 +78,6 @@ def _unraisable(unraisable) -> None:
 
 def _late_handler(signum, frame):  # noqa: ARG001 - signal handler signature
     """After the program's run: nothing is left to clean up; say so and exit 128 + signal."""
-    import os
-    import sys
-
     with contextlib.suppress(Exception):
         sys.stdout.flush()
         print(f"mems-stereo: interrupted by {signal.Signals(signum).name} {late_state()}",
@@ -91,7 +90,7 @@ def exit_now(rc: int) -> None:
     """End the program with ``rc`` without the interpreter's shutdown (never returns).
 
     The interpreter's shutdown takes a noticeable time (module and library
-    teardown, about half a second with Open3D loaded) in which it restores
+    teardown, long with Open3D loaded) in which it restores
     the default signal actions and drops a signal already received but not
     yet handled: a run that had finished could then exit 0 although it was
     interrupted, or die silently.  Instead the exit functions (``atexit``)
@@ -99,9 +98,6 @@ def exit_now(rc: int) -> None:
     the signals are blocked, one that is pending is reported (exit 128 +
     signal, with what was kept), and the process ends with ``os._exit``.
     """
-    import atexit
-    import os
-
     with contextlib.suppress(Exception):
         for t in threading.enumerate():
             if t is not threading.current_thread() and not t.daemon:

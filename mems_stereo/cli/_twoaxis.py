@@ -9,14 +9,19 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
+from mems_stereo.cli._common import report_peaks_truth_outputs
 from mems_stereo.errors import FormatError
+from mems_stereo.io.recording2d import write_recording_2d
+from mems_stereo.model.scanner2d import require_two_axis
+from mems_stereo.model.system import resolve_any_system, save_system
+from mems_stereo.util.atomic import atomic_output
 
 
 def simulate(args, rep, system, true_system, scene) -> int:
     """``mems-stereo simulate`` for a two-axis system: gated event recording."""
-    from mems_stereo.io.recording2d import write_recording_2d
     from mems_stereo.sim.simulate2d import simulate_2d
 
     if args.drift or args.crosstalk:
@@ -65,17 +70,11 @@ def process(args, rep, recs, system) -> int:
                     if c["shots_unknown_angle"] else ""))
         rep.info(f"  read {c['read_fraction']:.2%} of the pixel slots; events {c['events']}, "
                  f"classified signal {c['signal']}, noise {c['noise']}")
-        from mems_stereo.cli.process import report_peaks_truth_outputs
-
         report_peaks_truth_outputs(rep, res, outputs)
     return 0
 
 
 def _write_labels(path, res) -> Path:
-    import h5py
-
-    from mems_stereo.util.atomic import atomic_output
-
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
         f.create_dataset("event_label", data=res.labels, compression="gzip")
         f.create_dataset("theta1", data=res.theta1)
@@ -92,8 +91,6 @@ def calibrate(args, rep) -> int:
     poses are estimated).
     """
     from mems_stereo.calib.twoaxis import TWO_AXIS_PARAMS, calibrate_two_axis
-    from mems_stereo.model.scanner2d import require_two_axis, resolve_any_system
-    from mems_stereo.model.system import save_system
 
     if args.target_distance is not None or args.target_distances_file is not None:
         raise FormatError("two-axis calibration estimates the walls' poses: target distances "

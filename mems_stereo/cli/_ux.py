@@ -29,13 +29,23 @@ def suggest(word: str, choices) -> str | None:
 class HelpfulParser(argparse.ArgumentParser):
     """ArgumentParser that adds "did you mean ..." to invalid-choice and unknown-option errors."""
 
-    def _all_option_strings(self) -> list[str]:
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        #: the action ``add_subparsers`` returned (its ``choices``: name -> subparser)
+        self.subcommands = None
+
+    def add_subparsers(self, **kwargs):
+        self.subcommands = super().add_subparsers(**kwargs)
+        return self.subcommands
+
+    def all_option_strings(self) -> list[str]:
+        """Every ``--option`` of this parser and of its subcommands (parse_args reports
+        a subcommand's unknown options at the top)."""
         opts = [s for s in self._option_string_actions if s.startswith("--")]
-        for a in self._actions:  # the chosen subcommand's options (parse_args reports
-            if isinstance(a, argparse._SubParsersAction):  # unknown options at the top)
-                for sub in a.choices.values():
-                    if isinstance(sub, HelpfulParser):
-                        opts += sub._all_option_strings()
+        if self.subcommands is not None:
+            for sub in self.subcommands.choices.values():
+                if isinstance(sub, HelpfulParser):
+                    opts += sub.all_option_strings()
         return sorted(set(opts))
 
     def error(self, message: str):  # noqa: D102 - argparse's hook
@@ -51,7 +61,7 @@ class HelpfulParser(argparse.ArgumentParser):
             hints = []
             for word in m.group(1).split():
                 if word.startswith("-"):
-                    s = suggest(word.split("=")[0], self._all_option_strings())
+                    s = suggest(word.split("=")[0], self.all_option_strings())
                     if s:
                         hints.append(f"did you mean {s} (not {word})?")
             hint = " ".join(hints) or None
@@ -60,6 +70,18 @@ class HelpfulParser(argparse.ArgumentParser):
         if hint:
             text += f"\n  {hint}"
         self.exit(2, text + "\n")
+
+
+def examples(mod) -> list[str]:
+    """A command module's example command lines (``EXAMPLE``: a string or a list)."""
+    ex = mod.EXAMPLE
+    return [ex] if isinstance(ex, str) else list(ex)
+
+
+def epilog(lines: list[str]) -> str:
+    """The ``--help`` epilog: one example command per line."""
+    return ("examples (run in order from any folder):\n" if len(lines) > 1 else "example:\n") \
+        + "\n".join("  " + x for x in lines)
 
 
 #: advice for errors whose message carries none, by exception class name
@@ -92,7 +114,7 @@ def format_error(command: str | None, exc: BaseException, verbose: bool = False)
 
 def progress_bar(total, desc: str, unit: str = "shot", quiet: bool = False):
     """A tqdm progress bar on stderr; disabled under ``-q`` or when stderr is not a terminal
-    (then a :class:`_NoBar`: tqdm is not even imported, 30-50 ms of a short run)."""
+    (then a :class:`_NoBar`, and tqdm is not imported: it would slow a short run's start)."""
     if quiet or not sys.stderr.isatty():
         return _NoBar(total)
     from tqdm.auto import tqdm

@@ -11,11 +11,17 @@ file is written at ``-o``; one line on stderr says why, and ``--report``
 
 from __future__ import annotations
 
+import json
+import math
 import sys
 import time
 from pathlib import Path
 
+from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._ux import StatusProgress
+from mems_stereo.errors import FormatError
+from mems_stereo.io.recording2d import is_two_axis_recording
 from mems_stereo.model.system import save_system
 
 NAME = "calibrate"
@@ -67,25 +73,17 @@ def _write_report(res, args, rep) -> None:
 
         write_calibration_report(res, args.report, recordings=args.recordings)
     else:
-        import json
-
         Path(args.report).write_text(json.dumps(res.to_dict(), indent=1))
     rep.info(f"wrote report {args.report}")
 
 
 def run(args) -> int:
-    import math
-
+    # the calibration loads on use: every command module loads at start-up
     from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
     from mems_stereo.calib.model import DEFAULT_FREE
-    from mems_stereo.errors import FormatError
 
     rep = Reporter(args)
-    from mems_stereo.io.recording2d import is_two_axis_recording
-
     if any(is_two_axis_recording(r) for r in args.recordings):  # two-axis: cli/_twoaxis.py
-        from mems_stereo.cli import _twoaxis
-
         return _twoaxis.calibrate(args, rep)
     dists, stds, kind = None, 1e-3, "axis"
     if args.distance_std is not None and not args.distance_std > 0:
@@ -108,8 +106,6 @@ def run(args) -> int:
         rep.info(f"measured target distances ({'optical axis' if kind == 'axis' else kind}):"
                  f" {known}")
     free = list(DEFAULT_FREE) + [n for n in args.free if n not in DEFAULT_FREE]
-    from mems_stereo.cli._ux import StatusProgress
-
     t0 = time.perf_counter()
     with StatusProgress("calibrating", rep.quiet, rep.verbose) as status:
         res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,

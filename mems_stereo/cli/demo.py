@@ -21,7 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
+from mems_stereo.cli import main
 from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._pathcheck import samples_dir
+from mems_stereo.errors import MemsStereoError
+from mems_stereo.io.recording import read_recording
+from mems_stereo.model.system import load_system, preset
+from mems_stereo.model.tdc import path_length_from_codes
 
 NAME = "demo"
 HELP = "run the whole chain on the bundled samples and print where every output is"
@@ -38,20 +44,6 @@ def add_arguments(p):
                    help="skip the offscreen renders (machines without OpenGL)")
 
 
-def samples_dir(explicit=None) -> Path:
-    """The sample folder: ``explicit``, else the bundled samples (:mod:`mems_stereo.data`)."""
-    from mems_stereo import data
-    from mems_stereo.errors import FormatError
-
-    if not explicit:
-        return data.root()
-    c = Path(explicit)
-    if not (c / "room.h5").exists():
-        raise FormatError(f"no sample recordings in {c} (expected room.h5 there)\n"
-                          "leave --samples out to use the bundled ones", field="--samples")
-    return c
-
-
 def calibration_gain(smp: Path, calibrated, names=("room", "floodlight")) -> list[dict]:
     """Process the sample recordings with the nominal and the calibrated system, score both.
 
@@ -59,7 +51,7 @@ def calibration_gain(smp: Path, calibrated, names=("room", "floodlight")) -> lis
     "calibrated") and :func:`mems_stereo.sim.score.score_result`'s figures
     (``median_error`` m, ``recall``, ``coverage``, ...).
     """
-    from mems_stereo.io.recording import read_recording
+    # the pipeline, simulator and figures load on use: every command module loads at start-up
     from mems_stereo.pipeline.run import process_recording
     from mems_stereo.sim import load_scene
     from mems_stereo.sim.score import score_result
@@ -106,9 +98,6 @@ def _step(rep, title):
 
 
 def _call(argv, rep) -> None:
-    from mems_stereo.cli import main
-    from mems_stereo.errors import MemsStereoError
-
     flags = ["-q"] if rep.quiet else (["-v"] if rep.verbose else [])
     code = main([argv[0], *flags, *argv[1:]])
     if code not in (0,):
@@ -118,8 +107,6 @@ def _call(argv, rep) -> None:
 def _fig5(out: Path) -> Path:
     """Fig. 5: propagated uncertainty ellipses for several pixels and TDC codes."""
     from mems_stereo.geometry.uncertainty import paper_spreads, propagate, tof_pixel_point
-    from mems_stereo.model.system import preset
-    from mems_stereo.model.tdc import path_length_from_codes
     from mems_stereo.viz.plots import plot_uncertainty_bounds
 
     s = preset("burkard2022")
@@ -154,8 +141,6 @@ def _calibrate(rep, out: Path, smp: Path) -> tuple[Path, list[Path]]:
     _call(argv, rep)
     true_file = smp / "calib_true_system.json"
     if true_file.exists():
-        from mems_stereo.model.system import load_system
-
         est, true = load_system(cal), load_system(true_file)
         rep.info("  estimate - truth: " + ", ".join(
             f"{n} {est.get_param(n) - true.get_param(n):+.3g}"
@@ -190,8 +175,6 @@ def _gain(rep, smp: Path, cal: Path) -> tuple[dict, dict]:
     """Step 4: nominal vs calibrated system against the samples' truth."""
     _step(rep, "4. the gain of calibration: nominal vs calibrated system, against the samples' "
                "truth (points whose true surface is within 6 m)")
-    from mems_stereo.model.system import load_system
-
     gain = calibration_gain(smp, load_system(cal))
     for line in format_gain(gain):
         rep.info(line)
@@ -268,7 +251,5 @@ def run(args) -> int:
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     rep.info(f"done in {summary['seconds']:.0f} s; every output is in {out}/")
     if missing:
-        from mems_stereo.errors import MemsStereoError
-
         raise MemsStereoError(f"missing outputs: {', '.join(map(str, missing))}")
     return 0

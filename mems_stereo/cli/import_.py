@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from mems_stereo.cli._common import Reporter
+from mems_stereo.errors import FormatError
+from mems_stereo.model.system import resolve_system
 
 NAME = "import"
 HELP = ("convert a time-tagger file (PicoQuant .ptu T2/T3, Photon-HDF5 .h5/.hdf5) into a "
@@ -32,9 +34,8 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    from mems_stereo.errors import FormatError
-    from mems_stereo.io.tttr import events_to_recording, events_to_timetags, load_map
-    from mems_stereo.model.system import resolve_system
+    from mems_stereo.io.tttr import events_to_recording, events_to_timetags
+    from mems_stereo.io.tttr_map import load_map
 
     rep = Reporter(args)
     src = Path(args.input)

@@ -5,6 +5,11 @@ from __future__ import annotations
 import argparse
 
 from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._ux import epilog
+from mems_stereo.cli.info import add_acquisition_arguments
+from mems_stereo.io.histograms import read_histograms
+from mems_stereo.model.acquisition import acquisition_statistics
+from mems_stereo.model.system import resolve_system
 
 NAME = "plot"
 HELP = "write a figure: acquisition (Fig. 2), histograms (Figs. 8/9), cloud (top view)"
@@ -31,9 +36,6 @@ FIGURES = {
 
 
 def add_arguments(p):
-    from mems_stereo.cli import epilog
-    from mems_stereo.cli.info import add_acquisition_arguments
-
     sub = p.add_subparsers(dest="figure", metavar="FIGURE", required=True)
 
     def fig_parser(name, help_):
@@ -67,9 +69,6 @@ def run(args) -> int:
 
     rep = Reporter(args)
     if args.figure == "acquisition":
-        from mems_stereo.model.acquisition import acquisition_statistics
-        from mems_stereo.model.system import resolve_system
-
         system = resolve_system(args.system)
         st = acquisition_statistics(system, args.shots, args.distance,
                                     frequency_ratio=args.ratio)
@@ -78,9 +77,8 @@ def run(args) -> int:
                                      title=f"{args.shots} shots, f_mech/f_rep = {ratio:.4f}")
         rep.info(f"{out}: mean accumulations per lit pixel {st.mean_per_illuminated_pixel:.2f}")
     elif args.figure == "histograms":
-        from mems_stereo.io.histograms import read_histograms
-
-        raw, sig, noise, attrs = read_histograms(args.histograms)
+        h = read_histograms(args.histograms)
+        raw, sig, noise, attrs = h.raw, h.signal, h.noise, h.attrs
         out = plots.plot_histograms(raw, sig, noise, args.output, max_code=args.max_code,
                                     log=not args.linear, row=args.row,
                                     title=str(attrs.get("source", args.histograms)))

@@ -4,7 +4,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli import _twoaxis
+from mems_stereo.cli._common import Reporter, report_peaks_truth_outputs
+from mems_stereo.errors import FormatError
+from mems_stereo.io.histograms import write_histograms
+from mems_stereo.io.recording2d import is_two_axis_recording
+from mems_stereo.model.system import resolve_system
 
 NAME = "process"
 HELP = ("classify every detection as signal or noise, form the signal/noise histograms, "
@@ -62,24 +67,8 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
     report_peaks_truth_outputs(rep, res, outputs)
 
 
-def report_peaks_truth_outputs(rep: Reporter, res, outputs=()) -> None:
-    """The common tail of a processing report (one- and two-axis): peaks and points,
-    scores against the truth, outputs written, stage timings (with ``-v``)."""
-    c = res.counts
-    rep.info(f"  peaks {c['peaks']}, points {c['points']}")
-    if res.truth is not None:
-        t = res.truth
-        rep.info(f"  against the truth: signal recall {t['recall']:.4f}, noise rejection "
-                 f"{t['noise_rejection']:.4f} ({t['true_signal']} laser returns, "
-                 f"{t['true_background']} background detections)")
-    for o in outputs:
-        rep.info(f"  wrote {o}")
-    rep.detail("  timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in res.timings.items()))
-
-
 def run(args) -> int:
-    from mems_stereo.errors import FormatError
-    from mems_stereo.model.system import resolve_system
+    # the pipeline and the writers load on use: every command module loads at start-up
     from mems_stereo.pipeline.run import process_recording
 
     rep = Reporter(args)
@@ -89,15 +78,11 @@ def run(args) -> int:
     for r in recs:
         if not r.exists():
             raise FileNotFoundError(2, "file not found", str(r))
-    from mems_stereo.io.recording2d import is_two_axis_recording
-
     two = [is_two_axis_recording(r) for r in recs]
     if any(two):  # two-axis recordings: cli/_twoaxis.py
         if not all(two):
             raise FormatError("expected all one-axis or all two-axis recordings, found both",
                               field="REC.h5")
-        from mems_stereo.cli import _twoaxis
-
         return _twoaxis.process(args, rep, recs, system)
     many = len(recs) > 1
     if many and (args.labels or args.histograms):
@@ -126,8 +111,6 @@ def run(args) -> int:
         if args.labels:
             outputs.append(Path(args.labels))
         if args.histograms:
-            from mems_stereo.io.histograms import write_histograms
-
             h = res.histograms
             outputs.append(write_histograms(args.histograms, h["raw"], h["signal"], h["noise"],
                                             attrs={"source": str(res.source)}))

@@ -5,6 +5,10 @@ from __future__ import annotations
 import time
 
 from mems_stereo.cli._common import Reporter
+from mems_stereo.model.system import resolve_system
+from mems_stereo.viz.colormap import ColorScale
+from mems_stereo.viz.render import VIEWS, render_cloud
+from mems_stereo.viz.render_decorations import Decorations
 
 NAME = "render"
 HELP = "render a point cloud offscreen to a PNG (Open3D + Mesa EGL; no display needed)"
@@ -14,8 +18,6 @@ EXAMPLE = ["mems-stereo samples -o samples room.h5",
 
 
 def add_arguments(p):
-    from mems_stereo.viz.render import VIEWS
-
     p.add_argument("cloud", help="point cloud (.ply, .pcd, .las)")
     p.add_argument("-o", "--output", required=True, help="PNG to write")
     p.add_argument("--color-by", default="range",
@@ -42,22 +44,18 @@ def add_arguments(p):
 
 def run(args) -> int:
     from mems_stereo.viz.export import read_cloud
-    from mems_stereo.viz.render import render_cloud
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)
     deco = None
     if args.decorate or args.system or args.ellipsoids:
-        from mems_stereo.model.system import resolve_system
-        from mems_stereo.viz.render import Decorations
-
         deco = Decorations(system=resolve_system(args.system) if args.system else None,
                            ellipsoids=bool(args.ellipsoids),
                            n_sigma=args.ellipsoids or 3.0)
     t0 = time.perf_counter()
     out = render_cloud(cloud, args.output, color_by=args.color_by, width=args.width,
                        height=args.height, view=args.view, point_size=args.point_size,
-                       cmap=args.cmap, vmin=args.vmin, vmax=args.vmax, decorations=deco)
+                       scale=ColorScale(args.cmap, args.vmin, args.vmax), decorations=deco)
     rep.info(f"{out}: {len(cloud)} points, {args.width} x {args.height} px, view {args.view}, "
              f"coloured by {args.color_by}")
     rep.detail(f"rendered in {time.perf_counter() - t0:.2f} s")

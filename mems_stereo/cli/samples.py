@@ -2,7 +2,12 @@
 
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
+from mems_stereo import data
 from mems_stereo.cli._common import Reporter
+from mems_stereo.errors import FormatError
 
 NAME = "samples"
 HELP = ("list the bundled sample recordings, scenes and systems, or copy them into a folder "
@@ -20,12 +25,6 @@ def add_arguments(p):
 
 
 def run(args) -> int:
-    import shutil
-    from pathlib import Path
-
-    from mems_stereo import data
-    from mems_stereo.errors import FormatError
-
     rep = Reporter(args)
     names = args.names or data.list()
     paths = [data.path(n) for n in names]  # FormatError naming the samples for a typo

@@ -6,8 +6,10 @@ import sys
 
 import numpy as np
 
+from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter
-from mems_stereo.model.scanner2d import is_two_axis, resolve_any_system
+from mems_stereo.model.scanner2d import is_two_axis
+from mems_stereo.model.system import resolve_any_system
 
 NAME = "simulate"
 HELP = "simulate a recording of a scene (JSON of primitives/meshes) with ground truth"
@@ -44,20 +46,24 @@ def run(args) -> int:
         print(f"mems-stereo simulate: error: --shots: expected a positive integer, found "
               f"{args.shots}", file=sys.stderr)
         return 2
-    from mems_stereo.sim import load_scene, simulate, write_simulation  # not on other commands
+    from mems_stereo.sim import (  # not on other commands
+        SimulationOptions,
+        load_scene,
+        simulate,
+        write_simulation,
+    )
 
     system = resolve_any_system(args.system)
     true_system = resolve_any_system(args.true_system) if args.true_system else None
     scene = load_scene(args.scene)
     rep.detail(f"{scene!r}")
     if is_two_axis(system):  # two-axis scanner, 2-D array: cli/_twoaxis.py
-        from mems_stereo.cli import _twoaxis
-
         return _twoaxis.simulate(args, rep, system, true_system, scene)
     with rep.progress(args.shots, "simulating") as bar:
         rec = simulate(system, scene, args.shots, rng=np.random.default_rng(args.seed),
                        background_hz=args.background, dark_count_hz=args.dark,
-                       true_system=true_system, drift=args.drift, crosstalk=args.crosstalk,
+                       true_system=true_system,
+                       options=SimulationOptions(drift=args.drift, crosstalk=args.crosstalk),
                        progress=bar.update)
     out = write_simulation(args.output, rec)
     lab = rec.truth["label"]

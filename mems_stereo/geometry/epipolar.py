@@ -8,6 +8,8 @@ with ``b = p`` the baseline (scanner position in the camera frame).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mems_stereo.errors import GeometryError
@@ -20,8 +22,16 @@ def epipolar_residual(d_scan, baseline, rays) -> np.ndarray:
     """Triple product d_scan · (b × l), broadcast over (..., 3).
 
     With unit ``d_scan`` and ``rays`` and ``baseline`` in metres the result is
-    in metres: |b| times the sine of the angle between the ray and the plane
+    in metres: ``|b|`` times the sine of the angle between the ray and the plane
     spanned by ``b`` and ``d_scan``.  Zero for a consistent pair.
+
+    Examples
+    --------
+    >>> system = ms.preset("burkard2022")
+    >>> d = ms.scan_direction(system.scanner.theta0, system.scanner)
+    >>> rays = np.array([[0.0, 0.0, 1.0], [0.0, 0.1, 0.995]])
+    >>> np.round(ms.epipolar_residual(d, system.baseline, rays), 4)
+    array([ 0.    , -0.0125])
     """
     d = check_shape(d_scan, ("...", 3), "d_scan")
     b = check_shape(baseline, ("...", 3), "baseline")
@@ -42,9 +52,9 @@ def epipolar_plane_normal(d_scan, baseline) -> np.ndarray:
 
 
 def path_for_range(scanner_position, d_scan, ranges) -> np.ndarray:
-    """Distance s along the scanner ray at which the point's range |x| equals r.
+    """Distance s along the scanner ray at which the point's range ‖x‖ equals r.
 
-    ``x = p + s·d``, |x| = r  →  s = −p·d + sqrt((p·d)² − |p|² + r²).
+    ``x = p + s·d``, ``‖x‖ = r``  →  ``s = −p·d + sqrt((p·d)² − ‖p‖² + r²)``.
     ``ranges`` : (M,) metres.  Returns (M,) metres (NaN where r < distance of the
     ray from the origin, i.e. no such point).
     """
@@ -73,6 +83,15 @@ def epipolar_segment(system: System, d_scan, r_min: float, r_max: float,
     -------
     (n_samples, 2) float64 pixel coordinates (column, row), from r_min to
     r_max; NaN for samples behind the camera or with no point at that range.
+
+    Examples
+    --------
+    >>> system = ms.preset("burkard2022")
+    >>> d = ms.scan_direction(system.scanner.theta0, system.scanner)
+    >>> np.round(ms.epipolar_segment(system, d, 1.0, 5.0, n_samples=3), 2)
+    array([[ 80.64,   0.  ],
+           [ 90.56,   0.  ],
+           [100.43,   0.  ]])
     """
     if not (0 < r_min < r_max):
         raise GeometryError(f"expected 0 < r_min < r_max, found r_min={r_min}, r_max={r_max}")
@@ -90,6 +109,14 @@ def epipolar_pixels(system: System, d_scan, r_min: float, r_max: float,
     centre lies within ``half_width`` pixels (in each axis) of the projected
     scanner ray, sorted row-major and unique.  For a line sensor this is the
     column interval the beam can reach; for a 2-D array, the epipolar band.
+
+    Examples
+    --------
+    >>> system = ms.preset("burkard2022")
+    >>> d = ms.scan_direction(system.scanner.theta0, system.scanner)
+    >>> pixels = ms.epipolar_pixels(system, d, 1.0, 5.0)
+    >>> pixels.shape, pixels[0].tolist(), pixels[-1].tolist()
+    ((20, 2), [81, 0], [100, 0])
     """
     seg = epipolar_segment(system, d_scan, r_min, r_max, n_samples)
     seg = seg[np.all(np.isfinite(seg), axis=1)]
@@ -119,7 +146,28 @@ def epipolar_pixels(system: System, d_scan, r_min: float, r_max: float,
     return px[order]
 
 
-def triangulate_midpoint(origin1, direction1, origin2, direction2):
+@dataclass(frozen=True, slots=True)
+class Midpoints:
+    """Two-ray midpoint triangulation of N ray pairs (:func:`triangulate_midpoint`).
+
+    Attributes
+    ----------
+    points : (N, 3) float64, the midpoints of the common perpendiculars, in the
+        unit and frame of the rays' origins (NaN where the rays are parallel).
+    k : (N, 2) float64, the ray parameters k1, k2 of the perpendicular's feet
+        ``o1 + k1·d1`` and ``o2 + k2·d2`` (in units of the directions' lengths).
+    gap : (N,) float64, length of the common perpendicular (0 when the
+        epipolar constraint holds), unit of the origins.
+    ok : (N,) bool, False for parallel rays (no unique solution).
+    """
+
+    points: np.ndarray
+    k: np.ndarray
+    gap: np.ndarray
+    ok: np.ndarray
+
+
+def triangulate_midpoint(origin1, direction1, origin2, direction2) -> Midpoints:
     """Two-ray midpoint triangulation (paper Eqs. 2–4).
 
     Solves for k1, k2 such that the segment between ``o1 + k1·d1`` and
@@ -133,11 +181,17 @@ def triangulate_midpoint(origin1, direction1, origin2, direction2):
 
     Returns
     -------
-    points : (N, 3) float64, midpoints (NaN where the rays are parallel).
-    k : (N, 2) float64, the ray parameters k1, k2.
-    gap : (N,) float64, length of the common perpendicular (0 when the
-        epipolar constraint holds).
-    ok : (N,) bool, False for parallel rays (no unique solution).
+    Midpoints
+        ``points`` (N, 3) midpoints (NaN where the rays are parallel), the ray
+        parameters ``k`` (N, 2), the perpendicular's length ``gap`` (N,) and
+        ``ok`` (N,) bool, False for parallel rays.
+
+    Examples
+    --------
+    >>> m = ms.triangulate_midpoint(np.zeros(3), np.array([0.0, 0.0, 1.0]),
+    ...                             np.array([-0.125, 0.0, 0.0]), np.array([0.125, 0.0, 2.0]))
+    >>> m.points, m.gap
+    (array([[0., 0., 2.]]), array([0.]))
     """
     o1, d1, o2, d2 = (np.atleast_2d(np.asarray(a, dtype=np.float64))
                       for a in (origin1, direction1, origin2, direction2))
@@ -156,7 +210,8 @@ def triangulate_midpoint(origin1, direction1, origin2, direction2):
         k2 = np.where(ok, (a * e - b * d) / den, np.nan)
     p1 = o1 + k1[:, None] * d1
     p2 = o2 + k2[:, None] * d2
-    return 0.5 * (p1 + p2), np.stack([k1, k2], axis=1), np.linalg.norm(p1 - p2, axis=1), ok
+    return Midpoints(0.5 * (p1 + p2), np.stack([k1, k2], axis=1),
+                     np.linalg.norm(p1 - p2, axis=1), ok)
 
 
 def pixel_rays_for(system: System, pixels) -> np.ndarray:

@@ -96,6 +96,8 @@ def gate_half_width(system: System, spot_sigma_m: float = 12e-6, k: float = 3.0,
                     sigma_theta: float = 5e-5, margin_px: float = 0.25) -> float:
     """Band half width, px: ``√2/2 + k·√(σ_spot² + σ_beam²) + margin``.
 
+    Parameters
+    ----------
     spot_sigma_m : 1-σ of the imaged laser spot on the sensor (m), the largest
         over the working range (:class:`mems_stereo.physics.spot.SpotModel`).
     sigma_theta : rad, mirror angle uncertainty; the beam turns by 2θ, its
@@ -144,6 +146,41 @@ def epipolar_polylines(system: System, d_scan, r_min: float, r_max: float,
 
 
 @numba.njit(cache=True)
+def _polyline_distance2(poly, k, c, r):
+    """Squared distance (px²) of pixel (column c, row r) to shot k's polyline
+    ``poly[k]`` (M, 2); NaN vertices are skipped, a NaN end falls back to its start."""
+    m = poly.shape[1]
+    best = 1e300
+    for j in range(m - 1):
+        ax = poly[k, j, 0]
+        ay = poly[k, j, 1]
+        bx = poly[k, j + 1, 0]
+        by = poly[k, j + 1, 1]
+        if not (ax == ax and ay == ay):
+            continue
+        if not (bx == bx and by == by):
+            bx = ax
+            by = ay
+        ex = bx - ax
+        ey = by - ay
+        ll = ex * ex + ey * ey
+        t = 0.0
+        if ll > 0:
+            t = ((c - ax) * ex + (r - ay) * ey) / ll
+            t = min(1.0, max(0.0, t))
+        dx = ax + t * ex - c
+        dy = ay + t * ey - r
+        d2 = dx * dx + dy * dy
+        if d2 < best:
+            best = d2
+    if m == 1:
+        dx = poly[k, 0, 0] - c
+        dy = poly[k, 0, 1] - r
+        best = dx * dx + dy * dy
+    return best
+
+
+@numba.njit(cache=True)
 def _band_pass(poly, w, h, hw, offsets, out, fill):
     k_shots, m, _ = poly.shape
     hw2 = hw * hw
@@ -171,34 +208,7 @@ def _band_pass(poly, w, h, hw, offsets, out, fill):
         r1 = min(h - 1, int(math.floor(vmax + hw)))
         for r in range(r0, r1 + 1):
             for c in range(c0, c1 + 1):
-                best = 1e300
-                for j in range(m - 1):
-                    ax = poly[k, j, 0]
-                    ay = poly[k, j, 1]
-                    bx = poly[k, j + 1, 0]
-                    by = poly[k, j + 1, 1]
-                    if not (ax == ax and ay == ay):
-                        continue
-                    if not (bx == bx and by == by):
-                        bx = ax
-                        by = ay
-                    ex = bx - ax
-                    ey = by - ay
-                    ll = ex * ex + ey * ey
-                    t = 0.0
-                    if ll > 0:
-                        t = ((c - ax) * ex + (r - ay) * ey) / ll
-                        t = min(1.0, max(0.0, t))
-                    dx = ax + t * ex - c
-                    dy = ay + t * ey - r
-                    d2 = dx * dx + dy * dy
-                    if d2 < best:
-                        best = d2
-                if m == 1:
-                    dx = poly[k, 0, 0] - c
-                    dy = poly[k, 0, 1] - r
-                    best = dx * dx + dy * dy
-                if best <= hw2:
+                if _polyline_distance2(poly, k, c, r) <= hw2:
                     if fill:
                         out[n] = r * w + c
                         n += 1

@@ -21,6 +21,8 @@ frame, origin at the projection centre).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mems_stereo.geometry.epipolar import triangulate_midpoint
@@ -42,7 +44,7 @@ def _vec3(a, name: str) -> np.ndarray:
 
 
 def path_length_of_point(points, scanner_position) -> np.ndarray:
-    """L = |x − p| + |x| of points (..., 3), metres (paper Eq. 7)."""
+    """L = ‖x − p‖ + ‖x‖ of points (..., 3), metres (paper Eq. 7)."""
     x = _vec3(points, "points")
     p = _vec3(scanner_position, "scanner_position")
     return np.linalg.norm(x - p, axis=-1) + np.linalg.norm(x, axis=-1)
@@ -80,7 +82,7 @@ def pixel_ray_point(scanner_position, rays, L):
 
     ``rays`` : (..., 3) unit pixel rays; ``L`` : (...) metres.  Returns
     ``(points (..., 3), rho (...), flags (...) uint8)`` as
-    :func:`scanner_ray_point` (ρ = |x|, the range from the projection centre).
+    :func:`scanner_ray_point` (ρ = ‖x‖, the range from the projection centre).
     """
     p = check_shape(scanner_position, (3,), "scanner_position")
     l = _vec3(rays, "rays")
@@ -113,7 +115,52 @@ def _ellipsoid_root(L, bb, den, p, d, origin_is_p: bool):
 # stereo (pixel ray + scanner ray, no time of flight)
 
 
-def stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN_STEREO_ANGLE):
+@dataclass(frozen=True, slots=True)
+class StereoPoints:
+    """Midpoint stereo points of N pixel rays and scanner rays (:func:`stereo_point`);
+    receiver camera frame.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, metres (NaN where flagged).
+    s : (N,) float64, distance along the scanner ray from the mirror to the foot
+        of the common perpendicular, m.
+    rho : (N,) float64, distance along the pixel ray from the projection centre, m.
+    gap : (N,) float64, length of the common perpendicular (epipolar gap), m.
+    flags : (N,) uint8, bit mask of ``FLAG_GRAZING`` and ``FLAG_BEHIND``.
+    """
+
+    points: np.ndarray
+    s: np.ndarray
+    rho: np.ndarray
+    gap: np.ndarray
+    flags: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class EpipolarStereoPoints:
+    """Stereo points in the epipolar plane (:func:`epipolar_stereo_point`); receiver
+    camera frame.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, metres (NaN where flagged).
+    s : (N,) float64, distance along the scanner ray from the mirror, m.
+    rho : (N,) float64, distance along the pixel ray from the projection centre, m.
+    out_of_plane : (N,) float64, sine of the pixel ray's angle to the epipolar
+        plane (NaN where flagged).
+    flags : (N,) uint8, bit mask of ``FLAG_GRAZING`` and ``FLAG_BEHIND``.
+    """
+
+    points: np.ndarray
+    s: np.ndarray
+    rho: np.ndarray
+    out_of_plane: np.ndarray
+    flags: np.ndarray
+
+
+def stereo_point(scanner_position, d_scan, rays,
+                 min_angle: float = MIN_STEREO_ANGLE) -> StereoPoints:
     """Stereo point of pixel rays and scanner rays: midpoint of the common perpendicular.
 
     Parameters
@@ -124,12 +171,12 @@ def stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN_STEREO_A
 
     Returns
     -------
-    points : (N, 3) float64, metres (NaN where flagged).
-    s : (N,) distance along the scanner ray to its foot of the perpendicular, m.
-    rho : (N,) distance along the pixel ray, m.
-    gap : (N,) length of the common perpendicular (epipolar gap), m.
-    flags : (N,) uint8 (GRAZING for parallel rays, BEHIND for s <= 0, rho <= 0
-        or a point with z <= 0).
+    StereoPoints
+        ``points`` (N, 3) m (NaN where flagged); ``s`` (N,) the distance along
+        the scanner ray to its foot of the perpendicular, m; ``rho`` (N,) along
+        the pixel ray, m; ``gap`` (N,) the length of the common
+        perpendicular (epipolar gap), m; ``flags`` (N,) uint8 (GRAZING for
+        parallel rays, BEHIND for s <= 0, rho <= 0 or a point with z <= 0).
     """
     p = _vec3(scanner_position, "scanner_position")
     d = np.atleast_2d(_vec3(d_scan, "d_scan"))
@@ -137,7 +184,8 @@ def stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN_STEREO_A
     d, l = np.broadcast_arrays(d, l)
     o1 = np.broadcast_to(p, d.shape)
     o2 = np.zeros_like(l)
-    pts, k, gap, ok = triangulate_midpoint(o1, d, o2, l)
+    mid = triangulate_midpoint(o1, d, o2, l)
+    pts, k, gap, ok = mid.points, mid.k, mid.gap, mid.ok
     sin_ang = np.linalg.norm(np.cross(d, l), axis=-1) / (
         np.linalg.norm(d, axis=-1) * np.linalg.norm(l, axis=-1))
     flags = np.zeros(d.shape[0], dtype=np.uint8)
@@ -148,20 +196,21 @@ def stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN_STEREO_A
     good = flags == 0
     s = np.where(good, k[:, 0] * np.linalg.norm(d, axis=-1), np.nan)
     rho = np.where(good, k[:, 1] * np.linalg.norm(l, axis=-1), np.nan)
-    return (np.where(good[:, None], pts, np.nan), s, rho,
-            np.where(good, gap, np.nan), flags)
+    return StereoPoints(np.where(good[:, None], pts, np.nan), s, rho,
+                        np.where(good, gap, np.nan), flags)
 
 
-def epipolar_stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN_STEREO_ANGLE):
+def epipolar_stereo_point(scanner_position, d_scan, rays,
+                          min_angle: float = MIN_STEREO_ANGLE) -> EpipolarStereoPoints:
     """Stereo point in the epipolar plane: the pixel ray projected into the plane
     through the scanner ray and the origin, intersected with the scanner ray.
 
     For a line sensor whose row lies in the scan plane this ignores where on
     the pixel's height the photon landed (it does not move the beam), where
     the midpoint (:func:`stereo_point`) would shift with it to second order.
-    Shapes as :func:`stereo_point`; returns ``(points, s, rho, out_of_plane,
-    flags)`` with ``out_of_plane`` the sine of the pixel ray's angle to the
-    plane (NaN where flagged).
+    Shapes as :func:`stereo_point`; returns :class:`EpipolarStereoPoints` whose
+    ``out_of_plane`` is the sine of the pixel ray's angle to the plane (NaN where
+    flagged).
     """
     p = _vec3(scanner_position, "scanner_position")
     d = np.atleast_2d(_vec3(d_scan, "d_scan"))
@@ -183,8 +232,9 @@ def epipolar_stereo_point(scanner_position, d_scan, rays, min_angle: float = MIN
     behind = ~graz & ~((s > 0) & (rho > 0) & (x[:, 2] > 0))
     flags[behind] |= FLAG_BEHIND
     good = flags == 0
-    return (np.where(good[:, None], x, np.nan), np.where(good, s, np.nan),
-            np.where(good, rho, np.nan), np.where(good, off, np.nan), flags)
+    return EpipolarStereoPoints(np.where(good[:, None], x, np.nan), np.where(good, s, np.nan),
+                                np.where(good, rho, np.nan), np.where(good, off, np.nan),
+                                flags)
 
 
 def coplanar_ray_intersection(scanner_position, d_scan, rays):
@@ -194,7 +244,7 @@ def coplanar_ray_intersection(scanner_position, d_scan, rays):
     ``s = −(p×l)·(d×l) / |d×l|²`` and ``ρ = (p×d)·(l×d) / |l×d|²``.  For rays
     off the epipolar plane these are the least-squares parameters of the
     plane projection.  Shapes broadcast over (..., 3); returns (s, rho), each
-    (...) float64 metres, NaN where the rays are parallel (|d×l| < 1e-12).
+    (...) float64 metres, NaN where the rays are parallel (‖d×l‖ < 1e-12).
     """
     p = _vec3(scanner_position, "scanner_position")
     d = _vec3(d_scan, "d_scan")

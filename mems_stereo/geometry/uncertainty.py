@@ -41,6 +41,7 @@ from mems_stereo.geometry.triangulation import (
 from mems_stereo.model.camera import pixels_to_rays
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
+from mems_stereo.model.tdc import path_length_from_codes
 from mems_stereo.physics.pulse import FWHM_PER_SIGMA
 from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA
 
@@ -48,7 +49,7 @@ from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA
 DEFAULT_SIGMA_THETA = 1e-4
 
 INPUTS = ("u", "v", "L", "theta")
-_STEPS = {"u": 1e-3, "v": 1e-3, "L": 1e-4, "theta": 1e-7}
+DIFF_STEPS = {"u": 1e-3, "v": 1e-3, "L": 1e-4, "theta": 1e-7}
 
 
 @dataclass(frozen=True)
@@ -146,7 +147,8 @@ def paper_spreads(system: System) -> Spreads:
 # estimators: (system, u, v, L, theta) -> (N, 3) points
 
 
-def _rays(system: System, u, v) -> np.ndarray:
+def pixel_rays(system: System, u, v) -> np.ndarray:
+    """(N, 3) unit rays of the receiver's pixels at (u, v) (N,) each."""
     rc = system.receiver
     return pixels_to_rays(np.stack([u, v], axis=1), rc.camera_matrix, rc.dist_coeffs)
 
@@ -159,13 +161,13 @@ def tof_point(system: System, u, v, L, theta) -> np.ndarray:
 
 def tof_pixel_point(system: System, u, v, L, theta) -> np.ndarray:
     """Time-of-flight estimate on the pixel ray (uses u, v, L): a plain dtof camera's point."""
-    return pixel_ray_point(system.scanner.position, _rays(system, u, v), L)[0]
+    return pixel_ray_point(system.scanner.position, pixel_rays(system, u, v), L)[0]
 
 
 def stereo_point_est(system: System, u, v, L, theta) -> np.ndarray:
     """Stereo estimate: pixel ray ∩ scanner ray in the epipolar plane (uses u, v, θ; no time)."""
     d = scan_direction(theta, system.scanner)
-    return epipolar_stereo_point(system.scanner.position, d, _rays(system, u, v))[0]
+    return epipolar_stereo_point(system.scanner.position, d, pixel_rays(system, u, v)).points
 
 
 def paper_point(system: System, u, v, L, theta) -> np.ndarray:
@@ -185,7 +187,8 @@ def paper_point(system: System, u, v, L, theta) -> np.ndarray:
 Estimator = Callable[..., np.ndarray]
 
 
-def _as_inputs(u, v, L, theta) -> dict:
+def as_inputs(u, v, L, theta) -> dict:
+    """The inputs as a mapping of broadcast 1-D float64 arrays keyed by :data:`INPUTS`."""
     arrs = np.broadcast_arrays(*(np.atleast_1d(np.asarray(a, dtype=np.float64))
                                  for a in (u, v, L, theta)))
     if arrs[0].ndim != 1:
@@ -199,7 +202,7 @@ def jacobian(fn: Estimator, system: System, u, v, L, theta, wrt=INPUTS):
     Returns ``(x (N, 3), J (N, 3, len(wrt)))``; derivatives per px, per m,
     per rad.  Rows where the estimator gives NaN stay NaN.
     """
-    return central_differences(fn, system, _as_inputs(u, v, L, theta), _STEPS, wrt)
+    return central_differences(fn, system, as_inputs(u, v, L, theta), DIFF_STEPS, wrt)
 
 
 def central_differences(fn: Estimator, system: System, inputs: dict, steps: dict, wrt):
@@ -219,7 +222,7 @@ def central_differences(fn: Estimator, system: System, inputs: dict, steps: dict
 
 def param_jacobian(fn: Estimator, system: System, u, v, L, theta, names, steps=None):
     """Jacobian of an estimator with respect to named system parameters, (N, 3, P)."""
-    x_in = _as_inputs(u, v, L, theta)
+    x_in = as_inputs(u, v, L, theta)
     cols = []
     for i, name in enumerate(names):
         v0 = system.get_param(name)
@@ -259,18 +262,36 @@ def propagate(fn: Estimator, system: System, u, v, L, theta, spreads: Spreads):
 # polar coordinates (paper Eqs. 14–17)
 
 
-def polar_from_cartesian(points, cov=None):
-    """Range r = |x| and angle φ = atan2(z, x) (x–z plane), with propagated σ.
+@dataclass(frozen=True, slots=True)
+class Polar:
+    """Points in the paper's polar coordinates of the x–z plane, with σ (Eqs. 14–17).
+
+    Attributes
+    ----------
+    r : (N,) float64, range ‖x‖ from the projection centre, m.
+    phi : (N,) float64, angle atan2(z, x) in the receiver frame, rad.
+    sigma_r : (N,) float64, standard deviation of r, m (NaN without a covariance).
+    sigma_phi : (N,) float64, standard deviation of φ, rad (NaN without a covariance).
+    """
+
+    r: np.ndarray
+    phi: np.ndarray
+    sigma_r: np.ndarray
+    sigma_phi: np.ndarray
+
+
+def polar_from_cartesian(points, cov=None) -> Polar:
+    """Range r = ‖x‖ and angle φ = atan2(z, x) (x–z plane), with propagated σ.
 
     ``points`` : (N, 3) m; ``cov`` : (N, 3, 3) m² or None.
-    Returns ``(r, phi, sigma_r, sigma_phi)``, each (N,) (σ NaN without cov).
+    Returns :class:`Polar` of (N,) arrays (σ NaN without cov).
     """
     x = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     r = np.linalg.norm(x, axis=1)
     phi = np.arctan2(x[:, 2], x[:, 0])
     if cov is None:
         nan = np.full(r.shape, np.nan)
-        return r, phi, nan, nan
+        return Polar(r, phi, nan, nan)
     C = np.asarray(cov, dtype=np.float64).reshape(-1, 3, 3)
     with np.errstate(invalid="ignore", divide="ignore"):
         gr = x / r[:, None]
@@ -278,19 +299,18 @@ def polar_from_cartesian(points, cov=None):
         gp = np.stack([-x[:, 2], np.zeros_like(r), x[:, 0]], axis=1) / rxz2[:, None]
     sr = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", gr, C, gr), 0.0))
     sp = np.sqrt(np.maximum(np.einsum("ni,nij,nj->n", gp, C, gp), 0.0))
-    return r, phi, sr, sp
+    return Polar(r, phi, sr, sp)
 
 
-def paper_polar_uncertainty(system: System, columns, codes, theta, spreads: Spreads | None = None):
+def paper_polar_uncertainty(system: System, columns, codes, theta,
+                            spreads: Spreads | None = None) -> Polar:
     """The paper's Eqs. 14–17 for 0-based columns, TDC codes and scan angles.
 
     The point is Eqs. 8–9 (:func:`paper_point`), the inputs the pixel
     position and the time of flight (and, unlike the paper, the scan angle
     when ``spreads.sigma_theta > 0``).  Defaults to :func:`paper_spreads`.
-    Returns ``(mu_r, mu_phi, sigma_r, sigma_phi)``, each (N,): m, rad.
+    Returns :class:`Polar`: μ_r, μ_φ (``r``, ``phi``) and σ_r, σ_φ, each (N,): m, rad.
     """
-    from mems_stereo.model.tdc import path_length_from_codes
-
     sp = paper_spreads(system) if spreads is None else spreads
     L = path_length_from_codes(codes, system.tdc, system.speed_of_light)
     x, cov = propagate(paper_point, system, columns, 0.0, L, theta, sp)

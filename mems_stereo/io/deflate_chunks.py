@@ -1,14 +1,12 @@
-"""Reading gzip'd HDF5 chunks with libdeflate: the same bytes, about twice as fast.
+"""Reading gzip'd HDF5 chunks with libdeflate: the same bytes, faster than zlib.
 
 A dense recording's ``/shots/bins`` is gzip'd (HDF5's deflate filter, zlib
 format) in chunks of whole shots; inflating them is most of the cost of
-reading the file (0.48 s of the 0.51 s of CPU that h5py takes for the 77 MB of
-a 200,000-shot floodlight recording, zlib at about 160 MB/s).  Where the
-system has libdeflate (``libdeflate.so.0``, loaded with :mod:`ctypes`; no
-Python package needed), :func:`chunk_reader` reads the compressed chunks as
-stored (``read_direct_chunk``) and inflates them with
-``libdeflate_zlib_decompress`` straight into the output array: 0.24 s for the
-same recording, the same bytes (deflate is lossless; tested against h5py).
+reading the file.  Where the system has libdeflate (``libdeflate.so.0``,
+loaded with :mod:`ctypes`; no Python package needed), :func:`chunk_reader`
+reads the compressed chunks as stored (``read_direct_chunk``) and inflates
+them with ``libdeflate_zlib_decompress`` straight into the output array: the
+same bytes (deflate is lossless; tested against h5py), in about half the time.
 
 Only the simple layout is taken this way — chunks that span every dimension
 but the first, the deflate filter alone, an integer type in the

@@ -5,7 +5,7 @@ Format ``"mems-stereo/histograms"`` version 1 (docs/visualisation.md):
 ============================ ====================== ===============================
 path                         type, shape            meaning
 ============================ ====================== ===============================
-attrs ``format``, ``version`` str, int              ``"mems-stereo/histograms"``, 1
+attrs ``format``/``version`` str, int               ``"mems-stereo/histograms"``, 1
 ``/raw``                     int32 (H, W, n_bins)   counts of every detection per TDC
                                                     code (bin b holds code b + 1)
 ``/signal``                  int32 (H, W, n_bins)   counts of detections classified signal
@@ -21,6 +21,7 @@ All three datasets have the same shape; (W, n_bins) input is stored as
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,25 @@ from mems_stereo.util.atomic import atomic_output
 FORMAT_NAME = "mems-stereo/histograms"
 FORMAT_VERSION = 1
 DATASETS = ("raw", "signal", "noise")
+
+
+@dataclass(frozen=True, slots=True)
+class Histograms:
+    """The contents of a histogram file (:func:`read_histograms`).
+
+    Attributes
+    ----------
+    raw : (H, W, n_bins) int32, counts of every detection per TDC code (bin b
+        holds code b + 1).
+    signal : (H, W, n_bins) int32, counts of the detections classified signal.
+    noise : (H, W, n_bins) int32, counts of the detections classified noise.
+    attrs : the file's other root attributes (``bin_width`` in s, ``source``, ...).
+    """
+
+    raw: np.ndarray
+    signal: np.ndarray
+    noise: np.ndarray
+    attrs: dict = field(default_factory=dict)
 
 
 def _as_hwb(name: str, a, source: str) -> np.ndarray:
@@ -75,8 +95,8 @@ def write_histograms(path: str | os.PathLike, raw, signal, noise,
     return path
 
 
-def read_histograms(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
-    """Read a histogram file: returns (raw, signal, noise, attrs), arrays (H, W, n_bins) int32.
+def read_histograms(path: str | os.PathLike) -> Histograms:
+    """Read a histogram file: :class:`Histograms` of (H, W, n_bins) int32 arrays.
 
     Raises FileNotFoundError when missing and FormatError naming the dataset
     when the file does not follow the format.
@@ -103,4 +123,4 @@ def read_histograms(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np
     if len({a.shape for a in out}) != 1:
         raise ShapeError(f"raw, signal and noise must have one shape, found "
                          f"{[a.shape for a in out]}", source=source)
-    return out[0], out[1], out[2], attrs
+    return Histograms(out[0], out[1], out[2], attrs)

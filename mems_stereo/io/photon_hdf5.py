@@ -33,6 +33,9 @@ import numpy as np
 
 from mems_stereo.errors import FormatError
 from mems_stereo.io import hdf5 as h5
+from mems_stereo.io.ptu import EventBlock
+from mems_stereo.io.tttr import StreamInfo
+from mems_stereo.util.atomic import atomic_output
 
 PHOTON = 0  # every Photon-HDF5 event is a detector event (mems_stereo.io.tttr codes)
 
@@ -54,26 +57,51 @@ def _positive(v, source: str, path: str) -> float:
     return float(a.ravel()[0])
 
 
+def _check_identity(f, source: str) -> None:
+    """A single-spot file whose ``format_name``, when given, is Photon-HDF5."""
+    if "photon_data" not in f:
+        multi = [k for k in f if k.startswith("photon_data")]
+        raise FormatError("expected a single-spot file with /photon_data"
+                          + (f", found {multi}" if multi else ""), source, "/photon_data")
+    name = f.attrs.get("format_name", _scalar(f, "identity/format_name", source, False))
+    if isinstance(name, bytes):
+        name = name.decode("utf-8", "replace")
+    if name not in (None, "Photon-HDF5"):
+        raise FormatError(f"expected format_name 'Photon-HDF5', found {name!r}"[:160], source,
+                          "/identity/format_name")
+
+
+def _t3_info(f, source: str, n: int, unit: float) -> StreamInfo:
+    """The stream of a file with nanotimes: timestamps count laser periods."""
+    nt = h5.dataset(f, "/photon_data/nanotimes", source)
+    if nt.shape != (n,) or nt.dtype.kind not in "iu":
+        raise FormatError(f"expected integer (n,) = ({n},) nanotimes", source,
+                          "/photon_data/nanotimes")
+    tcspc = _positive(_scalar(f, "photon_data/nanotimes_specs/tcspc_unit", source),
+                      source, "/photon_data/nanotimes_specs/tcspc_unit")
+    rate = _scalar(f, "photon_data/measurement_specs/laser_repetition_rate", source, False)
+    rpath = "/photon_data/measurement_specs/laser_repetition_rate"
+    if rate is None:
+        rate = _scalar(f, "setup/laser_repetition_rates", source, False)
+        rpath = "/setup/laser_repetition_rates"
+        rate = None if rate is None else np.ravel(rate)[:1]
+    rate = None if rate is None else _positive(rate, source, rpath)
+    if rate is None or abs(unit * float(rate) - 1.0) > 1e-6:
+        raise FormatError(f"with nanotimes, expected timestamps in laser periods "
+                          f"(timestamps_unit = 1 / laser_repetition_rate), found "
+                          f"unit {unit} s and rate {rate} Hz", source,
+                          "/photon_data/timestamps_specs/timestamps_unit")
+    return StreamInfo("T3", unit, tcspc, float(rate))
+
+
 def photon_hdf5_stream(path: str | os.PathLike, block: int = 1 << 22):
     """``(StreamInfo, open_blocks)`` of a Photon-HDF5 file for :mod:`mems_stereo.io.tttr`.
 
     Opened and read through the safe HDF5 layer (:mod:`mems_stereo.io.hdf5`).
     """
-    from mems_stereo.io.ptu import EventBlock
-    from mems_stereo.io.tttr import StreamInfo
-
     source = str(path)
     with h5.open_h5(path) as f:
-        if "photon_data" not in f:
-            multi = [k for k in f if k.startswith("photon_data")]
-            raise FormatError("expected a single-spot file with /photon_data"
-                              + (f", found {multi}" if multi else ""), source, "/photon_data")
-        name = f.attrs.get("format_name", _scalar(f, "identity/format_name", source, False))
-        if isinstance(name, bytes):
-            name = name.decode("utf-8", "replace")
-        if name not in (None, "Photon-HDF5"):
-            raise FormatError(f"expected format_name 'Photon-HDF5', found {name!r}"[:160], source,
-                              "/identity/format_name")
+        _check_identity(f, source)
         ts = h5.dataset(f, "/photon_data/timestamps", source)
         if ts.ndim != 1 or ts.dtype.kind not in "iu":
             raise FormatError("expected integer (n,) timestamps", source,
@@ -86,29 +114,7 @@ def photon_hdf5_stream(path: str | os.PathLike, block: int = 1 << 22):
             raise FormatError(f"expected integer (n,) = ({n},) detectors", source,
                               "/photon_data/detectors")
         has_nt = "photon_data/nanotimes" in f
-        if has_nt:
-            nt = h5.dataset(f, "/photon_data/nanotimes", source)
-            if nt.shape != (n,) or nt.dtype.kind not in "iu":
-                raise FormatError(f"expected integer (n,) = ({n},) nanotimes", source,
-                                  "/photon_data/nanotimes")
-            tcspc = _positive(_scalar(f, "photon_data/nanotimes_specs/tcspc_unit", source),
-                              source, "/photon_data/nanotimes_specs/tcspc_unit")
-            rate = _scalar(f, "photon_data/measurement_specs/laser_repetition_rate", source,
-                           False)
-            rpath = "/photon_data/measurement_specs/laser_repetition_rate"
-            if rate is None:
-                rate = _scalar(f, "setup/laser_repetition_rates", source, False)
-                rpath = "/setup/laser_repetition_rates"
-                rate = None if rate is None else np.ravel(rate)[:1]
-            rate = None if rate is None else _positive(rate, source, rpath)
-            if rate is None or abs(unit * float(rate) - 1.0) > 1e-6:
-                raise FormatError(f"with nanotimes, expected timestamps in laser periods "
-                                  f"(timestamps_unit = 1 / laser_repetition_rate), found "
-                                  f"unit {unit} s and rate {rate} Hz", source,
-                                  "/photon_data/timestamps_specs/timestamps_unit")
-            info = StreamInfo("T3", unit, tcspc, float(rate))
-        else:
-            info = StreamInfo("T2", unit, unit, 0.0)
+        info = _t3_info(f, source, n, unit) if has_nt else StreamInfo("T2", unit, unit, 0.0)
 
     def open_blocks():
         with h5.open_h5(path) as g:
@@ -142,8 +148,6 @@ def write_photon_hdf5_events(path: str | os.PathLike, timestamps, detectors, *,
     Only the fields :func:`photon_hdf5_stream` reads, plus identity; for a
     file that passes phconvert's validation use ``phconvert.hdf5.save_photon_hdf5``.
     """
-    from mems_stereo.util.atomic import atomic_output
-
     with atomic_output(path) as tmp, h5py.File(tmp, "w") as f:
         f.create_dataset("description", data=description)
         f.create_dataset("identity/format_name", data="Photon-HDF5")

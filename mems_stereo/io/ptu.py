@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.errors import FormatError, OptionError
+from mems_stereo.io.tttr import StreamInfo
+from mems_stereo.io.tttr_map import TttrMap, map_to_dict
 from mems_stereo.util.atomic import atomic_output
 
 PHOTON, SYNC, MARKER = 0, 1, 2
@@ -160,8 +162,11 @@ def _header(p, source: str) -> PtuHeader:
     return PtuHeader(mode, rt, glob, res, rate, n_records, tags)
 
 
-def _decode_t2_generic(rec: np.ndarray, wrap: int, v1: bool, carry: int):
-    """Decode HydraHarp/generic T2 records; returns (macro, kind, channel, keep, carry)."""
+def _decode_t2_generic(rec: np.ndarray, wrap: int, v1: bool,
+                       carry: int) -> tuple[EventBlock, int]:
+    """Decode HydraHarp/generic T2 records: the photons' and markers'
+    :class:`EventBlock` (overflow records dropped) and the overflow count carried
+    to the next block."""
     special = (rec >> 31).astype(bool)
     ch = ((rec >> 25) & 63).astype(np.int16)
     tt = (rec & 0x1FFFFFF).astype(np.int64)
@@ -171,7 +176,8 @@ def _decode_t2_generic(rec: np.ndarray, wrap: int, v1: bool, carry: int):
     macro = cum * wrap + tt
     kind = np.where(~special, PHOTON, np.where(ch == 0, SYNC, MARKER)).astype(np.int8)
     keep = ~ovf & (~special | (ch <= 15))
-    return macro, kind, ch, keep, (int(cum[-1]) if cum.size else carry)
+    ev = EventBlock(macro[keep], np.zeros(int(keep.sum()), np.int64), kind[keep], ch[keep])
+    return ev, (int(cum[-1]) if cum.size else carry)
 
 
 def iter_ptu_events(path: str | os.PathLike, chunk_records: int = 1 << 21
@@ -208,10 +214,8 @@ def iter_ptu_events(path: str | os.PathLike, chunk_records: int = 1 << 21
                 left -= n
                 blk = buf[:n]
                 if decoder is None:
-                    macro, kind, ch, keep, carry = _decode_t2_generic(
-                        blk, _T2_GENERIC[rt], rt == 0x00010204, carry)
-                    ev = EventBlock(macro[keep], np.zeros(int(keep.sum()), np.int64),
-                                    kind[keep], ch[keep])
+                    ev, carry = _decode_t2_generic(blk, _T2_GENERIC[rt], rt == 0x00010204,
+                                                   carry)
                 else:
                     d = decoder.decode_records(blk)
                     t = d["time"].astype(np.int64) + carry
@@ -369,8 +373,6 @@ def ptu_stream(path: str | os.PathLike, chunk_records: int = 1 << 21):
 
     ``open_blocks()`` returns a fresh iterator of :class:`EventBlock`.
     """
-    from mems_stereo.io.tttr import StreamInfo
-
     hdr = read_ptu_header(path)
     info = StreamInfo(hdr.mode, hdr.global_resolution, hdr.resolution, hdr.sync_rate)
 
@@ -397,8 +399,6 @@ def recording_to_ptu(recording, path: str | os.PathLike, *, mode: str = "T2",
 
     Returns the mapping object (JSON-ready, without ``system``) that imports it.
     """
-    from mems_stereo.io.tttr import TttrMap, map_to_dict
-
     sysm = recording.system
     w, h = sysm.receiver.image_size
     P = w * h

@@ -39,7 +39,7 @@ import numpy as np
 
 from mems_stereo.errors import FormatError
 from mems_stereo.io import hdf5 as h5
-from mems_stereo.io.recording import (
+from mems_stereo.io.recording_checks import (
     FORMAT_NAME,
     FORMAT_VERSION,
     read_crossings,
@@ -62,6 +62,8 @@ SCAN_AXES = 2
 class Recording2D:
     """A two-axis recording in memory.
 
+    Attributes
+    ----------
     system : System with ``scanner.axis2`` (nominal).
     shot_time : (K,) float64 s.
     zero_crossings, rising : (Z,) fast-axis monitor.

@@ -37,16 +37,16 @@ from __future__ import annotations
 
 import os
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mems_stereo.errors import FormatError
-from mems_stereo.model.system import System, resolve_system
-from mems_stereo.util.jsonfile import FieldChecker, read_json_file, shown
+from mems_stereo.io.recording import RecordingWriter
+from mems_stereo.io.tttr_map import TttrMap
+from mems_stereo.model.system import System, system_to_json
+from mems_stereo.util.atomic import atomic_output
 
-MAP_FORMAT = "mems-stereo/tttr-map"
 PHOTON, SYNC, MARKER = 0, 1, 2  # the same codes as mems_stereo.io.ptu
 
 
@@ -54,6 +54,8 @@ PHOTON, SYNC, MARKER = 0, 1, 2  # the same codes as mems_stereo.io.ptu
 class StreamInfo:
     """What a converter needs to know about an event stream.
 
+    Attributes
+    ----------
     mode : "T2" (macro = absolute time tag) or "T3" (macro = sync count,
         micro = TDC bin).
     macro_unit : s per macro unit (T2 time tag; T3 sync period).
@@ -65,156 +67,6 @@ class StreamInfo:
     macro_unit: float
     micro_unit: float
     sync_rate: float = 0.0
-
-
-@dataclass(frozen=True)
-class TttrMap:
-    """A parsed mapping file (see the module docstring and docs/formats.md).
-
-    pixels : (C, 3) int64 rows ``[channel, column, row]``.
-    clock : "sync" or "channel"; clock_channel : int (when "channel").
-    zc_source : "marker" or "channel"; zc_rising_edge, zc_falling_edge :
-        marker number (1..4) or channel, or None; zc_positive : True when the
-        monitor's rising edge means θ_mech increasing; zc_delay : s,
-        subtracted from monitor event times.
-    binning, delay_bins : TDC code = ticks // binning − delay_bins + 1.
-    photons : "first" or "all"; n_shots : int or None (T2: default all
-        syncs; T3: through the last event's sync); first_shot : the sync
-        (T2: the sync event index, T3: the sync count) that is shot 0.
-    time_origin : s, added to every time written (shots, zero crossings):
-        the stream's time zero on the recording's clock.
-    system : System (nominal) or None when the caller gives one.
-    """
-
-    pixels: np.ndarray
-    clock: str = "sync"
-    clock_channel: int | None = None
-    zc_source: str = "marker"
-    zc_rising_edge: int | None = 1
-    zc_falling_edge: int | None = 2
-    zc_positive: bool = True
-    zc_delay: float = 0.0
-    binning: int = 1
-    delay_bins: int = 0
-    photons: str = "first"
-    n_shots: int | None = None
-    first_shot: int = 0
-    time_origin: float = 0.0
-    system: System | None = field(default=None, compare=False)
-
-
-def _int(ck: FieldChecker, v, fld: str, lo: int = 0) -> int:
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise ck.fail(fld, f"expected an integer >= {lo}, found {shown(v)}")
-    return int(v)
-
-
-def map_from_dict(d: dict, source: str = "<dict>", base_dir: str | os.PathLike = ".") -> TttrMap:
-    """Validate a mapping object; errors name the field, expected vs found."""
-    ck = FieldChecker(source)
-    fmt = ck.req(d, "format", "")
-    if fmt != MAP_FORMAT:
-        raise ck.fail("format", f"expected {MAP_FORMAT!r}, found {shown(fmt)}")
-    ver = ck.req(d, "version", "")
-    if ver != 1:
-        raise ck.fail("version", f"expected 1, found {shown(ver)}")
-    px = ck.req(d, "pixels", "")
-    if not isinstance(px, list) or not px:
-        raise ck.fail("pixels", f"expected a list of [channel, column, row], found {shown(px)}")
-    rows = []
-    for i, p in enumerate(px):
-        if isinstance(p, dict):
-            p = [ck.req(p, "channel", f"pixels[{i}]"), ck.req(p, "column", f"pixels[{i}]"),
-                 p.get("row", 0)]
-        if not isinstance(p, list) or len(p) != 3:
-            raise ck.fail(f"pixels[{i}]", f"expected [channel, column, row], found {shown(p)}")
-        rows.append([_int(ck, v, f"pixels[{i}][{j}]") for j, v in enumerate(p)])
-    pixels = np.asarray(rows, dtype=np.int64)
-    if np.unique(pixels[:, 0]).size != len(rows):
-        raise ck.fail("pixels", "expected each channel once, found a channel twice")
-    sc = d.get("shot_clock", {"source": "sync"})
-    src = ck.req(sc, "source", "shot_clock")
-    if src not in ("sync", "channel"):
-        raise ck.fail("shot_clock.source", f"expected 'sync' or 'channel', found {shown(src)}")
-    clock_ch = _int(ck, ck.req(sc, "channel", "shot_clock"), "shot_clock.channel") \
-        if src == "channel" else None
-    zc = ck.req(d, "zero_crossings", "")
-    zsrc = ck.req(zc, "source", "zero_crossings")
-    if zsrc not in ("marker", "channel"):
-        raise ck.fail("zero_crossings.source", f"expected 'marker' or 'channel', found "
-                                               f"{shown(zsrc)}")
-    edges = []
-    for key in ("rising_edge", "falling_edge"):
-        v = zc.get(key)
-        edges.append(None if v is None else _int(ck, v, f"zero_crossings.{key}",
-                                                  1 if zsrc == "marker" else 0))
-        if zsrc == "marker" and v is not None and v > 4:
-            raise ck.fail(f"zero_crossings.{key}", f"expected a marker 1..4, found {shown(v)}")
-    if edges == [None, None]:
-        raise ck.fail("zero_crossings", "expected rising_edge or falling_edge (or both)")
-    pol = zc.get("polarity", "positive")
-    if pol not in ("positive", "negative"):
-        raise ck.fail("zero_crossings.polarity", f"expected 'positive' or 'negative', found "
-                                                 f"{shown(pol)}")
-    delay = ck.number(zc.get("delay", 0.0), "zero_crossings.delay")
-    tdc = d.get("tdc", {})
-    if not isinstance(tdc, dict):
-        raise ck.fail("tdc", f"expected an object, found {shown(tdc)}")
-    binning = _int(ck, tdc.get("binning", 1), "tdc.binning", 1)
-    delay_bins = tdc.get("delay_bins", 0)
-    if isinstance(delay_bins, bool) or not isinstance(delay_bins, int):
-        raise ck.fail("tdc.delay_bins", f"expected an integer, found {shown(delay_bins)}")
-    photons = d.get("photons", "first")
-    if photons not in ("first", "all"):
-        raise ck.fail("photons", f"expected 'first' or 'all', found {shown(photons)}")
-    shots = d.get("shots", {})
-    if not isinstance(shots, dict):
-        raise ck.fail("shots", f"expected an object, found {shown(shots)}")
-    n_shots = shots.get("count")
-    if n_shots is not None:
-        n_shots = _int(ck, n_shots, "shots.count", 1)
-    first_shot = _int(ck, shots.get("first", 0), "shots.first")
-    time_origin = ck.number(d.get("time_origin", 0.0), "time_origin")
-    system = None
-    if "system" in d:
-        spec = d["system"]
-        if isinstance(spec, dict):
-            from mems_stereo.model.system import system_from_dict
-            system = system_from_dict(spec, source=f"{source}:system")
-        elif isinstance(spec, str):
-            p = Path(spec)
-            cand = p if p.is_absolute() else Path(base_dir) / p
-            system = resolve_system(str(cand) if cand.exists() else spec)
-        else:
-            raise ck.fail("system", f"expected a file name, preset or object, found "
-                                    f"{shown(spec)}")
-    return TttrMap(pixels, src, clock_ch, zsrc, edges[0], edges[1], pol == "positive", delay,
-                   binning, int(delay_bins), photons, n_shots, first_shot, time_origin,
-                   system)
-
-
-def load_map(path: str | os.PathLike) -> TttrMap:
-    """Read and validate a mapping JSON file (``system`` paths relative to it)."""
-    return map_from_dict(read_json_file(path), str(path), Path(path).parent)
-
-
-def map_to_dict(m: TttrMap, system: str | None = None) -> dict:
-    """The JSON object of a mapping (``system``: the file name or preset to write)."""
-    d = {"format": MAP_FORMAT, "version": 1,
-         "pixels": [[int(a), int(b), int(c)] for a, b, c in m.pixels],
-         "shot_clock": {"source": m.clock} | ({"channel": m.clock_channel}
-                                              if m.clock == "channel" else {}),
-         "zero_crossings": {"source": m.zc_source, "rising_edge": m.zc_rising_edge,
-                            "falling_edge": m.zc_falling_edge,
-                            "polarity": "positive" if m.zc_positive else "negative",
-                            "delay": m.zc_delay},
-         "tdc": {"binning": m.binning, "delay_bins": m.delay_bins},
-         "photons": m.photons}
-    d["shots"] = {"first": m.first_shot} | ({"count": m.n_shots} if m.n_shots else {})
-    d["time_origin"] = m.time_origin
-    if system is not None:
-        d["system"] = system
-    return d
 
 
 # --------------------------------------------------------------------------- helpers
@@ -264,8 +116,26 @@ class ImportStats:
                 f"{self.unmapped} on unmapped channels, {self.outside_shots} outside the shots")
 
 
-def scan_stream(blocks: Iterable, info: StreamInfo, m: TttrMap, source: str = ""):
-    """Pass 1: ``(n_shots, first_clock_macro, zero_crossings (Z,), rising (Z,))``.
+@dataclass(frozen=True, slots=True)
+class StreamScan:
+    """What pass 1 over an event stream finds (:func:`scan_stream`).
+
+    Attributes
+    ----------
+    n_shots : int, shots to convert.
+    first_clock : int, the macro time (T2: time tag, T3: sync count) of shot 0's clock.
+    zero_crossings : (Z,) float64, s on the recording's clock, increasing.
+    rising : (Z,) uint8, 1 where θ_mech crosses zero increasing.
+    """
+
+    n_shots: int
+    first_clock: int
+    zero_crossings: np.ndarray
+    rising: np.ndarray
+
+
+def scan_stream(blocks: Iterable, info: StreamInfo, m: TttrMap, source: str = "") -> StreamScan:
+    """Pass 1: the shot count, shot 0's clock and the zero crossings (:class:`StreamScan`).
 
     ``blocks`` yields EventBlock-like objects (``macro, micro, kind, channel``).
     """
@@ -315,7 +185,7 @@ def scan_stream(blocks: Iterable, info: StreamInfo, m: TttrMap, source: str = ""
         raise FormatError(f"expected at least 2 zero-crossing monitor events "
                           f"({m.zc_source} {m.zc_rising_edge}/{m.zc_falling_edge}), found "
                           f"{zc.size}", source, "zero_crossings")
-    return n_shots, first_clock, zc, rising
+    return StreamScan(n_shots, first_clock, zc, rising)
 
 
 def _photon_shots(b, info: StreamInfo, m: TttrMap, state: dict):
@@ -398,11 +268,11 @@ def events_to_recording(open_blocks: Callable[[], Iterable], info: StreamInfo, m
     block + Z).  Returns the counts; raises :class:`FormatError` (and writes
     nothing) when the stream has no shots or fewer than two zero crossings.
     """
-    from mems_stereo.io.recording import RecordingWriter
-
     system = system_for_stream(system, info, m)
     stats = ImportStats(bin_width=system.tdc.bin_width)
-    n_shots, first_clock, zc, rising = scan_stream(open_blocks(), info, m, source)
+    scan = scan_stream(open_blocks(), info, m, source)
+    n_shots, first_clock, zc, rising = scan.n_shots, scan.first_clock, scan.zero_crossings, \
+        scan.rising
     stats.n_shots, stats.n_zero_crossings = n_shots, zc.size
     w, h = system.receiver.image_size
     hw = w * h
@@ -471,12 +341,11 @@ def events_to_timetags(open_blocks: Callable[[], Iterable], info: StreamInfo, m:
     and ``shot_time`` (K,) s, ``zero_crossings``, ``rising``, ``system``
     (JSON).  Memory: O(number of photons) (the CSR order needs them all).
     """
-    from mems_stereo.model.system import system_to_json
-    from mems_stereo.util.atomic import atomic_output
-
     system = system_for_stream(system, info, m)
     stats = ImportStats(bin_width=system.tdc.bin_width)
-    n_shots, first_clock, zc, rising = scan_stream(open_blocks(), info, m, source)
+    scan = scan_stream(open_blocks(), info, m, source)
+    n_shots, first_clock, zc, rising = scan.n_shots, scan.first_clock, scan.zero_crossings, \
+        scan.rising
     stats.n_shots, stats.n_zero_crossings = n_shots, zc.size
     w, h = system.receiver.image_size
     lut = pixel_lut(m, system)

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from mems_stereo.model.camera import project_points
+from mems_stereo.model.hardware import System
 from mems_stereo.model.scanner import scan_direction, theta_mech_samples
-from mems_stereo.model.system import System
 
 
 @dataclass(frozen=True)
@@ -48,6 +48,13 @@ def shot_pixels(system: System, theta, distance: float) -> np.ndarray:
 
     ``theta`` : (K,) rad.  Returns (K,) float64 column coordinate (NaN when the
     ray misses the plane ahead or lands outside the sensor's width).
+
+    Examples
+    --------
+    >>> system = ms.preset("burkard2022")
+    >>> theta = system.scanner.theta0 + np.array([-0.05, 0.0, 0.05])
+    >>> np.round(ms.shot_pixels(system, theta, 2.0), 2)
+    array([112.97,  93.03,  73.29])
     """
     d = scan_direction(np.asarray(theta, dtype=np.float64), system.scanner)
     p = np.asarray(system.scanner.position, dtype=np.float64)
@@ -69,6 +76,12 @@ def acquisition_statistics(system: System, n_shots: int, distance: float,
     """Shots over scan angle and over pixels for a flat target at ``distance`` (m).
 
     ``frequency_ratio`` defaults to f_mech / f_rep of the system.
+
+    Examples
+    --------
+    >>> stats = ms.acquisition_statistics(ms.preset("burkard2022"), 20000, 2.0)
+    >>> stats.pixel_counts.shape, int(stats.pixel_counts.sum()), round(stats.fraction_on_sensor, 3)
+    ((192,), 20000, 1.0)
     """
     ratio = frequency_ratio
     if ratio is None:

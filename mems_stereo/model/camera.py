@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 from mems_stereo.errors import ShapeError
-from mems_stereo.model.system import ALLOWED_DIST_LENGTHS, Receiver, validate_camera_matrix
+from mems_stereo.model.hardware import ALLOWED_DIST_LENGTHS, Receiver, validate_camera_matrix
 
 
 def check_intrinsics(camera_matrix, dist_coeffs=None) -> tuple[np.ndarray, np.ndarray]:
@@ -61,7 +61,15 @@ def normalized_coordinates(pixels, camera_matrix, dist_coeffs=None) -> np.ndarra
 
 
 def pixels_to_rays(pixels, camera_matrix, dist_coeffs=None) -> np.ndarray:
-    """Unit viewing rays of pixels, (N, 3) float64, receiver camera frame (z > 0)."""
+    """Unit viewing rays of pixels, (N, 3) float64, receiver camera frame (z > 0).
+
+    Examples
+    --------
+    >>> K = ms.preset("burkard2022").receiver.camera_matrix
+    >>> np.round(ms.pixels_to_rays(np.array([[95.5, 0.0], [0.0, 0.0]]), K), 4)
+    array([[ 0.    ,  0.    ,  1.    ],
+           [-0.4358,  0.    ,  0.9   ]])
+    """
     xy = normalized_coordinates(pixels, camera_matrix, dist_coeffs)
     rays = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
     return rays / np.linalg.norm(rays, axis=1, keepdims=True)
@@ -72,6 +80,15 @@ def project_points(points, camera_matrix, dist_coeffs=None) -> np.ndarray:
 
     ``points`` : (N, 3) metres, receiver camera frame.  Points with z <= 0
     (behind the camera) give NaN.
+
+    Examples
+    --------
+    >>> K = ms.preset("burkard2022").receiver.camera_matrix
+    >>> points = np.array([[0.0, 0.0, 2.0], [0.5, 0.0, 2.0], [0.0, 0.0, -1.0]])
+    >>> np.round(ms.project_points(points, K), 2)
+    array([[ 95.5 ,   0.  ],
+           [144.81,   0.  ],
+           [   nan,    nan]])
     """
     K, dist = check_intrinsics(camera_matrix, dist_coeffs)
     P = np.asarray(points, dtype=np.float64)
@@ -95,7 +112,14 @@ def pixel_grid(image_size) -> np.ndarray:
 
 
 def receiver_rays(receiver: Receiver) -> np.ndarray:
-    """Unit rays of every pixel of a receiver, (H, W, 3) float64, camera frame."""
+    """Unit rays of every pixel of a receiver, (H, W, 3) float64, camera frame.
+
+    Examples
+    --------
+    >>> rays = ms.receiver_rays(ms.preset("burkard2022").receiver)
+    >>> rays.shape, np.round(rays[0, 0], 4)
+    ((1, 192, 3), array([-0.4358,  0.    ,  0.9   ]))
+    """
     rays = pixels_to_rays(pixel_grid(receiver.image_size), receiver.camera_matrix,
                           receiver.dist_coeffs)
     return rays.reshape(receiver.height, receiver.width, 3)

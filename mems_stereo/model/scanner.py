@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mems_stereo.errors import FormatError, GeometryError
-from mems_stereo.model.system import Scanner, validate_normal_basis
+from mems_stereo.model.hardware import Scanner, validate_normal_basis
 
 PHASE_FALLING = 0.5 * math.pi
 PHASE_RISING = 1.5 * math.pi
@@ -115,6 +115,15 @@ def phase_from_zero_crossings(times, zero_crossings, rising):
 
     The phase is linear between consecutive crossings, so a slow frequency
     drift is followed at the resolution of half a period.
+
+    Examples
+    --------
+    >>> crossings = np.array([0.0, 0.5e-3, 1.0e-3])          # s
+    >>> rising = np.array([1, 0, 1])
+    >>> phase, valid = ms.phase_from_zero_crossings(np.array([0.25e-3, 0.75e-3, 2e-3]),
+    ...                                             crossings, rising)
+    >>> np.round(phase / np.pi, 3), valid
+    (array([ 2.,  3., nan]), array([ True,  True, False]))
     """
     zc, r = validate_zero_crossings(zero_crossings, rising)
     phases = crossing_phases(zc, r)
@@ -136,6 +145,14 @@ def scan_angles(times, zero_crossings, rising, scanner: Scanner):
 
     Returns ``(theta, valid)``: (K,) float64 rad (NaN where unknown) and (K,)
     bool.  Shots outside the crossings' span are invalid: report and skip them.
+
+    Examples
+    --------
+    >>> rec = ms.read_recording(ms.data.path("room.h5"))
+    >>> theta, valid = ms.scan_angles(rec.shot_time, rec.zero_crossings, rec.rising,
+    ...                               rec.system.scanner)
+    >>> theta.shape, bool(valid.all()), np.round(theta[:3], 4)
+    ((800,), True, array([0.5533, 0.5853, 0.6591]))
     """
     phase, valid = phase_from_zero_crossings(times, zero_crossings, rising)
     return scan_angle_from_phase(phase, scanner), valid
@@ -150,6 +167,12 @@ def mirror_normal(theta, normal_basis) -> np.ndarray:
 
     ``theta`` : (...) rad; ``normal_basis`` : (2, 3) orthonormal.
     Returns (..., 3) float64, world frame.
+
+    Examples
+    --------
+    >>> basis = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    >>> np.round(ms.mirror_normal(np.pi / 4, basis), 4)
+    array([0.7071, 0.    , 0.7071])
     """
     B = validate_normal_basis(normal_basis)
     th = np.asarray(theta, dtype=np.float64)[..., None]
@@ -157,14 +180,28 @@ def mirror_normal(theta, normal_basis) -> np.ndarray:
 
 
 def reflect(direction, normal) -> np.ndarray:
-    """Reflection law (paper Eq. 6): d − 2 (n·d) n.  Shapes broadcast over (..., 3)."""
+    """Reflection law (paper Eq. 6): d − 2 (n·d) n.  Shapes broadcast over (..., 3).
+
+    Examples
+    --------
+    >>> normal = np.array([1.0, 0.0, 1.0]) / np.sqrt(2)          # a mirror at 45 degrees
+    >>> bool(np.allclose(ms.reflect(np.array([-1.0, 0.0, 0.0]), normal), [0.0, 0.0, 1.0]))
+    True
+    """
     d = np.asarray(direction, dtype=np.float64)
     n = np.asarray(normal, dtype=np.float64)
     return d - 2.0 * np.sum(n * d, axis=-1, keepdims=True) * n
 
 
 def scan_direction(theta, scanner: Scanner) -> np.ndarray:
-    """Unit scan direction d_scan(θ), (..., 3) float64, world frame."""
+    """Unit scan direction d_scan(θ), (..., 3) float64, world frame.
+
+    Examples
+    --------
+    >>> scanner = ms.preset("burkard2022").scanner
+    >>> np.round(ms.scan_direction(scanner.theta0, scanner), 4)
+    array([0.0499, 0.    , 0.9988])
+    """
     d = np.asarray(scanner.laser_direction, dtype=np.float64)
     nd = np.linalg.norm(d)
     if not np.isfinite(nd) or abs(nd - 1.0) > 1e-6:
@@ -193,12 +230,23 @@ def theta0_exact(baseline_x: float, working_distance: float) -> float:
 
     Valid for the paper's geometry (laser along −x, normal in the x–z plane,
     mirror at x = −x_M0): the beam at θ0 leaves at 2θ0 from the x axis.
+
+    Examples
+    --------
+    >>> round(ms.theta0_exact(0.125, 2.0), 6)
+    0.754189
     """
     return math.pi / 4 - 0.5 * math.atan(baseline_x / working_distance)
 
 
 def theta0_small_angle(baseline_x: float, working_distance: float) -> float:
-    """Paper Eq. 5: θ0 = π/4 − atan(x_M0 / (2W)) (small-angle form of :func:`theta0_exact`)."""
+    """Paper Eq. 5: θ0 = π/4 − atan(x_M0 / (2W)) (small-angle form of :func:`theta0_exact`).
+
+    Examples
+    --------
+    >>> round(ms.theta0_small_angle(0.125, 2.0), 6), round(ms.theta0_exact(0.125, 2.0), 6)
+    (0.754158, 0.754189)
+    """
     return math.pi / 4 - math.atan(baseline_x / (2.0 * working_distance))
 
 

@@ -33,24 +33,14 @@ the reflection law ``d = d_laser − 2 (n·d_laser) n`` (paper Eq. 6).
 
 from __future__ import annotations
 
-import math
-import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
 from mems_stereo.errors import FormatError, GeometryError
+from mems_stereo.model.hardware import Scanner, System
 from mems_stereo.model.scanner import phase_from_zero_crossings, reflect
-from mems_stereo.model.system import (
-    TDC,
-    Laser,
-    Receiver,
-    Scanner,
-    System,
-    resolve_system,
-    theta0_for_working_distance,
-)
 from mems_stereo.util.jsonfile import FieldChecker
 
 MODES = ("resonant", "quasistatic")
@@ -127,11 +117,11 @@ def axis2_to_dict(a: Axis2) -> dict:
 
 def is_two_axis(system: System) -> bool:
     """True when the system's scanner has a second axis."""
-    return getattr(system.scanner, "axis2", None) is not None
+    return system.scanner.axis2 is not None
 
 
 def require_two_axis(system: System, what: str = "system") -> Axis2:
-    a = getattr(system.scanner, "axis2", None)
+    a = system.scanner.axis2
     if a is None:
         raise FormatError("expected a two-axis scanner (scanner.axis2), found a one-axis one",
                           what, "scanner.axis2")
@@ -180,7 +170,7 @@ def mirror_normal_2d(theta1, theta2, scanner: Scanner) -> np.ndarray:
 
 
 def require_two_axis_scanner(scanner: Scanner) -> Axis2:
-    a2 = getattr(scanner, "axis2", None)
+    a2 = scanner.axis2
     if a2 is None:
         raise GeometryError("scanner.axis2: expected a two-axis scanner, found none")
     return a2
@@ -250,9 +240,12 @@ def scan_angles_2d(times, zero_crossings, rising, monitor2: Axis2Monitor, scanne
     monitor2 : :class:`Axis2Monitor` of axis 2.
     scanner : the two-axis scanner.
 
-    Returns ``(theta1 (K,), theta2 (K,), valid (K,) bool)``, rad; NaN and
-    invalid where a shot lies outside either monitor's span (never extrapolated).
-    θ2 here is the axis' own angle; the coupling enters in the reflection model.
+    Returns
+    -------
+    theta1, theta2 : (K,) float64 rad; NaN where a shot lies outside either
+        monitor's span (never extrapolated).  θ2 here is the axis' own angle;
+        the coupling enters in the reflection model.
+    valid : (K,) bool.
     """
     a2 = require_two_axis_scanner(scanner)
     t = np.asarray(times, dtype=np.float64)
@@ -280,70 +273,3 @@ def triangle_wave(phase) -> np.ndarray:
     """tri(φ): period 2π, +1 at φ ≡ 0, −1 at φ ≡ π, linear in between."""
     x = np.mod(np.asarray(phase, float), 2 * np.pi) / np.pi  # [0, 2)
     return np.where(x < 1.0, 1.0 - 2.0 * x, 2.0 * x - 3.0)
-
-
-# --------------------------------------------------------------------------
-# presets
-
-
-def outer_axis_for(scanner: Scanner) -> np.ndarray:
-    """The natural outer axis: in the mirror plane at rest, perpendicular to a1,
-    ``a2 = a1 × n1(θ0)``; turning about it tilts the beam out of the fast scan plane."""
-    B = np.asarray(scanner.normal_basis, float)
-    n0 = math.cos(scanner.theta0) * B[0] + math.sin(scanner.theta0) * B[1]
-    a2 = np.cross(fast_axis(scanner), n0)
-    return a2 / np.linalg.norm(a2)
-
-
-#: link budget of the two-axis presets (LinkBudget keyword arguments): a short-pulse
-#: diode and a 2-D SPAD array with microlenses (fill factor 0.5), f = 6 mm, f/2
-TWO_AXIS_LINK = {"peak_power": 1.0, "focal_length": 6e-3, "f_number": 2.0, "fill_factor": 0.5}
-
-
-def _two_axis_system(width: int, height: int, pitch: float, f: float, mode: str,
-                     f1: float, amp1: float, f2: float, amp2: float, f_rep: float,
-                     working_distance: float = 2.5) -> System:
-    b = 0.125
-    K = np.array([[f / pitch, 0.0, (width - 1) / 2], [0.0, f / pitch, (height - 1) / 2],
-                  [0.0, 0.0, 1.0]])
-    sc = Scanner(position=np.array([-b, 0.0, 0.0]),
-                 normal_basis=np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-                 laser_direction=np.array([-1.0, 0.0, 0.0]),
-                 theta0=theta0_for_working_distance(b, working_distance),
-                 f_mech=f1, theta_mech_max=amp1)
-    a2 = Axis2(mode=mode, axis=outer_axis_for(sc), theta0=0.0, f_mech=f2, theta_mech_max=amp2)
-    sc = replace(sc, axis2=a2)
-    return System(
-        receiver=Receiver(K, np.zeros(5), (width, height), np.array([pitch, pitch]), 25e-6),
-        scanner=sc,
-        laser=Laser(f_rep=f_rep, pulse_fwhm=0.3e-9, wavelength=905e-9),
-        tdc=TDC(bin_width=100e-12, n_bins=1024, offset=0.0),
-        speed_of_light=299704644.5,
-    )
-
-
-def lissajous64() -> System:
-    """64 × 64 SPAD array (50 µm pixels, f = 6 mm: 30° field) with a Lissajous mirror:
-    fast axis 1570 Hz ± 9°, second resonant axis 970.3 Hz ± 11° (frequency ratio near the
-    golden ratio: a dense, slowly repeating figure)
-    (mechanical), 200 kHz shots, 0.3 ns pulses, 100 ps TDC bins (1024)."""
-    return _two_axis_system(64, 64, 50e-6, 6e-3, "resonant", 1570.0, math.radians(9.0),
-                            970.3, math.radians(11.0), 200e3)
-
-
-def raster128x96() -> System:
-    """128 × 96 SPAD array (40 µm pixels, f = 6 mm: 46° × 35°) with a raster mirror:
-    resonant fast axis 1570 Hz ± 12°, quasi-static slow axis 8 Hz triangle ± 12.5°
-    (196 lines a sweep), 400 kHz shots."""
-    return _two_axis_system(128, 96, 40e-6, 6e-3, "quasistatic", 1570.0, math.radians(12.0),
-                            8.0, math.radians(12.5), 400e3)
-
-
-TWO_AXIS_PRESETS = {"lissajous64": lissajous64, "raster128x96": raster128x96}
-
-
-def resolve_any_system(spec: str | os.PathLike | System) -> System:
-    """Like :func:`mems_stereo.model.system.resolve_system`, with the two-axis presets."""
-    if isinstance(spec, str) and spec in TWO_AXIS_PRESETS:
-        return TWO_AXIS_PRESETS[spec]()
-    return resolve_system(spec)

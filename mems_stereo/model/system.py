@@ -1,220 +1,73 @@
-"""The system description of FORMAT v1: load, validate, save, presets.
-
-A :class:`System` holds every parameter of the scanner–receiver pair; it is
-the one source of parameters for every stage of the package.  All values are
-SI (metres, seconds, hertz, radians); the world frame is the receiver camera
-frame in the OpenCV convention (see ``docs/conventions.md``).
+"""The system description of FORMAT v1: read, validate, write; resolve a name to a system.
 
 The JSON form is ``{"format": "mems-stereo/system", "version": 1, ...}`` as
-specified in ``docs/formats.md``.  Validation errors are
-:class:`~mems_stereo.errors.FormatError` naming the file, the dotted field,
-what was expected and what was found.
+specified in ``docs/formats.md``; the typed parameters it reads into are
+:mod:`mems_stereo.model.hardware` (re-exported here, where callers know them
+from) and the named systems :mod:`mems_stereo.model.presets`.  Validation
+errors are :class:`~mems_stereo.errors.FormatError` naming the file, the
+dotted field, what was expected and what was found.
 """
 
 from __future__ import annotations
 
 import copy
+import difflib
 import json
 import math
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from mems_stereo.errors import FormatError, UnknownNameError
+from mems_stereo.model.hardware import (
+    ALLOWED_DIST_LENGTHS,
+    TDC,
+    Laser,
+    Receiver,
+    Scanner,
+    System,
+    validate_camera_matrix,
+    validate_normal_basis,
+)
+from mems_stereo.model.presets import (
+    PRESETS,
+    TWO_AXIS_PRESETS,
+    burkard2022,
+    theta0_for_working_distance,
+)
+from mems_stereo.model.scanner2d import axis2_from_dict, axis2_to_dict
+from mems_stereo.util.atomic import atomic_write_text
 from mems_stereo.util.jsonfile import FieldChecker, parse_json, read_json_file
+
+__all__ = [
+    "ALLOWED_DIST_LENGTHS", "FORMAT_NAME", "FORMAT_VERSION", "PLAUSIBLE", "PRESETS", "TDC",
+    "Laser", "Receiver", "Scanner", "System", "UnknownPresetError", "burkard2022",
+    "check_plausible", "load_system", "preset", "resolve_any_system", "resolve_system",
+    "save_system", "system_from_dict", "system_from_json", "system_to_dict", "system_to_json",
+    "theta0_for_working_distance", "validate_camera_matrix", "validate_normal_basis",
+]
 
 FORMAT_NAME = "mems-stereo/system"
 FORMAT_VERSION = 1
-ALLOWED_DIST_LENGTHS = (4, 5, 8, 12, 14)
-
-
-@dataclass(frozen=True)
-class Receiver:
-    """OpenCV intrinsics of the SPAD receiver.
-
-    Attributes
-    ----------
-    camera_matrix : (3, 3) float64, pixels
-    dist_coeffs : (D,) float64, D in {4, 5, 8, 12, 14}
-    image_size : (width, height) in pixels
-    pixel_pitch : (2,) float64, metres (x, y)
-    spad_diameter : float, metres (photosensitive diameter of one SPAD)
-    """
-
-    camera_matrix: np.ndarray
-    dist_coeffs: np.ndarray
-    image_size: tuple[int, int]
-    pixel_pitch: np.ndarray
-    spad_diameter: float
-
-    @property
-    def width(self) -> int:
-        return int(self.image_size[0])
-
-    @property
-    def height(self) -> int:
-        return int(self.image_size[1])
-
-
-@dataclass(frozen=True)
-class Scanner:
-    """The resonant MEMS transmitter.
-
-    Attributes
-    ----------
-    position : (3,) float64, metres, world frame: the mirror pivot (baseline)
-    normal_basis : (2, 3) float64, orthonormal [e1, e2]; n(θ) = cos θ e1 + sin θ e2
-    laser_direction : (3,) float64, unit vector of the beam arriving at the mirror
-    theta0 : float, rad, rest angle of the mirror (θ = θ0 + θ_mech)
-    f_mech : float, Hz, nominal mechanical frequency
-    theta_mech_max : float, rad, mechanical amplitude
-    phase_offset : float, rad, delay of the true phase behind the phase of the
-        zero-crossing monitor (added field, default 0; estimated by calibration)
-    axis2 : optional second mirror axis (:class:`mems_stereo.model.scanner2d.Axis2`,
-        JSON ``scanner.axis2``); None for the one-axis scanner of version 1
-    """
-
-    position: np.ndarray
-    normal_basis: np.ndarray
-    laser_direction: np.ndarray
-    theta0: float
-    f_mech: float
-    theta_mech_max: float
-    phase_offset: float = 0.0
-    axis2: Any = None
-
-
-@dataclass(frozen=True)
-class Laser:
-    """Pulsed laser: repetition rate (Hz), pulse FWHM (s), wavelength (m)."""
-
-    f_rep: float
-    pulse_fwhm: float
-    wavelength: float
-
-
-@dataclass(frozen=True)
-class TDC:
-    """Time-to-digital converter: code N in 1..n_bins has
-    ``t_TOF = (N - 1/2) * bin_width - offset`` (seconds)."""
-
-    bin_width: float
-    n_bins: int
-    offset: float = 0.0
-
-
-@dataclass(frozen=True)
-class System:
-    """The whole scanner–receiver pair (FORMAT v1 system description)."""
-
-    receiver: Receiver
-    scanner: Scanner
-    laser: Laser
-    tdc: TDC
-    speed_of_light: float = 299704644.5
-    calibration: dict | None = field(default=None, compare=False)
-
-    def __repr__(self) -> str:
-        sc, rc = self.scanner, self.receiver
-        b = np.asarray(sc.position, dtype=np.float64) * 1e3
-        cal = ", calibrated" if self.calibration else ""
-        return (f"<System {rc.width}x{rc.height} px receiver, baseline ({b[0]:.4g}, {b[1]:.4g}, "
-                f"{b[2]:.4g}) mm, theta0 {sc.theta0 * 1e3:.4g} mrad, "
-                f"f_mech {sc.f_mech:g} Hz, f_rep {self.laser.f_rep:g} Hz, "
-                f"TDC {self.tdc.n_bins} x {self.tdc.bin_width * 1e12:.4g} ps{cal}>")
-
-    @property
-    def baseline(self) -> np.ndarray:
-        """(3,) float64, metres: scanner position minus projection centre (origin)."""
-        return np.asarray(self.scanner.position, dtype=np.float64)
-
-    def replace(self, **changes: Any) -> System:
-        """Copy with top-level fields replaced (``dataclasses.replace``)."""
-        return replace(self, **changes)
-
-    def with_params(self, **params: float) -> System:
-        """Copy with named scalar parameters changed.
-
-        Known names: ``theta0``, ``theta_mech_max``, ``phase_offset``,
-        ``f_mech``, ``tdc_offset``, ``baseline_x``, ``baseline_y``,
-        ``baseline_z``, ``fx``, ``cx``.
-        """
-        sc, tdc, rc = self.scanner, self.tdc, self.receiver
-        pos = np.array(sc.position, dtype=np.float64)
-        K = np.array(rc.camera_matrix, dtype=np.float64)
-        sc_kw: dict[str, Any] = {}
-        for name, value in params.items():
-            value = float(value)
-            if name in ("theta0", "theta_mech_max", "phase_offset", "f_mech"):
-                sc_kw[name] = value
-            elif name == "tdc_offset":
-                tdc = replace(tdc, offset=value)
-            elif name in ("baseline_x", "baseline_y", "baseline_z"):
-                pos["xyz".index(name[-1])] = value
-            elif name == "fx":
-                K[0, 0] = value
-            elif name == "cx":
-                K[0, 2] = value
-            else:
-                raise UnknownNameError(f"unknown system parameter {name!r}")
-        sc = replace(sc, position=pos, **sc_kw)
-        rc = replace(rc, camera_matrix=K)
-        return replace(self, scanner=sc, tdc=tdc, receiver=rc)
-
-    def get_param(self, name: str) -> float:
-        """Value of a named scalar parameter (names as in :meth:`with_params`)."""
-        if name in ("theta0", "theta_mech_max", "phase_offset", "f_mech"):
-            return float(getattr(self.scanner, name))
-        if name == "tdc_offset":
-            return float(self.tdc.offset)
-        if name in ("baseline_x", "baseline_y", "baseline_z"):
-            return float(self.scanner.position["xyz".index(name[-1])])
-        if name == "fx":
-            return float(self.receiver.camera_matrix[0, 0])
-        if name == "cx":
-            return float(self.receiver.camera_matrix[0, 2])
-        raise UnknownNameError(f"unknown system parameter {name!r}")
-
-
-# --------------------------------------------------------------------------
-# validation helpers
-
-
-def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "") -> np.ndarray:
-    """Check an OpenCV camera matrix: (3, 3), finite, fx, fy > 0, last row [0, 0, 1]."""
-    ctx = FieldChecker(source)
-    K = ctx.array(K, fld, (3, 3))
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ctx.fail(fld, f"expected positive focal lengths fx, fy, found {K[0, 0]}, {K[1, 1]}")
-    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-        raise ctx.fail(fld, f"expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}")
-    if K[0, 1] != 0.0:
-        raise ctx.fail(fld, f"expected zero skew K[0][1] (OpenCV's camera model has none), "
-                            f"found {K[0, 1]!r}")
-    return K
-
-
-def validate_normal_basis(basis: Any, fld: str = "scanner.normal_basis", source: str = "",
-                          tol: float = 1e-6) -> np.ndarray:
-    """Check the mirror's normal basis [e1, e2]: (2, 3), unit, orthogonal."""
-    ctx = FieldChecker(source)
-    B = ctx.array(basis, fld, (2, 3))
-    norms = np.linalg.norm(B, axis=1)
-    for i in range(2):
-        if abs(norms[i] - 1.0) > tol:
-            raise ctx.fail(f"{fld}[{i}]", f"expected a unit vector, found norm {norms[i]:.9g}")
-    dot = float(B[0] @ B[1])
-    if abs(dot) > tol:
-        raise ctx.fail(fld, f"expected orthogonal vectors e1, e2, found e1·e2 = {dot:.6g} "
-                            "(degenerate basis)")
-    return B
 
 
 def system_from_dict(d: dict, source: str = "<dict>") -> System:
-    """Build and validate a :class:`System` from its FORMAT v1 JSON object."""
+    """Build and validate a :class:`System` from its FORMAT v1 JSON object.
+
+    Examples
+    --------
+    >>> d = ms.system_to_dict(ms.preset("burkard2022"))
+    >>> ms.system_from_dict(d).tdc.n_bins
+    4096
+    >>> try:
+    ...     ms.system_from_dict({"version": 1})
+    ... except ms.FormatError as err:
+    ...     print(err)
+    <dict>: format: required field is missing
+    """
     ctx = FieldChecker(source)
     if not isinstance(d, dict):
         raise ctx.fail("(top level)", f"expected a JSON object, found {type(d).__name__}")
@@ -224,8 +77,20 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     ver = ctx.req(d, "version", "")
     if isinstance(ver, bool) or not isinstance(ver, int) or ver != FORMAT_VERSION:
         raise ctx.fail("version", f"expected {FORMAT_VERSION}, found {ver!r}")
+    receiver = _receiver_from_dict(ctx.req(d, "receiver", ""), ctx, source)
+    scanner = _scanner_from_dict(ctx.req(d, "scanner", ""), ctx, source)
+    laser = _laser_from_dict(ctx.req(d, "laser", ""), ctx)
+    tdc = _tdc_from_dict(ctx.req(d, "tdc", ""), ctx)
+    c = ctx.number(ctx.req(d, "speed_of_light", ""), "speed_of_light", positive=True)
+    calib = d.get("calibration")
+    if calib is not None and not isinstance(calib, dict):
+        raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
+    system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
+    check_plausible(system, source)
+    return system
 
-    r = ctx.req(d, "receiver", "")
+
+def _receiver_from_dict(r: Any, ctx: FieldChecker, source: str) -> Receiver:
     K = validate_camera_matrix(ctx.req(r, "camera_matrix", "receiver"),
                                "receiver.camera_matrix", source)
     dist = ctx.array(ctx.req(r, "dist_coeffs", "receiver"), "receiver.dist_coeffs", (None,))
@@ -242,9 +107,10 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
         raise ctx.fail("receiver.pixel_pitch", f"expected positive values, found {pitch.tolist()}")
     spad = ctx.number(ctx.req(r, "spad_diameter", "receiver"), "receiver.spad_diameter",
                       positive=True)
-    receiver = Receiver(K, dist, (int(size[0]), int(size[1])), pitch, spad)
+    return Receiver(K, dist, (int(size[0]), int(size[1])), pitch, spad)
 
-    s = ctx.req(d, "scanner", "")
+
+def _scanner_from_dict(s: Any, ctx: FieldChecker, source: str) -> Scanner:
     pos = ctx.array(ctx.req(s, "position", "scanner"), "scanner.position", (3,))
     basis = validate_normal_basis(ctx.req(s, "normal_basis", "scanner"),
                                   "scanner.normal_basis", source)
@@ -263,12 +129,12 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
         phase_offset=ctx.number(s.get("phase_offset", 0.0), "scanner.phase_offset"),
     )
     if s.get("axis2") is not None:  # two-axis extension (docs/two_axis.md)
-        from mems_stereo.model.scanner2d import axis2_from_dict
-
         scanner = replace(scanner, axis2=axis2_from_dict(s["axis2"], scanner, source))
+    return scanner
 
-    la = ctx.req(d, "laser", "")
-    laser = Laser(
+
+def _laser_from_dict(la: Any, ctx: FieldChecker) -> Laser:
+    return Laser(
         f_rep=ctx.number(ctx.req(la, "f_rep", "laser"), "laser.f_rep", positive=True),
         pulse_fwhm=ctx.number(ctx.req(la, "pulse_fwhm", "laser"), "laser.pulse_fwhm",
                               nonneg=True),
@@ -276,22 +142,16 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
                               positive=True),
     )
 
-    t = ctx.req(d, "tdc", "")
+
+def _tdc_from_dict(t: Any, ctx: FieldChecker) -> TDC:
     n_bins = ctx.req(t, "n_bins", "tdc")
     if isinstance(n_bins, bool) or not isinstance(n_bins, int) or not 1 <= n_bins <= 65535:
         raise ctx.fail("tdc.n_bins", f"expected an integer in 1..65535, found {n_bins!r}")
-    tdc = TDC(
+    return TDC(
         bin_width=ctx.number(ctx.req(t, "bin_width", "tdc"), "tdc.bin_width", positive=True),
         n_bins=n_bins,
         offset=ctx.number(t.get("offset", 0.0), "tdc.offset"),
     )
-    c = ctx.number(ctx.req(d, "speed_of_light", ""), "speed_of_light", positive=True)
-    calib = d.get("calibration")
-    if calib is not None and not isinstance(calib, dict):
-        raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
-    system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
-    check_plausible(system, source)
-    return system
 
 
 #: Physical plausibility bounds (inclusive) of the system description, in SI
@@ -360,7 +220,16 @@ def check_plausible(system: System, source: str = "<dict>") -> None:
 
 
 def system_to_dict(system: System) -> dict:
-    """The FORMAT v1 JSON object of a :class:`System`."""
+    """The FORMAT v1 JSON object of a :class:`System`.
+
+    Examples
+    --------
+    >>> d = ms.system_to_dict(ms.preset("burkard2022"))
+    >>> sorted(d)
+    ['format', 'laser', 'receiver', 'scanner', 'speed_of_light', 'tdc', 'version']
+    >>> d["tdc"]["n_bins"]
+    4096
+    """
     r, s, la, t = system.receiver, system.scanner, system.laser, system.tdc
     d: dict[str, Any] = {
         "format": FORMAT_NAME,
@@ -389,8 +258,6 @@ def system_to_dict(system: System) -> dict:
     if s.phase_offset != 0.0:
         d["scanner"]["phase_offset"] = float(s.phase_offset)
     if s.axis2 is not None:  # two-axis extension (docs/two_axis.md)
-        from mems_stereo.model.scanner2d import axis2_to_dict
-
         d["scanner"]["axis2"] = axis2_to_dict(s.axis2)
     if system.calibration is not None:
         d["calibration"] = copy.deepcopy(system.calibration)
@@ -408,79 +275,61 @@ def system_to_json(system: System) -> str:
 
 
 def load_system(path: str | os.PathLike) -> System:
-    """Read and validate a system description JSON file."""
+    """Read and validate a system description JSON file.
+
+    Examples
+    --------
+    >>> system = ms.load_system(ms.data.path("nominal_system.json"))
+    >>> system.receiver.image_size, system.scanner.f_mech
+    ((192, 1), 1570.0)
+    """
     return system_from_dict(read_json_file(path), source=str(Path(path)))
 
 
 def save_system(system: System, path: str | os.PathLike) -> Path:
-    """Write a system description JSON atomically (temporary file, then rename)."""
-    from mems_stereo.util.atomic import atomic_write_text
+    """Write a system description JSON atomically (temporary file, then rename).
 
+    Examples
+    --------
+    >>> import os, tempfile
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     path = ms.save_system(ms.preset("burkard2022"), os.path.join(folder, "system.json"))
+    ...     print(path.name, ms.load_system(path).tdc.n_bins)
+    system.json 4096
+    """
     return atomic_write_text(path, system_to_json(system) + "\n")
 
 
 # --------------------------------------------------------------------------
-# presets
-
-
-def theta0_for_working_distance(baseline_x: float, working_distance: float) -> float:
-    """Exact θ0 (rad) making the transmitter axis cross the optical axis at W.
-
-    θ0 = π/4 − ½·atan(x_M0 / W); compare :func:`mems_stereo.model.scanner.theta0_small_angle`.
-    """
-    return math.pi / 4 - 0.5 * math.atan(baseline_x / working_distance)
-
-
-def burkard2022(working_distance: float = 2.5) -> System:
-    """The proof-of-concept system of Burkard et al. 2022, Table 1.
-
-    SPADEye2 line (192 x 1 pixels, w = 40.56 µm, h = 209.6 µm, 12 µm SPADs),
-    f = 8 mm receiver optics, 12.5 cm baseline with the mirror at x = −0.125 m,
-    f_mech = 1570 Hz, θ_mech,max = 11.9°, f_rep = 20 kHz, 14.9 ns pulses,
-    312.5 ps TDC bins (4096 bins), θ0 from the working distance (exact form).
-    """
-    f = 8e-3
-    w, h = 40.56e-6, 209.6e-6
-    K = np.array([[f / w, 0.0, 95.5], [0.0, f / h, 0.0], [0.0, 0.0, 1.0]])
-    b = 0.125
-    return System(
-        receiver=Receiver(K, np.zeros(5), (192, 1), np.array([w, h]), 12e-6),
-        scanner=Scanner(
-            position=np.array([-b, 0.0, 0.0]),
-            normal_basis=np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
-            laser_direction=np.array([-1.0, 0.0, 0.0]),
-            theta0=theta0_for_working_distance(b, working_distance),
-            f_mech=1570.0,
-            theta_mech_max=math.radians(11.9),
-        ),
-        laser=Laser(f_rep=20000.0, pulse_fwhm=14.9e-9, wavelength=659e-9),
-        tdc=TDC(bin_width=312.5e-12, n_bins=4096, offset=0.0),
-        speed_of_light=299704644.5,
-    )
-
-
-PRESETS = {"burkard2022": burkard2022}
+# resolving a name or a path
 
 
 class UnknownPresetError(FormatError, UnknownNameError):
     """An unknown preset name (a ``FormatError``, hence ``ValueError``; also an
-    :class:`~mems_stereo.errors.UnknownNameError`, hence ``KeyError`` as in
-    version 0.1).  The message lists the presets."""
+    :class:`~mems_stereo.errors.UnknownNameError`, hence ``KeyError``, as a failed
+    look-up in :data:`PRESETS` is).  The message lists the presets."""
 
     def __str__(self) -> str:  # KeyError would print the message's repr
         return str(self.args[0]) if self.args else ""
 
 
 def _presets_advice(name: str) -> str:
-    import difflib
-
     close = difflib.get_close_matches(str(name), sorted(PRESETS), n=1, cutoff=0.5)
     return ((f"did you mean {close[0]!r}? " if close else "")
             + f"presets: {', '.join(sorted(PRESETS))}")
 
 
 def preset(name: str) -> System:
-    """A named preset system (``"burkard2022"``; :data:`PRESETS` lists them)."""
+    """A named preset system (``"burkard2022"``; :data:`PRESETS` lists them).
+
+    Examples
+    --------
+    >>> sorted(ms.PRESETS)
+    ['burkard2022']
+    >>> ms.preset("burkard2022")  # doctest: +NORMALIZE_WHITESPACE
+    <System 192x1 px receiver, baseline (-125, 0, 0) mm, theta0 760.4 mrad, f_mech 1570 Hz,
+     f_rep 20000 Hz, TDC 4096 x 312.5 ps>
+    """
     try:
         return PRESETS[name]()
     except KeyError:
@@ -504,3 +353,10 @@ def resolve_system(spec: str | os.PathLike | System) -> System:
                                  f"{_presets_advice(str(spec))}, or the path of a system JSON "
                                  "file", field="system")
     return load_system(spec)
+
+
+def resolve_any_system(spec: str | os.PathLike | System) -> System:
+    """Like :func:`resolve_system`, with the two-axis presets (:data:`TWO_AXIS_PRESETS`)."""
+    if isinstance(spec, str) and spec in TWO_AXIS_PRESETS:
+        return TWO_AXIS_PRESETS[spec]()
+    return resolve_system(spec)

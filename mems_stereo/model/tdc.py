@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mems_stereo.model.system import TDC
+from mems_stereo.model.hardware import TDC
 
 # --------------------------------------------------------------------------
 # codes <-> path length

@@ -75,6 +75,14 @@ def background_rate_mle(hist, n_shots, bin_width: float, exclude=None, raw=None,
     rate : (...) float64, Hz.  ``inf`` when every armed trial detected, NaN
     when no bin is included or no trial was armed.  With ``return_std``:
     ``(rate, std)``.
+
+    Examples
+    --------
+    >>> rec = ms.read_recording(ms.data.path("room.h5"))
+    >>> h = ms.accumulate_histograms(rec.bins, rec.truth["label"], n_bins=4096)
+    >>> rate = ms.background_rate_mle(h.noise, h.n_shots, rec.system.tdc.bin_width, raw=h.raw)
+    >>> rate.shape, round(float(np.median(rate)) / 1e3)         # kHz
+    ((1, 192), 102)
     """
     h = _as_hist(hist)
     r = h if raw is None else _as_hist(raw, "raw")

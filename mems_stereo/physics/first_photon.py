@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -134,10 +135,28 @@ def first_photon_timing(tau0, mu, sigma: float, lam: float = 0.0):
     return p, mean * sigma, var * sigma * sigma
 
 
+@dataclass(frozen=True, slots=True)
+class FirstPhotonTable:
+    """:func:`first_photon_moments` tabulated on a grid (:func:`first_photon_table`).
+
+    Attributes
+    ----------
+    a_grid : (A,) float64, the pulse centre's offset ``a`` from the TDC start, in pulse σ.
+    logmu_grid : (M,) float64, log of the signal photons μ_w in the window.
+    mean : (A, M) float64, mean first-photon arrival, in pulse σ.
+    var : (A, M) float64, its variance, in pulse σ².
+    """
+
+    a_grid: np.ndarray
+    logmu_grid: np.ndarray
+    mean: np.ndarray
+    var: np.ndarray
+
+
 @functools.lru_cache(maxsize=1)
-def _first_photon_table():
-    """(a grid, log μ_w grid, mean, var) of :func:`first_photon_moments`, tabulated once
-    per process and kept in the disk cache (:mod:`mems_stereo.util.cache`) across runs."""
+def first_photon_table() -> FirstPhotonTable:
+    """:func:`first_photon_moments` on the (a, log μ_w) grid, tabulated once per process
+    and kept in the disk cache (:mod:`mems_stereo.util.cache`) across runs."""
     import scipy
 
     from mems_stereo.util.cache import cached_arrays, source_key
@@ -158,7 +177,7 @@ def _first_photon_table():
     if mean.shape != (ag.size, lg.size) or var.shape != mean.shape:  # a foreign file
         got = compute()
         mean, var = got["mean"], got["var"]
-    return ag, lg, mean, var
+    return FirstPhotonTable(ag, lg, mean, var)
 
 
 def _table_lookup(a, logmu):
@@ -169,7 +188,8 @@ def _table_lookup(a, logmu):
     are gathered from the flattened tables, so an (Q, 1, 1) ``a`` against a
     (Q, J, B) ``logmu`` costs no (Q, J, B) index arrays for ``a``.
     """
-    ag, lg, mean, var = _first_photon_table()
+    tab = first_photon_table()
+    ag, lg, mean, var = tab.a_grid, tab.logmu_grid, tab.mean, tab.var
     fa = np.clip((np.asarray(a, dtype=np.float64) - ag[0]) / (ag[1] - ag[0]), 0.0,
                  ag.size - 1.000001)
     fm = np.clip((np.asarray(logmu, dtype=np.float64) - lg[0]) / (lg[1] - lg[0]), 0.0,
@@ -192,13 +212,13 @@ MU_GRID = np.exp(np.linspace(math.log(1e-2), math.log(MU_MAX), 41))
 OUTLIER_PROBABILITY = 0.02
 
 
-def _detection_log_odds(f):
+def detection_log_odds(f):
     """log p − log(1 − p) of a shot with spot share f (…) on the μ0 grid -> (…, J)."""
-    p = _firing_probability(f)
+    p = firing_probability(f)
     return np.log(p) - np.log1p(-p)
 
 
-def _firing_probability(f):
+def firing_probability(f):
     """P(inlier) of a shot with spot share f (…) on the μ0 grid -> (…, J), in (0, 1)."""
     e = OUTLIER_PROBABILITY
     pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])

@@ -26,6 +26,8 @@ C_VACUUM = 299792458.0  # m/s
 class LinkBudget:
     """Parameters of the optical link (defaults: the paper's system, Table 1).
 
+    Parameters
+    ----------
     peak_power : W, laser peak optical power (80 mW).
     mems_reflectivity : mirror reflectivity at the wavelength (81.25 %).
     focal_length : m, receiver lens (8 mm); f_number : (2) → aperture Ø f/N = 4 mm.

@@ -73,7 +73,7 @@ class SpotModel:
 
     σ² = (D_beam(R_tx) · f / z / 4)² + (c / 4)² + psf², with
     D_beam = beam_diameter + beam_divergence · R_tx and the defocus blur
-    circle c = A · f · |1/z − 1/z_focus| (A = aperture Ø, z the depth).
+    circle ``c = A · f · |1/z − 1/z_focus|`` (A = aperture Ø, z the depth).
     """
 
     beam_diameter: float = 3.3e-3

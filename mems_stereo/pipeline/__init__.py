@@ -3,8 +3,10 @@
 settings → angles → consistency (the per-detection test) + intervals (the
 test compiled per angle step) → pass1 (classify and histogram) → peaks →
 pass2 (counts per peak, angle step and code) → fusion (points) → cloud;
-run (process_recording) drives them; distributed wraps them for Dask;
-timetags is the same stage for TCSPC time tags.
+block_fusion (the fusion in blocks of peaks); run (process_recording) drives them;
+distributed (process_split, process_many) calls them on Dask, with dask_setup,
+dask_plan, dask_reduce, dask_tasks and dask_split; timetags is the same stage for TCSPC
+time tags.
 """
 
 import importlib
@@ -13,7 +15,7 @@ import importlib
 #: (loaded on first use, so that importing one stage does not load them all)
 _PUBLIC = {
     "Settings": "settings", "DEFAULT_CHUNK_SHOTS": "settings",
-    "process_recording": "run", "finish_processing": "run", "ProcessResult": "run",
+    "process_recording": "run", "ProcessResult": "run",
     "truth_scores": "pass1", "shot_angles": "angles", "as_source": "run",
     "RangeAccumulation": "pass1", "accumulate_range": "pass1", "Counts": "pass1",
     "classify_recording": "pass1",

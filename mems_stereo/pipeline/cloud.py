@@ -33,7 +33,18 @@ REQUIRED_ATTRIBUTES = ("counts", "pixel", "range", "sigma_r", "sigma_phi")
 
 @dataclass
 class PointCloud:
-    """Points (N, 3) float64 in metres, world (receiver camera) frame, and attributes."""
+    """Points (N, 3) float64 in metres, world (receiver camera) frame, and attributes.
+
+    Examples
+    --------
+    >>> cloud = ms.PointCloud(np.array([[0.0, 0.0, 1.5], [0.2, 0.0, 3.0]]),
+    ...                       {"range": np.array([1.5, 3.0])})
+    >>> len(cloud), cloud.points.shape
+    (2, (2, 3))
+    >>> near = cloud.select(cloud.attributes["range"] < 2.0)
+    >>> near.points.tolist()
+    [[0.0, 0.0, 1.5]]
+    """
 
     points: np.ndarray
     attributes: dict[str, np.ndarray] = field(default_factory=dict)
@@ -86,20 +97,6 @@ class PointCloud:
                               "  install it (pip install pandas) or use cloud.to_structured(), "
                               "a NumPy structured array with the same columns") from None
         return pd.DataFrame.from_records(self.to_structured())
-
-    def to_open3d(self, color_by: str | None = "range", cmap: str = "turbo",
-                  vmin: float | None = None, vmax: float | None = None):
-        """An ``open3d.geometry.PointCloud`` of the points (float64, m).
-
-        color_by : attribute (``range``, ``counts``, ``sigma_r``, ...) or
-            ``x``/``y``/``z`` whose values set the colours through ``cmap``
-            (``turbo`` or ``viridis``) between ``vmin`` and ``vmax`` (default:
-            the values' range); None for no colours.  Loads Open3D (viz layer).
-        """
-        import importlib
-
-        return importlib.import_module("mems_stereo.viz.convert").cloud_to_open3d(
-            self, color_by=color_by, cmap=cmap, vmin=vmin, vmax=vmax)
 
     def __getitem__(self, name: str) -> np.ndarray:
         return self.attributes[name]

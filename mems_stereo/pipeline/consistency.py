@@ -25,8 +25,7 @@ A code N is accepted when its bin centre's path length lies in the bound.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtri
@@ -308,42 +307,3 @@ def truth_suffix(truth: dict | None) -> str:
         return ""
     return (f", recall {truth['recall']:.4f}, noise rejection "
             f"{truth['noise_rejection']:.4f}")
-
-
-@dataclass
-class ClassificationResult:
-    """Labels of a recording and the counts
-    (:func:`mems_stereo.pipeline.classify_recording`).
-
-    labels : (K, H, W) uint8 (0 none / unknown angle, 1 signal, 2 noise);
-    theta : (K,) float64 rad (NaN where unknown); valid : (K,) bool;
-    counts : :class:`~mems_stereo.pipeline.pass1.Counts` (shots,
-    shots_unknown_angle, raw, signal, noise); confidence : float;
-    truth : recall and noise rejection against ``/truth/label`` (None without truth).
-    """
-
-    labels: np.ndarray
-    theta: np.ndarray
-    valid: np.ndarray
-    counts: Mapping = field(default_factory=dict)
-    confidence: float = DEFAULT_CONFIDENCE
-    truth: dict | None = None
-
-    def __repr__(self) -> str:
-        c = self.counts
-        return (f"<ClassificationResult {c['shots']} shots, {c['raw']} detections: "
-                f"{c['signal']} signal, {c['noise']} noise{truth_suffix(self.truth)}>")
-
-
-def __getattr__(name):
-    # version 0.1 had classify_recording here (exact angles, other count keys); it
-    # moved to the pass-1 stage so that it labels exactly as process_recording does
-    if name == "classify_recording":
-        import importlib
-        import warnings
-
-        warnings.warn("mems_stereo.pipeline.consistency.classify_recording moved to "
-                      "mems_stereo.pipeline.classify_recording (also ms.classify_recording)",
-                      DeprecationWarning, stacklevel=2)
-        return importlib.import_module("mems_stereo.pipeline.pass1").classify_recording
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

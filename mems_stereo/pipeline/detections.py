@@ -16,12 +16,12 @@ from mems_stereo.geometry.triangulation import (
     epipolar_stereo_point,
 )
 from mems_stereo.geometry.uncertainty import (
-    _STEPS,
+    DIFF_STEPS,
     INPUTS,
     Spreads,
-    _as_inputs,
-    _rays,
+    as_inputs,
     jacobian,
+    pixel_rays,
     propagate,
     spreads_for,
     stereo_point_est,
@@ -115,7 +115,7 @@ def _tof_point_ext(system: System, u, v, L, theta) -> np.ndarray:
 
 def _s_stereo(system, u, v, L, theta):
     d = scan_direction(theta, system.scanner)
-    s = epipolar_stereo_point(system.scanner.position, d, _rays(system, u, v))[1]
+    s = epipolar_stereo_point(system.scanner.position, d, pixel_rays(system, u, v)).s
     return np.stack([s, np.zeros_like(s), np.zeros_like(s)], axis=1)
 
 
@@ -160,15 +160,37 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     if sp.param_names:
         dp = _detection_points_reference(system, shot_idx, rows, cols, codes, theta, sp)
         return (dp.fused, dp.cov_fused, dp.ok) if fused_only else dp
-    u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
-    x_in = _as_inputs(u, v, L, th)
+    inp = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
+    x_in = as_inputs(inp.u, inp.v, inp.L, inp.theta)
     p = np.asarray(system.scanner.position)
     U, V, Lx, TH = x_in["u"], x_in["v"], x_in["L"], x_in["theta"]
-    hu, hv, hL, ht = (_STEPS[n] for n in INPUTS)
+    hu, hv, hL, ht = (DIFF_STEPS[n] for n in INPUTS)
     sig = sp.input_sigmas(system)
     var_in = [sig[n] ** 2 for n in INPUTS]
     first, run = _runs(U, V, TH)
     Ur, Vr, Tr = U[first], V[first], TH[first]
+    # per run of equal (u, v, θ): scan directions and the stereo geometry
+    R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
+         else stereo_cache.get(system, sp, Ur, Vr, Tr))
+    kernels = compiled_entries() if U.size >= COMPILED_ROWS else None
+    if kernels is not None:  # the per-detection part in compiled passes (same bits)
+        bb = float(p @ p)
+        scal = [bb, TOF_LINEAR_BELOW * math.sqrt(bb), hL, 2.0 * hu, 2.0 * hv, 2.0 * hL,
+                2.0 * ht, *var_in, sp.sigma_L(system) ** 2]
+        out = entries(np.arange(U.size) if run is None else run, Lx, p, scal, R,
+                      not fused_only, kernels)
+        return out if fused_only else DetectionPoints(*out)
+    return _entries_numpy(system, sp, R, run, Lx, fused_only)
+
+
+def _entries_numpy(system: System, sp: Spreads, R: dict, run, Lx, fused_only: bool):
+    """The per-detection part of :func:`detection_points` in NumPy, from the runs'
+    stereo geometry ``R`` (:func:`_stereo_runs`), each detection's run ``run`` (M,)
+    (None: every detection its own run) and path length ``Lx`` (M,) m."""
+    p = np.asarray(system.scanner.position)
+    hu, hv, hL, ht = (DIFF_STEPS[n] for n in INPUTS)
+    sig = sp.input_sigmas(system)
+    var_in = [sig[n] ** 2 for n in INPUTS]
 
     def gather(a):  # per run -> per detection
         return a if run is None else a[run]
@@ -176,17 +198,6 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     def diff(a, b, h):
         return (a - b) / (2.0 * h)
 
-    # per run of equal (u, v, θ): scan directions and the stereo geometry
-    R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
-         else stereo_cache.get(system, sp, Ur, Vr, Tr))
-    kernel = compiled_entries() if U.size >= COMPILED_ROWS else None
-    if kernel is not None:  # the per-detection part below in one compiled pass (same bits)
-        bb = float(p @ p)
-        scal = [bb, TOF_LINEAR_BELOW * math.sqrt(bb), hL, 2.0 * hu, 2.0 * hv, 2.0 * hL,
-                2.0 * ht, *var_in, sp.sigma_L(system) ** 2]
-        out = entries(np.arange(U.size) if run is None else run, Lx, p, scal, R,
-                      not fused_only, kernel)
-        return out if fused_only else DetectionPoints(*out)
     c_st = None if fused_only else gather(R["c_st"])
     var_st = gather(R["var_st"])
     x_st = None if fused_only else gather(R["x0"])
@@ -241,20 +252,21 @@ def _stereo_runs(system: System, sp: Spreads, Ur, Vr, Tr, want_cov: bool = True)
     the stereo point ``x0`` (R, 3), its ``s`` of each variant ``s0, su+, …, st-`` (R,),
     covariance ``c_st`` (R, 3, 3) (None unless ``want_cov``), along-ray variance
     ``var_st`` (R,) and ``ok_st`` (R,).  Every value is a function of its own run."""
-    hu, hv, _, ht = (_STEPS[n] for n in INPUTS)
+    hu, hv, _, ht = (DIFF_STEPS[n] for n in INPUTS)
     sig = sp.input_sigmas(system)
     var_in = [sig[n] ** 2 for n in INPUTS]
     p = np.asarray(system.scanner.position)
     dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
           "t-": scan_direction(Tr - ht, system.scanner)}
-    ray0 = _rays(system, Ur, Vr)
+    ray0 = pixel_rays(system, Ur, Vr)
     E = {}  # (point (R, 3), s (R,)) of each variant
-    for key, ray, dk in (("0", ray0, "0"), ("u+", _rays(system, Ur + hu, Vr), "0"),
-                         ("u-", _rays(system, Ur - hu, Vr), "0"),
-                         ("v+", _rays(system, Ur, Vr + hv), "0"),
-                         ("v-", _rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
+    for key, ray, dk in (("0", ray0, "0"), ("u+", pixel_rays(system, Ur + hu, Vr), "0"),
+                         ("u-", pixel_rays(system, Ur - hu, Vr), "0"),
+                         ("v+", pixel_rays(system, Ur, Vr + hv), "0"),
+                         ("v-", pixel_rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
                          ("t-", ray0, "t-")):
-        E[key] = epipolar_stereo_point(system.scanner.position, dr[dk], ray)[:2]
+        esp = epipolar_stereo_point(system.scanner.position, dr[dk], ray)
+        E[key] = (esp.points, esp.s)
 
     def diff(a, b, h):
         return (a - b) / (2.0 * h)
@@ -374,7 +386,18 @@ def _compiled_cov():
     return compiled_if_loaded(_cov_py)
 
 
-def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):
+@dataclass(frozen=True, slots=True)
+class DetectionInputs:
+    """The estimators' inputs of M detections, (M,) float64 each: pixel column ``u``
+    and row ``v`` (px), path length ``L`` (m) and scan angle ``theta`` (rad)."""
+
+    u: np.ndarray
+    v: np.ndarray
+    L: np.ndarray
+    theta: np.ndarray
+
+
+def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta) -> DetectionInputs:
     shot_idx = np.asarray(shot_idx, dtype=np.int64).ravel()
     th_all = np.asarray(theta, dtype=np.float64).ravel()
     if shot_idx.size and (shot_idx.min() < 0 or shot_idx.max() >= th_all.size):
@@ -386,7 +409,7 @@ def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta):
     if not (u.shape == v.shape == L.shape == th.shape):
         raise GeometryError(f"shot_idx, rows, cols, codes: expected equal shapes, found "
                             f"{shot_idx.shape}, {v.shape}, {u.shape}, {L.shape}")
-    return u, v, L, th
+    return DetectionInputs(u, v, L, th)
 
 
 def _detection_result(x_st, c_st, x_tf, c_tf, x_f, c_f, w, J_tf, d, ok=None):
@@ -404,7 +427,8 @@ def _detection_points_reference(system: System, shot_idx, rows, cols, codes, the
     """:func:`detection_points` by propagating each estimator on its own (the
     reference it is tested against; used with a calibration covariance)."""
     sp = spreads_for(system) if spreads is None else spreads
-    u, v, L, th = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
+    inp = _detection_inputs(system, shot_idx, rows, cols, codes, theta)
+    u, v, L, th = inp.u, inp.v, inp.L, inp.theta
     x_st, c_st = propagate(stereo_point_est, system, u, v, L, th, sp)
     x_tf, c_tf = propagate(_tof_point_ext, system, u, v, L, th, sp)
     # conditional (given θ) along-ray variances: pixel for stereo, timing for ToF

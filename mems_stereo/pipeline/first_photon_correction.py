@@ -7,18 +7,19 @@ peak's signal photons per shot from which shots of its band fired
 (:func:`mems_stereo.physics.first_photon.first_photon_delay`) and removes
 that delay from the peak's ToF mean, with its uncertainty and the model's
 own systematic allowance.  ``acc`` is the
-:class:`~mems_stereo.pipeline.fusion.PeakAccumulator` whose sums are used.
+:class:`~mems_stereo.pipeline.peak_accumulator.PeakAccumulator` whose sums are used.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import spreads_for
-from mems_stereo.physics.first_photon import MU_MAX, _firing_probability, first_photon_delay
+from mems_stereo.physics.first_photon import MU_MAX, firing_probability, first_photon_delay
 from mems_stereo.physics.spot import spot_fraction
 
 #: peaks per block of the first-photon correction (by peak index; see
@@ -53,13 +54,50 @@ def correcting(acc) -> bool:
     return (acc.first_photon and acc.shots_per_step is not None
             and bool(np.any(acc.band[1] >= acc.band[0])))
 
-def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False):
-    """(Q', B) steps around the inlier band of each peak ``q`` ((Q',) int, default
-    all; the band widened by its width plus 8 steps on each side), the valid
-    shots of each (0 outside) and the spot share of the pixel at each step
-    (target at the peak's centre; 0 where no shot counts).  B is the widest of
-    these peaks' bands.  With ``full``, also the spot share at every step of
-    the range (the profile whatever the shots)."""
+@dataclass(frozen=True, slots=True)
+class BandSteps:
+    """The angle steps around the inlier bands of Q' peaks (:func:`band_steps`).
+
+    steps : (Q', B) int64, the steps (B the widest band of these peaks).
+    shots : (Q', B) float64, the valid shots counted at each (0 outside the band).
+    spot : (Q', B) float64, the spot's share of the pixel at each step (target at the
+        peak's centre range; 0 where no shot counts).
+    spot_full : (Q', B) float64, the spot's share at every step of the widened band
+        (the profile whatever the shots), or None unless asked for.
+    """
+
+    steps: np.ndarray
+    shots: np.ndarray
+    spot: np.ndarray
+    spot_full: np.ndarray | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class FirstPhotonCorrection:
+    """The first-photon correction of Q peaks (:func:`first_photon_correction`).
+
+    delay : (Q,) float64 s, the delay removed from the ToF mean (NaN: not corrected).
+    mu : (Q,) float64, posterior mean signal photons per shot μ0 (NaN: not corrected).
+    sigma_L : (Q,) float64 m, the delay's σ as path length (systematic).
+    angle_binomial : (Q,) float64 in [0, 1], the binomial factor of the mean angle's
+        variance (:func:`angle_binomial_factor`).
+    angle_bias : (Q,) float64 rad, the mean angle's expected bias (:func:`mean_angle_bias`).
+    tof : ``(x (Q, 3) m, C (Q, 3, 3) m²)`` the ToF mean corrected.
+    """
+
+    delay: np.ndarray
+    mu: np.ndarray
+    sigma_L: np.ndarray
+    angle_binomial: np.ndarray
+    angle_bias: np.ndarray
+    tof: tuple[np.ndarray, np.ndarray]
+
+
+def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False) -> BandSteps:
+    """The steps around the inlier band of each peak ``q`` ((Q',) int, default all;
+    the band widened by its width plus 8 steps on each side), the valid shots of
+    each and the spot share of the pixel at each step (:class:`BandSteps`; with
+    ``full`` also its ``spot_full``)."""
     q = np.arange(acc.Q) if q is None else np.asarray(q, np.int64)
     lo, hi = acc.band[0][q], acc.band[1][q]
     centre = np.nan_to_num(acc.centre[q], nan=1.0)
@@ -81,9 +119,9 @@ def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False):
     f = spot_fraction(acc.system, acc.rows[q, None], acc.cols[q, None], t0 + steps * dt,
                       centre[:, None], acc.spot_sigma)
     if full:
-        return steps, n.astype(np.float64), np.where(n > 0, f, 0.0), np.where(
-            (steps >= a[:, None]) & (steps <= b[:, None]), f, 0.0)
-    return steps, n.astype(np.float64), np.where(n > 0, f, 0.0)
+        return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0), np.where(
+            (steps >= a[:, None]) & (steps <= b[:, None]), f, 0.0))
+    return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0))
 
 
 def mean_angle_bias(steps, n_band, f_band, f_full, mu) -> np.ndarray:
@@ -98,8 +136,7 @@ def mean_angle_bias(steps, n_band, f_band, f_full, mu) -> np.ndarray:
     it moves towards the denser side, while the spot is centred where the
     firing profile ``1 − exp(−μ0 f)`` of the unmasked share ``f_full`` has its
     centroid.  The difference is what :class:`PeakAccumulator` removes from the
-    mean angle (sweep case 19043, column 5 of 192, 2 m: the stereo 5.4 cm
-    behind the wall where this predicts 5.7 cm).  ``steps``, ``n_band``,
+    mean angle.  ``steps``, ``n_band``,
     ``f_band``, ``f_full`` (Q, B) as :func:`band_steps` (``full=True``); ``mu`` (Q,).
     0 where undefined.
     """
@@ -138,11 +175,12 @@ def angle_binomial_factor(steps, n_band, f_band, mu, theta_bar) -> np.ndarray:
     return np.where(np.isfinite(r) & dense, np.clip(r, 0.0, 1.0), 1.0)
 
 
-def first_photon_correction(acc, mean: dict) -> dict:
-    """Apply the first-photon correction to ``mean`` (in place; see the class
-    docstring); returns per peak the delay (s), its σ as path length (m), μ0, the
-    binomial factor of the mean angle's variance (:func:`angle_binomial_factor`)
-    and the mean angle's expected bias (rad, :func:`mean_angle_bias`)."""
+def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
+    """The first-photon correction of the accumulator's peaks (see
+    :class:`~mems_stereo.pipeline.peak_accumulator.PeakAccumulator`): ``fused_point``
+    (Q, 3) m the peak-level fused point (the pulse's centre), ``tof`` ``(x, C)`` the
+    uncorrected ToF mean; returns the delays, μ0, the mean angle's figures and the
+    corrected ToF mean (:class:`FirstPhotonCorrection`)."""
     s = acc.system
     sp = spreads_for(s) if acc.spreads is None else acc.spreads
     sigma = math.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter)
@@ -150,11 +188,11 @@ def first_photon_correction(acc, mean: dict) -> dict:
            "sigma_L": np.zeros(acc.Q), "angle_binomial": np.ones(acc.Q),
            "angle_bias": np.zeros(acc.Q)}
     # pulse centre from the fused point (stereo-dominated near the TDC start)
-    tau = path_length_of_point(mean["fused"][0], s.scanner.position) / s.speed_of_light
+    tau = path_length_of_point(fused_point, s.scanner.position) / s.speed_of_light
     tau = tau + s.tdc.offset
     ok = (acc.band[1] >= acc.band[0]) & np.isfinite(tau) & np.isfinite(acc.centre)
     if sigma <= 0 or not np.any(ok):
-        return out
+        return FirstPhotonCorrection(**out, tof=tof)
     idx = np.flatnonzero(ok)
     d, sd, var, mu, ab, bias, sm = (np.empty(idx.size) for _ in range(7))
     t0, dt = acc.step_grid
@@ -169,21 +207,20 @@ def first_photon_correction(acc, mean: dict) -> dict:
         if b <= a:
             continue
         q = idx[a:b]
-        steps, n_band, f_band, f_full = band_steps(acc, q, full=True)
+        band = band_steps(acc, q, full=True)
+        steps, n_band, f_band, f_full = band.steps, band.shots, band.spot, band.spot_full
         ll = acc.sums.loglik[q] + np.einsum(
-            "qb,qbj->qj", n_band, np.log1p(-_firing_probability(f_band)))
+            "qb,qbj->qj", n_band, np.log1p(-firing_probability(f_band)))
         d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
         # μ0 at the top of its grid, and more firings than even MU_BEYOND_GRID times
         # that μ0 would give: they reach further from the pixel than the model's spot
         # explains (a surface whose range changes across the band, the model taking
-        # it constant: sweep case 26039, a box face at 0.45–1 m seen at grazing
-        # incidence, μ0 100 where the simulator's was 7–113, inliers 1.3–1.6 times
-        # the firings μ0 = 100 predicts, the mean angle 1–7 steps from the pixel's
-        # while its binomial σ was 1–2 steps; a return truly 4× the grid's top fires
-        # 1.1 times).  The binomial variance rests on the model's firing
-        # probabilities: without them the mean angle keeps its scatter's spread
+        # it constant, e.g. a face seen at grazing incidence; a return truly 4× the
+        # grid's top does not fire that much more).  The binomial variance rests on
+        # the model's firing probabilities: without them the mean angle keeps its
+        # scatter's spread
         k_top = np.sum(n_band * -np.expm1(-MU_BEYOND_GRID * MU_MAX * f_band), axis=1)
         unexplained = (mu[a:b] >= MU_PINNED_FRACTION * MU_MAX) & (acc.sums.detections[q] > k_top)
         ab[a:b] = np.where(unexplained, 1.0, ab[a:b])
@@ -209,6 +246,5 @@ def first_photon_correction(acc, mean: dict) -> dict:
     out["angle_binomial"][ok] = ab
     out["angle_bias"][ok] = bias * dt  # rad
     D, G = acc.sums.tof.dL()
-    x, C = mean["tof"]
-    mean["tof"] = (x + D * dL[:, None], C + G * dvar[:, None, None])
-    return out
+    x, C = tof
+    return FirstPhotonCorrection(**out, tof=(x + D * dL[:, None], C + G * dvar[:, None, None]))

@@ -10,12 +10,12 @@ inside the pixels read in its shot, and give the per-shot pixel counts of
 ``/readout/count``.  Monitors that do not describe the trajectory the gate
 was computed with break this: an inverted zero-crossing polarity mirrors
 the scan angle about θ0 (the crossings stay alternating and spaced for
-``f_mech``, so the format's checks cannot see it) and leaves 2–20 % of the
-samples' detections inside the recomputed gate.
+``f_mech``, so the format's checks cannot see it) and leaves only a small share of
+the detections inside the recomputed gate.
 
 :func:`gate_evidence` counts the detections inside the recomputed gate (on
-all shots, or on a random sample of :data:`SAMPLE_SHOTS` shots, about
-0.1 s); :func:`check_gate` refuses a recording with fewer than
+all shots, or on a random sample of :data:`SAMPLE_SHOTS` shots, quick on any
+recording); :func:`check_gate` refuses a recording with fewer than
 :data:`REFUSE_INSIDE` of them inside (naming the monitor whose inverted
 polarity explains the detections, where one does) and warns below
 :data:`WARN_INSIDE`.

@@ -27,102 +27,137 @@ code boxes of that window's widest accepted interval; then the boxes of the
 whole scan, against the scan's accepted (step, code) area over one box's.
 Background alone therefore passes one of the stages with probability at most
 2·``false_alarm`` per pixel (nominal: Bonferroni).  Large grids are searched
-coarse to fine (:class:`_BoxGrid`).  A
+coarse to fine (:class:`~mems_stereo.pipeline.matched_boxes.BoxGrid`).  A
 confirmation that no neighbour on the same surface supports — no first-stage
 peak or confirmation grown from them within
-:data:`~mems_stereo.pipeline.peaks.SUPPORT_COLUMNS` at an agreeing range
-(:func:`mems_stereo.pipeline.peaks.neighbour_support`,
-:func:`mems_stereo.pipeline.peaks.support_ranges`) — must pass the per-frame
+:data:`~mems_stereo.pipeline.peak_support.SUPPORT_COLUMNS` at an agreeing range
+(:func:`mems_stereo.pipeline.peak_support.neighbour_support`,
+:func:`mems_stereo.pipeline.peak_support.support_ranges`) — must pass the per-frame
 level, as in the first stage: its box's scan p-value (:func:`scan_box_sf`) below
 ``MATCHED_SHARE · FRAME_FALSE_ALARMS / n_pixels``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
+from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
-from mems_stereo.pipeline.peaks import (
+from mems_stereo.pipeline.peak_support import (
     FRAME_FALSE_ALARMS,
     SUPPORT_COLUMNS,
-    Peaks,
     neighbour_support,
     scan_sf,
     support_ranges,
-    window_rows,
 )
+from mems_stereo.pipeline.peak_table import PEAK_ARRAYS, Candidates, Peaks, window_rows
 from mems_stereo.pipeline.settings import Settings
 
 #: share of ``false_alarm`` given to the matched-filter stage
 MATCHED_SHARE = 0.5
 #: cells of codes per half box (the box is ± one FWHM to within a cell; coarser
-#: cells, 4 per half box, lost half the confirmations of sweep case 15015)
+#: cells lose confirmations)
 CELLS_PER_HALF_BOX = 24
-#: the most (step × cell) positions a candidate's grid is searched at in full; beyond
-#: (a whole scan's band of steps: candidates search it all, see
-#: :data:`~mems_stereo.pipeline.peaks.CANDIDATE_WHOLE_SCAN`), coarse to fine
-FULL_SCAN_CELLS = 400_000
-#: the same for a whole scan's grid (thousands of steps × a narrow interval: the
-#: exhaustive search took 40–50 ms a pixel on the dense floodlight, the coarse one 5)
-WHOLE_SCAN_FULL_CELLS = 50_000
-#: coarse blocks per box side in the coarse search (a box quantised to within 1/4;
-#: sweep case 30003 keeps the 68 points of 1/8 with a quarter of the coarse grid)
-COARSE_BOX_UNITS = 4
-#: coarse boxes refined exactly
-COARSE_TOP = 4
-#: in the refinement the Poisson tail is evaluated only at boxes whose deviance
-#: N ln(N/B) − (N − B) is within this of the largest
-DEVIANCE_MARGIN = 5.0
 
 
-def score_candidates(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
-                     settings: Settings, width: int, n_windows) -> dict:
-    """Each candidate's best box and its tests (the per-candidate part of
-    :func:`confirm`, which a Dask run computes in blocks of candidates on its workers,
-    where their counts are: :func:`candidates_block`).
+@dataclass(frozen=True, slots=True)
+class BoxSearch:
+    """A candidate's best box over a range of its steps (:func:`score_candidates`).
 
-    Returns (C,) arrays ``found`` (bool: the box passes its test's per-pixel level),
-    ``best`` (C, 4) (centre step, centre code, count, background), ``p_best``,
-    ``p_frame`` (the box's scan p-value over the whole scan) and ``level``."""
-    C = len(cands)
-    W = system.receiver.width
-    n_bins = system.tdc.n_bins
-    S = table.n_steps
-    bw = system.tdc.bin_width
-    m = max(1, int(round(system.laser.pulse_fwhm / bw)))
-    cell = max(1, m // CELLS_PER_HALF_BOX)
-    n_per_step = np.asarray(n_per_step, np.float64)
-    q, step, code = decode_peak_keys(counts.keys, S, n_bins + 1)
-    cnt = counts.counts.astype(np.float64)
-    order = np.argsort(q, kind="stable")
-    q, step, code, cnt = q[order], step[order], code[order], cnt[order]
-    start = np.searchsorted(q, np.arange(C + 1))
-    found = np.zeros(C, bool)
-    best = np.zeros((C, 4))  # j0, c0, count, background
-    p_best = np.ones(C)
-    p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
-    level = np.zeros(C)
-    pix = cands.pixel(W)
-    half_c = m // cell
-    box_codes = (2 * half_c + 1) * cell
-    local_lo = getattr(cands, "local_lo", None)
-    local_hi = getattr(cands, "local_hi", None)
+    p : float, the box's Poisson p-value; step, code : int, its centre (angle step of
+    the interval table, TDC code); count, background : float, its count and expected
+    background; level : float, the p-value the box must stay below (the stage's share
+    of ``false_alarm`` over its box positions); n_code_pos : float, those positions
+    per footprint window.
+    """
 
-    def search(i, a, b, whole):
-        """The candidate's best box over steps a..b: ``(p, j0, c0, count, background,
-        level, code positions per window)`` or None."""
+    p: float
+    step: int
+    code: int
+    count: float
+    background: float
+    level: float
+    n_code_pos: float
+
+    @property
+    def passes(self) -> bool:
+        """Whether the box passes its test's per-pixel level."""
+        return self.p < self.level
+
+
+@dataclass(frozen=True, slots=True)
+class CandidateScores:
+    """Each candidate's best box and its tests (:func:`score_candidates`), (C,) arrays.
+
+    found : bool, the box passes its test's per-pixel level; step, code : float64, the
+    box's centre (angle step, TDC code; integers); count, background : float64, its
+    count and expected background; p_best : float64, its Poisson p-value; p_frame :
+    float64, its scan p-value over the whole scan (:func:`scan_box_sf`); level :
+    float64, its test's level.  A candidate without a box has found False, p 1 and
+    zeros.  Blocks of consecutive candidates join with :meth:`concat`.
+    """
+
+    found: np.ndarray
+    step: np.ndarray
+    code: np.ndarray
+    count: np.ndarray
+    background: np.ndarray
+    p_best: np.ndarray
+    p_frame: np.ndarray
+    level: np.ndarray
+
+    @classmethod
+    def concat(cls, parts) -> CandidateScores:
+        """The scores of consecutive blocks of candidates, in order, as one."""
+        parts = list(parts)
+        return cls(*(np.concatenate([getattr(p, f) for p in parts])
+                     for f in ("found", "step", "code", "count", "background", "p_best",
+                               "p_frame", "level")))
+
+
+class _CandidateSearch:
+    """The box search of :func:`score_candidates` over the candidates' counted entries."""
+
+    def __init__(self, system: System, cands: Candidates, counts: PeakCounts, table,
+                 n_per_step, settings: Settings):
+        C = len(cands)
+        n_bins = system.tdc.n_bins
+        self.cands, self.table, self.settings = cands, table, settings
+        self.bw = system.tdc.bin_width
+        self.m = max(1, int(round(system.laser.pulse_fwhm / self.bw)))
+        self.cell = max(1, self.m // CELLS_PER_HALF_BOX)
+        self.n_per_step = np.asarray(n_per_step, np.float64)
+        q, step, code = decode_peak_keys(counts.keys, table.n_steps, n_bins + 1)
+        cnt = counts.counts.astype(np.float64)
+        order = np.argsort(q, kind="stable")
+        q, self.step, self.code, self.cnt = q[order], step[order], code[order], cnt[order]
+        self.start = np.searchsorted(q, np.arange(C + 1))
+        self.pix = cands.pixel(system.receiver.width)
+        self.half_c = self.m // self.cell
+        self.box_codes = (2 * self.half_c + 1) * self.cell
+
+    def has_entries(self, i: int) -> bool:
+        """Whether candidate ``i`` has any counted entry."""
+        return bool(self.start[i + 1] > self.start[i])
+
+    def search(self, i: int, a: int, b: int, whole: bool) -> BoxSearch | None:
+        """Candidate ``i``'s best box over steps a..b (``whole``: its whole scan, else
+        the first stage's window), or None."""
+        cands, table, m, cell = self.cands, self.table, self.m, self.cell
         steps = np.arange(a, b + 1)
-        shot = n_per_step[steps] > 0  # steps without valid shots hold nothing
+        shot = self.n_per_step[steps] > 0  # steps without valid shots hold nothing
         table.ensure(steps[shot])
-        lo = np.where(shot, table.lo[steps, pix[i]], 1).astype(np.int64)
-        hi = np.where(shot, table.hi[steps, pix[i]], 0).astype(np.int64)
+        lo = np.where(shot, table.lo[steps, self.pix[i]], 1).astype(np.int64)
+        hi = np.where(shot, table.hi[steps, self.pix[i]], 0).astype(np.int64)
         okj = lo <= hi
         if not np.any(okj):
             return None
-        sl = slice(start[i], start[i + 1])
-        e_step, e_code, e_cnt = step[sl], code[sl], cnt[sl]
+        sl = slice(self.start[i], self.start[i + 1])
+        e_step, e_code, e_cnt = self.step[sl], self.code[sl], self.cnt[sl]
         inside = (e_step >= a) & (e_step <= b)
         if not np.all(inside):
             e_step, e_code, e_cnt = e_step[inside], e_code[inside], e_cnt[inside]
@@ -135,70 +170,77 @@ def score_candidates(system: System, cands: Peaks, counts: PeakCounts, table, n_
         # codes in cells of ``cell`` (a quarter of the box's half-width): the box is
         # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
         n_cell = (c_hi - c_lo) // cell + 1
-        h = -np.expm1(-float(np.nan_to_num(cands.rate_hz[i])) * bw)
-        grid = _BoxGrid(e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi,
-                        n_per_step[steps], c_lo, cell, np.log1p(-min(h, 1 - 1e-15)),
-                        steps.size, n_cell)
-        box = grid.best(width, 2 * half_c + 1, settings.min_counts,
+        h = -np.expm1(-float(np.nan_to_num(cands.rate_hz[i])) * self.bw)
+        grid = BoxGrid(e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi,
+                       self.n_per_step[steps], c_lo, cell, np.log1p(-min(h, 1 - 1e-15)),
+                       n_cell)
+        box = grid.best(cands.width, 2 * self.half_c + 1, self.settings.min_counts,
                         WHOLE_SCAN_FULL_CELLS if whole else None)
         if box is None:
             return None
-        p_min, jj, ci, n_box, b_box = box
+        n_w = cands.n_windows[i]
         if whole:
             # the box positions of the whole scan: its accepted (step, code) area over
             # one box's, as code positions per footprint window (the widest interval
             # times the windows over-counts them where the width varies: a scan past
             # the beam's vanishing point accepts every code at a few steps)
             area = float(np.sum(hi[okj] - lo[okj] + 1))
-            n_code_pos = max(1.0, area / (width * box_codes) / max(1.0, float(n_windows[i])))
+            n_code_pos = max(1.0, area / (cands.width * self.box_codes) / max(1.0, float(n_w)))
         else:  # the first stage's window: the code boxes of its widest interval
-            n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / box_codes)
-        lvl = settings.false_alarm * MATCHED_SHARE / (max(1.0, n_windows[i]) * n_code_pos)
-        return (p_min, a + jj, c_lo + ci * cell + cell // 2, n_box, b_box, lvl, n_code_pos)
+            n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / self.box_codes)
+        lvl = self.settings.false_alarm * MATCHED_SHARE / (max(1.0, n_w) * n_code_pos)
+        return BoxSearch(box.p, a + box.j, c_lo + box.k * cell + cell // 2, box.count,
+                         box.background, lvl, n_code_pos)
 
+
+def score_candidates(system: System, cands: Candidates, counts: PeakCounts, table, n_per_step,
+                     settings: Settings) -> CandidateScores:
+    """Each candidate's best box and its tests (the per-candidate part of
+    :func:`confirm`, which a Dask run computes in blocks of candidates on its workers,
+    where their counts are: :func:`candidates_block`); ``counts`` : the candidates'
+    pass-2 counts, ``table`` : the run's interval table, ``n_per_step`` : (S,) valid
+    shots per step."""
+    C = len(cands)
+    found = np.zeros(C, bool)
+    best = np.zeros((4, C))  # step, code, count, background
+    p_best = np.ones(C)
+    p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
+    level = np.zeros(C)
+    search = _CandidateSearch(system, cands, counts, table, n_per_step, settings)
+    local_lo, local_hi = cands.local_lo, cands.local_hi
     for i in range(C):
-        if start[i + 1] <= start[i]:
+        if not search.has_entries(i):
             continue
         # two tests, each at the stage's share of false_alarm: the footprints around
-        # the first stage's strongest window (a near miss of that stage, the
-        # confirmations of before), then the candidate's whole scan (where the
-        # accepted interval is much wider than the pulse that window is where the
-        # background bunched: sweep case 30003, the returns 1,000–8,000 steps from it)
+        # the first stage's strongest window (a near miss of that stage), then the
+        # candidate's whole scan (where the accepted interval is much wider than the
+        # pulse that window is where the background bunched)
         res = None
-        if local_lo is not None and local_lo[i] >= 0:
-            res = search(i, int(local_lo[i]), int(local_hi[i]), False)
+        if local_lo[i] >= 0:
+            res = search.search(i, int(local_lo[i]), int(local_hi[i]), False)
         a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
-        if (res is None or not res[0] < res[5]) and not (
-                local_lo is not None and (local_lo[i], local_hi[i]) == (a, b)):
-            whole = search(i, a, b, True)
-            if whole is not None and (res is None or whole[0] < whole[5]):
+        if (res is None or not res.passes) and (local_lo[i], local_hi[i]) != (a, b):
+            whole = search.search(i, a, b, True)
+            if whole is not None and (res is None or whole.passes):
                 res = whole
         if res is None:
             continue
-        p_best[i], j0, c0, n_box, b_box, level[i], n_code_pos = res
-        best[i] = (j0, c0, n_box, b_box)
+        p_best[i], level[i] = res.p, res.level
+        best[:, i] = (res.step, res.code, res.count, res.background)
         # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
-        # it lets 10–30× more through, the box sliding by single steps and cells of
-        # 1/24 FWHM: bench_false_alarms.py, docs/pipeline.md — a confirmation also needs
-        # support on a surface a first-stage peak found, or the per-frame level); the
-        # scan p-value over the whole scan's boxes for the per-frame level (at the
-        # per-pixel level it kept 36 of sweep case 30018's 88 points)
+        # the box sliding by single steps and cells lets more through: a confirmation
+        # also needs support on a surface a first-stage peak found, or the per-frame
+        # level); the scan p-value over the whole scan's boxes for the per-frame level
         found[i] = p_best[i] < level[i]
-        p_frame[i] = scan_box_sf(n_box, b_box, max(1.0, n_windows[i]), n_code_pos)
-    return {"found": found, "best": best, "p_best": p_best, "p_frame": p_frame,
-            "level": level}
+        p_frame[i] = scan_box_sf(res.count, res.background, max(1.0, cands.n_windows[i]),
+                                 res.n_code_pos)
+    return CandidateScores(found, *best, p_best, p_frame, level)
 
 
-def candidates_block(cands: Peaks, n_windows, i0: int, i1: int):
-    """``(candidates i0..i1−1, their n_windows)``: the fields :func:`score_candidates`
-    reads (no ``background_by_step``), for a block scored elsewhere."""
-    sub = Peaks(**{f: np.asarray(getattr(cands, f))[i0:i1]
-                   for f in Peaks.__dataclass_fields__ if f != "background_by_step"})
-    for name in ("local_lo", "local_hi"):
-        v = getattr(cands, name, None)
-        if v is not None:
-            setattr(sub, name, np.asarray(v)[i0:i1])
-    return sub, np.asarray(n_windows)[i0:i1]
+def candidates_block(cands: Candidates, i0: int, i1: int) -> Candidates:
+    """Candidates ``i0..i1−1`` with the fields :func:`score_candidates` reads (no
+    ``background_by_step``), for a block scored elsewhere."""
+    return cands.take(slice(i0, i1))
 
 
 def split_candidate_counts(counts: PeakCounts, edges, n_steps: int,
@@ -214,42 +256,35 @@ def split_candidate_counts(counts: PeakCounts, edges, n_steps: int,
     return out
 
 
-def join_scores(parts) -> dict:
+def join_scores(parts) -> CandidateScores:
     """:func:`score_candidates`'s results of consecutive blocks, joined."""
-    parts = list(parts)
-    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    return CandidateScores.concat(parts)
 
 
-def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
-            settings: Settings, width: int, n_windows, peak_pixels, peak_steps=None,
-            log_range_of=None, scores: dict | None = None) -> Peaks:
+def confirm(system: System, cands: Candidates, counts: PeakCounts, table, n_per_step,
+            settings: Settings, first: Peaks, log_range_of=None,
+            scores: CandidateScores | None = None) -> Peaks:
     """The candidates that the matched filter confirms, as :class:`Peaks`.
 
-    ``cands`` : candidate peaks (their ``step_lo..step_hi`` the steps counted in
-    ``counts``, ``code`` unused, ``background_by_step`` over a band that holds
-    every confirmed peak's); ``counts`` : their pass-2 counts; ``table`` :
-    the run's interval table; ``n_per_step`` : (S,) valid shots per step;
-    ``width`` : footprint in steps; ``n_windows`` : (C,) footprint-window
-    positions of each candidate's scan (the first stage's); ``peak_pixels`` : (Q,)
-    flat pixels of the first stage's peaks (neighbour support), ``peak_steps`` :
-    (Q,) their centre steps;
+    ``cands`` : the candidates (their ``step_lo..step_hi`` the steps counted in
+    ``counts``, ``background_by_step`` over a band that holds every confirmed peak's);
+    ``counts`` : their pass-2 counts; ``table`` : the run's interval table;
+    ``n_per_step`` : (S,) valid shots per step; ``first`` : the first stage's peaks
+    (neighbour support grows from their pixels and centre steps);
     ``log_range_of(pix, j)`` : log range of pixel ``pix`` at step ``j``: given, support
-    is by range (:func:`mems_stereo.pipeline.peaks.support_ranges`), optional.  The
-    confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)``
-    in pass 2, as the first stage's for a cluster one footprint wide.
-    ``scores`` : :func:`score_candidates`'s result, if computed elsewhere (``counts``
-    is then not read).
+    is by range (:func:`mems_stereo.pipeline.peak_support.support_ranges`), optional.
+    The confirmed peaks count the steps ``j0 ± (w//2 + w + w//2)`` (``w`` the
+    candidates' footprint) in pass 2, as the first stage's for a cluster one footprint
+    wide.  ``scores`` : :func:`score_candidates`'s result, if computed elsewhere
+    (``counts`` is then not read).
     """
     C = len(cands)
     W = system.receiver.width
     P = W * system.receiver.height
-    n_bins = system.tdc.n_bins
-    S = table.n_steps
+    width = cands.width
     if scores is None:
-        scores = score_candidates(system, cands, counts, table, n_per_step, settings, width,
-                                  n_windows)
-    found = np.array(scores["found"], bool)
-    best, p_frame = scores["best"], scores["p_frame"]
+        scores = score_candidates(system, cands, counts, table, n_per_step, settings)
+    found = np.array(scores.found, bool)
     pix = cands.pixel(W)
     # support grows from the first stage's peaks only (a chain of confirmations may
     # extend a surface they found); a confirmation without good support carries the
@@ -257,17 +292,18 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
     # background do not support each other)
     if np.any(found):
         anchor = np.zeros(P, bool)
-        peak_pixels = np.asarray(peak_pixels, np.int64)
+        peak_pixels = np.asarray(first.pixel(W), np.int64)
         anchor[peak_pixels] = True
         lr = None
         if log_range_of is not None:  # ranges of the peaks: support_ranges (P, 3)
             lr = np.full((P, 3), np.inf)
             lr[:, 0] = np.nan
             if peak_pixels.size:
+                peak_steps = (first.step_lo + first.step_hi) // 2
                 lr[peak_pixels] = support_ranges(system, table, peak_pixels,
                                                  np.asarray(peak_steps, np.int64), width)
             lr[pix[found]] = support_ranges(system, table, pix[found],
-                                            best[found, 0].astype(np.int64), width)
+                                            scores.step[found].astype(np.int64), width)
         supported = np.zeros(C, bool)
         while True:
             sup = neighbour_support(anchor, W, SUPPORT_COLUMNS, lr)
@@ -276,162 +312,38 @@ def confirm(system: System, cands: Peaks, counts: PeakCounts, table, n_per_step,
                 break
             supported |= new
             anchor[pix[new]] = True
-        found &= supported | (p_frame < MATCHED_SHARE * FRAME_FALSE_ALARMS / P)
-    sel = np.flatnonzero(found)
-    j0 = best[sel, 0].astype(np.int64)
+        found &= supported | (scores.p_frame < MATCHED_SHARE * FRAME_FALSE_ALARMS / P)
+    return _confirmed_peaks(system, cands, scores, np.flatnonzero(found), table.n_steps)
+
+
+def _confirmed_peaks(system: System, cands: Candidates, scores: CandidateScores, sel,
+                     n_steps: int) -> Peaks:
+    """The :class:`Peaks` of the confirmed candidates ``sel``: centred at their best
+    box, counting ± 1.5 footprints around its footprint."""
+    width = cands.width
+    j0 = scores.step[sel].astype(np.int64)
     half = width + width // 2
     step_lo = np.maximum(0, j0 - width // 2 - half)
-    step_hi = np.minimum(S - 1, j0 + width // 2 + half)
+    step_hi = np.minimum(n_steps - 1, j0 + width // 2 + half)
     bbs = cands.background_by_step
     rows_bbs = None
     if bbs is not None and sel.size:
         dense = np.asarray(bbs[sel].todense())
         rows_bbs = window_rows(dense, np.arange(sel.size), step_lo, step_hi)
-    return Peaks(row=cands.row[sel], col=cands.col[sel], code=best[sel, 1].astype(np.int64),
-                 code_lo=np.ones(sel.size, np.int64), code_hi=np.full(sel.size, n_bins, np.int64),
+    return Peaks(row=cands.row[sel], col=cands.col[sel],
+                 code=scores.code[sel].astype(np.int64),
+                 code_lo=np.ones(sel.size, np.int64),
+                 code_hi=np.full(sel.size, system.tdc.n_bins, np.int64),
                  step_lo=step_lo.astype(np.int64), step_hi=step_hi.astype(np.int64),
-                 counts=np.rint(best[sel, 2]).astype(np.int64), background=best[sel, 3],
-                 rate_hz=cands.rate_hz[sel], background_by_step=rows_bbs)
-
-
-class _BoxGrid:
-    """One candidate's counts and expected background over its counted steps × code
-    cells, and the smallest Poisson p-value of the (footprint × code) box over them.
-
-    ``ds``, ``dc``, ``cnt`` : (E,) each entry's step and cell index (0-based within
-    the candidate's grid) and count; ``lo``, ``hi`` : (n_steps,) the accepted codes of
-    each step; ``nps`` : (n_steps,) its valid shots; cell ``k`` holds codes
-    ``c_lo + cell·k …`` ; ``log1mh`` : ln(1 − h), h the chance of a background first
-    photon per code.  The background of cell k at step j is the valid shots times
-    P(first photon in the cell's codes ∩ [lo_j, hi_j]), F(c) = 1 − (1 − h)^c the chance
-    it came by code c (the free-running expectation: conservative).
-    """
-
-    def __init__(self, ds, dc, cnt, lo, hi, nps, c_lo, cell, log1mh, n_steps, n_cell):
-        self.ds, self.dc, self.cnt = ds, dc, cnt
-        self.lo, self.hi, self.nps = lo, hi, nps
-        self.c_lo, self.cell, self.log1mh = c_lo, cell, log1mh
-        self.n_steps, self.n_cell = n_steps, n_cell
-
-    def counts(self, j0, j1, k0, k1, fs=1, fc=1):
-        """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
-        k0..k1−1, summed in blocks of fs steps × fc cells."""
-        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
-        D = np.zeros((-(-(j1 - j0) // fs), -(-(k1 - k0) // fc)))
-        np.add.at(D, ((self.ds[m] - j0) // fs, (self.dc[m] - k0) // fc), self.cnt[m])
-        return D
-
-    def background(self, j0, j1, k0, k1, fc=1):
-        """The expected background of steps j0..j1−1 × cells k0..k1−1, the cells summed
-        in blocks of fc (see :meth:`counts`; :meth:`coarse_background` blocks steps)."""
-        e_lo = self.c_lo + self.cell * (k0 + fc * np.arange(-(-(k1 - k0) // fc)))
-        e_hi = np.minimum(e_lo + self.cell * fc - 1, self.c_lo + self.cell * k1 - 1)
-        a_c = np.maximum(e_lo[None, :], self.lo[j0:j1, None])
-        b_c = np.minimum(e_hi[None, :], self.hi[j0:j1, None])
-        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * self.log1mh)
-                      - np.exp(b_c * self.log1mh), 0.0)
-        return self.nps[j0:j1, None] * pr
-
-    def coarse_background(self, fs: int, fc: int):
-        """The background of blocks of ``fs`` steps × ``fc`` cells over the whole grid,
-        each block of steps taken as its valid shots over the union of its accepted
-        codes (an over-estimate at the intervals' ends only: the coarse search ranks
-        boxes, the exact background is the refinement's)."""
-        n = self.n_steps
-        starts = np.arange(0, n, fs)
-        shot = (self.nps > 0) & (self.lo <= self.hi)
-        big = np.iinfo(np.int64).max
-        lo = np.minimum.reduceat(np.where(shot, self.lo, big), starts)
-        hi = np.maximum.reduceat(np.where(shot, self.hi, -1), starts)
-        nps = np.add.reduceat(np.where(shot, self.nps, 0.0), starts)
-        g = _BoxGrid(None, None, None, lo, hi, nps, self.c_lo, self.cell, self.log1mh,
-                     starts.size, self.n_cell)
-        return g.background(0, starts.size, 0, self.n_cell, fc)
-
-    def best(self, box_s: int, box_c: int, min_counts: int, full_cells: int | None = None):
-        """``(p, j, k, count, background)`` of the box (``box_s`` steps × ``box_c``
-        cells, whole in steps) with the smallest Poisson p-value, or None.
-
-        Every box position where the grid holds at most ``full_cells`` (default
-        :data:`FULL_SCAN_CELLS`) cells; a larger one (a scan's whole band of steps)
-        is searched coarse to fine: boxes of blocks of about
-        1/:data:`COARSE_BOX_UNITS` of a box, then the
-        exact boxes around the :data:`COARSE_TOP` best of them (a subset of the
-        positions: the false-alarm level, set for all of them, holds)."""
-        n, nc = self.n_steps, self.n_cell
-        if n * nc <= (FULL_SCAN_CELLS if full_cells is None else full_cells):
-            return _smallest_p(self.counts(0, n, 0, nc), self.background(0, n, 0, nc),
-                               box_s, box_c, min_counts)
-        fs = max(1, box_s // COARSE_BOX_UNITS)
-        fc = max(1, box_c // COARSE_BOX_UNITS)
-        bs, bc = -(-box_s // fs) | 1, -(-box_c // fc) | 1
-        coarse = _smallest_p(self.counts(0, n, 0, nc, fs, fc), self.coarse_background(fs, fc),
-                             bs, bc, min_counts, top=COARSE_TOP)
-        if coarse is None:
-            return None
-        out = None
-        for jc, kc in coarse:
-            j0 = max(0, (jc - bs // 2 - 1) * fs)
-            j1 = min(n, (jc + bs // 2 + 2) * fs)
-            k0 = max(0, (kc - bc // 2 - 1) * fc)
-            k1 = min(nc, (kc + bc // 2 + 2) * fc)
-            # boxes whole in the window's cells too, except at the grid's own edges
-            # (the whole search's boxes run over them; a box cut at the window's edge
-            # would lose background the whole one carries)
-            r = _smallest_p(self.counts(j0, j1, k0, k1), self.background(j0, j1, k0, k1),
-                            box_s, box_c, min_counts, cut=(k0 == 0, k1 == nc),
-                            prefilter=True)
-            if r is not None and (out is None or r[0] < out[0]):
-                out = (r[0], r[1] + j0, r[2] + k0, r[3], r[4])
-        return out
-
-
-def _smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
-                cut=(True, True), prefilter: bool = False):
-    """Over the boxes of ``box_s`` × ``box_c`` (whole in the first axis) of counts ``D``
-    against background ``B``: ``(p, j, k, count, background)`` of the smallest
-    Poisson p-value, or with ``top`` the (j, k) of the ``top`` smallest; None if no
-    box holds ``min_counts`` above its background.  ``cut`` : whether boxes may run
-    over the first / last column (else they are whole there too); ``prefilter`` : the
-    tail only at boxes whose Poisson deviance is within :data:`DEVIANCE_MARGIN` of the
-    largest (the smallest p lies among them: ln p ≈ −deviance up to slowly varying
-    terms)."""
-    N_box = _box_sums(D, box_s, box_c)
-    B_box = _box_sums(B, box_s, box_c)
-    half = box_s // 2
-    valid = np.zeros(N_box.shape, bool)
-    if D.shape[0] > 2 * half:
-        valid[half:D.shape[0] - half, :] = True
-    hc = box_c // 2
-    if not cut[0]:
-        valid[:, :hc] = False
-    if not cut[1]:
-        valid[:, max(0, D.shape[1] - hc):] = False
-    valid &= (N_box >= min_counts) & (N_box > B_box)
-    if not np.any(valid):
-        return None
-    if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
-        flat = np.flatnonzero(valid)
-        n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
-        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
-        order = flat[np.argsort(-dev, kind="stable")[:top]]
-        return [divmod(int(k), D.shape[1]) for k in order]
-    if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
-        n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
-        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
-        valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
-    p = np.ones(N_box.shape)  # the tail at the valid boxes only (pdtrc is the cost)
-    with np.errstate(invalid="ignore"):
-        p[valid] = pdtrc(np.maximum(N_box[valid] - 1, 0), np.maximum(B_box[valid], 1e-12))
-    k = int(np.argmin(p))
-    jj, ci = divmod(k, D.shape[1])
-    return p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci]
+                 counts=np.rint(scores.count[sel]).astype(np.int64),
+                 background=scores.background[sel], rate_hz=cands.rate_hz[sel],
+                 background_by_step=rows_bbs)
 
 
 def scan_box_sf(k, mu, n_windows, n_code_pos) -> float:
     """P(the largest box count of a scan over angle × code reaches ``k``), background
     alone: the box's Poisson tail with the first-order clumping of a box sliding
-    along each axis (:func:`mems_stereo.pipeline.peaks.scan_sf`), the two axes
+    along each axis (:func:`mems_stereo.pipeline.peak_support.scan_sf`), the two axes
     multiplied (``n_windows`` footprint windows, ``n_code_pos`` code boxes)."""
     tail = float(pdtrc(max(k - 1, 0), max(mu, 1e-12)))
     if tail <= 0.0:
@@ -441,13 +353,6 @@ def scan_box_sf(k, mu, n_windows, n_code_pos) -> float:
     return min(1.0, tail * c_w * c_c)
 
 
-def _box_sums(A, h: int, w: int) -> np.ndarray:
-    """Centred box sums of (h, w) (odd) over a 2-D array, zeros beyond its edges."""
-    a = np.pad(A, ((h // 2 + 1, h // 2), (w // 2 + 1, w // 2)))
-    c = np.cumsum(np.cumsum(a, axis=0), axis=1)
-    return c[h:, w:] - c[:-h, w:] - c[h:, :-w] + c[:-h, :-w]
-
-
 def merge_peaks(a: Peaks, b: Peaks) -> Peaks:
     """The peaks of ``a`` and ``b`` (distinct pixels) in one :class:`Peaks`, ordered by
     pixel (row, then column) as the detector orders them."""
@@ -455,8 +360,7 @@ def merge_peaks(a: Peaks, b: Peaks) -> Peaks:
         return a
     from scipy.sparse import csr_array, vstack
 
-    fields = [f for f in Peaks.__dataclass_fields__ if f != "background_by_step"]
-    cat = {f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in fields}
+    cat = {f: np.concatenate([getattr(a, f), getattr(b, f)]) for f in PEAK_ARRAYS}
     order = np.lexsort((cat["col"], cat["row"]))
     out = {f: v[order] for f, v in cat.items()}
     bbs = None

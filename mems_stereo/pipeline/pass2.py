@@ -3,15 +3,18 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
+from mems_stereo.pipeline.classify_kernel import COMPILE_SLOTS
 from mems_stereo.pipeline.intervals import IntervalTable
-from mems_stereo.pipeline.pass1 import COMPILE_SLOTS
-from mems_stereo.pipeline.peaks import Peaks
+from mems_stereo.pipeline.peak_table import Peaks
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.util.lazy_numba import compiled_if_loaded
+from mems_stereo.pipeline.shot_range import ShotRange
+from mems_stereo.util.lazy_numba import compiled_if_loaded, compiled_kernel
 
 # --------------------------------------------------------------------------
 # the key of a (peak, angle step, code) triple: written and decoded only here
@@ -35,7 +38,7 @@ def decode_peak_keys(keys, n_steps: int, n_codes: int):
     return k // (n_steps * n_codes), (k // n_codes) % n_steps, k % n_codes
 
 
-_peak_key = _peak_key_py  # replaced by its compiled form when the kernel is compiled
+_peak_key = _peak_key_py  # rebound to its compiled form when the kernel is compiled
 
 
 def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb,
@@ -60,9 +63,32 @@ def _window_keys_py(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n
     return n
 
 
-def _window_keys_numpy(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi, n_steps, nb):
+@dataclass(frozen=True, slots=True)
+class PeakWindows:
+    """The windows pass 2 counts, one a peak (Q peaks), each (Q,) int64.
+
+    pixel : flat pixel ``row·width + col``; code_lo, code_hi : the codes counted;
+    step_lo, step_hi : the scan-angle steps of the interval table counted.
+    """
+
+    pixel: np.ndarray
+    code_lo: np.ndarray
+    code_hi: np.ndarray
+    step_lo: np.ndarray
+    step_hi: np.ndarray
+
+    @classmethod
+    def of_peaks(cls, peaks: Peaks, width: int) -> PeakWindows:
+        """The windows of ``peaks`` on a sensor of ``width`` columns."""
+        return cls(peaks.pixel(width), *(np.asarray(v, np.int64) for v in (
+            peaks.code_lo, peaks.code_hi, peaks.step_lo, peaks.step_hi)))
+
+
+def _window_keys_numpy(bins, rows, lo, hi, w: PeakWindows, n_steps, nb):
     """The kernel's semantics in vectorised NumPy (small blocks: no compiled code
-    to load); returns the keys, (M,) int64, in the same (shot, peak) order."""
+    to load) over the windows ``w``; returns the keys, (M,) int64, in the same (shot,
+    peak) order."""
+    pix, win_lo, win_hi, step_lo, step_hi = w.pixel, w.code_lo, w.code_hi, w.step_lo, w.step_hi
     c = bins[:, pix].astype(np.int64)  # (K, Q)
     j = rows[:, None]
     jc = np.maximum(rows, 0)
@@ -72,33 +98,20 @@ def _window_keys_numpy(bins, rows, lo, hi, pix, win_lo, win_hi, step_lo, step_hi
     return encode_peak_keys(qq, rows[kk], c[kk, qq], n_steps, nb)
 
 
-_COMPILED: dict = {}
-
-
 def _compiled_window_keys():
-    """The numba kernel, compiled (or loaded from numba's disk cache) on first use;
+    """The numba kernel, compiled (or loaded from numba's disk cache) on first use, its
+    key helper ``_peak_key`` inlined (:func:`~mems_stereo.util.lazy_numba.compiled_kernel`);
     None when numba is absent."""
-    global _peak_key
-    if "k" not in _COMPILED:
-        try:  # pragma: no cover - numba is a declared dependency
-            import numba
-
-            _peak_key = numba.njit(cache=True, inline="always")(_peak_key_py)
-            _COMPILED["k"] = numba.njit(cache=True, nogil=True,
-                                        boundscheck=False)(_window_keys_py)
-        except ImportError:  # pragma: no cover
-            _COMPILED["k"] = None
-    return _COMPILED["k"]
+    return compiled_kernel(_window_keys_py, helpers={"_peak_key": _peak_key_py})
 
 
-def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_lo, code_hi,
-                     n_bins: int, step_lo=None, step_hi=None,
-                     compiled: bool | None = None) -> np.ndarray:
+def peak_window_keys(bins, theta, valid, table: IntervalTable, windows: PeakWindows,
+                     n_bins: int, compiled: bool | None = None) -> np.ndarray:
     """Keys of the signal detections inside the peak windows of a block of shots.
 
-    A detection of pixel ``peak_pixel[q]`` counts when its code lies in the
+    A detection of pixel ``windows.pixel[q]`` counts when its code lies in the
     peak's window ``[code_lo[q], code_hi[q]]``, its shot's angle step in
-    ``[step_lo[q], step_hi[q]]`` (default: any) and the classifier accepted it
+    ``[step_lo[q], step_hi[q]]`` (None: any) and the classifier accepted it
     (signal).  Its key is :func:`encode_peak_keys` of ``(q, step, code)``, with
     ``step`` the shot's angle step in ``table`` (S steps, n_bins + 1 codes).  Returns (M,) int64,
     in shot order.  One compiled pass over the peak pixels only (``compiled``
@@ -112,19 +125,22 @@ def peak_window_keys(bins, theta, valid, table: IntervalTable, peak_pixel, code_
         b2 = b2.astype(np.uint16)
     rows = table.rows(theta, valid)
     table.ensure(rows)
-    pix = np.asarray(peak_pixel, dtype=np.int64)
-    s_lo = np.zeros(pix.size, np.int64) if step_lo is None else np.asarray(step_lo, np.int64)
-    s_hi = (np.full(pix.size, table.n_steps, np.int64) if step_hi is None
-            else np.asarray(step_hi, np.int64))
-    args = (b2, rows, table.lo, table.hi, pix, np.asarray(code_lo, np.int64),
-            np.asarray(code_hi, np.int64), s_lo, s_hi, int(table.n_steps), int(n_bins) + 1)
+    pix = np.asarray(windows.pixel, dtype=np.int64)
+    s_lo = (np.zeros(pix.size, np.int64) if windows.step_lo is None
+            else np.asarray(windows.step_lo, np.int64))
+    s_hi = (np.full(pix.size, table.n_steps, np.int64) if windows.step_hi is None
+            else np.asarray(windows.step_hi, np.int64))
+    w = PeakWindows(pix, np.asarray(windows.code_lo, np.int64),
+                    np.asarray(windows.code_hi, np.int64), s_lo, s_hi)
     if compiled is None:
         compiled = b2.size >= COMPILE_SLOTS
     kernel = _compiled_window_keys() if compiled else None
     if kernel is None:
-        return _window_keys_numpy(*args)
+        return _window_keys_numpy(b2, rows, table.lo, table.hi, w, int(table.n_steps),
+                                  int(n_bins) + 1)
     out = np.empty(K * max(1, pix.size), np.int64)
-    n = kernel(*args, out)
+    n = kernel(b2, rows, table.lo, table.hi, w.pixel, w.code_lo, w.code_hi, w.step_lo,
+               w.step_hi, int(table.n_steps), int(n_bins) + 1, out)
     return out[:n].copy()
 
 
@@ -134,8 +150,7 @@ def merge_sorted_counts(keys, counts, new_keys, new_counts):
 
     Integer arithmetic in place where a key exists (``counts`` is updated), one
     insertion of the new keys otherwise: the temporaries are O(len(new_keys))
-    plus the merged arrays (was: a sort of both and a float64 bincount, about
-    5× the merged size).
+    plus the merged arrays.
     """
     keys = np.asarray(keys, np.int64)
     counts = np.asarray(counts, np.int64)
@@ -195,8 +210,9 @@ MERGE_COMPILED_KEYS = 1 << 14
 def _merged(keys, counts, new_keys, new_counts):
     """:func:`merge_sorted_counts` (``counts`` may be updated in place), in one compiled
     linear pass (:func:`_merge_two_py`, the same arrays) where both sets hold at least
-    :data:`MERGE_COMPILED_KEYS` keys and numba is loaded already: the searches and
-    insertions cost 0.24 s of pass 2's 0.58 s on 1,600,000 dense shots."""
+    :data:`MERGE_COMPILED_KEYS` keys and numba is loaded already (the searches and
+    insertions of :func:`merge_sorted_counts` are a large part of pass 2 on a dense
+    recording)."""
     kernel = (compiled_if_loaded(_merge_two_py)
               if min(keys.size, new_keys.size) >= MERGE_COMPILED_KEYS else None)
     if kernel is None:
@@ -250,9 +266,10 @@ class PeakCounts:
             self._pending.append(k)
             self._n_pending += k.size
             if self._n_pending > max(1 << 20, self.keys.size):
-                self._merge()
+                self.merge_pending()
 
-    def _merge(self) -> None:
+    def merge_pending(self) -> None:
+        """Merge the buffered keys into ``keys``, ``counts``."""
         if not self._pending:
             return
         new = np.concatenate(self._pending)
@@ -263,39 +280,37 @@ class PeakCounts:
                                          c.astype(np.int64, copy=False))
 
     def __add__(self, other: PeakCounts) -> PeakCounts:
-        self._merge()
-        other._merge()
+        self.merge_pending()
+        other.merge_pending()
         return PeakCounts(*_merged(self.keys, self.counts.copy(), other.keys, other.counts))
 
     def finished(self) -> PeakCounts:
-        self._merge()
+        """These counts with every buffered key merged."""
+        self.merge_pending()
         return self
 
 
-def peak_counts_range(path, system: System, theta, valid, settings: Settings, peaks: Peaks,
-                      start: int = 0, stop: int | None = None, progress=None,
-                      table: IntervalTable | None = None, angle_offset: int = 0) -> PeakCounts:
-    """Pass 2 over shots [start, stop): count the peak windows' signal detections by
+def peak_counts_range(path, system: System, shots: ShotRange, settings: Settings,
+                      peaks: Peaks, progress=None,
+                      table: IntervalTable | None = None) -> PeakCounts:
+    """Pass 2 over the shots of ``shots``: count the peak windows' signal detections by
     (peak, angle step, code) — see :class:`PeakCounts` and
     :func:`mems_stereo.pipeline.pass2.peak_window_keys`.  ``table`` : the run's
-    interval table (default: a new one); ``theta``, ``valid`` start at shot
-    ``angle_offset`` (default 0: the whole recording)."""
+    interval table (default: a new one); ``progress(n)`` : called after each chunk of
+    n shots."""
     if table is None:
         table = IntervalTable.for_settings(system, settings)
     W = system.receiver.width
-    peaks = Peaks.coerce(peaks)
-    pix = peaks.pixel(W)
+    windows = PeakWindows.of_peaks(peaks, W)
     pc = PeakCounts()
-    if pix.size == 0:
+    if windows.pixel.size == 0:
         return pc
-    n_range = (stop if stop is not None else start + len(theta) - angle_offset) - start
-    compiled = n_range * system.receiver.width * system.receiver.height >= COMPILE_SLOTS
-    for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, start, stop):
+    compiled = shots.n_shots * system.receiver.width * system.receiver.height >= COMPILE_SLOTS
+    for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, shots.start, shots.stop):
         s1 = s0 + bins.shape[0]
-        a, b = s0 - angle_offset, s1 - angle_offset
-        pc.add_keys(peak_window_keys(bins, theta[a:b], valid[a:b], table, pix,
-                                     peaks.code_lo, peaks.code_hi, system.tdc.n_bins,
-                                     peaks.step_lo, peaks.step_hi, compiled=compiled))
+        theta, valid = shots.angles(s0, s1)
+        pc.add_keys(peak_window_keys(bins, theta, valid, table, windows, system.tdc.n_bins,
+                                     compiled=compiled))
         if progress is not None:
             progress(s1 - s0)
     return pc.finished()
@@ -325,12 +340,28 @@ def _select_py(keys_in, counts_in, to, lo, hi, span, n_codes, n_steps, keys, cou
     return m
 
 
-def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
+@dataclass(frozen=True, slots=True)
+class CountSelection:
+    """Which peaks of a :class:`PeakCounts` to keep, renumbered, over which steps
+    (:func:`select_counts`), each (M,) int64.
+
+    src : the peaks kept (distinct); dst : their numbers in the result; step_lo,
+    step_hi : the steps of each kept over which its counts are kept.
+    """
+
+    src: np.ndarray
+    dst: np.ndarray
+    step_lo: np.ndarray
+    step_hi: np.ndarray
+
+
+def select_counts(pc: PeakCounts, sel: CountSelection, n_steps: int,
                   n_codes: int) -> PeakCounts:
-    """The counts of peaks ``src`` (M,) of ``pc`` (distinct) renumbered ``dst`` (M,),
-    each over its steps ``step_lo..step_hi`` (M,) only, keys sorted: the
-    :class:`PeakCounts` of counting those peaks over those windows (each key's count is
-    the same whichever other windows were counted with it)."""
+    """The counts of peaks ``sel.src`` of ``pc`` renumbered ``sel.dst``, each over its
+    steps ``sel.step_lo..sel.step_hi`` only, keys sorted: the :class:`PeakCounts` of
+    counting those peaks over those windows (each key's count is the same whichever
+    other windows were counted with it)."""
+    src, dst, step_lo, step_hi = sel.src, sel.dst, sel.step_lo, sel.step_hi
     span = np.int64(n_steps) * np.int64(n_codes)
     src = np.asarray(src, np.int64)
     if pc.keys.size == 0 or src.size == 0:
@@ -365,44 +396,39 @@ def select_counts(pc: PeakCounts, src, dst, step_lo, step_hi, n_steps: int,
     return PeakCounts(keys[order], pc.counts[m][order])
 
 
-def peak_fields(peaks, rows=None) -> dict:
-    """The (Q,) fields of ``peaks`` (rows ``rows``, default all) that pass 2 and the
-    fusion read: every array but ``background_by_step``."""
-    return {k: (v if rows is None else np.asarray(v)[rows]) for k, v in peaks.items()
-            if k != "background_by_step"}
-
-
-def with_widened_candidates(first, cands, n_steps: int) -> dict:
+def with_widened_candidates(first: Peaks, cands, n_steps: int) -> Peaks:
     """The windows to count in one pass for the matched filter and the peaks: the first
     stage's peaks (Qa) followed by the candidates (C) over their steps widened by 1.5
     footprints each side (``cands.width``): any peak a candidate can confirm counts
     inside (:func:`~mems_stereo.pipeline.matched.confirm` centres it within the
-    candidate's steps and counts ± 1.5 footprints around it).  (Qa + C,) arrays."""
+    candidate's steps and counts ± 1.5 footprints around it).  Qa + C light peaks."""
     H = cands.width + cands.width // 2
-    ext = peak_fields(cands)
+    ext = cands.light().arrays()
     ext["step_lo"] = np.maximum(0, np.asarray(cands.step_lo, np.int64) - H)
     ext["step_hi"] = np.minimum(n_steps - 1, np.asarray(cands.step_hi, np.int64) + H)
-    return {k: np.concatenate([v, ext[k]]) for k, v in peak_fields(first).items()}
+    return Peaks(**{k: np.concatenate([v, ext[k]]) for k, v in first.arrays().items()})
 
 
-def candidate_selection(n_first: int, cands):
-    """``(src, dst, step_lo, step_hi)`` of :func:`select_counts` for the candidates' own
-    counts from a count of :func:`with_widened_candidates`."""
+def candidate_selection(n_first: int, cands) -> CountSelection:
+    """The :class:`CountSelection` of the candidates' own counts from a count of
+    :func:`with_widened_candidates`."""
     C = len(cands)
-    return n_first + np.arange(C), np.arange(C), cands.step_lo, cands.step_hi
+    return CountSelection(n_first + np.arange(C), np.arange(C), cands.step_lo,
+                          cands.step_hi)
 
 
-def merged_selection(first, cands, peaks, width: int):
-    """``(src, dst, step_lo, step_hi)`` of :func:`select_counts` for ``peaks`` (the first
-    stage's ``first`` and the candidates it confirmed, merged in pixel order) from a
-    count of :func:`with_widened_candidates`: the first stage's counts renumbered, each
+def merged_selection(first, cands, peaks, width: int) -> CountSelection:
+    """The :class:`CountSelection` for ``peaks`` (the first stage's ``first`` and the
+    candidates it confirmed, merged in pixel order) from a count of
+    :func:`with_widened_candidates`: the first stage's counts renumbered, each
     confirmed peak's over its own window.  ``width`` : the sensor's columns."""
     pix, fp = peaks.pixel(width), first.pixel(width)
     cp = cands.pixel(width)
     new = np.flatnonzero(~np.isin(pix, fp))
     Qa = fp.size
-    return (np.concatenate([np.arange(Qa), Qa + np.searchsorted(cp, pix[new])]),
-            np.concatenate([np.searchsorted(pix, fp), new]),
-            np.concatenate([np.zeros(Qa, np.int64), np.asarray(peaks.step_lo)[new]]),
-            np.concatenate([np.full(Qa, np.iinfo(np.int64).max),
-                            np.asarray(peaks.step_hi)[new]]))
+    return CountSelection(
+        np.concatenate([np.arange(Qa), Qa + np.searchsorted(cp, pix[new])]),
+        np.concatenate([np.searchsorted(pix, fp), new]),
+        np.concatenate([np.zeros(Qa, np.int64), np.asarray(peaks.step_lo)[new]]),
+        np.concatenate([np.full(Qa, np.iinfo(np.int64).max),
+                        np.asarray(peaks.step_hi)[new]]))

@@ -7,19 +7,20 @@ int); metres, receiver camera frame.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from mems_stereo.geometry.triangulation import epipolar_stereo_point
-from mems_stereo.geometry.uncertainty import _rays, propagate, spreads_for, stereo_point_est
+from mems_stereo.geometry.uncertainty import pixel_rays, propagate, spreads_for, stereo_point_est
 
 #: pixels either side of a peak's pixel whose stereo range span floors the inlier bound
 #: (:func:`footprint_halfwidth`)
 INLIER_FOOTPRINT_PX = 1.0
 #: relative systematic uncertainty of the mean-angle bias the fusion removes
-#: (:func:`~mems_stereo.pipeline.first_photon_correction.mean_angle_bias`): on the
-#: sweep's seeds 19000 (scale 1), over the 28 peaks whose predicted bias exceeded
-#: 3× their scatter σ, the stereo error left after the correction was 0.22 of the
-#: bias (RMS, scatter included; 0.14 beyond it)
+#: (:func:`~mems_stereo.pipeline.first_photon_correction.mean_angle_bias`): the share
+#: of the predicted bias left as stereo error after the correction, as measured on the
+#: scenario sweep
 ANGLE_BIAS_FRACTION = 0.2
 #: rad, the angle step of the central difference ∂x/∂θ of the stereo point
 _DTHETA = 1e-5
@@ -46,11 +47,11 @@ def footprint_halfwidth(system, rows, cols, centre, spreads=None) -> np.ndarray:
     u = cols[ok].astype(np.float64)
     v = rows[ok].astype(np.float64)
     p = np.asarray(system.scanner.position, dtype=np.float64)
-    x = centre[ok, None] * _rays(system, u, v)
+    x = centre[ok, None] * pixel_rays(system, u, v)
     d = x - p
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     h = INLIER_FOOTPRINT_PX
-    r = [np.linalg.norm(epipolar_stereo_point(p, d, _rays(system, u + a, v))[0], axis=1)
+    r = [np.linalg.norm(epipolar_stereo_point(p, d, pixel_rays(system, u + a, v)).points, axis=1)
          for a in (-h, h)]
     span = np.nan_to_num(0.5 * np.abs(r[1] - r[0]), nan=0.0, posinf=0.0)
     # the inlier test is on the fused range: the stereo spread enters it by the
@@ -65,16 +66,35 @@ def footprint_halfwidth(system, rows, cols, centre, spreads=None) -> np.ndarray:
     return out
 
 
-def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bias=None,
-                         step=None, removed=None):
-    """Stereo point of each peak at its detections' mean scan angle (in place).
+@dataclass(frozen=True, slots=True)
+class MeanAngleStereo:
+    """The stereo point of Q peaks at their mean scan angle (:func:`stereo_at_mean_angle`).
+
+    point : (Q, 3) float64 m, the point at the mean angle (the given point where
+        there is none).
+    cov_sys : (Q, 3, 3) float64 m², its systematic covariance (the angle grid's
+        quantisation, the bias correction's allowance), to add unscaled; None when
+        no peak has a mean angle.
+    range_per_px : (Q, 3) float64 m per pixel at the mean angle (for the depth
+        edges); None when no peak has a mean angle.
+    """
+
+    point: np.ndarray
+    cov_sys: np.ndarray | None
+    range_per_px: np.ndarray | None
+
+
+def stereo_at_mean_angle(system, rows, cols, theta_sum, n, point, angle_bias=None,
+                         step=None, removed=None) -> MeanAngleStereo:
+    """Stereo point of each peak at its detections' mean scan angle.
 
     A detection's stereo range is a convex function of its angle (range ∝ 1 /
     disparity): the mean of the ranges over a band of angles lies behind the
     surface (by ≈ var(disparity)/disparity², a centimetre at 1 m for a
     strong return that fires the pixel over several pixel footprints), the
     range at the mean angle does not.  ``theta_sum``, ``n`` (Q,): the sum of the
-    inliers' angles (rad) and their number; ``mean["stereo"]`` is replaced.
+    inliers' angles (rad) and their number; ``point`` (Q, 3) m the stereo point it
+    replaces (kept where there is no mean angle).
     ``angle_bias`` (Q,) rad or None: the mean angle's expected bias
     (:func:`~mems_stereo.pipeline.first_photon_correction.mean_angle_bias`),
     removed from it where ``removed`` (Q,) bool (default everywhere), with
@@ -84,10 +104,8 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
     at its step's angle): the mean angle is known to within that grid, a
     systematic σ of ``step / √12`` (uniform over one step; 0.006 px of the
     footprint for the paper's system).
-    Returns ``(C, range_per_px)``: these systematic covariances,
-    ``{"stereo": C (Q, 3, 3)}``, to add unscaled, and the (Q, 3) m per pixel at
-    the mean angle (for the depth edges); ``(None, None)`` when no peak has a
-    mean angle.
+    Returns the point, these systematic covariances and the metres per pixel at the
+    mean angle (:class:`MeanAngleStereo`).
     """
     bias = (np.zeros(np.asarray(n).shape) if angle_bias is None
             else np.nan_to_num(np.asarray(angle_bias, np.float64)))
@@ -96,8 +114,8 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
         th = theta_sum / n - np.where(rm, bias, 0.0)
     ok = np.isfinite(th) & (n > 0)
     if not np.any(ok):
-        return None, None
-    x_old = mean["stereo"][0]
+        return MeanAngleStereo(point, None, None)
+    x_old = point
     x_new = x_old.copy()
     x_new[ok] = stereo_point_est(system, cols[ok].astype(np.float64),
                                  rows[ok].astype(np.float64), np.zeros(ok.sum()),
@@ -118,8 +136,7 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, mean: dict, angle_bia
     var_th = ((0.0 if step is None else float(step) ** 2 / 12.0)
               + (np.where(rm, ANGLE_BIAS_FRACTION, 1.0) * bias) ** 2)
     C_sys = var_th[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
-    mean["stereo"] = (x_new, mean["stereo"][1])
-    return {"stereo": C_sys}, J
+    return MeanAngleStereo(x_new, C_sys, J)
 
 
 def stereo_cov_at_mean_angle(system, rows, cols, theta_sum, n, count, spreads=None):
@@ -135,9 +152,8 @@ def stereo_cov_at_mean_angle(system, rows, cols, theta_sum, n, count, spreads=No
     (the form of a mean of their points) weighs each at its own angle: range
     is convex in the angle (∝ 1 / disparity), and where the disparity is a few
     pixels (far, short baseline) the detections on the far side of the
-    footprint, at twice the range and 16 times the variance, dominated it
-    (sweep case 19000, a wall at 5 m, 6 cm baseline: σ_stereo of 1–300 m
-    where the error was 0.3 m; RMS error/σ_stereo 0.42).
+    footprint, at twice the range and 16 times the variance, dominated it and
+    overstated σ_stereo many times over.
     """
     rows = np.asarray(rows)
     out = np.full((rows.size, 3, 3), np.nan)

@@ -1,7 +1,8 @@
 """Each peak's stereo and time-of-flight means, and the cloud made of them.
 
-:class:`PeakMeans` holds what :meth:`~mems_stereo.pipeline.fusion.PeakAccumulator.peak_means`
-gives for Q peaks (each row its peak's own; blocks of peaks join with
+:class:`PeakMeans` holds what
+:meth:`~mems_stereo.pipeline.peak_accumulator.PeakAccumulator.peak_means` gives for
+Q peaks (each row its peak's own; blocks of peaks join with
 :meth:`PeakMeans.concat`); :meth:`PeakMeans.cloud` marks the depth edges (which
 look at a peak's row neighbours), fuses each peak's two means along the ray
 (:func:`fuse_along_ray`) and assembles the :class:`~mems_stereo.pipeline.cloud.PointCloud`
@@ -9,6 +10,8 @@ with its attributes.  Units: metres, receiver camera frame.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr, pdtrc
@@ -22,7 +25,7 @@ from mems_stereo.pipeline.cloud import PointCloud
 EDGE_PIXEL_SIGMA = 0.25
 #: whether the end of a run of points (one row neighbour with a point, the other
 #: without) also counts as a depth edge (off: in sparse clouds it flags most points
-#: and took the sweep's error/σ below 0.7 under 3 m; docs/pipeline.md)
+#: and overstates their σ)
 EDGE_RUN_ENDS = False
 #: columns on each side in which :meth:`PeakMeans._mixed_pixels` looks for a depth
 #: edge's nearest kept neighbour (2: a mixed pixel's other neighbour may have no point)
@@ -40,8 +43,10 @@ def fuse_along_ray(stereo, tof):
     """
     xs, Cs = stereo[0], stereo[1]
     xt, Ct = tof[0], tof[1]
-    _, _, ss, _ = polar_from_cartesian(xs, Cs)
-    _, _, st, _ = polar_from_cartesian(xt, Ct)
+    pol = polar_from_cartesian(xs, Cs)
+    ss = pol.sigma_r
+    pol = polar_from_cartesian(xt, Ct)
+    st = pol.sigma_r
     vs, vt = ss ** 2, st ** 2
     ok_s = np.all(np.isfinite(xs), axis=1) & np.isfinite(vs)
     ok_t = np.all(np.isfinite(xt), axis=1) & np.isfinite(vt)
@@ -57,12 +62,16 @@ def fuse_along_ray(stereo, tof):
     return x, C, w
 
 
+@dataclass(frozen=True, slots=True, eq=False)
 class PeakMeans:
     """What :meth:`PeakAccumulator.peak_means` gives for Q peaks (each row its peak's
     own), and the cloud from it.
 
+    system : the system; k : the inlier bound in σ (from the confidence).
+    rows, cols : (Q,) int64 pixels; peak_code : (Q,) float64 the detector's peak code
+    or None.
     stereo, tof : (x (Q, 3) m, C (Q, 3, 3) m²) means with every term of their σ;
-    n, detections, window, code : (Q,) sums of the inliers (see
+    n, detections, window, code : (Q,) float64 sums of the inliers (see
     :class:`~mems_stereo.pipeline.sums.PeakSums`); birge : (Q,) reduced χ²
     scale; range_per_px : (Q, 3) m per pixel at the mean angle (None: no peak
     had a mean angle); delay, mu : (Q,) first-photon delay (s) and μ0 (None:
@@ -71,14 +80,26 @@ class PeakMeans:
     makes the cloud of the whole).
     """
 
-    def __init__(self, system, k, rows, cols, peak_code, stereo, tof, n, detections, window,
-                 code, birge, range_per_px, delay, mu):
-        self.system, self.k = system, k
-        self.rows, self.cols, self.peak_code = rows, cols, peak_code
-        self.stereo, self.tof = stereo, tof
-        self.n, self.detections, self.window, self.code = n, detections, window, code
-        self.birge, self.range_per_px, self.delay, self.mu = birge, range_per_px, delay, mu
-        self.Q = rows.size
+    system: object
+    k: float
+    rows: np.ndarray
+    cols: np.ndarray
+    peak_code: np.ndarray | None
+    stereo: tuple[np.ndarray, np.ndarray]
+    tof: tuple[np.ndarray, np.ndarray]
+    n: np.ndarray
+    detections: np.ndarray
+    window: np.ndarray
+    code: np.ndarray
+    birge: np.ndarray
+    range_per_px: np.ndarray | None
+    delay: np.ndarray | None
+    mu: np.ndarray | None
+
+    @property
+    def Q(self) -> int:
+        """The number of peaks."""
+        return self.rows.size
 
     @classmethod
     def concat(cls, parts) -> PeakMeans:
@@ -124,8 +145,6 @@ class PeakMeans:
         # their detections are not significant against the background subtracted
         # from them (Poisson, at the peak's own confidence 2·Φ(−k)), n is consistent
         # with zero and the mean with anything — a failed estimate, not a point
-        # (sweep case 19037, column 183: 746 detections over 719 expected, a ToF
-        # point at 29 m, σ 5.4 m, for a surface at 3.5 m)
         b_in = np.maximum(self.detections - n, 0.0)
         with np.errstate(invalid="ignore"):
             p_in = pdtrc(np.maximum(self.detections - 1.0, 0.0), np.maximum(b_in, 1e-300))
@@ -145,9 +164,12 @@ class PeakMeans:
             with np.errstate(invalid="ignore", divide="ignore"):
                 u = xf / np.linalg.norm(xf, axis=1, keepdims=True)
             Cf = Cf + np.nan_to_num((mixed ** 2)[:, None, None] * u[:, :, None] * u[:, None, :])
-        r, _, sr, sphi = polar_from_cartesian(xf, Cf)
-        r_st, _, sr_st, _ = polar_from_cartesian(*mean["stereo"])
-        r_tf, _, sr_tf, _ = polar_from_cartesian(*mean["tof"])
+        pol = polar_from_cartesian(xf, Cf)
+        r, sr, sphi = pol.r, pol.sigma_r, pol.sigma_phi
+        pol = polar_from_cartesian(*mean["stereo"])
+        r_st, sr_st = pol.r, pol.sigma_r
+        pol = polar_from_cartesian(*mean["tof"])
+        r_tf, sr_tf = pol.r, pol.sigma_r
         sx = np.sqrt(np.maximum(np.diagonal(Cf, axis1=1, axis2=2), 0.0))
         with np.errstate(invalid="ignore", divide="ignore"):
             code_mean = self.code / n
@@ -181,8 +203,7 @@ class PeakMeans:
         :data:`MIXED_NEIGHBOUR_COLUMNS` columns on each side), beyond k·σ of the
         difference from both, agrees with neither surface: its pixel (or the spot)
         straddles the silhouette and its range is a blend of the two — a "flying
-        pixel" (sweep case 29014, column 139: 2.39 m between a cylinder's limb at
-        2.05 m and the wall at 2.70 m, σ 5 cm).  Which surface the ray meets is not
+        pixel".  Which surface the ray meets is not
         known: its distance to the nearer neighbour's range is its uncertainty.
         ``x`` (Q, 3), ``C`` (Q, 3, 3) the fused points; ``keep`` (Q,) those that
         become points.
@@ -192,7 +213,8 @@ class PeakMeans:
         cand = np.flatnonzero(edge & keep)
         if cand.size == 0:
             return out
-        r, _, sr, _ = polar_from_cartesian(x, C)
+        pol = polar_from_cartesian(x, C)
+        r, sr = pol.r, pol.sigma_r
         W = self.system.receiver.width
         pad = MIXED_NEIGHBOUR_COLUMNS
         at = np.full((int(self.rows.max()) + 1, W + 2 * pad), -1, np.int64)
@@ -225,20 +247,21 @@ class PeakMeans:
         two beyond j (j … j ± 2) are not both within k·σ_D of it — three equal
         steps in a row are a surface, one or two a silhouette (a pixel whose spot
         straddles a box and the wall behind it lies halfway between them, its two
-        steps equal; sweep case 13001, pixel 162).
+        steps equal).
         A surface inclined to the rays steps by about the same amount from column
         to column (5 mm per column at 0.6 m and 60°, several σ of a dense near
-        peak): tested against zero alone, every point of it was an edge and
-        carried the edge allowance (σ 5–7 mm where the error is 0.2 mm, sweep case
-        19037).  With :data:`EDGE_RUN_ENDS`, one neighbour holding a point and the
-        other none (the end of a run of points) also counts.  ``x`` (Q, 3), ``C``
+        peak): tested against zero alone, every point of it would be an edge and
+        carry the edge allowance, many times its error.  With :data:`EDGE_RUN_ENDS`,
+        one neighbour holding a point and the other none (the end of a run of points)
+        also counts.  ``x`` (Q, 3), ``C``
         (Q, 3, 3) the points; ``keep`` (Q,) those that become points.
         """
         Q = self.Q
         edge = np.zeros(Q, bool)
         if Q == 0 or not np.any(keep):
             return edge
-        r, _, sr, _ = polar_from_cartesian(x, C)
+        pol = polar_from_cartesian(x, C)
+        r, sr = pol.r, pol.sigma_r
         H = int(self.rows.max()) + 1
         W = self.system.receiver.width
         pad = 3

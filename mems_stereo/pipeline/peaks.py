@@ -24,7 +24,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mems_stereo.geometry.uncertainty import stereo_point_est
 from mems_stereo.model.system import System
 from mems_stereo.physics.background import (
     background_rate_from_noise,
@@ -34,6 +33,13 @@ from mems_stereo.physics.background import (
 )
 from mems_stereo.pipeline.histograms import moving_average
 from mems_stereo.pipeline.intervals import interval_table
+from mems_stereo.pipeline.peak_support import (
+    SupportInputs,
+    frame_threshold,
+    support_ranges,
+    supported,
+)
+from mems_stereo.pipeline.peak_table import Candidates, Peaks, window_rows
 from mems_stereo.pipeline.settings import Settings
 
 
@@ -70,8 +76,28 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
 
 
+
+@dataclass(frozen=True, slots=True)
+class WindowScores:
+    """Per row (pixel) the window of ``width`` angle steps with the largest excess over
+    the background (:func:`window_scores`, :func:`strongest_window`), each (P,).
+
+    j : int64, the window's centre index; cnt : float64, its count (an integer);
+    mu : float64, its expected background; keep : bool, whether it passes the Poisson
+    threshold and ``settings.min_counts`` (and, from :func:`strongest_window` with
+    ``support_pixels``, the neighbour support); n_windows : float64, the row's
+    independent window positions (its support over ``width``, at least 1).
+    """
+
+    j: np.ndarray
+    cnt: np.ndarray
+    mu: np.ndarray
+    keep: np.ndarray
+    n_windows: np.ndarray
+
+
 def strongest_window(counts, background, width: int, support, settings: Settings,
-                     support_pixels: tuple | None = None):
+                     support_pixels: tuple | None = None) -> WindowScores:
     """Per row, the window of ``width`` bins with the largest excess over the background.
 
     ``counts``, ``background`` : (P, B) observed and expected counts;
@@ -88,27 +114,30 @@ def strongest_window(counts, background, width: int, support, settings: Settings
     ``log_range_of(j)`` : (P,) the log range of each row's peak at its window
     centres ``j`` (P,)), or None.
     With it a peak that no neighbour on the same surface supports
-    (:func:`neighbour_support`: none within :data:`SUPPORT_COLUMNS` at an agreeing
-    range) must also pass the sensor's per-frame threshold (:func:`frame_threshold`:
-    :data:`FRAME_FALSE_ALARMS` false peaks per recording, scan statistics of the
-    sliding window): a dense surface images onto
-    neighbouring pixels, while a background false alarm is isolated or sits next to
+    (:func:`~mems_stereo.pipeline.peak_support.neighbour_support`: none within
+    :data:`~mems_stereo.pipeline.peak_support.SUPPORT_COLUMNS` at an agreeing range) must also
+    pass the sensor's per-frame threshold
+    (:func:`~mems_stereo.pipeline.peak_support.frame_threshold`:
+    :data:`~mems_stereo.pipeline.peak_support.FRAME_FALSE_ALARMS` false peaks per recording,
+    scan statistics of the sliding window): a dense surface images onto neighbouring pixels,
+    while a background false alarm is isolated or sits next to
     a sparse surface, whose few peaks would lend it their support.
-    Returns ``(j, count, mu, keep)``, each (P,): the window's centre index, its
-    count and expected background, and whether it passes the Poisson threshold
-    and ``settings.min_counts``.
+    Returns :class:`WindowScores` (``keep`` with the neighbour support when
+    ``support_pixels`` is given).
     """
-    j, cnt, mu, keep, n_windows = window_scores(counts, background, width, support, settings)
-    if support_pixels is not None:
-        thr_frame = frame_threshold(n_windows, mu, support_pixels[1])
-        lr = None if len(support_pixels) < 3 else support_pixels[2](j)
-        keep = supported(keep, cnt, thr_frame, lr, support_pixels[0])
-    return j, cnt, mu, keep
+    ws = window_scores(counts, background, width, support, settings)
+    if support_pixels is None:
+        return ws
+    thr_frame = frame_threshold(ws.n_windows, ws.mu, support_pixels[1])
+    lr = None if len(support_pixels) < 3 else support_pixels[2](ws.j)
+    return WindowScores(ws.j, ws.cnt, ws.mu,
+                        supported(ws.keep, ws.cnt, thr_frame, lr, support_pixels[0]),
+                        ws.n_windows)
 
 
-def window_scores(counts, background, width: int, support, settings: Settings):
-    """The per-row part of :func:`strongest_window`: ``(j, count, mu, keep, n_windows)``,
-    each (P,), ``keep`` before the neighbour support (each row's values are its own)."""
+def window_scores(counts, background, width: int, support, settings: Settings) -> WindowScores:
+    """The per-row part of :func:`strongest_window`: :class:`WindowScores` with ``keep``
+    before the neighbour support (each row's values are its own)."""
     S_w = np.rint(moving_sum(counts, width))  # window sums (integers)
     B_w = moving_sum(background, width)
     j = np.argmax(S_w - B_w, axis=1)
@@ -117,132 +146,7 @@ def window_scores(counts, background, width: int, support, settings: Settings):
     n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
     thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
     keep = (cnt > thr) & (cnt >= settings.min_counts)
-    return j, cnt, mu, keep, n_windows
-
-
-#: false peaks per frame (one recording, the whole sensor) allowed among the peaks that
-#: no neighbour on the same surface supports (:func:`supported`): at the per-pixel
-#: level (10⁻³ nominal, 2.5·10⁻³ measured with the sliding window's clumping) a
-#: 192-pixel sensor gets a false peak in about every second frame, and next to a
-#: sparse surface (a few peaks) that one false point is 1–50 % of the cloud.  (10⁻³
-#: cost the bundled room recording, nominal system, a correct isolated point of 3
-#: detections at a scan p-value of 1.6·10⁻⁵.)
-FRAME_FALSE_ALARMS = 0.01
-
-
-def scan_sf(k, mu, n_windows) -> np.ndarray:
-    """P(the largest sliding-window count of a scan reaches ``k``), background alone.
-
-    ``k``, ``mu``, ``n_windows`` : broadcastable; ``mu`` the window's expected
-    background, ``n_windows`` the scan's length in windows.  The first-order
-    Poisson clumping (Naus–Alm) approximation
-    ``P(X ≥ k) + (n_windows − 1)·(k − mu)·p(k; mu)`` for ``k > mu``: the expected
-    number of upcrossings of ``k`` by a window sliding over background (a point
-    entering while the window holds k − 1 and none leaving) — ``k − mu`` times the
-    Bonferroni term ``p(k)`` per window position (about ``k`` times it at low
-    background, ``z²`` at high).  Clipped to [0, 1].
-    """
-    from scipy.special import pdtrc
-
-    k, mu, nw = np.broadcast_arrays(np.asarray(k, np.float64), np.asarray(mu, np.float64),
-                                    np.asarray(n_windows, np.float64))
-    tail = pdtrc(k - 1, mu)
-    pk = tail - pdtrc(k, mu)
-    return np.clip(tail + np.maximum(nw - 1, 0) * np.maximum(k - mu, 0) * pk, 0.0, 1.0)
-
-
-def scan_isf(alpha, mu, n_windows) -> np.ndarray:
-    """Smallest integer t with :func:`scan_sf` (t + 1, mu, n_windows) ≤ ``alpha`` (the
-    count must exceed t), vectorised; bisection above ``mu`` (where the tail falls)."""
-    a, m, nw = np.broadcast_arrays(np.asarray(alpha, np.float64), np.asarray(mu, np.float64),
-                                   np.asarray(n_windows, np.float64))
-    lo = np.floor(m) - 1.0  # scan_sf(lo + 1) > alpha (for alpha < ~0.5)
-    hi = np.ceil(m + 40.0 * np.sqrt(m) + 80.0)  # scan_sf(hi + 1) <= alpha
-    while np.any(hi - lo > 1):
-        mid = np.floor(0.5 * (lo + hi))
-        ok = scan_sf(mid + 1, m, nw) <= a
-        hi = np.where(ok, mid, hi)
-        lo = np.where(ok, lo, mid)
-    return hi
-
-
-def frame_threshold(n_windows, mu, n_pixels: int) -> np.ndarray:
-    """(P,) the count a peak that its neighbours do not support well must exceed: the
-    scan threshold (:func:`scan_isf`) at :data:`FRAME_FALSE_ALARMS` / ``n_pixels``, so
-    that background puts such a peak anywhere on the sensor at most
-    :data:`FRAME_FALSE_ALARMS` times per recording."""
-    return scan_isf(FRAME_FALSE_ALARMS / n_pixels, np.maximum(mu, 1e-12), n_windows)
-
-
-def supported(keep, cnt, thr_frame, log_range, width: int) -> np.ndarray:
-    """(P,) bool: the peaks ``keep`` (P,) of the whole sensor (rows of ``width``) that a
-    neighbour on the same surface supports (:func:`neighbour_support` within
-    :data:`SUPPORT_COLUMNS`, ``log_range`` (P, 3) :func:`support_ranges`, (P,) or
-    None) or that pass the per-frame threshold ``thr_frame`` (P,) with their window
-    count ``cnt``."""
-    keep = np.asarray(keep, bool)
-    return keep & (neighbour_support(keep, width, SUPPORT_COLUMNS, log_range) | (cnt > thr_frame))
-
-
-#: columns either side of a peak (and rows either side, for an array sensor) in which
-#: another peak supports it (:func:`neighbour_support`, the matched filter's chains):
-#: a surface that the detector sees in one pixel in several (weak returns, sparse
-#: coverage) still has a detected pixel within this reach
-SUPPORT_COLUMNS = 8
-#: the most by which the ranges of a peak and a supporting neighbour may differ (a
-#: factor; stereo range at each peak's window centre): one surface, or an object and
-#: the wall behind it, not a near-range background cluster under a far scene
-SUPPORT_RANGE_RATIO = 2.0
-
-
-def neighbour_support(keep, width: int, reach: int = SUPPORT_COLUMNS,
-                      log_range=None, ratio: float = None, count: bool = False) -> np.ndarray:
-    """(P,) bool: pixels with another ``keep`` pixel within ``reach`` columns in their
-    row or, for an array sensor (P > width), within ``reach`` columns in the rows
-    ``reach`` above or below.  ``keep`` : (P,) bool over the pixels of rows of
-    ``width`` columns (flat index ``row·width + col``).  ``log_range`` : (P,)
-    optional log of each peak's range, or (P, 3) :func:`support_ranges` (log range,
-    its resolution, the slope allowance per pixel): then only a neighbour whose log
-    range is within the two peaks' resolutions plus the slope allowance times their
-    distance in pixels, and within a factor ``ratio`` (default
-    :data:`SUPPORT_RANGE_RATIO`), supports (a non-finite range is compatible with
-    any).  ``count`` : return (P,) int64, the
-    number of such neighbours, instead."""
-    ratio = SUPPORT_RANGE_RATIO if ratio is None else float(ratio)
-    k = np.asarray(keep, bool).reshape(-1, int(width))
-    H, W = k.shape
-    R = int(reach)
-    lr3 = np.zeros((H * W, 3))
-    lr3[:, 1:] = np.inf  # no range: compatible with any
-    if log_range is not None:
-        a = np.asarray(log_range, np.float64)
-        if a.ndim == 1:
-            lr3[:, 0] = a
-        else:
-            lr3[:, :a.shape[1]] = a
-    lr3 = lr3.reshape(H, W, 3)
-    pad_k = np.zeros((H + 2 * R, W + 2 * R), bool)
-    pad_k[R:R + H, R:R + W] = k
-    pad_r = np.full((H + 2 * R, W + 2 * R, 3), np.nan)
-    pad_r[R:R + H, R:R + W] = lr3
-    tol = np.log(ratio)
-    out = np.zeros((H, W), np.int64)
-    rows = range(-R, R + 1) if H > 1 else (0,)
-    for dr in rows:
-        for dc in range(-R, R + 1):
-            if dr == 0 and dc == 0:
-                continue
-            nk = pad_k[R + dr:R + dr + H, R + dc:R + dc + W]
-            nr = pad_r[R + dr:R + dr + H, R + dc:R + dc + W]
-            # each peak's own range resolution and the surface's slope over the pixels
-            # between them, at most the factor ``ratio``
-            t = np.minimum(tol, lr3[..., 1] + nr[..., 1]
-                           + 0.5 * (lr3[..., 2] + nr[..., 2]) * max(abs(dr), abs(dc)))
-            with np.errstate(invalid="ignore"):
-                same = ~(np.abs(nr[..., 0] - lr3[..., 0]) > t)  # NaN: compatible
-            out += nk & same
-    out = out.reshape(-1)
-    return out if count else out > 0
+    return WindowScores(j, cnt, mu, keep, n_windows)
 
 
 def excess_band(counts, background, width: int, j, level: float = 0.5):
@@ -284,76 +188,6 @@ def footprint_steps(system: System, table) -> int:
     return max(3, n + 1 - n % 2)
 
 
-@dataclass
-class Peaks:
-    """The peaks of a recording, one per pixel at most (Q peaks).
-
-    row, col : (Q,) int64 pixel; code : (Q,) int64, strongest code of the
-    pixel's signal histogram; code_lo, code_hi : (Q,) int64, the code window
-    counted in pass 2; step_lo, step_hi : (Q,) int64, the scan-angle steps
-    of the interval table counted in pass 2; counts : (Q,) int64, signal
-    detections in the peak's angle band; background : (Q,) float64, their
-    expected background; rate_hz : (Q,) float64, the pixel's ML background
-    rate; background_by_step : (Q, S) ``scipy.sparse.csr_array`` float64,
-    the expected background detections per angle step over each peak's
-    counted steps ``step_lo..step_hi`` (zero elsewhere; :func:`window_rows`;
-    None once used up).
-
-    ``peaks["row"]`` and ``peaks.get("row")`` read a field (mapping-style
-    callers of version 0.1).
-    """
-
-    row: np.ndarray
-    col: np.ndarray
-    code: np.ndarray
-    code_lo: np.ndarray
-    code_hi: np.ndarray
-    step_lo: np.ndarray
-    step_hi: np.ndarray
-    counts: np.ndarray
-    background: np.ndarray
-    rate_hz: np.ndarray
-    background_by_step: object | None = None
-
-    def __len__(self) -> int:
-        return int(self.row.size)
-
-    def pixel(self, width: int) -> np.ndarray:
-        """(Q,) int64 flat pixel index ``row·width + col``."""
-        return self.row * int(width) + self.col
-
-    def __getitem__(self, name: str):
-        if name not in self.__dataclass_fields__:
-            raise KeyError(name)
-        return getattr(self, name)
-
-    def __contains__(self, name: str) -> bool:
-        return name in self.__dataclass_fields__ and getattr(self, name) is not None
-
-    def get(self, name: str, default=None):
-        return getattr(self, name) if name in self.__dataclass_fields__ else default
-
-    def keys(self):
-        return [k for k in self.__dataclass_fields__ if getattr(self, k) is not None]
-
-    def items(self):
-        return [(k, getattr(self, k)) for k in self.keys()]
-
-    @classmethod
-    def coerce(cls, peaks) -> Peaks:
-        """A :class:`Peaks` from itself or a mapping of its fields (e.g. a light copy
-        sent to workers without ``background_by_step``)."""
-        if isinstance(peaks, cls):
-            return peaks
-        return cls(**{k: peaks.get(k) for k in cls.__dataclass_fields__})
-
-    def pop(self, name: str, default=None):
-        """Drop an optional field (``background_by_step``); returns its value."""
-        value = self.get(name, default)
-        if name == "background_by_step":
-            self.background_by_step = None
-        return value
-
 
 def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
                signal_angle=None, table=None, n_per_step=None) -> tuple[Peaks, np.ndarray]:
@@ -373,8 +207,9 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     sensitive than the code histogram under strong background (the
     background spreads over thousands of steps but only tens of codes).
 
-    Returns :class:`Peaks` and the (H, W) float64 ML background rate per
-    pixel, Hz.  (The paper's detector on the codes alone,
+    Returns :class:`~mems_stereo.pipeline.peak_table.Peaks` (with their
+    :class:`~mems_stereo.pipeline.peak_table.Candidates`) and the (H, W) float64 ML
+    background rate per pixel, Hz.  (The paper's detector on the codes alone,
     ``find_code_peaks``, is kept as a test oracle in tests/oracles.py.)
     ``table`` : the run's interval table (default: a new one); ``n_per_step``
     : (S,) valid shots per angle step (default: counted from ``theta``,
@@ -397,20 +232,22 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     return peaks_of_scores(system, sc, keep, n_per_step, table, settings), sc.rate.reshape(H, W)
 
 
-@dataclass
+
+@dataclass(frozen=True, slots=True)
 class PeakScores:
     """The first, per-pixel stage of :func:`find_peaks` for a block of pixels (Pb).
 
     pixels : (Pb,) int64 flat pixels ``row·width + col``; signal : (Pb, n_bins) the
     signal histogram; angle : (Pb, S) float64 signal detections per angle step;
     background : (Pb, S) float64 their expected background; rate : (Pb,) Hz, the ML
-    background rate; j, cnt, mu, keep, n_windows : the strongest window
-    (:func:`window_scores`; ``keep`` before the neighbour support); thr_frame : the
-    per-frame threshold (:func:`frame_threshold`); log_range : (Pb, 3) log stereo
-    range at ``j``, its resolution and slope allowance (:func:`support_ranges`).
-    Every value of a pixel is its own, so blocks of pixels give the whole's values
-    (the Dask runner scores blocks on its workers; :func:`supported` then needs
-    ``keep, cnt, thr_frame, log_range`` of all).
+    background rate; j, cnt, mu, keep, n_windows : the strongest window (:func:`window_scores`;
+    ``keep`` before the neighbour support); thr_frame : the per-frame threshold
+    (:func:`~mems_stereo.pipeline.peak_support.frame_threshold`); log_range : (Pb, 3) log stereo
+    range at ``j``, its resolution and slope allowance
+    (:func:`~mems_stereo.pipeline.peak_support.support_ranges`). Every value of a pixel is its
+    own, so blocks of pixels give the whole's values (the Dask runner scores blocks on its
+    workers; :func:`~mems_stereo.pipeline.peak_support.supported` then needs the
+    :meth:`support_inputs` of all).
     """
 
     pixels: np.ndarray
@@ -426,9 +263,11 @@ class PeakScores:
     thr_frame: np.ndarray
     log_range: np.ndarray
 
-    def support_inputs(self):
-        """``(keep, cnt, thr_frame, log_range)``: what :func:`supported` needs (small)."""
-        return self.keep, self.cnt, self.thr_frame, self.log_range
+
+    def support_inputs(self) -> SupportInputs:
+        """What :func:`~mems_stereo.pipeline.peak_support.supported` needs of these pixels
+        (small), and their rate."""
+        return SupportInputs(self.keep, self.cnt, self.thr_frame, self.log_range, self.rate)
 
 
 def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
@@ -448,30 +287,40 @@ def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
     width = footprint_steps(system, table)
     B = expected_background_by_angle(table, n_per_step, rate, pixels)
     Hs = np.asarray(signal_angle, dtype=np.float64)
-    j, cnt, mu, keep, n_windows = window_scores(Hs, B, width, B > 0, settings)
-    return PeakScores(pixels, S, Hs, B, rate, j, cnt, mu, keep, n_windows,
-                      frame_threshold(n_windows, mu, P_all),
-                      support_ranges(system, table, pixels, j, width))
+    ws = window_scores(Hs, B, width, B > 0, settings)
+    return PeakScores(pixels, S, Hs, B, rate, ws.j, ws.cnt, ws.mu, ws.keep, ws.n_windows,
+                      frame_threshold(ws.n_windows, ws.mu, P_all),
+                      support_ranges(system, table, pixels, ws.j, width))
 
 
 def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
                     settings: Settings) -> Peaks:
-    """The :class:`Peaks` of a block of pixels (their ``candidates`` for the matched
-    filter attached) from its :class:`PeakScores` and ``keep`` (Pb,) bool, its pixels'
-    peaks after :func:`supported`; blocks joined with :func:`concat_peaks` are the
-    whole's."""
+    """The :class:`~mems_stereo.pipeline.peak_table.Peaks` of a block of pixels (with
+    their :class:`~mems_stereo.pipeline.peak_table.Candidates` for the matched filter)
+    from its :class:`PeakScores` and ``keep`` (Pb,) bool, its pixels' peaks after
+    :func:`~mems_stereo.pipeline.peak_support.supported`; blocks joined with
+    :func:`concat_peaks` are the whole's."""
+    width = footprint_steps(system, table)
+    keep_first = np.array(keep, bool)
+    scanned = np.flatnonzero(n_per_step)
+    peaks = _first_stage_peaks(system, sc, keep_first, scanned, width, table)
+    return Peaks(**peaks.arrays(), background_by_step=peaks.background_by_step,
+                 candidates=_candidates(system, sc, keep_first, scanned, width, table,
+                                        settings))
+
+
+def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, width: int,
+                       table) -> Peaks:
+    """The peaks of :func:`peaks_of_scores`: the supported pixels ``keep_first`` with a
+    known rate whose footprint and band lie inside the ``scanned`` steps."""
     W = system.receiver.width
     n_bins = system.tdc.n_bins
     bw = system.tdc.bin_width
-    width = footprint_steps(system, table)
     S, Hs, B, rate = sc.signal, sc.angle, sc.background, sc.rate
-    j, cnt, mu, n_windows = sc.j, sc.cnt, sc.mu, sc.n_windows
-    keep = np.array(keep, bool)
-    keep_first = keep.copy()
-    keep &= np.isfinite(rate)
+    j, cnt, mu = sc.j, sc.cnt, sc.mu
+    keep = keep_first & np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
     # inside it) sees only part of its surface: its stereo mean is biased
-    scanned = np.flatnonzero(n_per_step)
     if scanned.size:
         keep &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     q = np.flatnonzero(keep)
@@ -493,20 +342,34 @@ def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
-    # near misses of this stage, for the matched filter over angle × code
-    # (:mod:`mems_stereo.pipeline.matched`): counted over j ± (width + width // 2) (box
-    # centres within a footprint of j), their background rows over j ± (width + half)
-    # (the band a confirmed peak counts)
+    pq = sc.pixels[q]
+    return Peaks(
+        row=(pq // W).astype(np.int64), col=(pq % W).astype(np.int64),
+        code=code.astype(np.int64),
+        code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
+        step_lo=step_lo, step_hi=step_hi,
+        counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
+        rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
+
+
+def _candidates(system: System, sc: PeakScores, keep_first, scanned, width: int, table,
+                settings: Settings) -> Candidates:
+    """The candidates of :func:`peaks_of_scores`: every pixel without a first-stage peak
+    that may hold one; the near misses of that stage (``p_adj`` below
+    :data:`CANDIDATE_P`) are searched around its strongest window first
+    (``local_lo``/``local_hi``), every candidate over its whole scan."""
     from scipy.special import pdtrc
 
+    W = system.receiver.width
+    n_bins = system.tdc.n_bins
+    B, rate = sc.background, sc.rate
+    j, cnt, mu, n_windows = sc.j, sc.cnt, sc.mu, sc.n_windows
+    half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
     ok = np.isfinite(rate.reshape(-1)) & (cnt >= settings.min_counts)
     if scanned.size:
         ok &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
     with np.errstate(invalid="ignore"):
         p_adj = pdtrc(np.maximum(cnt - 1, 0), np.maximum(mu, 1e-12)) * n_windows
-    # candidates: every pixel without a first-stage peak; the near misses of that stage
-    # (p_adj < CANDIDATE_P) are searched around its strongest window first
-    # (``local_lo``/``local_hi``), every candidate over its whole scan (below)
     qc = np.flatnonzero(~keep_first & ok).astype(np.int64)
     near = np.isin(qc, candidate_rows(p_adj, keep_first, ok))
     local_lo = np.where(near, np.maximum(0, j[qc] - width - width // 2), -1).astype(np.int64)
@@ -515,9 +378,8 @@ def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
     if CANDIDATE_WHOLE_SCAN:
         # every step at which the pixel accepts a code (the first stage's strongest
         # window, which sums every accepted code, is where the background happened to
-        # bunch when the accepted interval is much wider than the pulse: sweep case
-        # 30003, 7.8 m at 13 MHz with a 6 cm baseline, the return 1,000–8,000 steps
-        # from it at 78 of 80 near misses, and 76 lit pixels no near miss at all)
+        # bunch when the accepted interval is much wider than the pulse: the return can
+        # lie thousands of steps from it, or the pixel be no near miss at all)
         has = B[qc] > 0
         some = has.any(axis=1)  # (a pixel without an accepted code has nothing to count)
         qc, near, local_lo, local_hi, has = (x[some] for x in (qc, near, local_lo,
@@ -531,55 +393,24 @@ def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
         c_lo, c_hi = local_lo, local_hi
     b_lo = np.maximum(0, c_lo - half).astype(np.int64)
     b_hi = np.minimum(table.n_steps - 1, c_hi + half).astype(np.int64)
-    pc, pq = sc.pixels[qc], sc.pixels[q]
-    candidates = Peaks(
+    pc = sc.pixels[qc]
+    return Candidates(
         row=(pc // W).astype(np.int64), col=(pc % W).astype(np.int64),
         code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
         code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
         counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
-        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, b_lo, b_hi))
-    candidates.n_windows = n_windows[qc]
-    candidates.local_lo, candidates.local_hi = local_lo, local_hi
-    candidates.width = width
-    peaks = Peaks(
-        row=(pq // W).astype(np.int64), col=(pq % W).astype(np.int64),
-        code=code.astype(np.int64),
-        code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
-        step_lo=step_lo, step_hi=step_hi,
-        counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
-        rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
-    peaks.candidates = candidates
-    return peaks
+        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, b_lo, b_hi),
+        n_windows=n_windows[qc], local_lo=local_lo, local_hi=local_hi, width=width)
 
 
 def concat_peaks(parts) -> Peaks:
-    """The :class:`Peaks` of consecutive blocks of pixels (:func:`peaks_of_scores`), in
-    order, as one (their candidates joined too): the whole's, field for field."""
-    from scipy.sparse import csr_array
-
-    def join(ps):
-        out = {}
-        for k in Peaks.__dataclass_fields__:
-            if k != "background_by_step":
-                out[k] = np.concatenate([getattr(p, k) for p in ps])
-        mats = [p.background_by_step for p in ps]
-        off = np.cumsum([0] + [m.nnz for m in mats[:-1]])
-        indptr = np.concatenate([[0]] + [m.indptr[1:] + o for m, o in zip(mats, off)])
-        out["background_by_step"] = csr_array(
-            (np.concatenate([m.data for m in mats]), np.concatenate([m.indices for m in mats]),
-             indptr.astype(mats[0].indptr.dtype)), shape=(int(indptr.size - 1),
-                                                          mats[0].shape[1]))
-        return Peaks(**out)
-
+    """The :class:`~mems_stereo.pipeline.peak_table.Peaks` of consecutive blocks of
+    pixels (:func:`peaks_of_scores`), in order, as one (their candidates joined too):
+    the whole's, field for field."""
     parts = list(parts)
-    peaks = join(parts)
-    cands = join([p.candidates for p in parts])
-    cands.n_windows = np.concatenate([p.candidates.n_windows for p in parts])
-    cands.local_lo = np.concatenate([p.candidates.local_lo for p in parts])
-    cands.local_hi = np.concatenate([p.candidates.local_hi for p in parts])
-    cands.width = parts[0].candidates.width
-    peaks.candidates = cands
-    return peaks
+    peaks = Peaks.concat(parts)
+    return Peaks(**peaks.arrays(), background_by_step=peaks.background_by_step,
+                 candidates=Candidates.concat([p.candidates for p in parts]))
 
 
 #: near misses of the first stage: pixels whose strongest window's p-value, times the
@@ -588,8 +419,7 @@ def concat_peaks(parts) -> Peaks:
 CANDIDATE_P = 0.5
 #: whether the matched filter also searches the whole scan of every pixel without a
 #: first-stage peak (True; at the level of the scan's accepted area), or only the near
-#: misses' windows (see :func:`peaks_of_scores`; sweep case 30003: coverage 0.11 →
-#: 0.48, the oracle with the widest interval's look-elsewhere level 0.38)
+#: misses' windows (see :func:`peaks_of_scores`)
 CANDIDATE_WHOLE_SCAN = True
 
 
@@ -599,53 +429,3 @@ def candidate_rows(p_adjusted, keep, ok) -> np.ndarray:
     window positions, ``keep`` (P,) bool the first stage's peaks, ``ok`` (P,) bool
     pixels that may hold a peak at all (known rate, footprint inside the scan)."""
     return np.flatnonzero(~keep & ok & (p_adjusted < CANDIDATE_P)).astype(np.int64)
-
-
-#: the steepest incidence (degrees) a supporting neighbour's surface may have: the
-#: log range may change by tan(SUPPORT_INCIDENCE_DEG) / fx per pixel between them
-SUPPORT_INCIDENCE_DEG = 75.0
-
-
-def support_ranges(system: System, table, pix, j, width: int) -> np.ndarray:
-    """(N, 3) for flat pixels ``pix`` (N,) with peaks centred at steps ``j`` (N,): the
-    log stereo range at ``j`` (:func:`pixel_log_range`); its resolution, the largest
-    change of the log range within half a footprint (``width`` steps) of ``j`` (a
-    window's centre lies within that of the spot's crossing); and the log range's
-    change per pixel on a surface at :data:`SUPPORT_INCIDENCE_DEG` (``tan / fx``).
-    Non-finite entries (no range) become inf: compatible with any."""
-    j = np.asarray(j, np.int64)
-    h = int(width) // 2
-    lr = pixel_log_range(system, table, pix, j)
-    lo = pixel_log_range(system, table, pix, np.maximum(j - h, 0))
-    hi = pixel_log_range(system, table, pix, np.minimum(j + h, table.n_steps - 1))
-    with np.errstate(invalid="ignore"):
-        res = np.maximum(np.abs(hi - lr), np.abs(lo - lr))
-    res = np.where(np.isfinite(res), res, np.inf)
-    fx = float(system.receiver.camera_matrix[0, 0])
-    slope = np.full(lr.shape, np.tan(np.radians(SUPPORT_INCIDENCE_DEG)) / fx)
-    return np.stack([lr, res, slope], axis=1)
-
-
-def pixel_log_range(system: System, table, pix, j) -> np.ndarray:
-    """(N,) log of the stereo range of flat pixels ``pix`` (N,) at the angles of steps
-    ``j`` (N,) of ``table`` (NaN where the rays do not meet in front)."""
-    pix = np.asarray(pix, np.int64)
-    W = system.receiver.width
-    x = stereo_point_est(system, (pix % W).astype(np.float64), (pix // W).astype(np.float64),
-                         np.zeros(pix.size), table.theta_min + np.asarray(j) * table.step)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.log(np.linalg.norm(x, axis=1))
-
-
-def window_rows(B, q, lo, hi):
-    """(Q, S) ``scipy.sparse.csr_array`` of rows ``q`` (Q,) of ``B`` (P, S) over the
-    columns ``lo[i]..hi[i]`` of each row (zero outside), without a dense (Q, S) copy."""
-    from scipy.sparse import csr_array
-
-    q, lo, hi = (np.asarray(x, np.int64).ravel() for x in (q, lo, hi))
-    n = np.maximum(hi - lo + 1, 0)
-    indptr = np.zeros(q.size + 1, np.int64)
-    np.cumsum(n, out=indptr[1:])
-    row = np.repeat(np.arange(q.size), n)
-    col = np.arange(indptr[-1]) - indptr[:-1][row] + lo[row]
-    return csr_array((np.asarray(B)[q[row], col], col, indptr), shape=(q.size, B.shape[1]))

@@ -14,6 +14,8 @@ DEFAULT_CHUNK_SHOTS = 8192
 class Settings:
     """Processing settings (all documented in docs/pipeline.md).
 
+    Attributes
+    ----------
     confidence : two-sided coverage of the consistency bound (0.997 = 3σ).
     min_range : optional prior, m: no target nearer than this (None: none).
     chunk_shots : shots per chunk read from the file.
@@ -26,6 +28,15 @@ class Settings:
         peak that no neighbour on its surface supports must pass the per-frame
         level ``peaks.FRAME_FALSE_ALARMS`` / pixels, docs/pipeline.md section 5).
     min_counts : fewest signal counts for a peak.
+
+    Examples
+    --------
+    >>> settings = ms.Settings(confidence=0.99)
+    >>> settings.confidence, settings.min_counts
+    (0.99, 3)
+    >>> result = ms.process_recording(ms.data.path("room.h5"), settings=settings)
+    >>> len(result.cloud) > 0
+    True
     """
 
     confidence: float = DEFAULT_CONFIDENCE

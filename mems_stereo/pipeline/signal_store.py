@@ -4,7 +4,7 @@ Pass 2 counts the signal detections inside the peaks' windows
 (:mod:`mems_stereo.pipeline.pass2`); every one of them is a detection pass 1
 labelled signal.  :class:`SignalStore` keeps each signal detection's key
 ``pixel << shift_p | angle step << shift_j | code`` (int64 bit fields,
-:func:`~mems_stereo.pipeline.pass1.signal_key_shifts`; 8 bytes; about
+:func:`~mems_stereo.pipeline.classify_kernel.signal_key_shifts`; 8 bytes; about
 8 % of a dense floodlight recording's pixel-slots) in memory up to
 ``memory_bytes`` and in an anonymous temporary file beyond, and
 :func:`peak_counts_from_store` counts the windows' keys from it: the same
@@ -21,9 +21,10 @@ import numpy as np
 
 from mems_stereo.errors import OptionError
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.pass1 import decode_signal_keys, signal_key_shifts
+from mems_stereo.pipeline.classify_kernel import decode_signal_keys, signal_key_shifts
 from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
-from mems_stereo.pipeline.peaks import Peaks
+from mems_stereo.pipeline.peak_table import Peaks
+from mems_stereo.util.lazy_numba import compiled_kernel
 
 #: signal keys held in memory before the store spills to a temporary file (bytes)
 STORE_MEMORY_BYTES = 8 << 20
@@ -124,8 +125,9 @@ class SignalStore:
 def window_keys_from_signal(keys, n_steps: int, nb: int, first, order, win_lo, win_hi,
                             step_lo, step_hi) -> np.ndarray:
     """Pass-2 keys (:func:`~mems_stereo.pipeline.pass2.encode_peak_keys` of (peak, step,
-    code)) of the signal keys ``keys`` (:func:`~mems_stereo.pipeline.pass1.encode_signal_keys`)
-    that fall in a peak's code and step windows.
+    code)) of the signal keys ``keys``
+    (:func:`~mems_stereo.pipeline.classify_kernel.encode_signal_keys`) that fall in a
+    peak's code and step windows.
 
     ``first`` (P + 1,) and ``order`` (Q,): the peaks of pixel p are
     ``order[first[p]:first[p + 1]]``; ``win_lo``, ``win_hi``, ``step_lo``,
@@ -150,7 +152,7 @@ def _window_keys_py(keys, shift_j, shift_p, n_steps, nb, first, order, win_lo, w
     same keys, key by key (for each key, its pixel's peaks in rank order), written
     to ``out`` (room for ``keys.size`` times the most peaks of a pixel); returns
     how many.  ``shift_j``, ``shift_p`` : the keys' bit fields
-    (:func:`~mems_stereo.pipeline.pass1.signal_key_shifts`)."""
+    (:func:`~mems_stereo.pipeline.classify_kernel.signal_key_shifts`)."""
     mask_j = (np.int64(1) << (shift_p - shift_j)) - 1
     mask_c = (np.int64(1) << shift_j) - 1
     n = 0
@@ -171,21 +173,10 @@ def _window_keys_py(keys, shift_j, shift_p, n_steps, nb, first, order, win_lo, w
     return n
 
 
-_COMPILED: dict = {}
-
-
 def _compiled_window_keys():
     """The numba form of :func:`_window_keys_py` (numba's disk cache), None without numba.
     Only runs that hold a store use it, and those loaded pass 1's compiled kernels."""
-    if "k" not in _COMPILED:
-        try:  # pragma: no cover - numba is a declared dependency
-            import numba
-
-            _COMPILED["k"] = numba.njit(cache=True, nogil=True,
-                                        boundscheck=False)(_window_keys_py)
-        except ImportError:  # pragma: no cover
-            _COMPILED["k"] = None
-    return _COMPILED["k"]
+    return compiled_kernel(_window_keys_py)
 
 
 def window_keys_compiled(keys, n_steps: int, nb: int, first, order, win_lo, win_hi,
@@ -215,7 +206,6 @@ def peak_counts_from_store(store: SignalStore, system: System, peaks: Peaks,
         raise OptionError("signal store is incomplete: pass 2 must read the shots",
                           field="store")
     W, H = system.receiver.width, system.receiver.height
-    peaks = Peaks.coerce(peaks)
     pix = peaks.pixel(W)
     pc = PeakCounts()
     if pix.size == 0:
@@ -232,7 +222,7 @@ def peak_counts_from_store(store: SignalStore, system: System, peaks: Peaks,
     first = first.astype(np.int64)
     order = order.astype(np.int64)
     # compiled where numba is at hand (a store is filled by pass 1's compiled kernel, so
-    # numba is loaded already): 3-4x the vectorised form's speed on a dense recording
+    # numba is loaded already): several times the vectorised form's speed
     fn = (window_keys_compiled if _compiled_window_keys() is not None
           else window_keys_from_signal)
     for k in store.blocks():

@@ -268,11 +268,27 @@ def _pooled_rate(hist: np.ndarray, free: np.ndarray, mine: np.ndarray, radius: i
     return rate, cells, own_free
 
 
+@dataclass(frozen=True, slots=True)
+class SpanSearch:
+    """How :func:`signal_background_from_timetags` finds the returns' spans.
+
+    radius : pixels, the (2·radius+1)² box of other-colour pixels searched for returns;
+    span_radius : pixels over which a span is widened (None: ``radius``);
+    background_radius : pixels, the box the background rate is pooled over;
+    p_false_alarm : per bin and box, the Poisson level of a return; n_iter : times
+    the background level is re-estimated from the bins outside the spans.
+    """
+
+    radius: int = 3
+    span_radius: int | None = None
+    background_radius: int = 3
+    p_false_alarm: float = 1e-4
+    n_iter: int = 3
+
+
 def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bin_width,
-                                    lead, tail, radius: int = 3, span_radius=None,
-                                    background_radius: int = 3,
-                                    p_false_alarm: float = 1e-4,
-                                    n_iter: int = 3) -> TimetagEstimate:
+                                    lead, tail,
+                                    search: SpanSearch | None = None) -> TimetagEstimate:
     """Mean signal photons per pixel and signal-to-background ratio from time tags.
 
     Model: per pixel a background uniform in time (rate b_i) plus returns at
@@ -304,15 +320,17 @@ def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bi
         ``round((t_max − t_min)/bin_width)`` equal bins.
     lead, tail : guard before the first and after the last return (the
         99 % extent of the measured return, :class:`TimingSpread`).
-    radius, span_radius, background_radius : pixels.
-    p_false_alarm : per bin and box; over B bins a box declares a false
-        return with probability about B·p_false_alarm (that costs only
-        variance, never bias).
+    search : :class:`SpanSearch` (default: its defaults): ``radius``,
+        ``span_radius``, ``background_radius`` (pixels) and ``p_false_alarm``, per
+        bin and box (over B bins a box declares a false return with probability
+        about B·p_false_alarm: that costs only variance, never bias).
 
     Returns
     -------
     :class:`TimetagEstimate`.
     """
+    sp = SpanSearch() if search is None else search
+    radius, background_radius = sp.radius, sp.background_radius
     t, pix = _check(timestamps, offsets)
     H, W = (int(v) for v in shape)
     if H * W != np.asarray(offsets).size - 1:
@@ -329,14 +347,14 @@ def signal_background_from_timetags(timestamps, offsets, shape, t_min, t_max, bi
     colour = ((yy + xx) % 2).astype(bool)
     g_pre = int(np.ceil(lead / bw - 1e-9))
     g_post = int(np.ceil(tail / bw - 1e-9))
-    R = radius if span_radius is None else int(span_radius)
+    R = radius if sp.span_radius is None else int(sp.span_radius)
     rate = np.full((H, W), np.nan)
     used_cells = 0.0
     var_sum = 0.0
     for c in (False, True):
         mine = colour == c
         det = np.rint(_box(hist * (~mine)[..., None], radius))
-        free = _outside_spans(det, R, g_pre, g_post, p_false_alarm, n_iter)
+        free = _outside_spans(det, R, g_pre, g_post, sp.p_false_alarm, sp.n_iter)
         r_c, cells, own_free = _pooled_rate(hist, free, mine, background_radius, bw)
         rate[mine] = r_c[mine]
         used_cells += float((free & mine[..., None]).sum())

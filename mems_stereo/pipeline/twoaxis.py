@@ -41,7 +41,7 @@ import numpy as np
 from scipy.stats import poisson
 
 from mems_stereo.errors import FormatError
-from mems_stereo.geometry.gating import Gate, GateSpec, gate_half_width, gate_pixels
+from mems_stereo.geometry.gating import GateSpec, gate_half_width, gate_pixels
 from mems_stereo.geometry.twoaxis import jacobian_2d, pixel_point_2d, timing_sigma
 from mems_stereo.geometry.uncertainty import polar_from_cartesian
 from mems_stereo.io.recording2d import Recording2D, read_recording_2d
@@ -50,6 +50,7 @@ from mems_stereo.model.scanner2d import require_two_axis, scan_angles_2d, scan_d
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.gate_check import check_gate, recompute_gate
+from mems_stereo.pipeline.twoaxis_pileup import pileup_correction
 
 
 @dataclass(frozen=True)
@@ -65,7 +66,8 @@ class Settings2D:
     false_alarm : per-pixel false-alarm probability of a peak.
     min_counts : fewest signal detections in a peak.
     window_sigma : half width of a peak window, in timing σ.
-    pileup_correction : correct each peak for the first-photon bias (:func:`pileup_correction`).
+    pileup_correction : correct each peak for the first-photon bias
+        (:func:`~mems_stereo.pipeline.twoaxis_pileup.pileup_correction`).
     """
 
     r_min: float | None = None
@@ -102,8 +104,24 @@ class Result2D:
 # stage 1
 
 
-def shot_directions(rec: Recording2D, system: System | None = None):
-    """θ1, θ2 (K,) rad, beam directions (K, 3) (NaN rows where unknown), valid (K,) bool."""
+@dataclass(frozen=True, slots=True)
+class ShotDirections:
+    """The beam of every shot of a two-axis recording (K shots).
+
+    theta1, theta2 : (K,) float64 rad, the mirror angles; direction : (K, 3) float64,
+    unit beam directions in the receiver frame (NaN rows where unknown); valid : (K,)
+    bool, whether the shot's angles are known.
+    """
+
+    theta1: np.ndarray
+    theta2: np.ndarray
+    direction: np.ndarray
+    valid: np.ndarray
+
+
+def shot_directions(rec: Recording2D, system: System | None = None) -> ShotDirections:
+    """The :class:`ShotDirections` of the recording's shots (``system``: default the
+    recording's)."""
     system = rec.system if system is None else system
     require_two_axis(system)
     th1, th2, valid = scan_angles_2d(rec.shot_time, rec.zero_crossings, rec.rising,
@@ -111,7 +129,7 @@ def shot_directions(rec: Recording2D, system: System | None = None):
     d = np.full((th1.size, 3), np.nan)
     if np.any(valid):
         d[valid] = scan_direction_2d(th1[valid], th2[valid], system.scanner)
-    return th1, th2, d, valid
+    return ShotDirections(th1, th2, d, valid)
 
 
 # --------------------------------------------------------------------------
@@ -299,89 +317,6 @@ def find_pixel_peaks(system: System, hist_signal: np.ndarray, exposure: np.ndarr
     return PixelPeaks(pix, mean_code, counts, bgk, L)
 
 
-def pileup_correction(system: System, peaks: PixelPeaks, gate: Gate, d_scan: np.ndarray,
-                      settings: Settings2D, spot=None):
-    """Correct each peak's path length for the first-photon (pile-up) bias.
-
-    A pixel that receives m return photons in a shot records the *first* one,
-    earlier than the pulse centre on average by D(m) =
-    :func:`~mems_stereo.physics.first_photon.first_photon_mean_delay` (m) − D(0).
-    For each peak, every read shot k gives the pixel the share f_k of the spot
-    whose centre is the image of the beam point at the peak's path length
-    (Gaussian spot of :class:`~mems_stereo.physics.spot.SpotModel`, σ at that
-    range); the spot's mean photon number μ solves
-    ``Σ_k (1 − exp(−μ f_k)) = counts − background`` (bisection), and the
-    peak's bias is the detection-weighted mean of D(μ f_k).
-
-    Returns ``(L_corrected (P,) m, sigma_bias (P,) m, mu (P,))``; the σ is 30 %
-    of the correction (μ varies over the pixel's footprint).
-    """
-    from scipy.special import ndtr
-
-    from mems_stereo.geometry.triangulation import scanner_ray_point
-    from mems_stereo.physics.first_photon import first_photon_mean_delay
-    from mems_stereo.physics.link_budget import LinkBudget
-    from mems_stereo.physics.pulse import PulseShape
-    from mems_stereo.physics.spot import SpotModel
-
-    rc = system.receiver
-    w = rc.image_size[0]
-    P = peaks.pixel.size
-    idx = np.full(gate.n_pixels, -1, np.int64)
-    idx[peaks.pixel] = np.arange(P)
-    shot = np.repeat(np.arange(gate.n_shots, dtype=np.int64), gate.counts())
-    j = idx[gate.pixels]
-    sel = (j >= 0) & np.all(np.isfinite(d_scan[shot]), axis=1)
-    shot, j = shot[sel], j[sel]
-    # spot centre of each (shot, peak pixel) at the peak's path length
-    x = scanner_ray_point(system.scanner.position, d_scan[shot], peaks.L[j])[0]
-    K = rc.camera_matrix
-    if np.any(rc.dist_coeffs):
-        from mems_stereo.model.camera import project_points
-
-        uvc = project_points(x, K, rc.dist_coeffs)
-    else:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            uvc = np.stack([K[0, 0] * x[:, 0] / x[:, 2] + K[0, 2],
-                            K[1, 1] * x[:, 1] / x[:, 2] + K[1, 2]], axis=1)
-    spot = SpotModel() if spot is None else spot
-    pitch = np.asarray(rc.pixel_pitch, float)
-    link = LinkBudget(focal_length=float(K[0, 0] * pitch[0]))
-    rng_tx = np.linalg.norm(x - system.scanner.position, axis=1)
-    sig = spot.sigma(np.nan_to_num(rng_tx, nan=1.0), np.nan_to_num(x[:, 2], nan=1.0), link)
-    pix = peaks.pixel[j]
-    du = (pix % w) - uvc[:, 0]
-    dv = (pix // w) - uvc[:, 1]
-    su, sv = sig / pitch[0], sig / pitch[1]
-    f = ((ndtr((du + 0.5) / su) - ndtr((du - 0.5) / su))
-         * (ndtr((dv + 0.5) / sv) - ndtr((dv - 0.5) / sv)))
-    f = np.nan_to_num(f, nan=0.0)
-    keep = f > 1e-4
-    f, j = f[keep], j[keep]
-    target = np.maximum(peaks.counts - peaks.background, 0.5)
-    lo = np.zeros(P)
-    hi = np.full(P, 50.0)
-    for _ in range(40):  # Σ_k (1 − exp(−μ f_k)) is increasing in μ
-        mid = 0.5 * (lo + hi)
-        expect = np.bincount(j, -np.expm1(-mid[j] * f), minlength=P)
-        over = expect > target
-        hi = np.where(over, mid, hi)
-        lo = np.where(over, lo, mid)
-    mu = 0.5 * (lo + hi)
-    pulse = PulseShape.gaussian(system.laser.pulse_fwhm, settings.timing_jitter)
-    grid = np.concatenate([[0.0], np.geomspace(1e-3, 50.0, 120)])
-    table = first_photon_mean_delay(np.maximum(grid, 1e-12), pulse)
-    table = table - table[0]
-    m = mu[j] * f
-    pdet = -np.expm1(-m)
-    num = np.bincount(j, pdet * np.interp(m, grid, table), minlength=P)
-    den = np.bincount(j, pdet, minlength=P)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        bias_t = np.where(den > 0, num / den, 0.0)  # s, <= 0
-    corr = system.speed_of_light * bias_t
-    return peaks.L - corr, 0.3 * np.abs(corr), mu
-
-
 def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
                      sigma_extra=None) -> PointCloud:
     """Points of the pixel peaks with their 3 × 3 covariances → PointCloud.
@@ -408,7 +343,8 @@ def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
         cov = np.einsum("nik,nk,njk->nij", J, var, J)
     good = np.all(np.isfinite(pts), axis=1)
     pts, cov = pts[good], cov[good]
-    r, _, sr, sphi = polar_from_cartesian(pts, cov)
+    pol = polar_from_cartesian(pts, cov)
+    r, sr, sphi = pol.r, pol.sigma_r, pol.sigma_phi
     sxyz = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
     attrs = {
         "counts": peaks.counts[good].astype(np.int32),
@@ -445,7 +381,8 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
                           "receiver.image_size")
     timings["read"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    th1, th2, d, valid = shot_directions(rec, system)
+    sd = shot_directions(rec, system)
+    th1, th2, d, valid = sd.theta1, sd.theta2, sd.direction, sd.valid
     timings["angles"] = time.perf_counter() - t0
 
     r_min = settings.r_min or rec.readout.get("r_min", 0.3)
@@ -453,8 +390,8 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     w, h = system.receiver.image_size
     t0 = time.perf_counter()
     if rec.readout["mode"] == "gated":
-        nominal_d, nominal_valid = ((d, valid) if system is rec.system
-                                    else shot_directions(rec, rec.system)[2:])
+        nominal = sd if system is rec.system else shot_directions(rec, rec.system)
+        nominal_d, nominal_valid = nominal.direction, nominal.valid
         gate = recompute_gate(rec, rec.system, nominal_d)
         # every detection must lie in it (monitors and gate agree: docs/reliability.md)
         check_gate(rec, nominal_d, nominal_valid, gate)
@@ -481,7 +418,8 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     peaks = find_pixel_peaks(system, hist, exposure, noise_rate, settings)
     sigma_extra = None
     if settings.pileup_correction and peaks.pixel.size:
-        L_corr, sigma_extra, _ = pileup_correction(system, peaks, model_gate, d, settings)
+        L_corr, sigma_extra, _ = pileup_correction(system, peaks, model_gate, d,
+                                                   settings.timing_jitter)
         peaks = replace(peaks, L=L_corr)
     cloud = cloud_from_peaks(system, peaks, settings, sigma_extra)
     timings["peaks+cloud"] = time.perf_counter() - t0
@@ -492,12 +430,18 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
               "noise": n_noise, "peaks": int(peaks.pixel.size), "points": len(cloud)}
     if gate is not None and int(gate.counts().sum()) != int(rec.read_count.sum()):
         counts["gate_mismatch"] = int(gate.counts().sum()) - int(rec.read_count.sum())
-    truth = None
-    if "label" in rec.truth:
-        tl = np.asarray(rec.truth["label"])
-        ts = tl == 1
-        truth = {"true_signal": int(ts.sum()), "true_background": int((tl == 2).sum()),
-                 "recall": float(np.mean(labels[ts] == 1)) if ts.any() else float("nan"),
-                 "noise_rejection": (float(np.mean(labels[tl == 2] == 2)) if (tl == 2).any()
-                                     else float("nan"))}
-    return Result2D(cloud, labels, th1, th2, counts, truth, timings, rec.source)
+    return Result2D(cloud, labels, th1, th2, counts, _truth_2d(rec, labels), timings,
+                    rec.source)
+
+
+def _truth_2d(rec: Recording2D, labels) -> dict | None:
+    """Recall and noise rejection of ``labels`` against the recording's
+    ``/truth/label`` (None without truth)."""
+    if "label" not in rec.truth:
+        return None
+    tl = np.asarray(rec.truth["label"])
+    ts = tl == 1
+    return {"true_signal": int(ts.sum()), "true_background": int((tl == 2).sum()),
+            "recall": float(np.mean(labels[ts] == 1)) if ts.any() else float("nan"),
+            "noise_rejection": (float(np.mean(labels[tl == 2] == 2)) if (tl == 2).any()
+                                else float("nan"))}

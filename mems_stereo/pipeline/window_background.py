@@ -148,7 +148,7 @@ def inlier_codes(margins, a, b, nodes: int = INLIER_NODES, refine: int = 2):
     point holds all 4096) is kept or dropped whole, while the inlier window is
     ± a few pulse widths — the background under the return was left in or
     taken from elsewhere, and the time of flight of faint returns under strong
-    background came out up to a metre early (sweep case 19010).
+    background came out up to a metre early.
 
     ``margins(g, c)`` : for group indices g (N,) and float codes c (N,) returns
     ``(f_lo, f_hi)`` (N,): range − (centre − bound) and (centre + bound) −

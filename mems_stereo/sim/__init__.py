@@ -16,11 +16,17 @@ from mems_stereo.physics.pulse import PulseShape
 from mems_stereo.physics.spot import SpotModel, spot_fractions
 from mems_stereo.sim.photons import background_first_arrivals, first_signal_arrival
 from mems_stereo.sim.scene import RayHits, Scene, SceneObject, load_scene, scene_from_dict
-from mems_stereo.sim.simulate import shot_returns, simulate, write_simulation
+from mems_stereo.sim.simulate import (
+    SimulationOptions,
+    shot_returns,
+    simulate,
+    write_simulation,
+)
 from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
 
 __all__ = [
-    "LinkBudget", "PulseShape", "RayHits", "Scene", "SceneObject", "SpotModel", "Trajectory",
+    "LinkBudget", "PulseShape", "RayHits", "Scene", "SceneObject", "SimulationOptions",
+    "SpotModel", "Trajectory",
     "background_first_arrivals", "emitted_photons", "expected_signal_photons",
     "first_photon_cdf", "first_photon_mean_delay", "first_signal_arrival", "load_scene",
     "monitor_zero_crossings", "scene_from_dict",

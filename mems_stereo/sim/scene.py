@@ -338,34 +338,41 @@ def _object_from_dict(o: Any, i: int, ck: _Checker, base_dir: Path) -> SceneObje
         p["axis"] = p["axis"] / np.linalg.norm(p["axis"])
         v, t = cylinder_mesh(p["center"], p["radius"], p["height"], p["axis"])
     else:  # mesh
-        fname = ck.req(o, "file", pre)
-        if not isinstance(fname, str) or not fname:
-            raise ck.fail(f"{pre}.file", f"expected a file name, found {json.dumps(fname)}")
-        path = _confined_mesh_path(fname, base_dir, ck, f"{pre}.file")
-        scale = ck.number(o.get("scale", 1.0), f"{pre}.scale", positive=True)
-        trans = ck.vec(o.get("translation", [0, 0, 0]), f"{pre}.translation", 3)
-        R = rotation_from_euler_deg(ck.vec(o.get("rotation_deg", [0, 0, 0]),
-                                           f"{pre}.rotation_deg", 3))
-        try:
-            require_input_file(path)
-        except (FileNotFoundError, FormatError):
-            raise ck.fail(f"{pre}.file", f"expected a readable mesh file, found no regular "
-                                         f"file {fname}") from None
-        import open3d as o3d
-
-        try:
-            mesh = o3d.io.read_triangle_mesh(str(path))
-        except (RuntimeError, ValueError, OSError):
-            raise ck.fail(f"{pre}.file", f"expected a triangle mesh Open3D can read: {fname}") \
-                from None
-        v0 = np.asarray(mesh.vertices, dtype=np.float64)
-        t = np.asarray(mesh.triangles, dtype=np.int64)
-        if t.shape[0] == 0:
-            raise ck.fail(f"{pre}.file", f"expected a triangle mesh Open3D can read, found no "
-                                         f"triangles in {path}")
-        v = (scale * v0) @ R.T + trans
-        p.update(file=str(path), scale=scale, translation=trans, rotation=R)
+        v, t, mesh_params = _mesh_from_file(o, pre, ck, base_dir)
+        p.update(mesh_params)
     return SceneObject(kind, name, refl, np.asarray(v, float), np.asarray(t, np.int64), p)
+
+
+def _mesh_from_file(o: dict, pre: str, ck: _Checker,
+                    base_dir: Path) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    """A ``mesh`` object's vertices (V, 3) m, triangles (T, 3) and parameters."""
+    fname = ck.req(o, "file", pre)
+    if not isinstance(fname, str) or not fname:
+        raise ck.fail(f"{pre}.file", f"expected a file name, found {json.dumps(fname)}")
+    path = _confined_mesh_path(fname, base_dir, ck, f"{pre}.file")
+    scale = ck.number(o.get("scale", 1.0), f"{pre}.scale", positive=True)
+    trans = ck.vec(o.get("translation", [0, 0, 0]), f"{pre}.translation", 3)
+    R = rotation_from_euler_deg(ck.vec(o.get("rotation_deg", [0, 0, 0]),
+                                       f"{pre}.rotation_deg", 3))
+    try:
+        require_input_file(path)
+    except (FileNotFoundError, FormatError):
+        raise ck.fail(f"{pre}.file", f"expected a readable mesh file, found no regular "
+                                     f"file {fname}") from None
+    import open3d as o3d
+
+    try:
+        mesh = o3d.io.read_triangle_mesh(str(path))
+    except (RuntimeError, ValueError, OSError):
+        raise ck.fail(f"{pre}.file", f"expected a triangle mesh Open3D can read: {fname}") \
+            from None
+    v0 = np.asarray(mesh.vertices, dtype=np.float64)
+    t = np.asarray(mesh.triangles, dtype=np.int64)
+    if t.shape[0] == 0:
+        raise ck.fail(f"{pre}.file", f"expected a triangle mesh Open3D can read, found no "
+                                     f"triangles in {path}")
+    v = (scale * v0) @ R.T + trans
+    return v, t, {"file": str(path), "scale": scale, "translation": trans, "rotation": R}
 
 
 def _confined_mesh_path(fname: str, base_dir: Path, ck, fld: str) -> Path:

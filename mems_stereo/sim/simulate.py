@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,6 +43,37 @@ from mems_stereo.sim.trajectory import Trajectory, monitor_zero_crossings
 
 CHUNK_SHOTS = 4096  # fixed: the random stream does not depend on progress reporting
 MIN_SLOT_PHOTONS = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class SimulationOptions:
+    """How :func:`simulate` acquires: the mirror's motion, the jitters, the optics.
+
+    Attributes
+    ----------
+    start_time : s, trigger time of shot 0; shots follow at 1 / f_rep.
+    phase : rad, monitor phase φ_mon at ``start_time`` (None: uniform from the rng).
+    drift : 1/s, relative linear drift of the mechanical frequency.
+    amplitude : rad, true θ_mech,max (None: the true system's).
+    zc_jitter : s, Gaussian timing jitter of the zero-crossing monitor.
+    timing_jitter : s, Gaussian jitter of SPAD + TDC + laser trigger.
+    pulse : None (Gaussian of the true system's pulse_fwhm), a
+        :class:`PulseShape`, or ``(times, power)`` samples of any shape.
+    link : :class:`LinkBudget` (None: the paper's system).
+    spot : :class:`SpotModel` (None: the default).
+    crosstalk : probability that a detection also fires a neighbouring pixel.
+    """
+
+    start_time: float = 0.0
+    phase: float | None = None
+    drift: float = 0.0
+    amplitude: float | None = None
+    zc_jitter: float = 20e-9
+    timing_jitter: float = 50e-12
+    pulse: PulseShape | tuple | None = None
+    link: LinkBudget | None = None
+    spot: SpotModel | None = None
+    crosstalk: float = 0.0
 
 
 def _pulse_for(true_system: System, pulse, timing_jitter: float) -> PulseShape:
@@ -252,10 +284,7 @@ def _crosstalk(bins: np.ndarray, label: np.ndarray, p: float, rng: np.random.Gen
 
 def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Generator,
              background_hz=1e5, dark_count_hz=1e3, true_system: System | None = None,
-             start_time: float = 0.0, phase: float | None = None, drift: float = 0.0,
-             amplitude: float | None = None, zc_jitter: float = 20e-9,
-             timing_jitter: float = 50e-12, pulse=None, link: LinkBudget | None = None,
-             spot: SpotModel | None = None, crosstalk: float = 0.0,
+             options: SimulationOptions | None = None,
              progress: Callable[[int], object] | None = None) -> Recording:
     """Simulate ``n_shots`` laser shots of a MEMS-scanning SPAD lidar.
 
@@ -269,17 +298,8 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
         (paper: 1e5 room light, 6e6 floodlight).
     dark_count_hz : dark counts per second per pixel, scalar or (H, W).
     true_system : the System that generates the photons (default: ``system``).
-    start_time : s, trigger time of shot 0; shots follow at 1 / f_rep.
-    phase : rad, monitor phase φ_mon at ``start_time`` (None: uniform from rng).
-    drift : 1/s, relative linear drift of the mechanical frequency.
-    amplitude : rad, true θ_mech,max (None: the true system's).
-    zc_jitter : s, Gaussian timing jitter of the zero-crossing monitor.
-    timing_jitter : s, Gaussian jitter of SPAD + TDC + laser trigger.
-    pulse : None (Gaussian of the true system's pulse_fwhm), a
-        :class:`PulseShape`, or ``(times, power)`` samples of any shape.
-    link : :class:`LinkBudget` (default: the paper's system).
-    spot : :class:`SpotModel` (default).
-    crosstalk : probability that a detection also fires a neighbouring pixel.
+    options : :class:`SimulationOptions` (start time, mirror phase and drift,
+        jitters, pulse, link budget, spot, crosstalk; None: the defaults).
     progress : called with the number of shots done after each chunk.
 
     Returns
@@ -290,6 +310,7 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     int64 (−1: no hit), ``path_length`` (K,) m, ``signal_mean`` (K,) mean
     detected signal photons on the sensor.
     """
+    opt = SimulationOptions() if options is None else options
     if not isinstance(rng, np.random.Generator):
         raise TypeError("rng: expected a numpy.random.Generator")
     n_shots = int(n_shots)
@@ -299,20 +320,22 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     if tuple(ts.receiver.image_size) != tuple(system.receiver.image_size):
         raise GeometryError(f"true_system: expected image_size {system.receiver.image_size} "
                             f"like the nominal system, found {ts.receiver.image_size}")
+    crosstalk = opt.crosstalk
     if not 0.0 <= crosstalk <= 1.0:
         raise OptionError(f"crosstalk: expected a probability in [0, 1], found {crosstalk}")
-    link = LinkBudget() if link is None else link
-    spot = SpotModel() if spot is None else spot
+    link = LinkBudget() if opt.link is None else opt.link
+    spot = SpotModel() if opt.spot is None else opt.spot
     w, h = system.receiver.image_size
     rates = _rates(background_hz, dark_count_hz, (h, w))
 
+    phase = opt.phase
     if phase is None:
         phase = float(rng.uniform(0.0, 2.0 * math.pi))
-    traj = Trajectory.from_scanner(ts.scanner, phase, drift, start_time, amplitude)
-    shot_time = start_time + np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
-    zc, rising = monitor_zero_crossings(traj, shot_time, rng, zc_jitter)
+    traj = Trajectory.from_scanner(ts.scanner, phase, opt.drift, opt.start_time, opt.amplitude)
+    shot_time = opt.start_time + np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
+    zc, rising = monitor_zero_crossings(traj, shot_time, rng, opt.zc_jitter)
     theta = traj.theta(shot_time)
-    pulse_shape = _pulse_for(ts, pulse, timing_jitter)
+    pulse_shape = _pulse_for(ts, opt.pulse, opt.timing_jitter)
     n_emit = emitted_photons(link, pulse_shape, ts.laser.wavelength)
 
     bins = np.zeros((n_shots, h, w), dtype=np.uint16)

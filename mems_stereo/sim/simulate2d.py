@@ -21,14 +21,15 @@ What differs:
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 from mems_stereo.errors import GeometryError, OptionError
 from mems_stereo.geometry.gating import GateSpec, full_gate, gate_pixels
 from mems_stereo.io.recording2d import Recording2D
+from mems_stereo.model.presets import TWO_AXIS_LINK
 from mems_stereo.model.scanner2d import (
-    TWO_AXIS_LINK,
     Axis2Monitor,
     require_two_axis,
     scan_angles_2d,
@@ -49,7 +50,7 @@ MIN_SLOT_PHOTONS = 1e-9
 
 
 def default_link() -> LinkBudget:
-    """The two-axis presets' link budget (:data:`mems_stereo.model.scanner2d.TWO_AXIS_LINK`)."""
+    """The two-axis presets' link budget (:data:`mems_stereo.model.presets.TWO_AXIS_LINK`)."""
     return LinkBudget(**TWO_AXIS_LINK)
 
 
@@ -150,14 +151,74 @@ def _first_events(b_key, b_tau, s_key, s_tau, tdc):
     return keys, code, labs
 
 
+@dataclass(frozen=True, slots=True)
+class Simulation2DOptions:
+    """How :func:`simulate_2d` acquires: the mirror phases, the monitors, the optics.
+
+    Attributes
+    ----------
+    phase, phase2 : rad, monitor phases of the axes at t = 0 (None: uniform from the rng).
+    zc_jitter : s, zero-crossing monitor jitter (both resonant axes).
+    timing_jitter : s, SPAD + TDC + trigger jitter.
+    position_rate : Hz, sample rate of the quasistatic axis' position channel.
+    position_noise : rad, Gaussian noise of the position channel.
+    link : :class:`LinkBudget` (None: :func:`default_link`).
+    spot : :class:`SpotModel` (None: the default).
+    truth_per_shot : store θ1, θ2 (K,) and the hit point (K, 3) in the truth.
+    """
+
+    phase: float | None = None
+    phase2: float | None = None
+    zc_jitter: float = 20e-9
+    timing_jitter: float = 50e-12
+    position_rate: float = 20e3
+    position_noise: float = 2e-5
+    link: LinkBudget | None = None
+    spot: SpotModel | None = None
+    truth_per_shot: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class _ShotAngles:
+    """The true angles of every shot and what the monitors record of them.
+
+    shot_time : (K,) float64 s; zc, rising : (Z,) the fast axis' monitor;
+    theta1, theta2 : (K,) float64 rad, true angles; mon2 : axis 2's monitor;
+    phase, phase2 : rad, the monitors' phases at t = 0.
+    """
+
+    shot_time: np.ndarray
+    zc: np.ndarray
+    rising: np.ndarray
+    theta1: np.ndarray
+    theta2: np.ndarray
+    mon2: Axis2Monitor
+    phase: float
+    phase2: float
+
+
+def _shot_angles(ts: System, n_shots: int, rng, opt: Simulation2DOptions) -> _ShotAngles:
+    """Draw the phases (when not given), the monitors and the true angles, in this order."""
+    sc = ts.scanner
+    phase, phase2 = opt.phase, opt.phase2
+    if phase is None:
+        phase = float(rng.uniform(0.0, 2 * math.pi))
+    if phase2 is None:
+        phase2 = float(rng.uniform(0.0, 2 * math.pi))
+    shot_time = np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
+    traj1 = Trajectory(sc.f_mech, phase, 0.0, 0.0, sc.theta0, sc.theta_mech_max,
+                       sc.phase_offset)
+    zc, rising = monitor_zero_crossings(traj1, shot_time, rng, opt.zc_jitter)
+    theta1 = traj1.theta(shot_time)
+    theta2, mon2 = _axis2_truth(ts, n_shots, shot_time, rng, phase2, opt.zc_jitter,
+                                opt.position_rate, opt.position_noise)
+    return _ShotAngles(shot_time, zc, rising, theta1, theta2, mon2, phase, phase2)
+
+
 def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Generator,
                 background_hz: float = 1e5, dark_count_hz: float = 1e3,
                 true_system: System | None = None, gate: GateSpec | None | str = "auto",
-                phase: float | None = None, phase2: float | None = None,
-                zc_jitter: float = 20e-9, timing_jitter: float = 50e-12,
-                position_rate: float = 20e3, position_noise: float = 2e-5,
-                link: LinkBudget | None = None, spot: SpotModel | None = None,
-                truth_per_shot: bool = True, progress=None) -> Recording2D:
+                options: Simulation2DOptions | None = None, progress=None) -> Recording2D:
     """Simulate ``n_shots`` shots of a two-axis scanner and a 2-D SPAD array.
 
     Parameters
@@ -169,12 +230,9 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
     background_hz, dark_count_hz : per pixel, Hz (uniform over the array).
     true_system : the System that makes the photons (default ``system``).
     gate : a :class:`GateSpec`, "auto" (:func:`default_gate_spec`) or None (read all).
-    phase, phase2 : rad, monitor phases of the axes at t = 0 (None: uniform from rng).
-    zc_jitter : s, zero-crossing monitor jitter (both resonant axes).
-    timing_jitter : s, SPAD + TDC + trigger jitter.
-    position_rate, position_noise : Hz, rad — the quasistatic axis' position channel.
-    link, spot : :class:`LinkBudget` (default :func:`default_link`), :class:`SpotModel`.
-    truth_per_shot : store θ1, θ2 (K,) and the hit point (K, 3) in the truth.
+    options : :class:`Simulation2DOptions` (phases, jitters, position channel,
+        link budget, spot, per-shot truth; None: the defaults).
+    progress : called with the number of shots done after each chunk.
 
     Returns
     -------
@@ -183,33 +241,21 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
     ``signal_total`` (laser-return detections on the whole array, read or not)
     and ``signal_lost`` (those outside the gate).
     """
+    opt = Simulation2DOptions() if options is None else options
     ts = system if true_system is None else true_system
     n_shots = _check_args(system, ts, rng, n_shots, background_hz, dark_count_hz)
-    link = default_link() if link is None else link
-    spot = SpotModel() if spot is None else spot
-    if isinstance(gate, str):
-        if gate != "auto":
-            raise OptionError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
-        gate = default_gate_spec(system, spot=spot, link=link)
+    link = default_link() if opt.link is None else opt.link
+    spot = SpotModel() if opt.spot is None else opt.spot
+    gate = _resolve_gate(gate, system, spot, link)
     npix = system.receiver.width * system.receiver.height
-    sc = ts.scanner
-
-    if phase is None:
-        phase = float(rng.uniform(0.0, 2 * math.pi))
-    if phase2 is None:
-        phase2 = float(rng.uniform(0.0, 2 * math.pi))
-    shot_time = np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
-    traj1 = Trajectory(sc.f_mech, phase, 0.0, 0.0, sc.theta0, sc.theta_mech_max,
-                       sc.phase_offset)
-    zc, rising = monitor_zero_crossings(traj1, shot_time, rng, zc_jitter)
-    theta1 = traj1.theta(shot_time)
-    theta2, mon2 = _axis2_truth(ts, n_shots, shot_time, rng, phase2, zc_jitter,
-                                position_rate, position_noise)
+    ang = _shot_angles(ts, n_shots, rng, opt)
+    shot_time = ang.shot_time
 
     # what the hardware knows: the nominal system and the monitors' angles
-    th1_n, th2_n, valid_n = scan_angles_2d(shot_time, zc, rising, mon2, system.scanner)
+    th1_n, th2_n, valid_n = scan_angles_2d(shot_time, ang.zc, ang.rising, ang.mon2,
+                                           system.scanner)
 
-    pulse = PulseShape.gaussian(ts.laser.pulse_fwhm, timing_jitter)
+    pulse = PulseShape.gaussian(ts.laser.pulse_fwhm, opt.timing_jitter)
     n_emit = emitted_photons(link, pulse, ts.laser.wavelength)
     window = ts.tdc.n_bins * ts.tdc.bin_width
     lam = float(background_hz + dark_count_hz)
@@ -221,7 +267,7 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
     for s0 in range(0, n_shots, CHUNK_SHOTS):
         s1 = min(n_shots, s0 + CHUNK_SHOTS)
         k = s1 - s0
-        dirs = scan_direction_2d(theta1[s0:s1], theta2[s0:s1], sc)
+        dirs = scan_direction_2d(ang.theta1[s0:s1], ang.theta2[s0:s1], ts.scanner)
         ret = beam_returns(ts, scene, dirs, link=link, spot=spot, n_emitted=n_emit)
         point[s0:s1] = np.where(ret["visible"][:, None], ret["point"], np.nan)
         # readout gate from the nominal angles (unknown angle: nothing read)
@@ -250,14 +296,29 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
             progress(k)
 
     key = np.concatenate(ev_key) if ev_key else np.zeros(0, np.int64)
-    readout = ({"mode": "full"} if gate is None else
-               {"mode": "gated", "r_min": gate.r_min, "r_max": gate.r_max,
-                "half_width": gate.half_width})
     truth = {"label": np.concatenate(ev_label), "signal_total": np.int64(sig_total),
-             "signal_lost": np.int64(sig_lost), "phase": np.float64(phase),
-             "phase2": np.float64(phase2)}
-    if truth_per_shot:
-        truth.update({"theta1": theta1, "theta2": theta2, "point": point})
-    return Recording2D(system, shot_time, zc, rising.astype(np.uint8), mon2, readout,
-                       np.concatenate(counts), key // npix, key % npix,
+             "signal_lost": np.int64(sig_lost), "phase": np.float64(ang.phase),
+             "phase2": np.float64(ang.phase2)}
+    if opt.truth_per_shot:
+        truth.update({"theta1": ang.theta1, "theta2": ang.theta2, "point": point})
+    return Recording2D(system, shot_time, ang.zc, ang.rising.astype(np.uint8), ang.mon2,
+                       _readout(gate), np.concatenate(counts), key // npix, key % npix,
                        np.concatenate(ev_code), truth, "<simulated>")
+
+
+def _resolve_gate(gate: GateSpec | None | str, system: System, spot: SpotModel,
+                  link: LinkBudget) -> GateSpec | None:
+    """A :class:`GateSpec` or None from :func:`simulate_2d`'s ``gate`` argument."""
+    if isinstance(gate, str):
+        if gate != "auto":
+            raise OptionError(f"gate: expected a GateSpec, 'auto' or None, found {gate!r}")
+        gate = default_gate_spec(system, spot=spot, link=link)
+    return gate
+
+
+def _readout(gate: GateSpec | None) -> dict:
+    """The recording's ``readout`` description of a gate (None: the full array)."""
+    if gate is None:
+        return {"mode": "full"}
+    return {"mode": "gated", "r_min": gate.r_min, "r_max": gate.r_max,
+            "half_width": gate.half_width}

@@ -1,0 +1,184 @@
+"""The matched filter's box search: one candidate's counts and expected background over
+its scan-angle steps × code cells, and the (footprint × code) box of smallest Poisson
+p-value over them (:class:`BoxGrid`), coarse to fine where the grid is large.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import pdtrc
+
+#: the most (step × cell) positions a candidate's grid is searched at in full; beyond
+#: (a whole scan's band of steps: candidates search it all, see
+#: :data:`~mems_stereo.pipeline.peaks.CANDIDATE_WHOLE_SCAN`), coarse to fine
+FULL_SCAN_CELLS = 400_000
+#: the same for a whole scan's grid (thousands of steps × a narrow interval, where the
+#: exhaustive search costs about ten times the coarse one)
+WHOLE_SCAN_FULL_CELLS = 50_000
+#: coarse blocks per box side in the coarse search (a box quantised to within 1/4)
+COARSE_BOX_UNITS = 4
+#: coarse boxes refined exactly
+COARSE_TOP = 4
+#: in the refinement the Poisson tail is evaluated only at boxes whose deviance
+#: N ln(N/B) − (N − B) is within this of the largest
+DEVIANCE_MARGIN = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class BestBox:
+    """The box of smallest Poisson p-value over a grid of counts.
+
+    p : float, its Poisson p-value; j, k : int, its centre's step and cell index
+    (0-based within the grid searched); count : float, its count; background :
+    float, its expected background.
+    """
+
+    p: float
+    j: int
+    k: int
+    count: float
+    background: float
+
+
+class BoxGrid:
+    """One candidate's counts and expected background over its counted steps × code
+    cells, and the smallest Poisson p-value of the (footprint × code) box over them.
+
+    ``ds``, ``dc``, ``cnt`` : (E,) each entry's step and cell index (0-based within
+    the candidate's grid) and count; ``lo``, ``hi`` : (n_steps,) the accepted codes of
+    each step; ``nps`` : (n_steps,) its valid shots; cell ``k`` holds codes
+    ``c_lo + cell·k …`` ; ``log1mh`` : ln(1 − h), h the chance of a background first
+    photon per code; ``n_cell`` : the grid's cells.  The background of cell k at step
+    j is the valid shots times P(first photon in the cell's codes ∩ [lo_j, hi_j]),
+    F(c) = 1 − (1 − h)^c the chance it came by code c (the free-running expectation: conservative).
+    """
+
+    def __init__(self, ds, dc, cnt, lo, hi, nps, c_lo, cell, log1mh, n_cell):
+        self.ds, self.dc, self.cnt = ds, dc, cnt
+        self.lo, self.hi, self.nps = lo, hi, nps
+        self.c_lo, self.cell, self.log1mh = c_lo, cell, log1mh
+        self.n_steps, self.n_cell = int(np.shape(lo)[0]), n_cell
+
+    def counts(self, j0, j1, k0, k1, fs=1, fc=1):
+        """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
+        k0..k1−1, summed in blocks of fs steps × fc cells."""
+        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
+        D = np.zeros((-(-(j1 - j0) // fs), -(-(k1 - k0) // fc)))
+        np.add.at(D, ((self.ds[m] - j0) // fs, (self.dc[m] - k0) // fc), self.cnt[m])
+        return D
+
+    def background(self, j0, j1, k0, k1, fc=1):
+        """The expected background of steps j0..j1−1 × cells k0..k1−1, the cells summed
+        in blocks of fc (see :meth:`counts`; :meth:`coarse_background` blocks steps)."""
+        e_lo = self.c_lo + self.cell * (k0 + fc * np.arange(-(-(k1 - k0) // fc)))
+        e_hi = np.minimum(e_lo + self.cell * fc - 1, self.c_lo + self.cell * k1 - 1)
+        a_c = np.maximum(e_lo[None, :], self.lo[j0:j1, None])
+        b_c = np.minimum(e_hi[None, :], self.hi[j0:j1, None])
+        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * self.log1mh)
+                      - np.exp(b_c * self.log1mh), 0.0)
+        return self.nps[j0:j1, None] * pr
+
+    def coarse_background(self, fs: int, fc: int):
+        """The background of blocks of ``fs`` steps × ``fc`` cells over the whole grid,
+        each block of steps taken as its valid shots over the union of its accepted
+        codes (an over-estimate at the intervals' ends only: the coarse search ranks
+        boxes, the exact background is the refinement's)."""
+        n = self.n_steps
+        starts = np.arange(0, n, fs)
+        shot = (self.nps > 0) & (self.lo <= self.hi)
+        big = np.iinfo(np.int64).max
+        lo = np.minimum.reduceat(np.where(shot, self.lo, big), starts)
+        hi = np.maximum.reduceat(np.where(shot, self.hi, -1), starts)
+        nps = np.add.reduceat(np.where(shot, self.nps, 0.0), starts)
+        g = BoxGrid(None, None, None, lo, hi, nps, self.c_lo, self.cell, self.log1mh,
+                    self.n_cell)
+        return g.background(0, starts.size, 0, self.n_cell, fc)
+
+    def best(self, box_s: int, box_c: int, min_counts: int,
+             full_cells: int | None = None) -> BestBox | None:
+        """The :class:`BestBox` of the box (``box_s`` steps × ``box_c``
+        cells, whole in steps) with the smallest Poisson p-value, or None.
+
+        Every box position where the grid holds at most ``full_cells`` (default
+        :data:`FULL_SCAN_CELLS`) cells; a larger one (a scan's whole band of steps)
+        is searched coarse to fine: boxes of blocks of about
+        1/:data:`COARSE_BOX_UNITS` of a box, then the
+        exact boxes around the :data:`COARSE_TOP` best of them (a subset of the
+        positions: the false-alarm level, set for all of them, holds)."""
+        n, nc = self.n_steps, self.n_cell
+        if n * nc <= (FULL_SCAN_CELLS if full_cells is None else full_cells):
+            return smallest_p(self.counts(0, n, 0, nc), self.background(0, n, 0, nc),
+                               box_s, box_c, min_counts)
+        fs = max(1, box_s // COARSE_BOX_UNITS)
+        fc = max(1, box_c // COARSE_BOX_UNITS)
+        bs, bc = -(-box_s // fs) | 1, -(-box_c // fc) | 1
+        coarse = smallest_p(self.counts(0, n, 0, nc, fs, fc), self.coarse_background(fs, fc),
+                             bs, bc, min_counts, top=COARSE_TOP)
+        if coarse is None:
+            return None
+        out = None
+        for jc, kc in coarse:
+            j0 = max(0, (jc - bs // 2 - 1) * fs)
+            j1 = min(n, (jc + bs // 2 + 2) * fs)
+            k0 = max(0, (kc - bc // 2 - 1) * fc)
+            k1 = min(nc, (kc + bc // 2 + 2) * fc)
+            # boxes whole in the window's cells too, except at the grid's own edges
+            # (the whole search's boxes run over them; a box cut at the window's edge
+            # would lose background the whole one carries)
+            r = smallest_p(self.counts(j0, j1, k0, k1), self.background(j0, j1, k0, k1),
+                            box_s, box_c, min_counts, cut=(k0 == 0, k1 == nc),
+                            prefilter=True)
+            if r is not None and (out is None or r.p < out.p):
+                out = BestBox(r.p, r.j + j0, r.k + k0, r.count, r.background)
+        return out
+
+
+def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
+               cut=(True, True), prefilter: bool = False):
+    """Over the boxes of ``box_s`` × ``box_c`` (whole in the first axis) of counts ``D``
+    against background ``B``: the :class:`BestBox` of the smallest Poisson p-value,
+    or with ``top`` the (j, k) of the ``top`` smallest; None if no
+    box holds ``min_counts`` above its background.  ``cut`` : whether boxes may run
+    over the first / last column (else they are whole there too); ``prefilter`` : the
+    tail only at boxes whose Poisson deviance is within :data:`DEVIANCE_MARGIN` of the
+    largest (the smallest p lies among them: ln p ≈ −deviance up to slowly varying
+    terms)."""
+    N_box = box_sums(D, box_s, box_c)
+    B_box = box_sums(B, box_s, box_c)
+    half = box_s // 2
+    valid = np.zeros(N_box.shape, bool)
+    if D.shape[0] > 2 * half:
+        valid[half:D.shape[0] - half, :] = True
+    hc = box_c // 2
+    if not cut[0]:
+        valid[:, :hc] = False
+    if not cut[1]:
+        valid[:, max(0, D.shape[1] - hc):] = False
+    valid &= (N_box >= min_counts) & (N_box > B_box)
+    if not np.any(valid):
+        return None
+    if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
+        flat = np.flatnonzero(valid)
+        n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        order = flat[np.argsort(-dev, kind="stable")[:top]]
+        return [divmod(int(k), D.shape[1]) for k in order]
+    if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
+        n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
+    p = np.ones(N_box.shape)  # the tail at the valid boxes only (pdtrc is the cost)
+    with np.errstate(invalid="ignore"):
+        p[valid] = pdtrc(np.maximum(N_box[valid] - 1, 0), np.maximum(B_box[valid], 1e-12))
+    k = int(np.argmin(p))
+    jj, ci = divmod(k, D.shape[1])
+    return BestBox(p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci])
+
+
+def box_sums(A, h: int, w: int) -> np.ndarray:
+    """Centred box sums of (h, w) (odd) over a 2-D array, zeros beyond its edges."""
+    a = np.pad(A, ((h // 2 + 1, h // 2), (w // 2 + 1, w // 2)))
+    c = np.cumsum(np.cumsum(a, axis=0), axis=1)
+    return c[h:, w:] - c[:-h, w:] - c[h:, :-w] + c[:-h, :-w]

@@ -1,0 +1,112 @@
+"""Each peak's stereo and time-of-flight means with every term of their σ, from the
+sums of :class:`~mems_stereo.pipeline.peak_accumulator.PeakAccumulator`.
+
+The means weighted by multiplicity, scaled by the inliers' reduced χ² (Birge
+ratio); the stereo taken at the mean scan angle less its expected bias; the
+first-photon delay removed from the time of flight; the subtracted background's
+Poisson fluctuation and the first-photon model's spread added.  Units: metres,
+receiver camera frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
+from mems_stereo.pipeline.peak_geometry import (
+    stereo_angle_jacobian,
+    stereo_at_mean_angle,
+    stereo_cov_at_mean_angle,
+)
+from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
+
+
+def peak_means_of(acc) -> PeakMeans:
+    """Each peak's stereo and ToF means of the accumulator ``acc`` (a
+    :class:`~mems_stereo.pipeline.peak_accumulator.PeakAccumulator` after both
+    sub-passes) with every term of their σ (scatter, pixel location, background,
+    first-photon model): all of its cloud that is the peak's own (the first-photon
+    step by blocks of :data:`~mems_stereo.pipeline.first_photon_correction.FP_BLOCK`
+    peaks by index); the depth edges, which look at the row neighbours, are
+    :meth:`PeakMeans.cloud`'s.  The means of blocks of peaks cut at multiples of
+    ``FP_BLOCK``, joined (:meth:`PeakMeans.concat`), are the whole's."""
+    s = acc.sums
+    n = s.n
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # means x̄ = Σ w x / Σ w, covariance Σ w² C / (Σ w)² (w: multiplicities)
+        mean = {name: s.estimate(name).mean() for name in ("fused", "stereo", "tof")}
+        W = s.fused.W
+        # reduced χ² of the fused ranges about their σ-weighted mean:
+        # Σ w (r_i − r̄)² = Σ w r² − 2 r̄ Σ w r + r̄² Σ w, w = 1/σ_i²
+        rbar_w = s.wr / s.w
+        chi2 = (s.wrr - 2 * rbar_w * s.wr + rbar_w ** 2 * s.w) / np.maximum(n - 1, 1)
+        x_tof = mean["tof"][0]  # before the first-photon correction: the entries' mean
+        rbar_t = np.linalg.norm(x_tof, axis=1)
+        var_bg_t = np.maximum(s.bt2 - 2 * rbar_t * s.bt1 + rbar_t ** 2 * s.b0, 0.0) / W ** 2
+        u_t = x_tof / rbar_t[:, None]
+    birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
+    grid = None if acc.step_grid is None else acc.step_grid[1]
+    st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
+                              mean["stereo"][0], step=grid)
+    mean["stereo"] = (st.point, mean["stereo"][1])
+    # its covariance: the mean angle's, propagated at that angle (the detections
+    # and the subtracted background count as independent entries, as in the sums)
+    C_st = stereo_cov_at_mean_angle(acc.system, acc.rows, acc.cols, s.theta, n,
+                                    s.detections + s.b0, acc.spreads)
+    okc = np.all(np.isfinite(C_st), axis=(1, 2))
+    mean["stereo"] = (mean["stereo"][0],
+                      np.where(okc[:, None, None], C_st, mean["stereo"][1]))
+    # the first-photon correction needs the pulse's centre: from the peak-level
+    # fusion of the stereo (at the mean angle) and uncorrected ToF means
+    mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
+    fp = (first_photon_correction(acc, mean["fused"][0], mean["tof"]) if correcting(acc)
+          else None)
+    if fp is not None:  # the stereo at the mean angle less its expected bias
+        mean["tof"] = fp.tof
+        # removed where significant: beyond k of the mean angle's statistical σ
+        # (below it the correction is within the noise, and it rests on the
+        # system's geometry: a wrong system, e.g. the samples' nominal one,
+        # predicts wrong small biases); where not removed it stays in σ
+        with np.errstate(invalid="ignore", divide="ignore"):
+            Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
+            sig_th = np.sqrt(np.einsum("qi,qij,qj->q", Jt, mean["stereo"][1], Jt)
+                             * birge) / np.einsum("qi,qi->q", Jt, Jt)
+            removed = np.abs(fp.angle_bias) > acc.k * np.nan_to_num(sig_th, nan=np.inf)
+        st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
+                                  mean["stereo"][0], angle_bias=fp.angle_bias, step=grid,
+                                  removed=removed)
+        mean["stereo"] = (st.point, mean["stereo"][1])
+    # the stereo mean's spread is that of its mean scan angle: binomial, not
+    # Poisson, where the scan revisits its angles (angle_binomial_factor)
+    scale = {"stereo": birge if fp is None else birge * fp.angle_binomial,
+             "tof": birge}
+    for name in ("stereo", "tof"):
+        mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
+    if st.cov_sys is not None:  # systematic: not scaled
+        mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + st.cov_sys)
+    # the subtracted background's Poisson fluctuation moves the mean angle:
+    # Σ b (θ_b − θ̄)² / n², along ∂x/∂θ at the mean angle
+    with np.errstate(invalid="ignore", divide="ignore"):
+        th_bar = s.theta / n
+        var_th = np.maximum(s.b2 - 2 * th_bar * s.b1 + th_bar ** 2 * s.b0, 0.0) / W ** 2
+    Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, th_bar)
+    add = np.nan_to_num(var_th)[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
+    mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + np.nan_to_num(add))
+    # the same for the time of flight: far away (stereo of no weight) a peak under
+    # strong background is its ToF, and the background's Poisson fluctuation
+    # across the accepted code interval (metres of range) is most of its error
+    add_t = np.nan_to_num(var_bg_t)[:, None, None] * u_t[:, :, None] * u_t[:, None, :]
+    mean["tof"] = (mean["tof"][0], mean["tof"][1] + np.nan_to_num(add_t))
+    if fp is not None:  # the delay's posterior spread: systematic, not scaled
+        D = s.tof.dL()[0]
+        mean["tof"] = (mean["tof"][0], mean["tof"][1] + D[:, :, None] * D[:, None, :]
+                       * (fp.sigma_L ** 2)[:, None, None])
+    # the point: the peak's stereo and ToF means, each with every term of its σ
+    # (scatter, pixel location, background, first-photon model), combined by
+    # their range variances (a stereo mean near the beam's vanishing point,
+    # σ of metres, then leaves the ToF alone instead of dragging the mean)
+    mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+    return PeakMeans(acc.system, acc.k, acc.rows, acc.cols, acc.peak_code,
+                     mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
+                     birge, st.range_per_px,
+                     None if fp is None else fp.delay, None if fp is None else fp.mu)
