@@ -452,3 +452,12 @@ def test_peak_counts_sum_compiled_equals_numpy(monkeypatch, seed):
         want = PeakCounts(a, ca) + PeakCounts(b, cb)
         assert np.array_equal(got.keys, want.keys) and np.array_equal(got.counts, want.counts)
         assert np.intersect1d(a, b).size > 0 or min(a.size, b.size) <= 1
+
+
+def test_placement_without_known_workers_lets_dask_choose():
+    """No worker addresses (the scheduler listed none yet): no placement keywords, which
+    Dask would refuse (allow_other_workers needs workers)."""
+    from mems_stereo.pipeline.dask_setup import on_worker
+
+    assert on_worker([], 3) == {}
+    assert on_worker(["a", "b"], 3) == {"workers": ["b"], "allow_other_workers": True}

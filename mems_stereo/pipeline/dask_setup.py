@@ -114,8 +114,9 @@ def worker_addresses(client) -> list:
 def on_worker(addresses: list, i: int) -> dict:
     """``client.submit`` keywords that place task ``i`` on worker ``i`` mod the workers
     (any worker where that one is busy or gone; anywhere without addresses)."""
-    return {"workers": [addresses[i % len(addresses)]] if addresses else None,
-            "allow_other_workers": True}
+    if not addresses:  # Dask refuses allow_other_workers without workers
+        return {}
+    return {"workers": [addresses[i % len(addresses)]], "allow_other_workers": True}
 
 
 def scatter_one(client, obj):
