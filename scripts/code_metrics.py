@@ -33,7 +33,11 @@ FACADE = {"mems_stereo", "mems_stereo.__main__", "mems_stereo.data", "mems_stere
 
 
 def package_modules():
-    """Yield (dotted name, path) of every module of mems_stereo, calib/ and viz/."""
+    """(dotted name, path) of every module of mems_stereo, calib/ and viz/."""
+    return list(_package_modules())
+
+
+def _package_modules():
     for folder, prefix in ((ROOT / "mems_stereo", "mems_stereo"),
                            (ROOT / "calib", "mems_stereo.calib"),
                            (ROOT / "viz", "mems_stereo.viz")):
@@ -62,9 +66,9 @@ def _docstring_lines(node) -> set[int]:
     return set()
 
 
-def _all_docstring_lines(tree) -> set[int]:
+def _all_docstring_lines(nodes) -> set[int]:
     out: set[int] = set()
-    for node in ast.walk(tree):
+    for node in nodes:
         if isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef):
             out |= _docstring_lines(node)
     return out
@@ -79,12 +83,12 @@ def _resolve(name: str, path: Path, node: ast.ImportFrom) -> str | None:
     return ".".join(base + ([node.module] if node.module else []))
 
 
-def imports_of(name: str, path: Path, tree=None) -> set[str]:
+def imports_of(name: str, path: Path, nodes=None, known: set[str] | None = None) -> set[str]:
     """Every mems_stereo module this module imports (module level and in functions)."""
-    tree = tree or ast.parse(path.read_text())
-    known = {n for n, _ in package_modules()}
+    nodes = nodes if nodes is not None else list(ast.walk(ast.parse(path.read_text())))
+    known = known if known is not None else {n for n, _ in package_modules()}
     out: set[str] = set()
-    for node in ast.walk(tree):
+    for node in nodes:
         if isinstance(node, ast.Import):
             mods = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
@@ -147,12 +151,12 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return out
 
 
-def _private_names(modules) -> set[str]:
+def _private_names(all_nodes) -> set[str]:
     """Private names the package defines: functions, classes, module constants and
     instance attributes (``self._x = ...``) whose names start with one underscore."""
     out: set[str] = set()
-    for _, path in modules:
-        for node in ast.walk(ast.parse(path.read_text())):
+    for nodes in all_nodes:
+        for node in nodes:
             if isinstance(node, ast.FunctionDef | ast.ClassDef | ast.AsyncFunctionDef):
                 out.add(node.name)
             elif isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store) \
@@ -175,19 +179,21 @@ def breaches() -> dict[str, list[str]]:
         "import cycle", "layer", "deprecated module", "parameters", "private name")}
     modules = list(package_modules())
     known = {n for n, _ in modules}
-    private = _private_names(modules)
+    sources = {name: path.read_text() for name, path in modules}
+    walked = {name: list(ast.walk(ast.parse(src))) for name, src in sources.items()}
+    private = _private_names(walked.values())
     graph: dict[str, set[str]] = {}
     for name, path in modules:
-        src = path.read_text()
-        tree = ast.parse(src)
+        src = sources[name]
+        nodes = walked[name]
         rel = path.relative_to(ROOT)
         n_lines = src.count("\n")
         if n_lines > MAX_MODULE_LINES:
             out["module size"].append(f"{rel}: {n_lines} lines")
         if "deprecated" in path.stem:
             out["deprecated module"].append(str(rel))
-        code = _code_lines(src) - _all_docstring_lines(tree)
-        for node in ast.walk(tree):
+        code = _code_lines(src) - _all_docstring_lines(nodes)
+        for node in nodes:
             if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef):
                 span = set(range(node.lineno, node.end_lineno + 1))
                 n = len(span & code)
@@ -224,7 +230,7 @@ def breaches() -> dict[str, list[str]]:
                     and len(node.value.elts) > MAX_RETURNED_TUPLE:
                 out["returned tuple"].append(
                     f"{rel}:{node.lineno}: {len(node.value.elts)} elements")
-        deps = imports_of(name, path, tree)
+        deps = imports_of(name, path, nodes, known)
         # a package's __init__ re-exports its own modules: an edge down into
         # the package is not a cycle of the design
         graph[name] = {d for d in deps
