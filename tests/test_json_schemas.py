@@ -307,3 +307,17 @@ def test_docs_formats_lists_every_declared_member():
             "python scripts/doc_schemas.py")
         documented = set(re.findall(r"^\| `([^`]+)`", m.group(1), re.M))
         assert documented == {p for p, _ in schema_rows(kind)}
+
+
+def test_cli_one_line_exit_2(tmp_path, capsys):
+    """The CLI reports a schema refusal as one line naming file, field and the fix."""
+    from mems_stereo.cli import main
+
+    d = read_json_file(SAMPLES / "nominal_system.json")
+    d["scanner"]["phase_ofset"] = 0.01
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d))
+    assert main(["info", "--system", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert err.endswith(f"{bad}: scanner.phase_ofset: unknown field; did you mean phase_offset?")
