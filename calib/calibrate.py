@@ -180,10 +180,12 @@ def read_target_distances(path, recordings, default_std: float | None = None):
     from pathlib import Path
 
     from mems_stereo.errors import FormatError
-    from mems_stereo.util.jsonfile import read_json_file
+    from mems_stereo.util.jsonfile import FieldChecker, check_schema, read_json_file
+    from mems_stereo.util.schemas import DISTANCES_FIELDS
 
     src = str(path)
     doc = read_json_file(path)
+    check_schema(doc, DISTANCES_FIELDS, FieldChecker(src))  # members and types
     if not isinstance(doc, dict) or doc.get("format") != DISTANCES_FORMAT:
         raise FormatError(f"expected format {DISTANCES_FORMAT!r}, found "
                           f"{doc.get('format') if isinstance(doc, dict) else type(doc).__name__!r}",

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.model.system import System, resolve_system, system_from_dict
-from mems_stereo.util.jsonfile import FieldChecker, read_json_file, shown
+from mems_stereo.util.jsonfile import FieldChecker, check_schema, read_json_file, shown
+from mems_stereo.util.schemas import MAP_FIELDS
 
 MAP_FORMAT = "mems-stereo/tttr-map"
 
@@ -67,6 +68,7 @@ def _int(ck: FieldChecker, v, fld: str, lo: int = 0) -> int:
 def map_from_dict(d: dict, source: str = "<dict>", base_dir: str | os.PathLike = ".") -> TttrMap:
     """Validate a mapping object; errors name the field, expected vs found."""
     ck = FieldChecker(source)
+    check_schema(d, MAP_FIELDS, ck)  # format, version, members and types
     fmt = ck.req(d, "format", "")
     if fmt != MAP_FORMAT:
         raise ck.fail("format", f"expected {MAP_FORMAT!r}, found {shown(fmt)}")

@@ -40,7 +40,8 @@ from mems_stereo.model.presets import (
 )
 from mems_stereo.model.scanner2d import axis2_from_dict, axis2_to_dict
 from mems_stereo.util.atomic import atomic_write_text
-from mems_stereo.util.jsonfile import FieldChecker, parse_json, read_json_file
+from mems_stereo.util.jsonfile import FieldChecker, check_schema, parse_json, read_json_file
+from mems_stereo.util.schemas import SYSTEM_FIELDS
 
 __all__ = [
     "ALLOWED_DIST_LENGTHS", "FORMAT_NAME", "FORMAT_VERSION", "PLAUSIBLE", "PRESETS", "TDC",
@@ -71,12 +72,7 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     ctx = FieldChecker(source)
     if not isinstance(d, dict):
         raise ctx.fail("(top level)", f"expected a JSON object, found {type(d).__name__}")
-    fmt = ctx.req(d, "format", "")
-    if fmt != FORMAT_NAME:
-        raise ctx.fail("format", f"expected {FORMAT_NAME!r}, found {fmt!r}")
-    ver = ctx.req(d, "version", "")
-    if isinstance(ver, bool) or not isinstance(ver, int) or ver != FORMAT_VERSION:
-        raise ctx.fail("version", f"expected {FORMAT_VERSION}, found {ver!r}")
+    check_schema(d, SYSTEM_FIELDS, ctx)  # format, version, members and types
     receiver = _receiver_from_dict(ctx.req(d, "receiver", ""), ctx, source)
     scanner = _scanner_from_dict(ctx.req(d, "scanner", ""), ctx, source)
     laser = _laser_from_dict(ctx.req(d, "laser", ""), ctx)

@@ -33,8 +33,9 @@ from typing import Any
 import numpy as np
 
 from mems_stereo.errors import FormatError
-from mems_stereo.util.jsonfile import FieldChecker, read_json_file
+from mems_stereo.util.jsonfile import FieldChecker, check_schema, read_json_file
 from mems_stereo.util.paths import require_input_file
+from mems_stereo.util.schemas import SCENE_FIELDS
 
 SCENE_FORMAT = "mems-stereo/scene"
 SCENE_VERSION = 1
@@ -406,6 +407,7 @@ def scene_from_dict(d: Any, source: str = "<dict>", base_dir: str | os.PathLike 
     ck = _Checker(source)
     if not isinstance(d, dict):
         raise ck.fail("(top level)", f"expected a JSON object, found {type(d).__name__}")
+    check_schema(d, SCENE_FIELDS, ck)  # format, version, members and types
     if "format" in d and d["format"] != SCENE_FORMAT:
         raise ck.fail("format", f"expected {SCENE_FORMAT!r}, found {json.dumps(d['format'])}")
     if "version" in d and d["version"] != SCENE_VERSION:

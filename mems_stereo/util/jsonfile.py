@@ -9,8 +9,11 @@ and what was expected and found, e.g.
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
+import numbers
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -177,3 +180,154 @@ class FieldChecker:
         if not np.all(np.isfinite(a)):
             raise self.fail(fld, "expected finite numbers, found NaN or inf")
         return a
+
+
+# --------------------------------------------------------------------------
+# declared schemas: one mechanism for every JSON file kind the package reads
+
+
+@dataclass(frozen=True)
+class Field:
+    """The declared spec of one member of a JSON object.
+
+    Attributes
+    ----------
+    type : JSON type(s), ``"|"``-separated: ``number``, ``integer``, ``string``,
+        ``boolean``, ``array``, ``object``, ``null``.
+    required : the member must be present.
+    unit : SI unit (``""``: none; for the documentation).
+    doc : one line for the documentation.
+    const : the only value accepted (``format``, ``version``).
+    fields : the members of an object value (checked strictly, recursively).
+    items : the spec of each element of an array value.
+    values : the spec of each member of an object whose keys are free (names).
+    variants : ``(key, {value: fields})``: an object whose members depend on
+        its ``key`` member (the scene's object ``type``).
+    expect : what a wrong type is told it should be (default from ``type``),
+        e.g. "a positive number" where the reader will also check the sign.
+    """
+
+    type: str
+    required: bool = False
+    unit: str = ""
+    doc: str = ""
+    const: Any = None
+    fields: dict | None = None
+    items: Field | None = None
+    values: Field | None = None
+    variants: tuple | None = None
+    expect: str = ""
+
+
+_TYPE_WORDS = {"number": "a number", "integer": "an integer", "string": "a string",
+               "boolean": "true or false", "array": "a list", "object": "an object",
+               "null": "null"}
+
+
+def _is_type(v: Any, t: str) -> bool:
+    if t == "number":
+        return isinstance(v, numbers.Real) and not isinstance(v, bool)
+    if t == "integer":
+        return isinstance(v, numbers.Integral) and not isinstance(v, bool)
+    if t == "string":
+        return isinstance(v, str)
+    if t == "boolean":
+        return isinstance(v, bool)
+    if t == "array":
+        return isinstance(v, (list, tuple, np.ndarray))
+    if t == "object":
+        return isinstance(v, dict)
+    return v is None  # "null"
+
+
+def edit_distance(a: str, b: str) -> int:
+    """Optimal-string-alignment distance: insertions, deletions, substitutions and
+    transpositions of neighbours each count 1."""
+    prev2: list[int] = []
+    prev = list(range(len(b) + 1))
+    for i, ca in enumerate(a, 1):
+        cur = [i] + [0] * len(b)
+        for j, cb in enumerate(b, 1):
+            cur[j] = min(prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (ca != cb))
+            if i > 1 and j > 1 and ca == b[j - 2] and a[i - 2] == cb:
+                cur[j] = min(cur[j], prev2[j - 2] + 1)
+        prev2, prev = prev, cur
+    return prev[-1]
+
+
+def closest_key(key: str, known) -> str | None:
+    """The known key nearest ``key`` (a typo of it), or None when none is near."""
+    key = str(key)
+    best, best_d = None, None
+    for k in known:
+        d = edit_distance(key.lower(), k.lower())
+        if d <= max(1, min(len(k), len(key)) // 4) and (best_d is None or d < best_d):
+            best, best_d = k, d
+    if best is None:
+        close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.75)
+        best = close[0] if close else None
+    return best
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else key
+
+
+def check_schema(d: Any, fields: dict, ck: FieldChecker, prefix: str = "") -> None:
+    """Validate the object ``d`` against declared ``fields`` (:class:`Field`), strictly.
+
+    In this order: ``const`` members (``format``, ``version``: a file of
+    another kind is named as such); missing required members (naming a
+    present unknown key that is a near miss); unknown members (refused with
+    the closest known key); the type of every member, recursively.  Value
+    ranges, shapes and cross-field rules stay with each reader.
+    """
+    if not isinstance(d, dict):
+        raise ck.fail(prefix or "(top level)", f"expected an object, found {shown(d)}")
+    for name, f in fields.items():
+        if f.const is not None and name in d and not (
+                d[name] == f.const and type(d[name]) is type(f.const)):
+            raise ck.fail(_join(prefix, name), f"expected {f.const!r}, found {shown(d[name])}")
+    unknown = [k for k in d if k not in fields]
+    for name, f in fields.items():
+        if f.required and name not in d:
+            near = [k for k in unknown if closest_key(k, [name]) == name]
+            hint = f"; found {near[0]} — did you mean {name}?" if near else ""
+            raise ck.fail(_join(prefix, name), f"required field is missing{hint}")
+    for k in unknown:
+        near = closest_key(k, fields)
+        hint = (f"did you mean {near}?" if near
+                else f"expected one of {', '.join(fields)}")
+        raise ck.fail(_join(prefix, str(k)), f"unknown field; {hint}")
+    for name, v in d.items():
+        check_value(v, fields[name], ck, _join(prefix, name))
+
+
+def check_value(v: Any, f: Field, ck: FieldChecker, fld: str) -> None:
+    """Check one value against its :class:`Field` (type, then members or items)."""
+    types = f.type.split("|")
+    if not any(_is_type(v, t) for t in types):
+        want = f.expect or " or ".join(_TYPE_WORDS[t] for t in types)
+        raise ck.fail(fld, f"expected {want}{f' ({f.unit})' if f.unit else ''}, found {shown(v)}")
+    if isinstance(v, dict):
+        if f.variants is not None:
+            key, table = f.variants
+            kind = v.get(key)
+            if isinstance(kind, str) and kind in table:
+                check_schema(v, table[kind], ck, fld)
+            elif key in v:
+                raise ck.fail(f"{fld}.{key}", f"expected one of {', '.join(table)}, "
+                                              f"found {shown(kind)}")
+            else:
+                union: dict = {}
+                for members in table.values():
+                    union.update(members)
+                check_schema(v, union, ck, fld)
+        elif f.fields is not None:
+            check_schema(v, f.fields, ck, fld)
+        elif f.values is not None:
+            for k, x in v.items():
+                check_value(x, f.values, ck, f"{fld}.{k}")
+    elif f.items is not None and isinstance(v, (list, tuple)):
+        for i, x in enumerate(v):
+            check_value(x, f.items, ck, f"{fld}[{i}]")

@@ -1,0 +1,323 @@
+"""Strict schemas of every JSON file kind the package reads (issue 32).
+
+The mutation test: every key of a valid example of each kind (bundled
+samples, a calibrated one-axis and a two-axis system written by
+``mems-stereo calibrate``) is mistyped by one character (each deletion, each
+transposition of neighbours, a substitution by a keyboard neighbour at each
+position); every such file is refused with a did-you-mean naming the key.
+Also: unknown keys refused, wrong types refused with the field named, every
+valid file loads, and ``docs/formats.md`` lists exactly the declared members.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from mems_stereo.errors import FormatError
+from mems_stereo.io.tttr_map import map_from_dict
+from mems_stereo.model.system import system_from_dict
+from mems_stereo.sim.scene import scene_from_dict
+from mems_stereo.util.jsonfile import Field, closest_key, read_json_file
+from mems_stereo.util.schemas import SCHEMAS, schema_markdown, schema_rows
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLES = ROOT / "samples"
+DATA = Path(__file__).resolve().parent / "data"
+
+_ROWS = ["qwertyuiop", "asdfghjkl", "zxcvbnm", "1234567890"]
+
+
+def _neighbour(c: str) -> str:
+    """A keyboard neighbour of ``c`` (``_`` → ``-``)."""
+    for row in _ROWS:
+        i = row.find(c.lower())
+        if i >= 0:
+            return row[i + 1] if i + 1 < len(row) else row[i - 1]
+    return "-"
+
+
+def typos(key: str) -> list[str]:
+    """Deterministic one-character typos: deletions, transpositions, substitutions."""
+    out = [key[:i] + key[i + 1:] for i in range(len(key))]
+    out += [key[:i] + key[i + 1] + key[i] + key[i + 2:] for i in range(len(key) - 1)]
+    out += [key[:i] + _neighbour(key[i]) + key[i + 1:] for i in range(len(key))]
+    seen, uniq = {key}, []
+    for t in out:
+        if t and t not in seen:
+            seen.add(t)
+            uniq.append(t)
+    return uniq
+
+
+def _distances_loader(tmp: Path):
+    from calib.calibrate import read_target_distances
+
+    def load(d):
+        p = tmp / "distances.json"
+        p.write_text(json.dumps(d))
+        read_target_distances(p, ["calib_1.5m.h5"])
+    return load
+
+
+def examples(tmp: Path):
+    """(name, kind, loader, valid dict) of every example."""
+    def system(d):
+        system_from_dict(d, "system.json")
+
+    def the_map(d):
+        map_from_dict(d, "map.json", SAMPLES)
+
+    def scene(d):
+        scene_from_dict(d, "scene.json", SAMPLES)
+
+    rd = read_json_file
+    return [
+        ("nominal system", "system", system, rd(SAMPLES / "nominal_system.json")),
+        ("true system (phase_offset)", "system", system, rd(SAMPLES / "calib_true_system.json")),
+        ("calibrated system", "system", system, rd(DATA / "calibrated_system.json")),
+        ("two-axis system", "system", system, rd(SAMPLES / "raster128x96_system.json")),
+        ("calibrated two-axis system", "system", system,
+         rd(DATA / "calibrated_twoaxis_system.json")),
+        ("TTTR map", "tttr-map", the_map, rd(SAMPLES / "room48_map.json")),
+        ("target distances", "target-distances", _distances_loader(tmp),
+         rd(SAMPLES / "calib_distances.json")),
+        ("scene", "scene", scene, rd(SAMPLES / "room_scene.json")),
+    ]
+
+
+def declared_objects(d, fields: dict, path=()):
+    """(path to an object, its declared members) for every object the schema
+    names members of (not the name-keyed ones, whose keys are data)."""
+    yield path, fields
+    for k, v in d.items():
+        f = fields.get(k)
+        if f is None:
+            continue
+        yield from _declared_value(v, f, path + (k,))
+
+
+def _declared_value(v, f: Field, path):
+    if isinstance(v, dict):
+        if f.variants is not None:
+            yield from declared_objects(v, f.variants[1][v[f.variants[0]]], path)
+        elif f.fields is not None:
+            yield from declared_objects(v, f.fields, path)
+        elif f.values is not None and f.values.fields is not None:
+            for k, x in v.items():
+                yield from declared_objects(x, f.values.fields, path + (k,))
+    elif isinstance(v, list) and f.items is not None:
+        for i, x in enumerate(v[:2]):  # the first two elements of a list stand for all
+            yield from _declared_value(x, f.items, path + (i,))
+
+
+def _at(d, path):
+    for p in path:
+        d = d[p]
+    return d
+
+
+def _renamed(obj: dict, old: str, new: str) -> dict:
+    return {(new if k == old else k): v for k, v in obj.items()}
+
+
+def test_mutation_every_key_typo_refused_with_did_you_mean(tmp_path, capsys):
+    total, refused, skipped, keys = 0, 0, 0, 0
+    failures = []
+    for name, kind, load, valid in examples(tmp_path):
+        load(copy.deepcopy(valid))  # the example itself is valid
+        for path, fields in declared_objects(valid, SCHEMAS[kind]):
+            obj = _at(valid, path)
+            for key in list(obj):
+                keys += 1
+                for typo in typos(key):
+                    if typo in obj or typo in fields:  # another valid key: not a typo
+                        skipped += 1
+                        continue
+                    d = copy.deepcopy(valid)
+                    if path:
+                        parent = _at(d, path[:-1])
+                        parent[path[-1]] = _renamed(_at(d, path), key, typo)
+                    else:
+                        d = _renamed(d, key, typo)
+                    total += 1
+                    try:
+                        load(d)
+                    except FormatError as e:
+                        if f"did you mean {key}?" in str(e):
+                            refused += 1
+                            continue
+                        failures.append(f"{name}: {'.'.join(map(str, path + (typo,)))}: {e}")
+                    else:
+                        failures.append(f"{name}: {'.'.join(map(str, path + (typo,)))}: "
+                                        "accepted")
+    with capsys.disabled():
+        print(f"\nmutation test: {refused} of {total} one-character typos of {keys} keys "
+              f"refused with the right did-you-mean ({100.0 * refused / total:.1f} %); "
+              f"{skipped} typos that are other valid keys not counted")
+    assert not failures, "\n".join(failures[:20])
+    assert total > 1000 and refused == total
+
+
+def test_typos_helper():
+    assert typos("ab") == ["b", "a", "ba", "sb", "an"]
+    assert closest_key("phase_ofset", ["theta0", "phase_offset"]) == "phase_offset"
+    assert closest_key("zzz", ["theta0", "phase_offset"]) is None
+
+
+def _load_system(d):
+    return system_from_dict(d, "sys.json")
+
+
+def test_issue_examples():
+    d = read_json_file(SAMPLES / "nominal_system.json")
+    d["scanner"]["phase_ofset"] = 0.01
+    with pytest.raises(FormatError, match=r"^sys\.json: scanner\.phase_ofset: unknown field; "
+                                          r"did you mean phase_offset\?$"):
+        _load_system(d)
+    d = read_json_file(SAMPLES / "nominal_system.json")
+    d["scanner"]["theta_mech_maxx"] = d["scanner"].pop("theta_mech_max")
+    with pytest.raises(FormatError, match=r"scanner\.theta_mech_max: required field is missing; "
+                                          r"found theta_mech_maxx — did you mean theta_mech_max\?"):
+        _load_system(d)
+
+
+@pytest.mark.parametrize("where", [(), ("receiver",), ("scanner",), ("laser",), ("tdc",),
+                                   ("scanner", "axis2"), ("calibration",),
+                                   ("calibration", "covariance")])
+def test_unknown_keys_refused(where):
+    d = read_json_file(DATA / "calibrated_system.json")
+    if where == ("scanner", "axis2"):
+        d = read_json_file(SAMPLES / "raster128x96_system.json")
+    _at(d, where)["frobnicate"] = 1
+    with pytest.raises(FormatError) as e:
+        _load_system(d)
+    fld = ".".join(where + ("frobnicate",))
+    assert e.value.field == fld and "unknown field; expected one of" in str(e.value)
+
+
+def test_unknown_keys_other_kinds(tmp_path):
+    for _name, kind, load, valid in examples(tmp_path):
+        if kind == "system":
+            continue
+        d = copy.deepcopy(valid)
+        d["extra"] = 1
+        with pytest.raises(FormatError, match="extra: unknown field"):
+            load(d)
+    scene = read_json_file(SAMPLES / "room_scene.json")
+    scene["objects"][1]["radius"] = 0.2  # a box has no radius
+    with pytest.raises(FormatError, match=r"objects\[1\]\.radius: unknown field"):
+        scene_from_dict(scene, "scene.json")
+    m = read_json_file(SAMPLES / "room48_map.json")
+    m["zero_crossings"]["polarty"] = "negative"
+    with pytest.raises(FormatError, match=r"zero_crossings\.polarty: unknown field; "
+                                          r"did you mean polarity\?"):
+        map_from_dict(m, "map.json", SAMPLES)
+    dist = read_json_file(SAMPLES / "calib_distances.json")
+    dist["targets"][0]["sdt"] = 0.001
+    with pytest.raises(FormatError, match=r"targets\[0\]\.sdt: unknown field; did you mean std"):
+        _distances_loader(tmp_path)(dist)
+
+
+WRONG_TYPES = [
+    ("system", ("scanner", "f_mech"), "1570", "scanner.f_mech"),
+    ("system", ("tdc", "n_bins"), 4096.5, "tdc.n_bins"),
+    ("system", ("receiver", "image_size"), "192x1", "receiver.image_size"),
+    ("system", ("speed_of_light",), True, "speed_of_light"),
+    ("system", ("scanner",), [1, 2], "scanner"),
+    ("system", ("version",), "1", "version"),
+    ("calibrated", ("calibration", "rms_pixel"), "small", "calibration.rms_pixel"),
+    ("calibrated", ("calibration", "fixed"), [1], "calibration.fixed[0]"),
+    ("tttr-map", ("tdc", "binning"), "64", "tdc.binning"),
+    ("tttr-map", ("photons",), 1, "photons"),
+    ("tttr-map", ("shots",), [], "shots"),
+    ("target-distances", ("std",), "0.002", "std"),
+    ("target-distances", ("targets", 0, "distance"), "1.5", "targets[0].distance"),
+    ("scene", ("objects", 0, "reflectivity"), "high", "objects[0].reflectivity"),
+    ("scene", ("name",), 3, "name"),
+]
+
+
+@pytest.mark.parametrize("kind, path, value, fld", WRONG_TYPES)
+def test_wrong_types_refused_naming_the_field(tmp_path, kind, path, value, fld):
+    ex = {("calibrated" if n == "calibrated system" else k): (load, v)
+          for n, k, load, v in examples(tmp_path)
+          if n in ("nominal system", "calibrated system") or k != "system"}
+    load, valid = ex[kind]
+    d = copy.deepcopy(valid)
+    _at(d, path[:-1])[path[-1]] = value
+    with pytest.raises(FormatError) as e:
+        load(d)
+    assert e.value.field == fld, str(e.value)
+    assert "expected" in str(e.value)
+
+
+def test_every_bundled_json_loads():
+    from mems_stereo.io.tttr_map import load_map
+    from mems_stereo.model.system import load_system
+
+    files = sorted(SAMPLES.glob("*.json")) + sorted(DATA.glob("*.json"))
+    kinds = set()
+    for f in files:
+        d = read_json_file(f)
+        fmt = d["format"]
+        kinds.add(fmt)
+        if fmt == "mems-stereo/system":
+            load_system(f)
+        elif fmt == "mems-stereo/tttr-map":
+            load_map(f)
+        elif fmt == "mems-stereo/scene":
+            scene_from_dict(d, str(f), f.parent)
+        else:
+            _distances_loader_path(f)
+    assert kinds == {f"mems-stereo/{k}" for k in SCHEMAS}
+
+
+def _distances_loader_path(f: Path):
+    from calib.calibrate import read_target_distances
+
+    read_target_distances(f, ["calib_1.5m.h5"])
+
+
+def test_written_files_load_back():
+    """What the package writes (systems of every preset, maps) passes the schema."""
+    from mems_stereo.io.tttr_map import load_map, map_to_dict
+    from mems_stereo.model.presets import PRESETS, TWO_AXIS_PRESETS
+    from mems_stereo.model.system import system_to_dict
+
+    for make in list(PRESETS.values()) + list(TWO_AXIS_PRESETS.values()):
+        system_from_dict(system_to_dict(make()), "preset")
+    m = load_map(SAMPLES / "room48_map.json")
+    map_from_dict(map_to_dict(m, "room48_system.json"), "map.json", SAMPLES)
+
+
+def test_docs_formats_lists_every_declared_member():
+    """docs/formats.md carries the table generated from the declared specs, per kind."""
+    text = (ROOT / "docs" / "formats.md").read_text()
+    for kind in SCHEMAS:
+        m = re.search(rf"<!-- schema: {re.escape(kind)} -->\n(.*?)<!-- /schema -->", text,
+                      re.S)
+        assert m, f"docs/formats.md has no generated table for {kind}"
+        assert m.group(1) == schema_markdown(kind), (
+            f"docs/formats.md: the {kind} table differs from the specs; regenerate with "
+            "python scripts/doc_schemas.py")
+        documented = set(re.findall(r"^\| `([^`]+)`", m.group(1), re.M))
+        assert documented == {p for p, _ in schema_rows(kind)}
+
+
+def test_cli_one_line_exit_2(tmp_path, capsys):
+    """The CLI reports a schema refusal as one line naming file, field and the fix."""
+    from mems_stereo.cli import main
+
+    d = read_json_file(SAMPLES / "nominal_system.json")
+    d["scanner"]["phase_ofset"] = 0.01
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(d))
+    assert main(["info", "--system", str(bad)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0
+    assert err.endswith(f"{bad}: scanner.phase_ofset: unknown field; did you mean phase_offset?")
