@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
-from mems_stereo.cli._common import Reporter, report_peaks_truth_outputs
+from mems_stereo.cli._common import Reporter, add_parents_argument, report_peaks_truth_outputs
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.errors import FormatError
 from mems_stereo.io.histograms import write_histograms
 from mems_stereo.io.recording2d import is_two_axis_recording
@@ -26,14 +27,17 @@ def add_arguments(p):
     p.add_argument("recordings", nargs="+", metavar="REC.h5",
                    help="recording(s) in FORMAT v1 (HDF5)")
     p.add_argument("-o", "--output", required=True,
-                   help="point cloud to write (.ply, .pcd, .las); with several recordings a "
-                        "directory that receives <name>.ply for each")
+                   help=f"point cloud to write ({suffix_help('process', 'output')}); with "
+                        "several recordings a folder that receives <name>.ply for each")
     p.add_argument("--system", default=None,
                    help="system JSON to process with (e.g. a calibrated one; default: the "
                         "recording's /system)")
-    p.add_argument("--labels", default=None, help="write the event labels (HDF5) here")
+    p.add_argument("--labels", default=None,
+                   help=f"write the event labels here ({suffix_help('process', 'labels')})")
     p.add_argument("--histograms", default=None,
-                   help="write the raw/signal/noise histograms (HDF5) here")
+                   help="write the raw/signal/noise histograms here "
+                        f"({suffix_help('process', 'histograms')})")
+    add_parents_argument(p)
     p.add_argument("--confidence", type=float, default=0.997,
                    help="two-sided coverage of the consistency bound (default 0.997 = 3 sigma)")
     p.add_argument("--min-range", type=float, default=None,
