@@ -271,9 +271,8 @@ def _check_extension(o: str, p: Path, kind: str, allowed: tuple | None = None) -
     if kind in ("dir", "dir-of-clouds"):
         return  # a folder: no suffix
     if allowed and sfx not in allowed:
-        found = repr(p.suffix) if p.suffix else "no suffix"
-        raise OptionError(f"cannot write {p} ({found}); expected one of "
-                          f"{', '.join(allowed)}", field=o)
+        what = f"unknown extension {p.suffix!r} of" if p.suffix else "no extension on"
+        raise OptionError(f"{what} {p}; expected one of {', '.join(allowed)}", field=o)
     if sfx == ".laz" and kind == "cloud":
         import laspy
 
