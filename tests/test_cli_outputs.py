@@ -300,6 +300,33 @@ def test_a_folder_output_may_be_new_but_not_its_parent(tmp_path):
     assert (tmp_path / "new" / "room_scene.json").is_file()
 
 
+@pytest.mark.parametrize("argv, flag", [
+    (["process", RECS["two"], "--confidence", "0.9"], "--confidence"),
+    (["process", RECS["two"], "--chunk-shots", "100"], "--chunk-shots"),
+    (["calibrate", *WALLS["two"], "--distance-std", "0.01"], "--distance-std"),
+    (["calibrate", *WALLS["two"], "--allow-unobservable"], "--allow-unobservable"),
+])
+def test_two_axis_refuses_options_it_cannot_honour(argv, flag, tmp_path, capsys):
+    """An option that would do nothing for two-axis input is refused, not ignored."""
+    out = tmp_path / ("c.ply" if argv[0] == "process" else "c.json")
+    assert main([*argv, "-o", str(out)]) == 2
+    assert flag in capsys.readouterr().err
+    assert _files(tmp_path) == set()
+
+
+def test_two_axis_min_range_is_used(cached, tmp_path, monkeypatch):
+    seen = {}
+
+    def spy(rec, system=None, settings=None):
+        seen["r_min"] = settings.r_min
+        return cached["proc_two"]
+
+    monkeypatch.setattr(pipe2d_mod, "process_recording_2d", spy)
+    assert main(["process", "-q", RECS["two"], "--min-range", "0.7", "-o",
+                 str(tmp_path / "c.ply")]) == 0
+    assert seen["r_min"] == 0.7
+
+
 # ------------------------------------------------- the table, the help, the writers
 
 def _subparser(parser: argparse.ArgumentParser, key: str) -> argparse.ArgumentParser:

@@ -56,7 +56,7 @@ def process(args, rep, recs, system) -> int:
     if many and args.labels:
         raise FormatError("--labels takes one recording at a time", field="--labels")
     out = Path(args.output)
-    settings = Settings2D(false_alarm=args.false_alarm)
+    settings = Settings2D(false_alarm=args.false_alarm, r_min=args.min_range)
     for r in recs:
         target = out / f"{r.stem}.ply" if many else out
         res = process_recording_2d(r, system=system, settings=settings)
@@ -96,6 +96,12 @@ def calibrate(args, rep) -> int:
     if args.target_distance is not None or args.target_distances_file is not None:
         raise FormatError("two-axis calibration estimates the walls' poses: target distances "
                           "are not used", field="--target-distance(s-file)")
+    if args.distance_std is not None:
+        raise FormatError("two-axis calibration estimates the walls' poses: target distances "
+                          "(and their σ) are not used", field="--distance-std")
+    if args.allow_unobservable:
+        raise FormatError("two-axis calibration fails when a parameter is not observable; "
+                          "hold it with --fix instead", field="--allow-unobservable")
     system = resolve_any_system(args.system) if args.system else None
     if system is not None:
         require_two_axis(system, "--system")
