@@ -122,7 +122,8 @@ def _argv(cmd: str, opt: str, kind: str, out: str, c: dict, tmp: Path) -> list |
     if cmd == "plot cloud":
         return ["plot", "cloud", c["clouds"][kind], "-o", out]
     if cmd == "plot histograms":
-        return None if kind == "two" else ["plot", "histograms", c["hist"], "-o", out]
+        return None if kind == "two" else ["plot", "histograms", c["hist"], "--max-code", "64",
+                                         "-o", out]
     if cmd == "plot acquisition":
         return ["plot", "acquisition", "--shots", "50", "--system", SYSTEMS[kind], "-o", out]
     if cmd == "info":
