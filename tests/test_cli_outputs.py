@@ -301,6 +301,24 @@ def test_a_folder_output_may_be_new_but_not_its_parent(tmp_path):
     assert (tmp_path / "new" / "room_scene.json").is_file()
 
 
+@pytest.mark.parametrize("sfx", [".json", ".pdf"])
+def test_two_axis_failed_calibration_still_writes_the_report(sfx, tmp_path, monkeypatch,
+                                                             capsys):
+    from mems_stereo.errors import NotObservableError
+
+    def fail(*a, **k):
+        raise NotObservableError("two-axis calibration: singular normal matrix")
+
+    monkeypatch.setattr(twoaxis_mod, "calibrate_two_axis", fail)
+    rep = tmp_path / f"r{sfx}"
+    rc = main(["calibrate", *WALLS["two"], "-o", str(tmp_path / "c.json"), "--report", str(rep)])
+    assert rc == 2 and "singular" in capsys.readouterr().err
+    assert not (tmp_path / "c.json").exists()
+    _read_back(rep, sfx)
+    if sfx == ".json":
+        assert json.loads(rep.read_text())["ok"] is False
+
+
 @pytest.mark.parametrize("argv, flag", [
     (["process", RECS["two"], "--confidence", "0.9"], "--confidence"),
     (["process", RECS["two"], "--chunk-shots", "100"], "--chunk-shots"),
