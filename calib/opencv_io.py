@@ -18,8 +18,13 @@ is ``n(θ) = cos θ · e1 + sin θ · e2``) and origin at the mirror pivot, so
 with ``<name>_std`` when the system was calibrated, ``T_std`` (3×1, m),
 ``camera_matrix_std`` (3×3, zeros where not estimated), and
 ``covariance`` (n×n, SI units) over ``covariance_parameters`` (a sequence
-of names) when a :class:`~mems_stereo.calib.fit.CalibrationResult` is given.
-A σ that was not estimated is written as NaN.
+of names) with ``rms_pixel`` (px) and ``rms_time`` (s; a two-axis fit:
+``rms_path``, m) when a calibration result is given (a
+:class:`~mems_stereo.calib.result.CalibrationResult` or a two-axis
+:class:`~mems_stereo.calib.twoaxis.TwoAxisCalibration`) or the system's
+``calibration`` block holds them.  A σ that was not estimated is written as
+NaN.  A two-axis system's second axis is written as ``scanner_axis2_json``
+(its FORMAT v1 object) and read back.
 
 Everything else the package needs to read the system back (laser
 direction, f_mech, laser, TDC, pixel pitch, speed of light) is written too,
@@ -65,9 +70,32 @@ def pose_from_scanner(scanner: Scanner) -> tuple[np.ndarray, np.ndarray]:
 def _std(system: System, name: str) -> float:
     cal = system.calibration or {}
     p = cal.get("parameters", {}).get(name)
-    if not p or p.get("std") is None:
-        return math.nan
-    return float(p["std"])
+    if p and p.get("std") is not None:
+        return float(p["std"])
+    s = cal.get("std", {}).get(name)  # a two-axis calibration block
+    return math.nan if s is None else float(s)
+
+
+def _fit_summary(system: System, result) -> tuple[list, np.ndarray | None, dict]:
+    """``(names, covariance, {node: RMS})`` of ``result`` (either calibration kind), else
+    of the system's calibration block; ``([], None, {})`` when neither has them."""
+    if result is not None:
+        cov = getattr(result, "covariance", None)
+        if cov is None:
+            cov = getattr(result, "cov", None)
+        if hasattr(result, "rms_time"):
+            rms = {"rms_pixel": result.rms_pixel, "rms_time": result.rms_time}
+        else:
+            rms = {"rms_pixel": result.rms_px, "rms_path": result.rms_L}
+        return list(result.names), cov, rms
+    cal = system.calibration or {}
+    c = cal.get("covariance") or {}
+    rms = {k: cal[k] for k in ("rms_pixel", "rms_time") if cal.get(k) is not None}
+    if cal.get("rms_px") is not None:
+        rms = {"rms_pixel": cal["rms_px"], "rms_path": cal.get("rms_path_m", math.nan)}
+    if c.get("names") and c.get("matrix") is not None:
+        return list(c["names"]), np.asarray(c["matrix"], dtype=np.float64), rms
+    return [], None, rms
 
 
 def write_opencv_system(path: str | os.PathLike, system: System, result=None) -> Path:
@@ -99,6 +127,7 @@ def write_opencv_system(path: str | os.PathLike, system: System, result=None) ->
             fs.write("dist_coeffs", dist)
             Kstd = np.zeros((3, 3))
             Kstd[0, 0], Kstd[0, 2] = _std(system, "fx"), _std(system, "cx")
+            Kstd[1, 1], Kstd[1, 2] = _std(system, "fy"), _std(system, "cy")
             Kstd[np.isnan(Kstd)] = 0.0
             fs.write("camera_matrix_std", Kstd)
             fs.write("R", R)
@@ -117,14 +146,18 @@ def write_opencv_system(path: str | os.PathLike, system: System, result=None) ->
             fs.write("pixel_pitch", np.asarray(rc.pixel_pitch, np.float64).reshape(1, 2))
             fs.write("spad_diameter", float(rc.spad_diameter))
             fs.write("speed_of_light", float(system.speed_of_light))
-            if result is not None and len(result.names):
-                fs.write("covariance", np.asarray(result.covariance, dtype=np.float64))
+            if sc.axis2 is not None:
+                fs.write("scanner_axis2_json", json.dumps(system_to_dict(system)["scanner"]
+                                                          ["axis2"]))
+            names, cov, rms = _fit_summary(system, result)
+            if names and cov is not None:
+                fs.write("covariance", np.asarray(cov, dtype=np.float64))
                 fs.startWriteStruct("covariance_parameters", cv2.FileNode_SEQ)
-                for n in result.names:
+                for n in names:
                     fs.write("", str(n))
                 fs.endWriteStruct()
-                fs.write("rms_pixel", float(result.rms_pixel))
-                fs.write("rms_time", float(result.rms_time))
+            for node, v in rms.items():
+                fs.write(node, float(v))
             if system.calibration is not None:
                 fs.write("calibration_json", json.dumps(system.calibration))
         finally:
@@ -191,10 +224,19 @@ def read_opencv_system(path: str | os.PathLike) -> System:
         cal_node = fs.getNode("calibration_json")
         cal = json.loads(cal_node.string()) if not cal_node.empty() else None
         system = System(receiver, scanner, laser, tdc, _real(fs, "speed_of_light", source), cal)
+        axis2_node = fs.getNode("scanner_axis2_json")
+        axis2 = None if axis2_node.empty() else axis2_node.string()
     finally:
         fs.release()
+    d = system_to_dict(system)
+    if axis2 is not None:
+        try:
+            d["scanner"]["axis2"] = json.loads(axis2)
+        except ValueError as e:
+            raise FormatError(f"expected a JSON object ({e})", source,
+                              "scanner_axis2_json") from None
     # the system JSON's own validation (unit vectors, basis, coefficient counts)
-    return system_from_dict(system_to_dict(system), source)
+    return system_from_dict(d, source)
 
 
 def read_opencv_covariance(path: str | os.PathLike):

@@ -13,7 +13,7 @@ outputs before any work and commits all outputs together
 Every command module loads when the parser is built, so a command imports
 the pipeline, the calibration, the simulator, the viz writers and the
 format readers inside ``run``: a command loads only what it uses.  The
-helper modules form layers (``_signals``, ``_ux``, ``_pathcheck`` →
+helper modules form layers (``_signals``, ``_ux``, ``_writes``, ``_pathcheck`` →
 ``_options``, ``_outputs`` → ``_common`` → ``_twoaxis`` → the commands);
 each imports only those before it.
 """

@@ -12,10 +12,11 @@ from mems_stereo.cli._crosscheck import check_polarity
 from mems_stereo.cli._options import check_options
 from mems_stereo.cli._outputs import OutputPlan, emit, translate
 from mems_stereo.cli._ux import format_error, progress_bar
+from mems_stereo.cli._writes import PARENTS_HELP
 from mems_stereo.errors import FormatError, MemsStereoError
 from mems_stereo.io.recording import read_header
 from mems_stereo.io.recording2d import is_two_axis_recording, read_recording_2d
-from mems_stereo.model.system import resolve_system, system_to_dict
+from mems_stereo.model.system import resolve_system, save_system, system_to_dict
 from mems_stereo.util.limits import limits, parse_size
 
 
@@ -49,6 +50,23 @@ def add_safety_arguments(p) -> None:
     p.add_argument("--allow-external", action="store_true", default=argparse.SUPPRESS,
                    help="follow HDF5 external storage/links and virtual datasets, and scene "
                         "meshes outside the scene's folder (refused by default)")
+
+
+def add_parents_argument(p) -> None:
+    """``--parents``, on every command that writes files."""
+    p.add_argument("--parents", action="store_true", help=PARENTS_HELP)
+
+
+def save_system_output(system, path, result=None):
+    """Write a calibrated system by its suffix: ``.yml``/``.yaml``/``.xml`` the OpenCV
+    FileStorage form (with ``result``'s covariance and RMS), else the system JSON."""
+    from pathlib import Path
+
+    if Path(path).suffix.lower() in (".yml", ".yaml", ".xml"):
+        from mems_stereo.calib.opencv_io import write_opencv_system
+
+        return write_opencv_system(path, system, result)
+    return save_system(system, path)
 
 
 def command_key(args) -> str:

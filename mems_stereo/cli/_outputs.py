@@ -96,7 +96,8 @@ class OutputPlan:
         """Check every input and output (raises before any work)."""
         self.inputs = resolve_inputs(self.command, self.spec.inputs, self.args)
         self.outputs = resolve_outputs(self.spec.outputs, self.args)
-        check_outputs(self.outputs, self.inputs, getattr(self.args, "recordings", ()))
+        check_outputs(self.outputs, self.inputs, getattr(self.args, "recordings", ()),
+                      self.command, bool(getattr(self.args, "parents", False)))
         return self
 
     # --------------------------------------------------------- stage / commit

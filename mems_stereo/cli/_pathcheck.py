@@ -6,8 +6,10 @@
   hard links) and from the other outputs, must not be an existing directory
   (or file, where a folder is written), its nearest existing ancestor must
   be a writable folder (not a file), its name must fit the file system
-  (with room for the staged name), and its extension must be one the writer
-  knows.
+  (with room for the staged name), its folder must exist (unless
+  ``--parents``: then the missing folders are made, as ``mkdir -p``; a folder
+  output may itself be new, its parent must exist), and its suffix must be
+  one the command writes (:data:`mems_stereo.cli._writes.WRITES`).
 
 Each check raises :class:`~mems_stereo.errors.OptionError` naming the option.
 """
@@ -21,14 +23,13 @@ import stat
 from pathlib import Path
 
 from mems_stereo import data
+from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES
 from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.model.presets import TWO_AXIS_PRESETS
 from mems_stereo.model.system import PRESETS
 from mems_stereo.util.jsonfile import read_json_file
 from mems_stereo.util.paths import file_kind, require_input_file
 
-CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
-PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 #: inputs given by an option (their errors name the option as well as the file)
 _NAMED_INPUTS = ("system", "true_system", "target_distances_file")
 
@@ -180,11 +181,13 @@ def resolve_outputs(outputs: dict, args) -> list[tuple[str, Path, str]]:
     return out
 
 
-def check_outputs(outputs: list, inputs: list, recordings=()) -> None:
-    """Check every output path, that they are distinct and that none is an input."""
+def check_outputs(outputs: list, inputs: list, recordings=(), command: str | None = None,
+                  parents: bool = False) -> None:
+    """Check every output path, that they are distinct and that none is an input
+    (``command``: the suffixes it writes are checked; ``parents``: ``--parents``)."""
     finals: dict[str, str] = {}
     for name, p, kind in outputs:
-        check_output_path(name, p, kind)
+        check_output_path(name, p, kind, command, parents)
         key = _real(p)
         if key in finals:
             raise OptionError(f"{p} is also the output of {opt(finals[key])}; "
@@ -239,13 +242,17 @@ def _check_existing(o: str, p: Path, folder: bool) -> None:
                           field=o)
 
 
-def _check_writable_place(o: str, p: Path) -> None:
-    """The nearest existing ancestor is a writable folder; every name fits."""
+def _check_writable_place(o: str, p: Path, parents: bool = False) -> None:
+    """The nearest existing ancestor is a writable folder (without ``parents``: the
+    output's own folder); every name fits."""
     anc = Path(os.path.abspath(p)).parent
     while not anc.exists() and anc != anc.parent:
         anc = anc.parent
     if not anc.is_dir():
         raise OptionError(f"cannot create {p}: {anc} is a file, not a folder", field=o)
+    if not parents and anc != Path(os.path.abspath(p)).parent:
+        raise OptionError(f"folder {p.parent} does not exist; create it or give --parents "
+                          "(mkdir -p)", field=o)
     if not os.access(anc, os.W_OK | os.X_OK):
         raise OptionError(f"cannot write into {anc} (permission denied)", field=o)
     nmax = _name_max(anc)
@@ -256,12 +263,16 @@ def _check_writable_place(o: str, p: Path) -> None:
                               field=o)
 
 
-def _check_extension(o: str, p: Path, kind: str) -> None:
+def _check_extension(o: str, p: Path, kind: str, allowed: tuple | None = None) -> None:
+    """``p``'s suffix is one of ``allowed`` (default: those of the output ``kind``)."""
     sfx = p.suffix.lower()
-    allowed = {"cloud": CLOUD_SUFFIXES, "png": (".png",), "plot": PLOT_SUFFIXES}.get(kind)
+    if allowed is None:
+        allowed = {"cloud": CLOUD_SUFFIXES, "png": (".png",), "plot": PLOT_SUFFIXES}.get(kind)
+    if kind in ("dir", "dir-of-clouds"):
+        return  # a folder: no suffix
     if allowed and sfx not in allowed:
-        raise OptionError(f"unknown extension {p.suffix!r} of {p}; expected one of "
-                          f"{', '.join(allowed)}", field=o)
+        what = f"unknown extension {p.suffix!r} of" if p.suffix else "no extension on"
+        raise OptionError(f"{what} {p}; expected one of {', '.join(allowed)}", field=o)
     if sfx == ".laz" and kind == "cloud":
         import laspy
 
@@ -270,13 +281,16 @@ def _check_extension(o: str, p: Path, kind: str) -> None:
                               "lazrs); use .las", field=o)
 
 
-def check_output_path(name: str, p: Path, kind: str) -> None:
-    """Check one output path of argument ``name`` before any work (see module doc)."""
+def check_output_path(name: str, p: Path, kind: str, command: str | None = None,
+                      parents: bool = False) -> None:
+    """Check one output path of argument ``name`` of ``command`` before any work (see
+    module doc)."""
     o = opt(name)
     if not str(p):
         raise OptionError("expected a file name, found an empty string", field=o)
     if len(os.fsencode(_real(p))) >= 4000:
         raise OptionError(f"path of {len(str(p))} characters is too long", field=o)
     _check_existing(o, p, folder=kind in ("dir", "dir-of-clouds"))
-    _check_writable_place(o, p)
-    _check_extension(o, p, kind)
+    _check_writable_place(o, p, parents)
+    written = WRITES.get((command, name))
+    _check_extension(o, p, kind, written.suffixes if written is not None else None)

@@ -7,16 +7,17 @@ commands is unchanged.
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import h5py
 import numpy as np
 
-from mems_stereo.cli._common import report_peaks_truth_outputs
-from mems_stereo.errors import FormatError
+from mems_stereo.cli._common import report_peaks_truth_outputs, save_system_output
+from mems_stereo.errors import FormatError, MemsStereoError
 from mems_stereo.io.recording2d import write_recording_2d
 from mems_stereo.model.scanner2d import require_two_axis
-from mems_stereo.model.system import resolve_any_system, save_system
+from mems_stereo.model.system import resolve_any_system
 from mems_stereo.util.atomic import atomic_output
 
 
@@ -55,7 +56,7 @@ def process(args, rep, recs, system) -> int:
     if many and args.labels:
         raise FormatError("--labels takes one recording at a time", field="--labels")
     out = Path(args.output)
-    settings = Settings2D(false_alarm=args.false_alarm)
+    settings = Settings2D(false_alarm=args.false_alarm, r_min=args.min_range)
     for r in recs:
         target = out / f"{r.stem}.ply" if many else out
         res = process_recording_2d(r, system=system, settings=settings)
@@ -95,6 +96,12 @@ def calibrate(args, rep) -> int:
     if args.target_distance is not None or args.target_distances_file is not None:
         raise FormatError("two-axis calibration estimates the walls' poses: target distances "
                           "are not used", field="--target-distance(s-file)")
+    if args.distance_std is not None:
+        raise FormatError("two-axis calibration estimates the walls' poses: target distances "
+                          "(and their σ) are not used", field="--distance-std")
+    if args.allow_unobservable:
+        raise FormatError("two-axis calibration fails when a parameter is not observable; "
+                          "hold it with --fix instead", field="--allow-unobservable")
     system = resolve_any_system(args.system) if args.system else None
     if system is not None:
         require_two_axis(system, "--system")
@@ -102,8 +109,42 @@ def calibrate(args, rep) -> int:
     if system is not None and system.scanner.axis2.mode != "resonant":
         free = [n for n in free if n not in ("theta_mech_max_2", "phase_offset_2")]
     free += [n for n in args.free if n in ("fx", "fy", "cx", "cy") and n not in free]
-    res = calibrate_two_axis(args.recordings, system, free=tuple(free))
-    out = save_system(res.system, args.output)
+    try:
+        res = calibrate_two_axis(args.recordings, system, free=tuple(free))
+    except MemsStereoError as e:
+        if not args.report:
+            raise
+        _write_report_2d(args, rep, None, str(e).partition("\n")[0])
+        print(f"mems-stereo calibrate: error: calibration failed: {e}".partition("\n")[0],
+              file=sys.stderr)
+        return 2
+    out = save_system_output(res.system, args.output, res)
     rep.info(res.report())
+    if args.report:
+        _write_report_2d(args, rep, res, nominal=system)
     rep.info(f"wrote {out}")
     return 0
+
+
+def _write_report_2d(args, rep, res, reason: str = "", nominal=None) -> None:
+    """``--report`` of a two-axis calibration: JSON, or the PDF for ``.pdf``."""
+    import json
+
+    from mems_stereo.io.recording2d import read_recording_2d
+    from mems_stereo.viz.calib_report_2d import (
+        two_axis_failure_dict,
+        two_axis_report_dict,
+        write_two_axis_report,
+    )
+
+    if res is None:
+        d = two_axis_failure_dict(reason, recordings=args.recordings)
+    else:
+        if nominal is None:
+            nominal = read_recording_2d(args.recordings[0], truth=False).system
+        d = two_axis_report_dict(res, recordings=args.recordings, nominal=nominal)
+    if str(args.report).lower().endswith(".pdf"):
+        write_two_axis_report(d, args.report)
+    else:
+        Path(args.report).write_text(json.dumps(d, indent=1))
+    rep.info(f"wrote report {args.report}")

@@ -6,7 +6,11 @@ wall poses, signal explained, flat-wall consistency, a contradicting measured
 distance); 2 — bad input (unreadable files or options, recordings without a
 usable wall return, parameters the data cannot determine).  On 1 and 2 no
 file is written at ``-o``; one line on stderr says why, and ``--report``
-(JSON) holds what the fit learnt.
+holds what the fit learnt.  ``-o`` ending in ``.json`` writes the package's
+system JSON, ``.yml``/``.yaml``/``.xml`` the OpenCV FileStorage form
+(:mod:`mems_stereo.calib.opencv_io`, with σ, covariance and RMS); ``--report``
+ending in ``.pdf`` the PDF report, ``.json`` the same for machines (two-axis
+walls: :mod:`mems_stereo.viz.calib_report_2d`).
 """
 
 from __future__ import annotations
@@ -18,11 +22,11 @@ import time
 from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument, save_system_output
 from mems_stereo.cli._ux import StatusProgress
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.errors import FormatError
 from mems_stereo.io.recording2d import is_two_axis_recording
-from mems_stereo.model.system import save_system
 
 NAME = "calibrate"
 HELP = ("estimate baseline, theta0, TDC offset, scan phase and amplitude (with σ) from "
@@ -37,7 +41,11 @@ EXAMPLE = ["mems-stereo samples -o samples",
 def add_arguments(p):
     p.add_argument("recordings", nargs="+", metavar="REC.h5",
                    help="FORMAT v1 recordings, one per target pose")
-    p.add_argument("-o", "--output", required=True, help="calibrated system JSON to write")
+    p.add_argument("-o", "--output", required=True,
+                   help=f"calibrated system to write ({suffix_help('calibrate', 'output')}: "
+                        "the package's system JSON, or OpenCV FileStorage YAML/XML with σ, "
+                        "covariance and RMS)")
+    add_parents_argument(p)
     p.add_argument("--system", default=None,
                    help="nominal system JSON or preset (default: the first recording's)")
     p.add_argument("--fix", nargs="+", default=[], metavar="NAME",
@@ -58,10 +66,10 @@ def add_arguments(p):
     p.add_argument("--allow-unobservable", action="store_true",
                    help="warn instead of failing when a parameter is not observable")
     p.add_argument("--report", default=None, metavar="PATH",
-                   help="write a calibration report, also for a failed calibration: "
-                        "PATH ending in .pdf gives the PDF report (estimates with σ against "
-                        "nominal, correlations, residuals, walls from above, checks, what "
-                        "to record next; for a failure why); any other name a JSON "
+                   help="write a calibration report, also for a failed calibration "
+                        f"({suffix_help('calibrate', 'report')}): the PDF report (estimates "
+                        "with σ against nominal, correlations, residuals, walls from above, "
+                        "checks, what to record next; for a failure why), or the JSON "
                         "diagnostic report (estimates, σ, covariance, per-wall values, "
                         "checks)")
 
@@ -121,7 +129,7 @@ def run(args) -> int:
         print(f"mems-stereo calibrate: error: calibration failed: {res.reason}",
               file=sys.stderr)
         return 2 if res.kind == "input" else 1
-    out = save_system(res.system, args.output)
+    out = save_system_output(res.system, args.output, res)
     rep.info(res.report)
     rep.info(f"calibrated in {elapsed:.1f} s; wrote {out}")
     return 0

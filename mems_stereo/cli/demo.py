@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.cli import main
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._pathcheck import samples_dir
 from mems_stereo.errors import MemsStereoError
 from mems_stereo.io.recording import read_recording
@@ -36,7 +36,9 @@ EXAMPLE = "mems-stereo demo -o demo-output"
 
 def add_arguments(p):
     p.add_argument("-o", "--output", default="demo-output",
-                   help="directory for every output (default: demo-output)")
+                   help="folder for every output, created if missing; its parent must exist "
+                        "unless --parents (default: demo-output)")
+    add_parents_argument(p)
     p.add_argument("--samples", default=None,
                    help="directory of the sample recordings (default: the bundled samples, "
                         "mems_stereo.data)")

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._writes import suffix_help
 
 NAME = "export"
 HELP = "convert a point cloud (.ply, .pcd, .las) keeping every per-point attribute"
@@ -14,7 +15,9 @@ EXAMPLE = ["mems-stereo samples -o samples room.h5",
 def add_arguments(p):
     p.add_argument("cloud", help="input point cloud (.ply, .pcd, .las)")
     p.add_argument("-o", "--output", required=True,
-                   help="output file; the extension picks the format (.ply, .pcd, .las)")
+                   help="output file; the suffix picks the format "
+                        f"({suffix_help('export', 'output')})")
+    add_parents_argument(p)
 
 
 def run(args) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.errors import FormatError
 from mems_stereo.model.system import resolve_system
 
@@ -21,6 +21,7 @@ def add_arguments(p):
                    help="channel mapping (format mems-stereo/tttr-map, docs/formats.md)")
     p.add_argument("-o", "--output", required=True,
                    help="recording to write (.h5); with --all-photons the time-tag file (.npz)")
+    add_parents_argument(p)
     p.add_argument("--system", default=None,
                    help="nominal system JSON or preset (default: the mapping's 'system')")
     p.add_argument("--all-photons", action="store_true",
@@ -65,7 +66,10 @@ def run(args) -> int:
     all_photons = args.all_photons or m.photons == "all"
     if all_photons and out.suffix.lower() != ".npz":
         raise FormatError(f"with all photons the output is the time-tag layout: expected "
-                          f"a .npz name, found {out.name!r}", str(out))
+                          f"a .npz name, found {out.suffix or 'no suffix'!r}", field="--output")
+    if not all_photons and out.suffix.lower() == ".npz":
+        raise FormatError("a recording is written (HDF5): expected a .h5 name, found '.npz' "
+                          "(the time-tag layout of --all-photons)", field="--output")
     rep.detail(f"{src}: {info.mode}, time unit {info.macro_unit:.6g} s, TDC unit "
                f"{info.micro_unit:.6g} s, bin width {m.binning * info.micro_unit:.6g} s")
     try:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.model.acquisition import acquisition_statistics
 from mems_stereo.model.system import resolve_system
 
@@ -28,7 +29,9 @@ def add_acquisition_arguments(p):
 
 def add_arguments(p):
     add_acquisition_arguments(p)
-    p.add_argument("--plot", default=None, help="write the Fig. 2 plot to this PNG")
+    p.add_argument("--plot", default=None,
+                   help=f"write the Fig. 2 plot here ({suffix_help('info', 'plot')})")
+    add_parents_argument(p)
 
 
 def run(args) -> int:

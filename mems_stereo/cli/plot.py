@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._ux import epilog
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.cli.info import add_acquisition_arguments
 from mems_stereo.io.histograms import read_histograms
 from mems_stereo.model.acquisition import acquisition_statistics
@@ -35,6 +36,10 @@ FIGURES = {
 }
 
 
+def _out_help(figure: str) -> str:
+    return f"figure to write ({suffix_help('plot ' + figure, 'output')})"
+
+
 def add_arguments(p):
     sub = p.add_subparsers(dest="figure", metavar="FIGURE", required=True)
 
@@ -45,19 +50,20 @@ def add_arguments(p):
 
     a = fig_parser("acquisition", "Fig. 2: shots over scan angle and per pixel")
     add_acquisition_arguments(a)
-    a.add_argument("-o", "--output", required=True, help="PNG to write")
+    a.add_argument("-o", "--output", required=True, help=_out_help("acquisition"))
     h = fig_parser("histograms", "Figs. 8/9: raw, signal, noise histograms from a histogram file")
     h.add_argument("histograms", help="HDF5 histogram file (/raw /signal /noise)")
-    h.add_argument("-o", "--output", required=True, help="PNG to write")
+    h.add_argument("-o", "--output", required=True, help=_out_help("histograms"))
     h.add_argument("--max-code", type=int, default=None,
                    help="show TDC codes 1..N only (the paper shows 256)")
     h.add_argument("--row", type=int, default=None, help="sensor row (default: sum of rows)")
     h.add_argument("--linear", action="store_true", help="linear colour scale (default log)")
     c = fig_parser("cloud", "top view (x–z) of a point cloud")
     c.add_argument("cloud", help="point cloud (.ply, .pcd, .las)")
-    c.add_argument("-o", "--output", required=True, help="PNG to write")
+    c.add_argument("-o", "--output", required=True, help=_out_help("cloud"))
     c.add_argument("--color-by", default="range", help="attribute or x/y/z (default range)")
     for q in (a, h, c):
+        add_parents_argument(q)
         q.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
                        help="print only errors")
         q.add_argument("-v", "--verbose", action="store_true", default=argparse.SUPPRESS,

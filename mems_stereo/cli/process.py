@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
-from mems_stereo.cli._common import Reporter, report_peaks_truth_outputs
+from mems_stereo.cli._common import Reporter, add_parents_argument, report_peaks_truth_outputs
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.errors import FormatError
 from mems_stereo.io.histograms import write_histograms
 from mems_stereo.io.recording2d import is_two_axis_recording
@@ -22,27 +23,35 @@ EXAMPLE = ["mems-stereo samples -o samples",
            "(mems-stereo calibrate --help)"]
 
 
+#: defaults of the options the two-axis pipeline has no use for (refused when changed)
+CONFIDENCE, CHUNK_SHOTS = 0.997, 8192
+
+
 def add_arguments(p):
     p.add_argument("recordings", nargs="+", metavar="REC.h5",
                    help="recording(s) in FORMAT v1 (HDF5)")
     p.add_argument("-o", "--output", required=True,
-                   help="point cloud to write (.ply, .pcd, .las); with several recordings a "
-                        "directory that receives <name>.ply for each")
+                   help=f"point cloud to write ({suffix_help('process', 'output')}); with "
+                        "several recordings a folder that receives <name>.ply for each")
     p.add_argument("--system", default=None,
                    help="system JSON to process with (e.g. a calibrated one; default: the "
                         "recording's /system)")
-    p.add_argument("--labels", default=None, help="write the event labels (HDF5) here")
+    p.add_argument("--labels", default=None,
+                   help=f"write the event labels here ({suffix_help('process', 'labels')})")
     p.add_argument("--histograms", default=None,
-                   help="write the raw/signal/noise histograms (HDF5) here")
-    p.add_argument("--confidence", type=float, default=0.997,
-                   help="two-sided coverage of the consistency bound (default 0.997 = 3 sigma)")
+                   help="write the raw/signal/noise histograms here "
+                        f"({suffix_help('process', 'histograms')})")
+    add_parents_argument(p)
+    p.add_argument("--confidence", type=float, default=CONFIDENCE,
+                   help="two-sided coverage of the consistency bound (default 0.997 = 3 sigma; "
+                        "line-sensor recordings)")
     p.add_argument("--min-range", type=float, default=None,
                    help="optional prior: no target nearer than this, m (default: none)")
     p.add_argument("--false-alarm", type=float, default=1e-3,
                    help="per-pixel false-alarm probability of the peak threshold (default 0.001)")
-    p.add_argument("--chunk-shots", type=int, default=8192,
+    p.add_argument("--chunk-shots", type=int, default=CHUNK_SHOTS,
                    help="shots read per chunk; memory does not grow with the recording "
-                        "(default 8192)")
+                        "(default 8192; line-sensor recordings)")
     p.add_argument("--scheduler", default=None,
                    help="Dask scheduler address; 'local' starts a LocalCluster (default: "
                         "process here, one recording after the other)")
@@ -83,6 +92,12 @@ def run(args) -> int:
         if not all(two):
             raise FormatError("expected all one-axis or all two-axis recordings, found both",
                               field="REC.h5")
+        for name, default in (("confidence", CONFIDENCE), ("chunk_shots", CHUNK_SHOTS)):
+            if getattr(args, name) != default:
+                o = "--" + name.replace("_", "-")
+                raise FormatError(f"{o} is not used for two-axis recordings (their "
+                                  "classification width and reading are fixed: "
+                                  "docs/two_axis.md)", field=o)
         return _twoaxis.process(args, rep, recs, system)
     many = len(recs) > 1
     if many and (args.labels or args.histograms):

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import time
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.model.system import resolve_system
 from mems_stereo.viz.colormap import ColorScale
 from mems_stereo.viz.render import VIEWS, render_cloud
@@ -19,7 +20,9 @@ EXAMPLE = ["mems-stereo samples -o samples room.h5",
 
 def add_arguments(p):
     p.add_argument("cloud", help="point cloud (.ply, .pcd, .las)")
-    p.add_argument("-o", "--output", required=True, help="PNG to write")
+    p.add_argument("-o", "--output", required=True,
+                   help=f"image to write ({suffix_help('render', 'output')})")
+    add_parents_argument(p)
     p.add_argument("--color-by", default="range",
                    help="attribute (range, counts, sigma_r, sigma_phi, pixel, ...) or x/y/z "
                         "(default range)")

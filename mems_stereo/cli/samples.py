@@ -6,7 +6,7 @@ import shutil
 from pathlib import Path
 
 from mems_stereo import data
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.errors import FormatError
 
 NAME = "samples"
@@ -19,7 +19,9 @@ def add_arguments(p):
     p.add_argument("names", nargs="*", metavar="NAME",
                    help="samples to copy (default: all), e.g. room.h5 calib_true_system.json")
     p.add_argument("-o", "--output", default=None,
-                   help="folder to copy them into (created if missing)")
+                   help="folder to copy them into (created if missing; its parent must "
+                        "exist unless --parents)")
+    add_parents_argument(p)
     p.add_argument("--list", action="store_true",
                    help="print the samples and where they are installed, copy nothing")
 

@@ -7,7 +7,8 @@ import sys
 import numpy as np
 
 from mems_stereo.cli import _twoaxis
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._writes import suffix_help
 from mems_stereo.model.scanner2d import is_two_axis
 from mems_stereo.model.system import resolve_any_system
 
@@ -20,7 +21,9 @@ EXAMPLE = ["mems-stereo samples -o samples room_scene.json calib_true_system.jso
 
 def add_arguments(p):
     p.add_argument("scene", help="scene JSON file (see docs/simulator.md)")
-    p.add_argument("-o", "--output", required=True, help="output recording (.h5)")
+    p.add_argument("-o", "--output", required=True,
+                   help=f"output recording ({suffix_help('simulate', 'output')})")
+    add_parents_argument(p)
     p.add_argument("--shots", type=int, default=800, help="number of laser shots (default 800)")
     p.add_argument("--background", type=float, default=1e5,
                    help="ambient detections per pixel, Hz (default 1e5: room light; "
