@@ -40,7 +40,7 @@ def _start(d: Path):
     argv = [sys.executable, "-c", "import sys; from mems_stereo.cli import main; "
             "sys.exit(main())", "process", str(d / "in.h5"), "-o", str(d / "out/o.ply"),
             "--labels", str(d / "out/l.h5"), "--histograms", str(d / "out/h.h5"),
-            "--chunk-shots", "64", "-q"]
+            "--chunk-shots", "64", "--parents", "-q"]  # out/ made by the run
     return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
