@@ -121,6 +121,22 @@ class ConsistencyTest:
     z: np.ndarray
 
 
+def _quarter_shift_scores(d_cells, col, width, info):
+    """The cells' scores of the 8 shifts (time per quarter of the sensor, then column
+    per quarter), (N, m) for the m shifts any cell (and ``info``) informs, and the
+    (8,) bool of those."""
+    q = np.clip((col / width * 4).astype(np.int64), 0, 3)
+    E = np.zeros((col.size, 8))
+    for i in range(4):
+        m = q == i
+        E[m, i] = d_cells[m, 0]
+        E[m, 4 + i] = d_cells[m, 1]
+    used = np.any(E != 0, axis=0)
+    if info is not None:
+        used &= np.diag(info)[:8] > 0
+    return E[:, used], used
+
+
 def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray,
                        H_inv_block: np.ndarray | None = None, width: int = 192,
                        info: np.ndarray | None = None) -> ConsistencyTest:
@@ -140,16 +156,7 @@ def consistency_scores(d_cells: np.ndarray, S_cells: np.ndarray, col: np.ndarray
     the fitted model, and their significance.
     """
     none = ConsistencyTest(1.0, np.zeros(4), np.zeros(4), np.zeros(8))
-    q = np.clip((col / width * 4).astype(np.int64), 0, 3)
-    E = np.zeros((col.size, 8))
-    for i in range(4):
-        m = q == i
-        E[m, i] = d_cells[m, 0]
-        E[m, 4 + i] = d_cells[m, 1]
-    used = np.any(E != 0, axis=0)
-    if info is not None:
-        used &= np.diag(info)[:8] > 0
-    E = E[:, used]
+    E, used = _quarter_shift_scores(d_cells, col, width, info)
     if E.shape[1] == 0:
         return none
     if info is None:

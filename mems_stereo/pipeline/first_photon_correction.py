@@ -214,16 +214,9 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
         d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
-        # μ0 at the top of its grid, and more firings than even MU_BEYOND_GRID times
-        # that μ0 would give: they reach further from the pixel than the model's spot
-        # explains (a surface whose range changes across the band, the model taking
-        # it constant, e.g. a face seen at grazing incidence; a return truly 4× the
-        # grid's top does not fire that much more).  The binomial variance rests on
-        # the model's firing probabilities: without them the mean angle keeps its
-        # scatter's spread
-        k_top = np.sum(n_band * -np.expm1(-MU_BEYOND_GRID * MU_MAX * f_band), axis=1)
-        unexplained = (mu[a:b] >= MU_PINNED_FRACTION * MU_MAX) & (acc.sums.detections[q] > k_top)
-        ab[a:b] = np.where(unexplained, 1.0, ab[a:b])
+        # the binomial variance rests on the model's firing probabilities: where the
+        # model does not explain the firings the mean angle keeps its scatter's spread
+        ab[a:b] = np.where(_beyond_model(acc, q, n_band, f_band, mu[a:b]), 1.0, ab[a:b])
         bias[a:b] = mean_angle_bias(steps, n_band, f_band, f_full, mu[a:b])
     c = s.speed_of_light
     dL = np.zeros(acc.Q)
@@ -248,3 +241,13 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     D, G = acc.sums.tof.dL()
     x, C = tof
     return FirstPhotonCorrection(**out, tof=(x + D * dL[:, None], C + G * dvar[:, None, None]))
+
+
+def _beyond_model(acc, q, n_band, f_band, mu):
+    """(len(q),) bool: μ0 at the top of its grid, and more firings than even
+    MU_BEYOND_GRID times that μ0 would give: they reach further from the pixel than
+    the model's spot explains (a surface whose range changes across the band, the
+    model taking it constant, e.g. a face seen at grazing incidence; a return truly
+    4× the grid's top does not fire that much more)."""
+    k_top = np.sum(n_band * -np.expm1(-MU_BEYOND_GRID * MU_MAX * f_band), axis=1)
+    return (mu >= MU_PINNED_FRACTION * MU_MAX) & (acc.sums.detections[q] > k_top)

@@ -46,16 +46,7 @@ def peak_means_of(acc) -> PeakMeans:
         u_t = x_tof / rbar_t[:, None]
     birge = np.where(n > 2, np.maximum(1.0, np.nan_to_num(chi2, nan=1.0)), 1.0)
     grid = None if acc.step_grid is None else acc.step_grid[1]
-    st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
-                              mean["stereo"][0], step=grid)
-    mean["stereo"] = (st.point, mean["stereo"][1])
-    # its covariance: the mean angle's, propagated at that angle (the detections
-    # and the subtracted background count as independent entries, as in the sums)
-    C_st = stereo_cov_at_mean_angle(acc.system, acc.rows, acc.cols, s.theta, n,
-                                    s.detections + s.b0, acc.spreads)
-    okc = np.all(np.isfinite(C_st), axis=(1, 2))
-    mean["stereo"] = (mean["stereo"][0],
-                      np.where(okc[:, None, None], C_st, mean["stereo"][1]))
+    st, mean["stereo"] = _stereo_at_mean_angle(acc, n, mean["stereo"], grid)
     # the first-photon correction needs the pulse's centre: from the peak-level
     # fusion of the stereo (at the mean angle) and uncorrected ToF means
     mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
@@ -63,15 +54,7 @@ def peak_means_of(acc) -> PeakMeans:
           else None)
     if fp is not None:  # the stereo at the mean angle less its expected bias
         mean["tof"] = fp.tof
-        # removed where significant: beyond k of the mean angle's statistical σ
-        # (below it the correction is within the noise, and it rests on the
-        # system's geometry: a wrong system, e.g. the samples' nominal one,
-        # predicts wrong small biases); where not removed it stays in σ
-        with np.errstate(invalid="ignore", divide="ignore"):
-            Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
-            sig_th = np.sqrt(np.einsum("qi,qij,qj->q", Jt, mean["stereo"][1], Jt)
-                             * birge) / np.einsum("qi,qi->q", Jt, Jt)
-            removed = np.abs(fp.angle_bias) > acc.k * np.nan_to_num(sig_th, nan=np.inf)
+        removed = _significant_bias(acc, n, mean["stereo"][1], birge, fp.angle_bias)
         st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
                                   mean["stereo"][0], angle_bias=fp.angle_bias, step=grid,
                                   removed=removed)
@@ -84,14 +67,7 @@ def peak_means_of(acc) -> PeakMeans:
         mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
     if st.cov_sys is not None:  # systematic: not scaled
         mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + st.cov_sys)
-    # the subtracted background's Poisson fluctuation moves the mean angle:
-    # Σ b (θ_b − θ̄)² / n², along ∂x/∂θ at the mean angle
-    with np.errstate(invalid="ignore", divide="ignore"):
-        th_bar = s.theta / n
-        var_th = np.maximum(s.b2 - 2 * th_bar * s.b1 + th_bar ** 2 * s.b0, 0.0) / W ** 2
-    Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, th_bar)
-    add = np.nan_to_num(var_th)[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
-    mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + np.nan_to_num(add))
+    mean["stereo"] = _with_angle_background(acc, n, W, mean["stereo"])
     # the same for the time of flight: far away (stereo of no weight) a peak under
     # strong background is its ToF, and the background's Poisson fluctuation
     # across the accepted code interval (metres of range) is most of its error
@@ -110,3 +86,43 @@ def peak_means_of(acc) -> PeakMeans:
                      mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
                      birge, st.range_per_px,
                      None if fp is None else fp.delay, None if fp is None else fp.mu)
+
+
+def _significant_bias(acc, n, cov_stereo, birge, angle_bias):
+    """(Q,) bool: where the mean angle's expected bias is removed, beyond k of the mean
+    angle's statistical σ (below it the correction is within the noise, and it rests
+    on the system's geometry: a wrong system, e.g. the samples' nominal one, predicts
+    wrong small biases); where not removed it stays in σ."""
+    s = acc.sums
+    with np.errstate(invalid="ignore", divide="ignore"):
+        Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
+        sig_th = np.sqrt(np.einsum("qi,qij,qj->q", Jt, cov_stereo, Jt)
+                         * birge) / np.einsum("qi,qi->q", Jt, Jt)
+        return np.abs(angle_bias) > acc.k * np.nan_to_num(sig_th, nan=np.inf)
+
+
+def _with_angle_background(acc, n, W, stereo):
+    """The stereo mean ``(x, C)`` with the spread the subtracted background's Poisson
+    fluctuation gives its mean angle, Σ b (θ_b − θ̄)² / n², along ∂x/∂θ there."""
+    s = acc.sums
+    with np.errstate(invalid="ignore", divide="ignore"):
+        th_bar = s.theta / n
+        var_th = np.maximum(s.b2 - 2 * th_bar * s.b1 + th_bar ** 2 * s.b0, 0.0) / W ** 2
+    Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, th_bar)
+    add = np.nan_to_num(var_th)[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
+    return (stereo[0], stereo[1] + np.nan_to_num(add))
+
+
+def _stereo_at_mean_angle(acc, n, stereo, grid):
+    """The stereo point at the peaks' mean scan angle
+    (:func:`~mems_stereo.pipeline.peak_geometry.stereo_at_mean_angle`) and the stereo
+    mean ``(x, C)`` moved there, with the mean angle's covariance propagated at that
+    angle where finite (the detections and the subtracted background count as
+    independent entries, as in the sums)."""
+    s = acc.sums
+    st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
+                              stereo[0], step=grid)
+    C_st = stereo_cov_at_mean_angle(acc.system, acc.rows, acc.cols, s.theta, n,
+                                    s.detections + s.b0, acc.spreads)
+    okc = np.all(np.isfinite(C_st), axis=(1, 2))
+    return st, (st.point, np.where(okc[:, None, None], C_st, stereo[1]))

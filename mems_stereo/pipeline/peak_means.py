@@ -129,18 +129,13 @@ class PeakMeans:
                    opt("delay", lambda p: np.full(p.Q, np.nan)),
                    opt("mu", lambda p: np.full(p.Q, np.nan)))
 
-    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
-        """The cloud (see :meth:`PeakAccumulator.cloud`): the depth edges, the
-        fused point and the attributes of every kept peak."""
+    def _kept(self, min_counts: int, x_fused) -> np.ndarray:
+        """(Q,) bool: the peaks that give a point, before depth edges and ``own``."""
         n = self.n
-        mean = {"stereo": self.stereo, "tof": self.tof}
-        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
-        birge = self.birge
-        fp = None if self.delay is None else {"delay": self.delay, "mu": self.mu}
         # the detections (not their background-subtracted sum: 3 detections over an
         # expected background of 0.01 are 3 detections) set the fewest counts
         keep = ((self.detections >= max(1, int(min_counts))) & (n > 0)
-                & np.all(np.isfinite(mean["fused"][0]), axis=1))
+                & np.all(np.isfinite(x_fused), axis=1))
         # the means are ratios over the inliers' background-subtracted count n: where
         # their detections are not significant against the background subtracted
         # from them (Poisson, at the peak's own confidence 2·Φ(−k)), n is consistent
@@ -149,6 +144,17 @@ class PeakMeans:
         with np.errstate(invalid="ignore"):
             p_in = pdtrc(np.maximum(self.detections - 1.0, 0.0), np.maximum(b_in, 1e-300))
         keep &= p_in < 2.0 * ndtr(-self.k)
+        return keep
+
+    def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
+        """The cloud (see :meth:`PeakAccumulator.cloud`): the depth edges, the
+        fused point and the attributes of every kept peak."""
+        n = self.n
+        mean = {"stereo": self.stereo, "tof": self.tof}
+        mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
+        birge = self.birge
+        fp = None if self.delay is None else {"delay": self.delay, "mu": self.mu}
+        keep = self._kept(min_counts, mean["fused"][0])
         edge = self._depth_edges(mean["fused"][0], mean["fused"][1], keep)
         if self.range_per_px is not None and np.any(edge):
             J = self.range_per_px[edge]

@@ -361,6 +361,44 @@ def cloud_from_peaks(system: System, peaks: PixelPeaks, settings: Settings2D,
 # the whole run
 
 
+@dataclass(frozen=True)
+class ReadGate:
+    """What a two-axis recording read.
+
+    Attributes
+    ----------
+    gate : the recomputed readout gate of a gated recording, None where every
+        pixel was read.
+    exposure : (W·H,) int64, shots each pixel was read.
+    slots : int, pixel-slots read in all.
+    model_gate : the gate the pile-up model uses (the band of the scan where
+        every pixel was read).
+    """
+
+    gate: object
+    exposure: np.ndarray
+    slots: int
+    model_gate: object
+
+
+def read_gate(rec: Recording2D, system: System, sd: ShotDirections, r_min: float,
+              r_max: float) -> ReadGate:
+    """The pixel-slots a recording read (:class:`ReadGate`): a gated recording's gate
+    recomputed from its monitors (every detection must lie in it: monitors and gate
+    agree, docs/reliability.md), else every pixel of every shot."""
+    w, h = system.receiver.image_size
+    if rec.readout["mode"] == "gated":
+        nominal = sd if system is rec.system else shot_directions(rec, rec.system)
+        gate = recompute_gate(rec, rec.system, nominal.direction)
+        check_gate(rec, nominal.direction, nominal.valid, gate)
+        return ReadGate(gate, gate.exposure(), int(gate.pixels.size), gate)
+    # every pixel read: the band is needed only for the pile-up model
+    model_gate = gate_pixels(system, sd.direction,
+                             GateSpec(r_min, r_max, gate_half_width(system)))
+    return ReadGate(None, np.full(w * h, rec.n_shots, np.int64), rec.n_shots * w * h,
+                    model_gate)
+
+
 def process_recording_2d(recording: Recording2D | str | os.PathLike,
                          system: System | None = None,
                          settings: Settings2D | None = None) -> Result2D:
@@ -389,20 +427,8 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
     r_max = settings.r_max or rec.readout.get("r_max", 30.0)
     w, h = system.receiver.image_size
     t0 = time.perf_counter()
-    if rec.readout["mode"] == "gated":
-        nominal = sd if system is rec.system else shot_directions(rec, rec.system)
-        nominal_d, nominal_valid = nominal.direction, nominal.valid
-        gate = recompute_gate(rec, rec.system, nominal_d)
-        # every detection must lie in it (monitors and gate agree: docs/reliability.md)
-        check_gate(rec, nominal_d, nominal_valid, gate)
-        exposure = gate.exposure()
-        slots = int(gate.pixels.size)
-        model_gate = gate
-    else:  # every pixel read: the band is needed only for the pile-up model
-        gate = None
-        exposure = np.full(w * h, rec.n_shots, np.int64)
-        slots = rec.n_shots * w * h
-        model_gate = gate_pixels(system, d, GateSpec(r_min, r_max, gate_half_width(system)))
+    rg = read_gate(rec, system, sd, r_min, r_max)
+    gate, exposure, slots, model_gate = rg.gate, rg.exposure, rg.slots, rg.model_gate
     timings["gate"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

@@ -157,6 +157,28 @@ def beam_returns(true_system: System, scene: Scene, dirs: np.ndarray, *, link: L
             "mu": mu, "center": center, "sigma_px": sigma_px}
 
 
+def _background_by_rate(uniq, inverse, k: int, npix: int, window: float,
+                        rng: np.random.Generator):
+    """First background and dark-count arrivals of ``k`` shots × ``npix`` pixels,
+    grouped by rate (one group for a uniform rate): the slots (sorted) and their
+    times (s), as :func:`background_first_arrivals` gives them."""
+    bg_idx, bg_tau = [], []
+    for g, lam in enumerate(uniq):
+        pix = np.flatnonzero(inverse == g)
+        idx, tau = background_first_arrivals(lam, k * pix.size, window, rng)
+        if uniq.size > 1:
+            shot, j = np.divmod(idx, pix.size)
+            idx = shot * npix + pix[j]
+        bg_idx.append(idx)
+        bg_tau.append(tau)
+    idx = np.concatenate(bg_idx)
+    tau = np.concatenate(bg_tau)
+    if uniq.size > 1:
+        order = np.argsort(idx, kind="stable")
+        idx, tau = idx[order], tau[order]
+    return idx, tau
+
+
 def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: PulseShape,
                     spot: SpotModel, crosstalk: float, rng: np.random.Generator):
     """Codes and labels of one chunk of shots: (k, H, W) uint16 and uint8."""
@@ -190,22 +212,7 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
         label[s_slot[win]] = 1
         return _finish_chunk(bins, label, mu_slot, k, h, w, crosstalk, rng)
 
-    # background + dark counts, grouped by rate (one group for a uniform rate)
-    bg_idx, bg_tau = [], []
-    for g, lam in enumerate(uniq):
-        pix = np.flatnonzero(inverse == g)
-        idx, tau = background_first_arrivals(lam, k * pix.size, window, rng)
-        if uniq.size > 1:
-            shot, j = np.divmod(idx, pix.size)
-            idx = shot * npix + pix[j]
-        bg_idx.append(idx)
-        bg_tau.append(tau)
-    idx = np.concatenate(bg_idx)
-    tau = np.concatenate(bg_tau)
-    if uniq.size > 1:
-        order = np.argsort(idx, kind="stable")
-        idx, tau = idx[order], tau[order]
-
+    idx, tau = _background_by_rate(uniq, inverse, k, npix, window, rng)
     bins = np.zeros(n_slots, dtype=np.uint16)
     label = np.zeros(n_slots, dtype=np.uint8)
     code = tau * (1.0 / bw)  # non-negative: truncation is floor

@@ -215,6 +215,17 @@ def _shot_angles(ts: System, n_shots: int, rng, opt: Simulation2DOptions) -> _Sh
     return _ShotAngles(shot_time, zc, rising, theta1, theta2, mon2, phase, phase2)
 
 
+def _chunk_gate(system: System, gate: GateSpec | None, npix: int, th1, th2, valid):
+    """The readout gate of a chunk of shots from the nominal angles ``th1``, ``th2``
+    (rad) of the monitors (unknown angle: nothing read); every pixel where ``gate``
+    is None."""
+    if gate is None:
+        return full_gate(th1.size, npix)
+    dn = scan_direction_2d(th1, th2, system.scanner)
+    dn[~valid] = np.nan
+    return gate_pixels(system, dn, gate)
+
+
 def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Generator,
                 background_hz: float = 1e5, dark_count_hz: float = 1e3,
                 true_system: System | None = None, gate: GateSpec | None | str = "auto",
@@ -270,13 +281,7 @@ def simulate_2d(system: System, scene: Scene, n_shots: int, *, rng: np.random.Ge
         dirs = scan_direction_2d(ang.theta1[s0:s1], ang.theta2[s0:s1], ts.scanner)
         ret = beam_returns(ts, scene, dirs, link=link, spot=spot, n_emitted=n_emit)
         point[s0:s1] = np.where(ret["visible"][:, None], ret["point"], np.nan)
-        # readout gate from the nominal angles (unknown angle: nothing read)
-        if gate is None:
-            g = full_gate(k, npix)
-        else:
-            dn = scan_direction_2d(th1_n[s0:s1], th2_n[s0:s1], system.scanner)
-            dn[~valid_n[s0:s1]] = np.nan
-            g = gate_pixels(system, dn, gate)
+        g = _chunk_gate(system, gate, npix, th1_n[s0:s1], th2_n[s0:s1], valid_n[s0:s1])
         counts.append(g.counts())
         read_keys = g.keys()  # chunk-local slot keys, increasing
 
