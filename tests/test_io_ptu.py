@@ -190,6 +190,7 @@ def test_first_photon_rule_and_counters(tmp_path):
     bw = sysm.tdc.bin_width
     tick = bw / 4
     P = 50_000_000  # sync period in ticks (tick = 78.125 ps → 3.9 ms, not physical; fine)
+    sysm = sysm.replace(laser=replace(sysm.laser, f_rep=1.0 / (P * tick)))  # one shot a period
     sync_t = (np.arange(6) + 1) * P
     # shot 1, channel 2: photons in codes 5 and 3 → code 3 kept; channel 9 unmapped;
     # shot 2, channel 0: code n_bins + 1 (out of range); a photon before the first sync

@@ -97,7 +97,11 @@ def system_for_stream(system: System, info: StreamInfo, m: TttrMap) -> System:
 
 @dataclass
 class ImportStats:
-    """Counts of a conversion (for the CLI's summary)."""
+    """Counts of a conversion (for the CLI's summary).
+
+    ``out_of_range`` counts the photons whose code falls outside 1..n_bins,
+    ``below_codes`` those of them below 1 (the rest are above n_bins).
+    """
 
     n_shots: int = 0
     n_zero_crossings: int = 0
@@ -108,6 +112,7 @@ class ImportStats:
     out_of_range: int = 0
     outside_shots: int = 0
     bin_width: float = 0.0
+    below_codes: int = 0
 
     def summary(self) -> str:
         return (f"{self.n_shots} shots, {self.n_zero_crossings} zero crossings, "
@@ -235,6 +240,7 @@ def iter_photon_codes(blocks: Iterable, info: StreamInfo, m: TttrMap, lut: np.nd
         code = ticks // m.binning - m.delay_bins + 1
         good = inside & (code >= 1) & (code <= n_bins)
         stats.out_of_range += int((inside & ~good).sum())
+        stats.below_codes += int((inside & (code < 1)).sum())
         cs = ct = None
         if c is not None:
             sel = c & (shot >= 0) & (shot < n_shots)
