@@ -264,3 +264,25 @@ def test_cli_refuses_warns_and_dry_runs(tmp_path, capsys, base_map):
     assert sorted(tmp_path.iterdir()) == before  # the dry runs wrote nothing
     rc, out, err = _cli(tmp_path, capsys, base_map)
     assert rc == 2 and "--output" in err
+
+
+def test_t3_marker_monitor_is_warned_not_refused(stream, base_map, tmp_path):
+    """The sample re-encoded as T3 (the monitor on markers, quantised to the sync
+    period): a warning naming zero_crossings.source, and the geometric evidence,
+    off by the quantisation, only warned."""
+    from mems_stereo.io.ptu import recording_to_ptu
+    from mems_stereo.io.recording import read_recording
+    from mems_stereo.io.tttr import events_to_recording
+
+    info, blocks = stream
+    m = map_from_dict(base_map, "m.json", SAMPLES)
+    events_to_recording(blocks, info, m, m.system, tmp_path / "r.h5")
+    d = recording_to_ptu(read_recording(tmp_path / "r.h5"), tmp_path / "r3.ptu", mode="T3")
+    d["system"] = base_map["system"]
+    info3, open3 = ptu_stream(tmp_path / "r3.ptu")
+    m3 = map_from_dict(d, "m3.json", SAMPLES)
+    res = analyse_import(open3, info3, m3, m3.system, 2.0)
+    assert not res.refusals
+    t3 = [v for v in res.verdicts if v.cause == ic.CAUSE_T3_MARKER]
+    assert len(t3) == 1 and t3[0].field == "zero_crossings.source"
+    assert "5e-05 s" in t3[0].text and "8 %" in t3[0].text  # 50 µs × 1570 Hz

@@ -109,7 +109,8 @@ def analyse_import(open_blocks: Callable[[], Iterable], info: StreamInfo, m: Ttt
             sample = ImportSample(
                 seconds, int(t.size), float(t[-1] - t[0]) if t.size else 0.0, info.sync_rate,
                 system.laser.f_rep, int(zc.size), float(zc[-1] - zc[0]), system.scanner.f_mech,
-                stats, events, info.micro_unit, system.tdc.bin_width)
+                stats, events, info.micro_unit, system.tdc.bin_width, mode=info.mode,
+                macro_unit=info.macro_unit)
             verdicts = import_verdicts(sample, m)
             if not any(v.refuse for v in verdicts):  # the geometric evidence where needed
                 polarity, reversed_cols = wiring_evidence(path)
@@ -165,10 +166,11 @@ def wiring_evidence(path) -> tuple[PairedEvidence | None, PairedEvidence | None]
     idx = _shots_read(valid, H * W)
     if idx.size == 0:
         return None, None
+    runs = np.split(idx, np.flatnonzero(np.diff(idx) != 1) + 1)  # consecutive shots
     with h5.open_h5(path) as f:
-        bins = h5.read(h5.dataset(f, "/shots/bins", str(path)), str(path),
-                       slice(int(idx[0]), int(idx[-1]) + 1))
-    b = bins[idx - idx[0]].astype(np.int64)
+        ds = h5.dataset(f, "/shots/bins", str(path))
+        b = np.concatenate([h5.read(ds, str(path), slice(int(r[0]), int(r[-1]) + 1))
+                            for r in runs]).astype(np.int64)
     th = theta[idx]
     table = _table(s)
     inside = {}

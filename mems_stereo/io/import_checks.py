@@ -23,6 +23,7 @@ shot rate                  shots per second off the header's sync rate      refu
 zero-crossing rate         crossings per second off 2 f_mech (f_mech        refuse >25 %
                            when one edge is wired)                          warn >10 %
 monitor edge silent        a wired edge has no events                       refuse
+monitor quantised          the monitor on a T3 marker (sync-period times)   warn
 few photons kept           < 50 % of the photons reach a shot and code      refuse
                            (reasons counted; the commonest is named)
 pixels shifted             photons on unmapped inputs, or mapped inputs     warn
@@ -57,6 +58,7 @@ CAUSE_BINNING = "binning"
 CAUSE_POLARITY = "polarity inverted"
 CAUSE_REVERSED = "columns reversed"
 CAUSE_IMPORT = "not importable"
+CAUSE_T3_MARKER = "monitor quantised"
 
 #: below this share of photons kept (reaching a shot and a code 1..n_bins) an import is refused
 KEPT_MIN = 0.5
@@ -69,6 +71,8 @@ ZC_RATE_REFUSE, ZC_RATE_WARN = CROSSING_FREQUENCY_TOLERANCE, 0.10
 EVIDENCE_REFUSE_Z, EVIDENCE_WARN_Z = 5.0, 3.0
 #: an input counts as carrying photons from this share of the median mapped input's count
 ACTIVE_SHARE = 0.1
+#: a T3 marker's quantisation (the sync period) above this share of the mirror period is warned
+T3_MARKER_SHARE = 0.01
 #: shifts of the pixels' inputs tried to explain active unmapped / silent mapped inputs
 MAX_SHIFT = 8
 
@@ -139,6 +143,7 @@ class ImportSample:
     micro_unit : s, the header's TDC resolution; system_bin : s, the system's bin width.
     polarity, reversed_columns : :class:`PairedEvidence` of the mirrored scan angle
         and of the columns in reverse order, or None when not measured.
+    mode : "T2" or "T3"; macro_unit : s, the header's macro time unit (T3: the sync period).
     """
 
     seconds: float
@@ -155,6 +160,8 @@ class ImportSample:
     system_bin: float
     polarity: PairedEvidence | None = None
     reversed_columns: PairedEvidence | None = None
+    mode: str = "T2"
+    macro_unit: float = 0.0
 
     @property
     def shots_per_s(self) -> float:
@@ -263,6 +270,9 @@ def rate_verdicts(s: ImportSample, m: TttrMap) -> list[Verdict]:
                            f"({100 * dev:.0f} % off): {fix}"))
     silent = _silent_edges(s, m)
     out += silent
+    t3 = _t3_marker(s, m)
+    if t3 is not None:
+        out.append(t3)
     wired = [e for e in (m.zc_rising_edge, m.zc_falling_edge) if e is not None]
     expected = s.f_mech * (2 if len(wired) == 2 else 1)
     dev = _deviation(s.zc_per_s, expected)
@@ -274,6 +284,18 @@ def rate_verdicts(s: ImportSample, m: TttrMap) -> list[Verdict]:
                            f"rising_edge / falling_edge to the monitor's "
                            f"{m.zc_source}s, or use the system of this mirror"))
     return out
+
+
+def _t3_marker(s: ImportSample, m: TttrMap) -> Verdict | None:
+    """A monitor on a T3 marker: its time is the sync count only."""
+    share = s.macro_unit * s.f_mech
+    if s.mode != "T3" or m.zc_source != "marker" or share <= T3_MARKER_SHARE:
+        return None
+    return Verdict(False, "zero_crossings.source", CAUSE_T3_MARKER,
+                   f"a T3 marker carries only its sync count: the monitor's times are "
+                   f"quantised to the sync period {s.macro_unit:.6g} s, {100 * share:.0f} % of "
+                   f"the mirror period: wire the monitor to an input (source 'channel') or "
+                   f"record T2")
 
 
 def _silent_edges(s: ImportSample, m: TttrMap) -> list[Verdict]:
@@ -378,10 +400,11 @@ def _few(chs: list) -> str:
 
 def evidence_verdicts(s: ImportSample, m: TttrMap) -> list[Verdict]:
     """The monitor's polarity and the column order, from the detections' fit (the
-    better-fitting alternative first).  Where the pixels' inputs look shifted
-    the geometry is off anyway, and these are warnings only."""
+    better-fitting alternative first).  Where the pixels' inputs look shifted, or
+    the monitor is quantised to a T3 sync period, the geometry is off anyway, and
+    these are warnings only."""
     out = []
-    trusted = _shift_verdict(s, m) is None
+    trusted = _shift_verdict(s, m) is None and _t3_marker(s, m) is None
     ev = s.polarity
     if ev is not None and ev.z >= EVIDENCE_WARN_Z:
         other = "negative" if m.zc_positive else "positive"
