@@ -286,3 +286,35 @@ def test_t3_marker_monitor_is_warned_not_refused(stream, base_map, tmp_path):
     t3 = [v for v in res.verdicts if v.cause == ic.CAUSE_T3_MARKER]
     assert len(t3) == 1 and t3[0].field == "zero_crossings.source"
     assert "5e-05 s" in t3[0].text and "8 %" in t3[0].text  # 50 µs × 1570 Hz
+
+
+def test_photon_hdf5_wiring_is_checked_the_same(stream, base_map, tmp_path):
+    """The sample as Photon-HDF5 (no markers, no sync events: the laser trigger on
+    detector 60, the monitor's edges on detectors 61 and 62): silent when mapped
+    right; the trigger on a pixel's detector refused; no sync rate in the file, so
+    the shots are compared with the system's laser.f_rep."""
+    from mems_stereo.io.photon_hdf5 import photon_hdf5_stream, write_photon_hdf5_events
+
+    info, blocks = stream
+    ev = list(blocks())
+    t = np.concatenate([b.macro for b in ev])
+    kind = np.concatenate([b.kind for b in ev])
+    ch = np.concatenate([b.channel for b in ev]).astype(np.int64)
+    det = np.where(kind == 1, 60, np.where(kind == 2, 60 + ch, ch))
+    write_photon_hdf5_events(tmp_path / "p.h5", t, det, timestamps_unit=info.macro_unit)
+    info_h, open_h = photon_hdf5_stream(tmp_path / "p.h5")
+    d = dict(copy.deepcopy(base_map), shot_clock={"source": "channel", "channel": 60})
+    d["zero_crossings"] = dict(d["zero_crossings"], source="channel", rising_edge=61,
+                               falling_edge=62)
+    res = analyse_import(open_h, info_h, *_map_system(d), 2.0)
+    assert res.verdicts == [], [v.line() for v in res.verdicts]
+    assert info_h.sync_rate == 0 and abs(res.sample.shots_per_s - 20000) < 1e-6
+    d["shot_clock"]["channel"] = 7
+    res = analyse_import(open_h, info_h, *_map_system(d), 2.0)
+    assert [v.field for v in res.refusals][:2] == ["shot_clock.channel", "shot_clock"]
+    assert "laser.f_rep" in res.refusals[1].text
+
+
+def _map_system(d: dict):
+    m = map_from_dict(d, "m.json", SAMPLES)
+    return m, m.system
