@@ -175,7 +175,7 @@ def format_report(r: CalibrationResult) -> str:
                      f"{r.std[n] * f:>12.4f}  {unit}")
     for j, (p, s, t) in enumerate(zip(r.planes, r.planes_std, r.targets)):
         lines.append(f"  wall {j} ({t['source']}): distance along the optical axis "
-                     f"{t['distance_axis']:.4f} m ± {t['distance_axis_std'] * 1e3:.2f} mm, "
+                     f"{t['distance_axis']:.4f} ± {t['distance_axis_std']:.4f} m, "
                      f"tilt {p[0] * 1e3:.1f} ± {s[0] * 1e3:.2f} mrad, "
                      f"{t['mu']:.3g} photons/shot, spot σ {t['spot_px']:.2f} px")
     if r.fixed:

@@ -86,3 +86,69 @@ def test_contradicting_distance_named_no_file(tmp_path, capsys):
     assert rc == 1 and not out.exists()
     assert "measured distance of wall 1" in cap.err and "calib_2.5m.h5" in cap.err
     assert "warning: the measured distance of wall 1" in cap.out
+
+
+def test_report_json_on_the_bundled_walls(tmp_path, capsys):
+    """``--report R.json`` with ``--operator`` and a system carrying ``device_id``: the
+    header (date, version, device, operator, input files with SHA-256), the checks
+    measured beside fitted, and the time residuals with the first-photon shift removed:
+    centred on the bundled walls (they sit at −5.0 / −3.6 / −1.5 ns against the pulse
+    centre)."""
+    import datetime as dt
+    import hashlib
+    import json
+    import math
+
+    import mems_stereo as ms
+    from mems_stereo.io.recording import read_system
+
+    walls = [SAMPLES / f"calib_{d}m.h5" for d in ("1.5", "2.5", "4.0")]
+    dists = SAMPLES / "calib_distances.json"
+    sys_path = tmp_path / "nominal.json"
+    ms.save_system(read_system(walls[0]).replace(device_id="LAB-SN-0042"), sys_path)
+    out, rep = tmp_path / "cal.json", tmp_path / "r.json"
+    t0 = dt.datetime.now(dt.timezone.utc).replace(microsecond=0)
+    assert main(["calibrate", "-q", *map(str, walls), "--target-distances-file", str(dists),
+                 "--system", str(sys_path), "-o", str(out), "--report", str(rep),
+                 "--operator", "A. Lab"]) == 0
+    doc = json.loads(rep.read_text())
+    h = doc["header"]
+    when = dt.datetime.strptime(h["date_utc"], "%Y-%m-%dT%H:%M:%SZ").replace(
+        tzinfo=dt.timezone.utc)
+    assert t0 <= when <= dt.datetime.now(dt.timezone.utc)
+    assert (h["version"], h["device_id"], h["operator"]) == (ms.__version__, "LAB-SN-0042",
+                                                             "A. Lab")
+    assert [f["role"] for f in h["inputs"]] == ["recording"] * 3 + ["system", "distances"]
+    for f, path in zip(h["inputs"], [*walls, sys_path, dists]):
+        assert f["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert ms.load_system(out).device_id == "LAB-SN-0042"  # carried into the result
+    # measured beside fitted, one unit per quantity
+    want = json.loads(dists.read_text())
+    rows = {r["name"]: r for r in doc["checks"]}
+    for j in range(len(walls)):
+        r = rows[f"wall {j} distance"]
+        assert r["unit"] == "m" and f"measured {r['measured']:.4f} m, fitted" in r["text"]
+        assert r["fitted"] == pytest.approx(doc["walls"][j]["distance_axis_m"])
+        assert rows[f"wall {j} tilt"]["unit"] == "mrad"
+        assert abs(rows[f"wall {j} tilt"]["fitted"]) == pytest.approx(
+            abs(doc["walls"][j]["tilt_mrad"]))
+        assert doc["walls"][j]["signal_explained_pct"] <= 100.0
+    assert [rows[f"wall {j} distance"]["measured"] for j in range(3)] == [
+        t["distance"] for t in want["targets"]]
+    assert not any("baseline_y" in t for t in doc["record_next"])  # fixed already
+    # residuals after the first-photon shift: centred.  Each wall within 2.5 standard
+    # errors of 0 (0.12 ns at 4 m: 3,500 detections, 6.9 ns spread); all pooled within 0.1 ns
+    res = doc["residuals"]
+    n = sum(r["inliers"] for r in res)
+    pooled = sum(r["time_mean_ns"] * r["inliers"] for r in res) / n
+    assert abs(pooled) < 0.1
+    for r in res:
+        assert r["first_photon_removed"] and r["inliers"] > 3000
+        se = r["time_rms_ns"] / math.sqrt(r["inliers"])
+        assert abs(r["time_mean_ns"]) < 2.5 * se and abs(r["pixel_mean_px"]) < 0.05
+    fit_means = [w["time_residual_mean_ns"] for w in doc["walls"]]
+    assert max(abs(v) for v in fit_means) < 0.15
+    # the headline RMS is computed the same way: between the walls' own RMS values
+    rms = [w["time_residual_rms_ns"] for w in doc["walls"]]
+    assert min(rms) < doc["rms"]["time_ns"] < max(rms)
+

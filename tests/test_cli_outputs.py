@@ -118,7 +118,10 @@ def _argv(cmd: str, opt: str, kind: str, out: str, c: dict, tmp: Path) -> list |
         return ["import", str(S / "room48.ptu"), "--map", str(S / "room48_map.json"), "-o", out,
                 *(["--all-photons"] if out.endswith(".npz") else [])]
     if cmd in ("export", "render"):
-        return [cmd, c["clouds"][kind], "-o", out]
+        # a PLY carries no acquisition time: a ROS 2 bag from it is stamped with --stamp
+        stamp = ["--stamp", "2026-11-27T08:00:00Z"] if cmd == "export" and \
+            Path(out).suffix in (".mcap", ".db3") else []
+        return [cmd, c["clouds"][kind], "-o", out, *stamp]
     if cmd == "plot cloud":
         return ["plot", "cloud", c["clouds"][kind], "-o", out]
     if cmd == "plot histograms":

@@ -1,12 +1,19 @@
-"""The calibration report: renders for a result and for a failure; residuals, verdict, advice."""
+"""The calibration report: renders for a result and for a failure; residuals, verdict, advice;
+the header a lab files (date, version, device, operator, input hashes), checks measured
+beside fitted with units, pulls on a ±5σ axis, the first-photon shift removed."""
 
 from __future__ import annotations
 
+import datetime as dt
+import hashlib
+import json
 import math
 import re
 
+import mems_stereo.viz.calib_report as cr
 import numpy as np
 import pytest
+from mems_stereo.calib.checks import first_photon_mean
 from mems_stereo.calib.model import beam_hits, plane_normal
 from mems_stereo.calib.problem import WallData
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
@@ -19,7 +26,11 @@ from mems_stereo.viz.calib_report import (
     wall_residuals,
     write_calibration_report,
 )
+from mems_stereo.viz.calib_report_checks import check_rows
+from mems_stereo.viz.calib_report_data import ADVICE_DISTANCES_GIVEN
+from mems_stereo.viz.calib_report_header import report_header
 
+import mems_stereo
 from mems_stereo.errors import FormatError, NotObservableError
 from mems_stereo.model.system import burkard2022
 
@@ -64,7 +75,11 @@ def _result(std_scale=1.0, check_ok=True):
                 "consistency_p": 0.5, "time_shifts": [0.0] * 4, "column_shifts": [0.0] * 4,
                 "signal_expected": 290.0, "signal_share": 1.0}
                for (a, d), w in zip(PLANES, walls)]
+    targets[0].update(distance_measured=1.2, distance_measured_std=2e-3, distance_kind="axis",
+                      distance_fitted=targets[0]["distance_axis"], signal_share=1.013)
     checks = {"wall 0 tilt": (0.05, 1.047, True),
+              "wall 0 distance": (targets[0]["distance_axis"], 0.2, True),
+              "wall 0 signal explained": (1.013, 0.5, True),
               "baseline length / nominal": (0.98 if check_ok else 3.0, (0.5, 2.0), check_ok)}
     res = CalibrationResult(
         system=true, names=NAMES, values={n: true.get_param(n) for n in NAMES}, std=std,
@@ -120,11 +135,19 @@ def test_verdict_and_what_to_record_next():
     d = report_data_from_result(res, nominal=nominal)
     head, lines = verdict(d)
     assert head == "CONVERGED"
-    assert record_next(d) == [ADVICE["baseline_y"]]  # only the line sensor's blind spot
+    # baseline_y, the line sensor's blind spot, is fixed already: no advice to fix it
+    assert "baseline_y" in d.fixed and record_next(d) == []
+    d.fixed = ["fx", "cx"]
+    assert record_next(d) == [ADVICE["baseline_y"]]
     weak = report_data_from_result(_result(std_scale=20.0)[0])
     head, lines = verdict(weak)
     assert head == "CONVERGED, WEAK"
     assert any("tdc_offset" in x for x in lines)  # 1.8 ns > half the 3 ns tolerance
+    # the distances were measured and given: no advice to give them
+    assert ADVICE_DISTANCES_GIVEN["tdc_offset"] in record_next(weak)
+    assert not any("--target-distances-file" in t for t in record_next(weak))
+    for t in weak.walls:
+        t.pop("distance_measured", None)
     assert ADVICE["tdc_offset"] in record_next(weak)
     bad = report_data_from_result(_result(check_ok=False)[0])
     head, lines = verdict(bad)
@@ -174,7 +197,7 @@ def test_report_for_the_bundled_walls(tmp_path):
     assert res
     p = write_calibration_report(res, tmp_path / "walls.pdf", recordings=recs)
     n, data = _pdf_pages(p)
-    assert n == 4 and b"CONVERGED" in data
+    assert n >= 4 and b"CONVERGED" in data  # page 1's text continues on a page of its own
     # the recomputed residuals of the real walls: centred, about a pixel's spread
     from mems_stereo.calib.association import wall_data
     from mems_stereo.viz.calib_report import inliers
@@ -183,8 +206,157 @@ def test_report_for_the_bundled_walls(tmp_path):
 
     for j, r in enumerate(recs):
         rr = wall_residuals(res.system, wall_data(read_recording(r, truth=False)),
-                            res.planes[j])
+                            res.planes[j], target=res.targets[j])
         ok = inliers(rr)
         assert ok.sum() > 1000
         assert abs(np.median(rr.res_pixel[ok])) < 0.1
         assert np.std(rr.res_pixel[ok]) < 1.0
+
+
+def _header(tmp_path):
+    files = []
+    for name, body in (("wall_a.h5", b"abc" * 1000), ("dist.json", b'{"x": 1}')):
+        (tmp_path / name).write_bytes(body)
+        files.append((name, hashlib.sha256(body).hexdigest(), len(body)))
+    h = report_header([("recording", tmp_path / "wall_a.h5"), ("distances", tmp_path / "dist.json"),
+                       ("system", "burkard2022")], device_id="LAB-SN-0042", operator="A. Lab",
+                      now=dt.datetime(2026, 11, 27, 9, 14, 3, tzinfo=dt.timezone.utc))
+    return h, files
+
+
+def test_header_on_page_one_and_in_the_json(tmp_path, monkeypatch):
+    h, files = _header(tmp_path)
+    assert h["date_utc"] == "2026-11-27T09:14:03Z" and h["version"] == mems_stereo.__version__
+    for (name, digest, size), f in zip(files, h["inputs"]):
+        assert f["path"].endswith(name) and (f["sha256"], f["bytes"]) == (digest, size)
+    assert h["inputs"][2] == {"role": "system", "path": "burkard2022", "bytes": None,
+                              "sha256": None}  # a preset: named, no file to hash
+    # page 1: the text the PDF builder is given
+    pages = []
+    real = cr._text_page
+
+    def spy(pdf, title, blocks, *a, **k):
+        pages.append((title, blocks))
+        return real(pdf, title, blocks, *a, **k)
+    monkeypatch.setattr(cr, "_text_page", spy)
+    res, walls, nominal = _result()
+    write_calibration_report(res, tmp_path / "r.pdf", nominal=nominal, header=h)
+    title, blocks = pages[0]
+    assert title.startswith("Calibration report") and blocks[0][0] == "Record"
+    text = "\n".join(blocks[0][1])
+    for want in ("2026-11-27T09:14:03Z", f"mems-stereo {mems_stereo.__version__}",
+                 "LAB-SN-0042", "A. Lab", files[0][1], files[1][1], "wall_a.h5"):
+        assert want in text, want
+    # the same content for machines
+    p = write_calibration_report(res, tmp_path / "r.json", nominal=nominal, header=h)
+    doc = json.loads(p.read_text())
+    assert doc["format"] == "mems-stereo/calibration-report" and doc["header"] == h
+    assert doc["verdict"] == "CONVERGED" and doc["result"]["ok"] is True
+    assert [r["text"] for r in doc["checks"]] == [r["text"] for r in cr.checks_of(
+        cr.report_data(res, nominal=nominal))]
+    assert {p_["name"] for p_ in doc["parameters"]} == set(NAMES)
+
+
+def test_checks_show_measured_beside_fitted_with_units():
+    res, _, nominal = _result()
+    d = report_data_from_result(res, nominal=nominal)
+    rows = {r["name"]: r for r in check_rows(d.checks, d.walls, d.nominal, d.system)}
+    fitted = res.targets[0]["distance_axis"]
+    dist = rows["wall 0 distance"]
+    assert (dist["unit"], dist["measured"], dist["fitted"], dist["limit"]) == ("m", 1.2, fitted,
+                                                                               0.2)
+    assert dist["text"] == f"wall 0 distance: measured 1.2000 m, fitted {fitted:.4f} m, " \
+                           "limit ≥ 0.2000 m: ok"
+    tilt = rows["wall 0 tilt"]  # mrad, as the wall rows and the estimates
+    assert tilt["unit"] == "mrad" and tilt["fitted"] == pytest.approx(50.0)
+    assert "fitted 50 mrad, limit ≤ 1047 mrad: ok" in tilt["text"]
+    share = rows["wall 0 signal explained"]  # 101.3 % of a Poisson excess: at most 100 %
+    assert share["fitted"] == 100.0 and "101" not in share["text"]
+    base = rows["baseline length / nominal"]
+    assert "nominal 125.00 mm" in base["text"] and base["passed"] is True
+    assert "FAILED" in check_rows({"x": (3.0, (0.5, 2.0), False)}, [])[0]["text"]
+
+
+def test_pulls_on_a_five_sigma_axis():
+    res, _, nominal = _result()
+    d = report_data_from_result(res, nominal=nominal)
+    d.values["theta0"] = d.initial["theta0"] + 350 * d.std["theta0"]  # a 350σ shift
+    figs = []
+
+    class Pdf:
+        def savefig(self, fig):
+            figs.append(fig)
+    cr._estimates_page(Pdf(), d)
+    ax = figs[0].axes[0]
+    assert ax.get_xlim() == (-5.5, 5.5)
+    z = {n: (d.values[n] - d.initial[n]) / d.std[n] for n in d.names}
+    far = [f"{v:+.0f}σ" for v in z.values() if abs(v) > 5]
+    assert "+350σ" in far and len(far) < len(z)
+    # beyond ±5σ: clipped to the edge and marked with the value; the rest drawn as is
+    assert [t.get_text() for t in ax.texts] == far
+    drawn = np.concatenate([ln.get_xdata() for ln in ax.lines if len(ln.get_xdata())])
+    assert np.all(np.abs(drawn) <= 5.0 + 1e-12)
+
+
+def test_first_photon_mean_against_monte_carlo_and_limits():
+    rng = np.random.default_rng(7)
+    for m, z0 in ((10.0, -8.0), (1.0, -1.7), (3.0, -0.5)):
+        n = rng.poisson(m, 60000)
+        z = np.full(n.size, np.inf)
+        for i in range(int(n.max())):
+            s = rng.standard_normal(n.size)
+            z = np.where((i < n) & (s >= z0), np.minimum(z, s), z)  # the gate opens at z0
+        z = z[np.isfinite(z)]
+        assert abs(first_photon_mean(m, z0) - z.mean()) < 4 * z.std() / math.sqrt(z.size)
+    # m → 0: the truncated normal's mean φ(z0) / (1 − Φ(z0))
+    from scipy.stats import norm
+
+    assert first_photon_mean(1e-9, -1.0) == pytest.approx(norm.pdf(-1) / norm.sf(-1), abs=2e-3)
+    assert first_photon_mean(10.0, -8.0) == pytest.approx(-1.5045, abs=2e-3)
+
+
+def test_time_residuals_have_the_first_photon_shift_removed():
+    """Exact returns at 10 photons per shot, each detection the first of its Poisson
+    photons: against the pulse centre the residuals sit 1.5σ early; with the wall's
+    fitted signal they are centred."""
+    nominal, true = _true_system()
+    rng = np.random.default_rng(3)
+    sigma = 2e-9
+    a, d = PLANES[1]
+    w = _wall(true, a, d, 4000, rng, "w")
+    from mems_stereo.calib.model import code_time
+
+    ok = w.bins > 0
+    n = rng.poisson(10.0 * 0.9999, ok.sum())  # the spot's share on its pixel ≈ 1 (σ 0.1 px)
+    first = np.array([rng.standard_normal(k).min() if k else np.inf for k in n])
+    keep = np.isfinite(first)
+    t = code_time(w.bins[ok], w.bin_width)[keep] + sigma * first[keep]
+    bins = np.zeros_like(w.bins)
+    idx = np.flatnonzero(ok.ravel())[keep]
+    bins.ravel()[idx] = np.floor(t / w.bin_width + 0.5) + 1  # t − ½ bin rounds to its code
+    w2 = WallData(w.phase, bins, w.background, w.bin_width, "w")
+    target = {"mu": 10.0, "spot_px": 0.12, "log_gref": 0.0, "pulse_sigma": sigma}
+    from mems_stereo.calib.problem import shot_model
+
+    lg = shot_model(true, {}, np.array([a, 0.0, d, 0.0, 0.0]), w.phase)[0][:, 3]
+    target["log_gref"] = float(np.median(lg))  # μ at this wall's typical gain
+    raw = wall_residuals(true, w2, (a, 0.0, d), window=20e-9)
+    fixed = wall_residuals(true, w2, (a, 0.0, d), window=20e-9, target=target)
+    assert fixed.first_photon and not raw.first_photon
+    assert np.mean(raw.res_time) < -1.2 * sigma
+    assert abs(np.mean(fixed.res_time)) < 0.1 * sigma
+
+
+def test_two_axis_report_carries_the_same_header(tmp_path, monkeypatch):
+    import mems_stereo.viz.calib_report_2d as r2
+
+    h, files = _header(tmp_path)
+    d = r2.two_axis_failure_dict("no wall return", recordings=["a.h5"], header=h)
+    assert d["header"] == h and json.loads(json.dumps(d))["header"]["device_id"] == "LAB-SN-0042"
+    pages = []
+    real = r2._text_page
+    monkeypatch.setattr(r2, "_text_page", lambda pdf, title, blocks: (
+        pages.append(blocks), real(pdf, title, blocks)))
+    r2.write_two_axis_report(d, tmp_path / "f.pdf")
+    text = "\n".join(pages[0][0][1])
+    assert pages[0][0][0] == "record" and files[0][1] in text and "A. Lab" in text

@@ -33,13 +33,13 @@ change of the calibration result's shape is absorbed there.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import textwrap
 from pathlib import Path
 
 import numpy as np
-from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.result import CalibrationFailure
 from mems_stereo.viz.calib_report_data import (  # noqa: F401  (public names re-exported)
     ADVICE,
@@ -47,6 +47,7 @@ from mems_stereo.viz.calib_report_data import (  # noqa: F401  (public names re-
     ReportData,
     WallResiduals,
     check_text,
+    checks_of,
     fmt_param,
     inliers,
     record_next,
@@ -56,32 +57,50 @@ from mems_stereo.viz.calib_report_data import (  # noqa: F401  (public names re-
     verdict,
     wall_residuals,
 )
+from mems_stereo.viz.calib_report_header import header_lines
+from mems_stereo.viz.calib_report_json import (
+    load_walls,
+    report_dict,
+    report_residuals,
+)
 
 from mems_stereo.errors import FormatError
-from mems_stereo.io.recording import Recording, read_recording
 from mems_stereo.model.system import System
-from mems_stereo.util.atomic import atomic_output
+from mems_stereo.util.atomic import atomic_output, atomic_write_text
+
+#: pulls beyond this many σ are drawn at the axis' edge, marked (the estimates page)
+PULL_AXIS = 5.0
 
 
 # --------------------------------------------------------------------------- pages
 def _text_page(pdf, title: str, blocks: list[tuple[str, list[str]]], color: str = "k",
                bottom: float = 0.04):
+    """Text blocks on A4 pages; with ``pdf`` what does not fit continues on further
+    pages ("title (continued)"), without it the one figure is returned (cut at ``bottom``)."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8.27, 11.69))
-    fig.text(0.06, 0.96, title, fontsize=15, weight="bold", va="top", color=color)
+    def page(head: str):
+        f = Figure(figsize=(8.27, 11.69))
+        f.text(0.06, 0.96, head, fontsize=15, weight="bold", va="top", color=color)
+        return f
+
+    fig = page(title)
     y = 0.92
     for head, lines in blocks:
-        if y < bottom + 0.02:
-            break
+        parts = [p for line in lines for p in _wrap(line, 95)]
+        if y - 0.024 - 0.017 * min(len(parts), 3) < bottom and pdf is not None:
+            pdf.savefig(fig)
+            fig, y = page(f"{title} (continued)"), 0.92
         fig.text(0.06, y, head, fontsize=11, weight="bold", va="top")
         y -= 0.024
-        for line in lines:
-            for part in _wrap(line, 95):
-                if y < bottom:
+        for part in parts:
+            if y < bottom:
+                if pdf is None:
                     break
-                fig.text(0.08, y, part, fontsize=8.5, family="monospace", va="top")
-                y -= 0.017
+                pdf.savefig(fig)
+                fig, y = page(f"{title} (continued)"), 0.92
+            fig.text(0.08, y, part, fontsize=8.5, family="monospace", va="top")
+            y -= 0.017
         y -= 0.012
     if pdf is not None:
         pdf.savefig(fig)
@@ -99,8 +118,8 @@ def _wall_rows(d: ReportData) -> list[str]:
         parts = []
         if "distance_axis" in t:
             s = t.get("distance_axis_std")
-            parts.append(f"distance (optical axis) {t['distance_axis']:.4f} m"
-                         + (f" ± {s * 1e3:.2f} mm" if s is not None else ""))
+            parts.append(f"distance (optical axis) {t['distance_axis']:.4f}"
+                         + (f" ± {s:.4f}" if s is not None else "") + " m")
         if j < len(d.planes):
             a = d.planes[j, 0]
             sa = (f" ± {d.planes_std[j, 0] * 1e3:.2f}" if j < len(d.planes_std) else "")
@@ -109,13 +128,16 @@ def _wall_rows(d: ReportData) -> list[str]:
             parts.append(f"{t['mu']:.3g} photons/shot")
         if "spot_px" in t:
             parts.append(f"spot σ {t['spot_px']:.2f} px")
-        if "signal_share" in t:
-            parts.append(f"signal explained {t['signal_share']:.0%}")
+        if "signal_share" in t:  # of a Poisson excess over the background: at most 100 %
+            parts.append(f"signal explained {min(t['signal_share'], 1.0):.0%}")
         if "consistency_p" in t:
             parts.append(f"flat-wall consistency p {t['consistency_p']:.2g}")
         if "distance_measured" in t:
-            parts.append(f"measured {t['distance_measured']:.4f} m "
-                         f"(pull {t.get('distance_pull', math.nan):+.1f}σ)")
+            pull = t.get("distance_pull")
+            parts.append(f"measured {t['distance_measured']:.4f} m"
+                         + (f" (pull {pull:+.1f}σ)" if pull is not None else ""))
+        if t.get("time_residual_mean") is not None:
+            parts.append(f"time residual mean {t['time_residual_mean'] * 1e9:+.3f} ns")
         rows.append(f"{nm}: " + ", ".join(parts))
     return rows
 
@@ -124,6 +146,8 @@ def _summary_page(pdf, d: ReportData):
     head, vlines = verdict(d)
     color = {"CONVERGED": "darkgreen", "CONVERGED, WEAK": "darkorange"}.get(head, "darkred")
     blocks = []
+    if d.header:
+        blocks.append(("Record", header_lines(d.header)))
     if d.ok:
         rows = [f"{'parameter':<15}{'nominal':>12}{'estimate':>12}{'σ':>10}{'Δ/σ':>8}  unit"]
         for n in d.names:
@@ -135,7 +159,8 @@ def _summary_page(pdf, d: ReportData):
         if d.fixed:
             rows.append("fixed at nominal: " + ", ".join(d.fixed))
         blocks.append(("Estimates (σ from the fit's covariance)", rows))
-        blocks.append(("Residuals", [f"RMS (signal-weighted) pixel "
+        blocks.append(("Residuals (after what the model predicts, the first-photon shift "
+                       "included)", [f"RMS (signal-weighted) pixel "
                                      f"{d.rms.get('pixel', math.nan):.3f} px, time "
                                      f"{d.rms.get('time', math.nan) * 1e9:.3f} ns, "
                                      f"{d.n_detections} signal detections explained"]))
@@ -146,8 +171,8 @@ def _summary_page(pdf, d: ReportData):
                                        "recordings' estimates (details on the next page)"]))
     blocks.append((f"Observability and checks: {head}", vlines))
     if d.ok and d.checks:
-        blocks.append(("Plausibility checks", [f"{k}: {check_text(v)}"
-                                               for k, v in d.checks.items()]))
+        blocks.append(("Plausibility checks (measured beside fitted)",
+                       [r["text"] for r in checks_of(d)]))
     if d.warnings:
         blocks.append(("Warnings", list(d.warnings)))
     todo = record_next(d)
@@ -176,7 +201,7 @@ def _failure_page(pdf, d: ReportData, hists: list):
     if d.walls:
         blocks.append(("Walls as fitted", _wall_rows(d)))
     if d.checks:
-        blocks.append(("Checks", [f"{k}: {check_text(v)}" for k, v in d.checks.items()]))
+        blocks.append(("Checks (measured beside fitted)", [r["text"] for r in checks_of(d)]))
     if d.warnings:
         blocks.append(("Warnings", list(d.warnings)))
     fig = _text_page(None, "Why the calibration failed — details", blocks, "darkred",
@@ -207,12 +232,22 @@ def _estimates_page(pdf, d: ReportData):
                   for k in d.names])
     y = np.arange(n)
     a.axvspan(-3, 3, color="0.92")
-    a.errorbar(z, y, xerr=np.ones(n), fmt="o", color="tab:blue", capsize=3)
+    inside = np.abs(z) <= PULL_AXIS
+    a.errorbar(z[inside], y[inside], xerr=np.ones(int(inside.sum())), fmt="o",
+               color="tab:blue", capsize=3)
+    for k in np.flatnonzero(np.isfinite(z) & ~inside):  # clipped to the axis, marked
+        edge = math.copysign(PULL_AXIS, z[k])
+        a.plot([edge], [y[k]], ">" if z[k] > 0 else "<", color="tab:red", ms=9)
+        a.annotate(f"{z[k]:+.0f}σ", (edge, y[k]), textcoords="offset points",
+                   xytext=(-8 if z[k] > 0 else 8, 7), ha="right" if z[k] > 0 else "left",
+                   fontsize=7, color="tab:red")
+    a.set_xlim(-PULL_AXIS - 0.5, PULL_AXIS + 0.5)
     a.axvline(0, color="k", lw=0.8)
     a.set_yticks(y, [f"{k}\n{fmt_param(k, d.values[k] - d.initial[k])} ± {fmt_param(k, d.std[k])}"
                      for k in d.names], fontsize=8)
     a.invert_yaxis()
-    a.set_xlabel("(estimate − nominal) / σ   (bars: ±1σ, band: ±3σ)")
+    a.set_xlabel(f"(estimate − nominal) / σ   (bars: ±1σ, band: ±3σ; beyond ±{PULL_AXIS:.0f}σ: "
+                 "red marks at the edge)")
     a.set_title("estimates against nominal")
     C = d.correlation if d.correlation.shape == (n, n) else np.full((n, n), np.nan)
     im = b.imshow(C, vmin=-1, vmax=1, cmap="RdBu_r")
@@ -281,9 +316,11 @@ def _residual_page(pdf, d: ReportData, res: list):
                 lim[key] = [min(lim[key][0], lo), max(lim[key][1], hi)]
             for col, x in enumerate((r.theta * 1e3, r.pixel)):
                 a = ax[row, col]
-                a.scatter(x[~ok], v[~ok], s=1, color="0.75")
-                a.scatter(x[ok], v[ok], s=2, alpha=0.5, color=f"C{j % 10}",
-                          label=f"{nm} ({int(ok.sum())} inliers)")
+                a.scatter(x[~ok], v[~ok], s=1, color="0.75", rasterized=True)
+                mean = float(np.mean(v[ok])) if ok.any() else math.nan
+                unit = "px" if row == 0 else "ns"
+                a.scatter(x[ok], v[ok], s=2, alpha=0.5, color=f"C{j % 10}", rasterized=True,
+                          label=f"{nm} ({int(ok.sum())} inliers, mean {mean:+.3f} {unit})")
     for row, key in ((0, "res_pixel"), (1, "res_time")):
         lo, hi = lim[key]
         pad = 0.3 * (hi - lo) + 1e-9
@@ -297,9 +334,13 @@ def _residual_page(pdf, d: ReportData, res: list):
     ax[1, 0].set_xlabel("scan angle θ (mrad)")
     ax[1, 1].set_xlabel("pixel (column)")
     ax[0, 0].legend(markerscale=4, fontsize=8)
+    ax[1, 0].legend(markerscale=4, fontsize=8)
+    fp = all(r.first_photon for r in res if r is not None)
     fig.suptitle("residuals of every wall, recomputed from the recordings with the calibrated "
-                 "system (time: TDC time − modelled return centre, includes the first-photon "
-                 f"bias);\ngrey: {n_out} fired pixels near the beam beyond 5 robust σ "
+                 "system (time: TDC time − the model's "
+                 + ("expected first photon, pulse centre + first-photon shift" if fp else
+                    "pulse centre; the first-photon shift is not removed")
+                 + f");\ngrey: {n_out} fired pixels near the beam beyond 5 robust σ "
                  "(background, neighbours; off-scale ones not shown)", fontsize=10)
     fig.tight_layout(rect=(0, 0, 1, 0.94))
     pdf.savefig(fig)
@@ -320,7 +361,8 @@ def _planes_page(pdf, d: ReportData, res: list, system: System):
         if r is not None:
             p = r.points
             ok = np.isfinite(p[:, 0]) & inliers(r)
-            ax.scatter(p[ok, 0], p[ok, 2], s=3, alpha=0.4, color=f"C{j % 10}", label=nm)
+            ax.scatter(p[ok, 0], p[ok, 2], s=3, alpha=0.4, color=f"C{j % 10}", label=nm,
+                       rasterized=True)
             if ok.any():
                 zmax = max(zmax, float(np.nanpercentile(p[ok, 2], 99.5)))
                 xs += [float(np.min(p[ok, 0])), float(np.max(p[ok, 0]))]
@@ -359,9 +401,24 @@ def _time_histograms(walls) -> list:
     return out
 
 
+def report_data(result, *, nominal: System | None = None, max_std: dict | None = None,
+                header: dict | None = None) -> ReportData:
+    """The :class:`ReportData` of a result, a failure, an exception or a ReportData,
+    with ``header`` (:func:`~mems_stereo.viz.calib_report_header.report_header`) set."""
+    if isinstance(result, ReportData):
+        d = result
+    elif isinstance(result, (CalibrationFailure, BaseException)):
+        d = report_data_from_failure(result, nominal=nominal, max_std=max_std)
+    else:
+        d = report_data_from_result(result, nominal=nominal, max_std=max_std)
+    if header is not None:
+        d.header = header
+    return d
+
+
 def write_calibration_report(result, path: str | os.PathLike, *, recordings=None,
                              targets=None, nominal: System | None = None,
-                             max_std: dict | None = None) -> Path:
+                             max_std: dict | None = None, header: dict | None = None) -> Path:
     """Render the calibration report (PDF) of a result or of a failed calibration.
 
     Parameters
@@ -369,7 +426,8 @@ def write_calibration_report(result, path: str | os.PathLike, *, recordings=None
     result : a :class:`~mems_stereo.calib.result.CalibrationResult` (4 pages), a
         :class:`~mems_stereo.calib.result.CalibrationFailure` or an exception
         (2 pages: why, and what the fit learnt), or a ready :class:`ReportData`.
-    path : output ``.pdf`` (written atomically).
+    path : output ``.pdf`` (written atomically); ``.json`` writes
+        :func:`write_calibration_report_json` instead.
     recordings : the calibration's recordings (Recordings or FORMAT v1 paths),
         for the residual and top-view pages (and a failure's TDC-time
         histograms); matched to the result's walls by source name.
@@ -377,43 +435,25 @@ def write_calibration_report(result, path: str | os.PathLike, *, recordings=None
         instead of ``recordings``.
     nominal : the nominal system (a failure's "nominal" column).
     max_std : σ limits (SI) per parameter, as given to the fit.
+    header : page 1's record (date, version, device, operator, input files with
+        their SHA-256; :func:`~mems_stereo.viz.calib_report_header.report_header`).
 
-    Returns the path.  Raises FormatError when ``path`` is not a ``.pdf``.
+    Returns the path.  Raises FormatError when ``path`` is neither ``.pdf`` nor ``.json``.
     """
     from matplotlib.backends.backend_pdf import PdfPages
 
     p = Path(path)
+    if p.suffix.lower() == ".json":
+        return write_calibration_report_json(result, p, recordings=recordings, targets=targets,
+                                             nominal=nominal, max_std=max_std, header=header)
     if p.suffix.lower() != ".pdf":
-        raise FormatError(f"expected a .pdf file name, found {p.name!r}", str(p))
-    if isinstance(result, ReportData):
-        d = result
-    elif isinstance(result, (CalibrationFailure, BaseException)):
-        d = report_data_from_failure(result, nominal=nominal, max_std=max_std)
-    else:
-        d = report_data_from_result(result, nominal=nominal, max_std=max_std)
-    walls = None
-    if targets is not None:
-        walls = list(targets)
-    elif recordings is not None:
-        walls = []
-        for r in recordings:
-            rec = r if isinstance(r, Recording) else read_recording(r, truth=False)
-            try:
-                walls.append(wall_data(rec))
-            except FormatError:  # no known phase: nothing to draw for it
-                continue
+        raise FormatError(f"expected a .pdf or .json file name, found {p.name!r}", str(p))
+    d = report_data(result, nominal=nominal, max_std=max_std, header=header)
+    walls = load_walls(recordings, targets)
     with atomic_output(p) as tmp, PdfPages(str(tmp)) as pdf:
         _summary_page(pdf, d)
         if d.ok:
-            res = []
-            if walls:
-                by_name = {source_stem(w.source): w for w in walls}
-                for j, nm in enumerate(d.target_names):
-                    w = by_name.get(nm)
-                    res.append(None if w is None or j >= len(d.planes)
-                               else wall_residuals(d.system, w, d.planes[j]))
-                if all(r is None for r in res):
-                    res = []
+            res = report_residuals(d, walls)
             if d.names:
                 _estimates_page(pdf, d)
             _residual_page(pdf, d, res)
@@ -423,4 +463,23 @@ def write_calibration_report(result, path: str | os.PathLike, *, recordings=None
         info = pdf.infodict()
         info["Title"] = "mems-stereo calibration report"
         info["Subject"] = verdict(d)[0]
+        if d.header:
+            info["Author"] = d.header.get("operator") or ""
+            info["Keywords"] = (f"device {d.header.get('device_id') or '-'}; "
+                                f"mems-stereo {d.header.get('version')}")
     return p
+
+
+def write_calibration_report_json(result, path: str | os.PathLike, *, recordings=None,
+                                  targets=None, nominal: System | None = None,
+                                  max_std: dict | None = None,
+                                  header: dict | None = None) -> Path:
+    """The same report for machines: :func:`~mems_stereo.viz.calib_report_json.report_dict`
+    written atomically as JSON (arguments as :func:`write_calibration_report`)."""
+    p = Path(path)
+    if p.suffix.lower() != ".json":
+        raise FormatError(f"expected a .json file name, found {p.name!r}", str(p))
+    d = report_data(result, nominal=nominal, max_std=max_std, header=header)
+    res = report_residuals(d, load_walls(recordings, targets))
+    obj = report_dict(d, res, result if not isinstance(result, ReportData) else None)
+    return atomic_write_text(p, json.dumps(obj, indent=1, allow_nan=False) + "\n")

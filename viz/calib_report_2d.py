@@ -5,7 +5,10 @@ nominal values, covariance and correlation, RMS residuals, χ²/dof, the fitted
 walls); :func:`write_two_axis_report` renders the same as a PDF (matplotlib's
 ``PdfPages``, Agg, no display): page 1 the estimates and walls, page 2 the
 correlation matrix.  A failed calibration gives the reason instead
-(:func:`two_axis_failure_dict`, and one page in the PDF).
+(:func:`two_axis_failure_dict`, and one page in the PDF).  Both carry the
+header a filed report needs (``header``: date, version, device id, operator,
+input files with SHA-256; :mod:`mems_stereo.viz.calib_report_header`), on
+page 1 of the PDF as in the line-sensor report.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 from mems_stereo.calib.twoaxis import TwoAxisCalibration, get_param_2d
+from mems_stereo.viz.calib_report_header import header_lines
 
 from mems_stereo.errors import FormatError
 from mems_stereo.model.system import System
@@ -29,8 +33,9 @@ def _f(v) -> float | None:
 
 
 def two_axis_report_dict(res: TwoAxisCalibration, *, recordings=(),
-                         nominal: System | None = None) -> dict:
-    """Everything the two-axis fit learnt, as JSON-able values (SI units, angles rad)."""
+                         nominal: System | None = None, header: dict | None = None) -> dict:
+    """Everything the two-axis fit learnt, as JSON-able values (SI units, angles rad),
+    with the report's ``header``."""
     std = np.sqrt(np.clip(np.diag(res.cov), 0.0, None))
     with np.errstate(invalid="ignore", divide="ignore"):
         corr = res.cov / np.outer(std, std)
@@ -41,7 +46,7 @@ def two_axis_report_dict(res: TwoAxisCalibration, *, recordings=(),
               "alpha_rad": _f(w[0]), "beta_rad": _f(w[1]), "distance_m": _f(w[2])}
              for i, (r, w) in enumerate(zip(list(recordings) + [None] * len(res.walls),
                                             res.walls))]
-    return {"ok": True, "kind": "two-axis walls", "parameters": params,
+    return {"ok": True, "kind": "two-axis walls", "header": header, "parameters": params,
             "covariance": {"names": list(res.names),
                            "matrix": [[float(v) for v in row] for row in res.cov]},
             "correlation": [[_f(v) for v in row] for row in corr],
@@ -49,9 +54,9 @@ def two_axis_report_dict(res: TwoAxisCalibration, *, recordings=(),
             "chi2_dof": _f(res.chi2_dof), "n_shots": int(res.n_obs), "walls": walls}
 
 
-def two_axis_failure_dict(reason: str, *, recordings=()) -> dict:
-    """The report of a two-axis calibration that failed: why."""
-    return {"ok": False, "kind": "two-axis walls", "reason": reason,
+def two_axis_failure_dict(reason: str, *, recordings=(), header: dict | None = None) -> dict:
+    """The report of a two-axis calibration that failed: why (and the ``header``)."""
+    return {"ok": False, "kind": "two-axis walls", "header": header, "reason": reason,
             "recordings": [str(Path(r).name) for r in recordings]}
 
 
@@ -107,16 +112,18 @@ def write_two_axis_report(report: dict, path: str | os.PathLike) -> Path:
     p = Path(path)
     if p.suffix.lower() != ".pdf":
         raise FormatError(f"expected a .pdf file name, found {p.name!r}", str(p))
+    record = [("record", header_lines(report["header"]))] if report.get("header") else []
     with atomic_output(p) as tmp, PdfPages(str(tmp)) as pdf:
         if not report["ok"]:
             _text_page(pdf, "Two-axis calibration FAILED",
-                       [("why", [report["reason"]]),
+                       [*record, ("why", [report["reason"]]),
                         ("recordings", report["recordings"] or ["-"])])
             return p
         walls = [f"{w['source'] or '-':28s} α {w['alpha_rad'] * 1e3:8.2f} mrad  "
                  f"β {w['beta_rad'] * 1e3:8.2f} mrad  distance {w['distance_m']:.4f} m"
                  for w in report["walls"]]
         _text_page(pdf, "Two-axis calibration", [
+            *record,
             ("estimates (SI units: m, rad, s; intrinsics px)", _estimate_lines(report)),
             ("residuals", [f"RMS pixel {report['rms_pixel']:.3f} px, path "
                            f"{report['rms_path_m'] * 1e3:.1f} mm; χ²/dof "

@@ -15,10 +15,12 @@ from pathlib import Path
 
 import numpy as np
 from mems_stereo.calib.association import wall_data
-from mems_stereo.calib.model import PARAM_UNIT, beam_hits, code_time, plane_normal
+from mems_stereo.calib.checks import first_photon_mean
+from mems_stereo.calib.model import PARAM_UNIT, code_time
 from mems_stereo.calib.observability import DEFAULT_MAX_STD
-from mems_stereo.calib.problem import WallData
+from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, WallData, shot_model, spot_share
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
+from mems_stereo.viz.calib_report_checks import check_rows
 
 from mems_stereo.model.camera import normalized_coordinates
 from mems_stereo.model.scanner import scan_angle_from_phase
@@ -46,6 +48,14 @@ ADVICE = {
     "fx": "calibrate the receiver's intrinsics on their own (ChArUco, 2-D arrays) or fix fx",
     "cx": "calibrate the receiver's intrinsics on their own (ChArUco, 2-D arrays) or fix cx",
 }
+#: the advice instead, when the target distances were measured and given already
+ADVICE_DISTANCES_GIVEN = {
+    "tdc_offset": "record targets at more distinct distances, or measure the target "
+                  "distances more precisely (--distance-std): the TDC offset trades off with "
+                  "the baseline and the target distances",
+    "baseline_z": "add a target much nearer or farther (the along-axis baseline shows only "
+                  "in how range changes with distance)",
+}
 MIN_TARGETS = 3
 MIN_DETECTIONS = 30
 WEAK_FRACTION = 0.5  # σ above this share of the tolerance: "weak"
@@ -63,7 +73,8 @@ class ReportData:
     dict as :attr:`CalibrationResult.targets` (source, distance_axis, mu,
     spot_px, tilt, signal_share, consistency_p, time_shifts, column_shifts …).
     checks : name → (value, limit, passed).  max_std : σ limit per parameter
-    (SI) above which it counts as not determined.
+    (SI) above which it counts as not determined.  header : the filed report's
+    header (:func:`~mems_stereo.viz.calib_report_header.report_header`), or None.
     """
 
     ok: bool
@@ -88,6 +99,7 @@ class ReportData:
     warnings: list = field(default_factory=list)
     target_names: list = field(default_factory=list)
     max_std: dict = field(default_factory=lambda: dict(DEFAULT_MAX_STD))
+    header: dict | None = None
 
 
 def source_stem(source) -> str:
@@ -159,8 +171,7 @@ def verdict(d: ReportData) -> tuple[str, list[str]]:
     lines = []
     if not d.ok:
         lines.append(f"no calibration: the {d.kind or 'fit'} failed (see Why above)")
-        lines += [f"check failed: {k}: {check_text(v)}" for k, v in d.checks.items()
-                  if _passed(v) is False]
+        lines += [f"check failed: {r['text']}" for r in checks_of(d) if r["passed"] is False]
         return "FAILED", lines
     weak = []
     for n in d.names:
@@ -177,19 +188,19 @@ def verdict(d: ReportData) -> tuple[str, list[str]]:
         lines.append(f"{n}: not observable from these data (held at nominal)")
     for a, b, c in d.tradeoffs:
         lines.append(f"{a} and {b} trade off (correlation {c:+.3f})")
-    failed = [k for k, v in d.checks.items() if _passed(v) is False]
-    for k in failed:
-        lines.append(f"check failed: {k}: {check_text(d.checks[k])}")
+    failed = [r for r in checks_of(d) if r["passed"] is False]
+    for r in failed:
+        lines.append(f"check failed: {r['text']}")
     head = "CONVERGED, WEAK" if (weak or failed) else "CONVERGED"
     if not lines:
         lines.append("every estimated parameter is known to better than half its tolerance")
     return head, lines
 
 
-def _passed(v):
-    if isinstance(v, (tuple, list)) and len(v) == 3:
-        return bool(v[2])
-    return None
+def checks_of(d: ReportData) -> list[dict]:
+    """The checks as rows, measured beside fitted with units
+    (:func:`~mems_stereo.viz.calib_report_checks.check_rows`)."""
+    return check_rows(d.checks, d.walls, d.nominal, d.system)
 
 
 def check_text(v) -> str:
@@ -215,9 +226,12 @@ def record_next(d: ReportData) -> list[str]:
         if d.ok and (not math.isfinite(s) or s > WEAK_FRACTION * tol):
             names.add(n)
     names |= set(d.unobservable)
+    names -= set(d.fixed)  # held at a given value already: fixing it again is no advice
+    measured = any(t.get("distance_measured") is not None for t in d.walls)
     for n in sorted(names, key=lambda x: list(ADVICE).index(x) if x in ADVICE else 99):
-        if n in ADVICE and ADVICE[n] not in todo:
-            todo.append(ADVICE[n])
+        text = (ADVICE_DISTANCES_GIVEN.get(n, ADVICE.get(n)) if measured else ADVICE.get(n))
+        if text is not None and text not in todo:
+            todo.append(text)
     n_t = len(d.walls) if d.walls else len(d.planes)
     if 0 < n_t < MIN_TARGETS:
         todo.append(f"record at least {MIN_TARGETS} target distances spanning the working "
@@ -254,8 +268,11 @@ class WallResiduals:
     theta : (M,) float64, scan angle, rad.
     pixel : (M,) float64, the fired column.
     res_pixel : (M,) float64, column − predicted column, px.
-    res_time : (M,) float64, TDC time − (path/c + TDC offset), s.
+    res_time : (M,) float64, TDC time − the model's prediction, s: the expected
+        first signal photon (pulse centre + σ · first-photon shift) when the
+        wall's fitted signal is known, else the pulse centre (path/c + TDC offset).
     points : (M, 3) float64, m: the detections triangulated (camera ray ∩ scan beam).
+    first_photon : the first-photon shift was removed from ``res_time``.
     """
 
     theta: np.ndarray
@@ -263,27 +280,49 @@ class WallResiduals:
     res_pixel: np.ndarray
     res_time: np.ndarray
     points: np.ndarray
+    first_photon: bool = False
+
+
+def _first_photon_shift(target: dict | None, pred: np.ndarray, cols, rows,
+                        two_d: bool) -> np.ndarray | None:
+    """(M,) s: what the model predicts beyond the pulse centre for each detection,
+    σ · :func:`~mems_stereo.calib.checks.first_photon_mean` of the pixel's mean
+    signal m = μ · g / g_ref · spot share; None without the wall's fitted signal."""
+    keys = ("mu", "spot_px", "log_gref", "pulse_sigma")
+    if not target or any(target.get(k) is None for k in keys):
+        return None
+    sigma = float(target["pulse_sigma"])
+    s_px = min(max(float(target["spot_px"]), SPOT_MIN), SPOT_MAX)
+    share = spot_share(cols, pred[:, 1], s_px)[0]
+    if two_d:
+        share = share * spot_share(rows, pred[:, 2], s_px)[0]
+    m = float(target["mu"]) * np.exp(pred[:, 3] - float(target["log_gref"])) * share
+    return sigma * first_photon_mean(m, -pred[:, 0] / sigma)
 
 
 def wall_residuals(system: System, wall, plane, radius: int = 3,
-                   window: float = 40e-9) -> WallResiduals:
+                   window: float = 40e-9, target: dict | None = None) -> WallResiduals:
     """Residuals of one wall recording under the calibrated model.
 
     wall : :class:`~mems_stereo.calib.problem.WallData` (or a Recording, reduced
     with :func:`~mems_stereo.calib.association.wall_data`).  plane : (α, β, D)
     of the wall (rad, rad, m).  Every fired pixel within ``radius`` columns of
     a shot's predicted image and within ``window`` of its predicted time counts.
+    target : the wall's entry of the result's ``targets`` (``mu``, ``spot_px``,
+    ``log_gref``, ``pulse_sigma``): the time residuals then have the
+    first-photon shift the fit models removed (the first of several signal
+    photons arrives before the pulse centre: −5 ns at 10 photons per shot for
+    a 15 ns pulse); without it they are against the pulse centre.
 
     Returns the detections and their residuals (:class:`WallResiduals`).
     """
     w = wall if isinstance(wall, WallData) else wall_data(wall)
     K, H, W = w.bins.shape
-    hits = beam_hits(system, {}, w.phase, plane_normal(plane[0], plane[1]), float(plane[2]))
-    tau = hits.path / system.speed_of_light + system.tdc.offset
-    ok = hits.ok & np.isfinite(hits.pixel[:, 0])
+    wall5 = np.array([plane[0], plane[1], plane[2], 0.0, 0.0], dtype=np.float64)
+    pred, ok = shot_model(system, {}, wall5, w.phase)
     shots = np.flatnonzero(ok)
-    u = hits.pixel[shots, 0]
-    row = (np.clip(np.rint(hits.pixel[shots, 1]), 0, H - 1).astype(np.int64) if H > 1
+    u = pred[shots, 1]
+    row = (np.clip(np.rint(pred[shots, 2]), 0, H - 1).astype(np.int64) if H > 1
            else np.zeros(shots.size, np.int64))
     off = np.arange(-radius, radius + 1)
     cols = np.rint(u)[:, None] + off[None, :]
@@ -293,14 +332,18 @@ def wall_residuals(system: System, wall, plane, radius: int = 3,
     sh, cols, rr = sh[inside], cols[inside].astype(np.int64), rr[inside]
     code = w.bins[sh, rr, cols]
     t = code_time(code, w.bin_width)
-    uu = hits.pixel[sh, 0]
-    keep = (code > 0) & (np.abs(t - tau[sh]) < window)
-    sh, cols, rr, t, uu = sh[keep], cols[keep], rr[keep], t[keep], uu[keep]
+    keep = (code > 0) & (np.abs(t - pred[sh, 0]) < window)
+    sh, cols, rr, t = sh[keep], cols[keep], rr[keep], t[keep]
+    p = pred[sh]
+    shift = _first_photon_shift(target, p, cols.astype(np.float64), rr.astype(np.float64),
+                                H > 1)
     theta = scan_angle_from_phase(w.phase[sh], system.scanner)
     return WallResiduals(theta=theta, pixel=cols.astype(np.float64),
-                         res_pixel=cols - uu, res_time=t - tau[sh],
+                         res_pixel=cols - p[:, 1],
+                         res_time=t - p[:, 0] - (0.0 if shift is None else shift),
                          points=_triangulate(system, cols.astype(np.float64),
-                                             rr.astype(np.float64), theta))
+                                             rr.astype(np.float64), theta),
+                         first_photon=shift is not None)
 
 
 def _triangulate(system: System, col, row, theta) -> np.ndarray:

@@ -86,11 +86,14 @@ def _storable(name: str, values: np.ndarray, allowed: set, path: Path) -> np.nda
                       source=str(path), field=name)
 
 
-def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
+def write_cloud(path: str | os.PathLike, cloud: PointCloud, *,
+                stamp_ns: int | None = None) -> Path:
     """Write ``cloud`` to ``path`` (.ply, .pcd, .las, .laz) atomically; returns the path.
 
     ``cloud.points`` : (N, 3) float64, metres, world frame; every attribute
     (N,) is written (see the module docstring for dtypes and precision).
+    ``stamp_ns`` : the cloud's time for a ROS 2 bag (.mcap, .db3; required
+    there, see :func:`~mems_stereo.viz.export_ros2.write_ros2_bag`); unused otherwise.
     """
     path = Path(path)
     sfx = _suffix(path)
@@ -113,7 +116,7 @@ def write_cloud(path: str | os.PathLike, cloud: PointCloud) -> Path:
             else:
                 _write_o3d(tmp, cloud.points, attrs)
     elif sfx in (".mcap", ".db3"):
-        return write_ros2_bag(path, cloud)
+        return write_ros2_bag(path, cloud, stamp_ns=stamp_ns)
     else:
         write_las(path, cloud)
     return path

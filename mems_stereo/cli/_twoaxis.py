@@ -48,6 +48,7 @@ def process(args, rep, recs, system) -> int:
     """``mems-stereo process`` for two-axis recordings: per-pixel peaks → cloud."""
     from mems_stereo.pipeline.twoaxis import Settings2D, process_recording_2d
     from mems_stereo.viz.export import write_cloud
+    from mems_stereo.viz.export_ros2 import cloud_stamp_ns
 
     if args.histograms or args.scheduler:
         raise FormatError("--histograms and --scheduler are not available for two-axis "
@@ -62,7 +63,8 @@ def process(args, rep, recs, system) -> int:
         res = process_recording_2d(r, system=system, settings=settings)
         if len(res.cloud) == 0:
             raise FormatError("no peak passed the threshold: no point cloud written", str(r))
-        outputs = [write_cloud(target, res.cloud)]
+        outputs = [write_cloud(target, res.cloud,
+                               stamp_ns=cloud_stamp_ns(target, args.stamp, r))]
         if args.labels:
             outputs.append(_write_labels(args.labels, res))
         c = res.counts
@@ -136,13 +138,18 @@ def _write_report_2d(args, rep, res, reason: str = "", nominal=None) -> None:
         two_axis_report_dict,
         write_two_axis_report,
     )
+    from mems_stereo.viz.calib_report_header import calibration_header
 
+    header = calibration_header(args.recordings, system_spec=args.system,
+                                operator=getattr(args, "operator", None),
+                                system=res.system if res is not None else None)
     if res is None:
-        d = two_axis_failure_dict(reason, recordings=args.recordings)
+        d = two_axis_failure_dict(reason, recordings=args.recordings, header=header)
     else:
         if nominal is None:
             nominal = read_recording_2d(args.recordings[0], truth=False).system
-        d = two_axis_report_dict(res, recordings=args.recordings, nominal=nominal)
+        d = two_axis_report_dict(res, recordings=args.recordings, nominal=nominal,
+                                 header=header)
     if str(args.report).lower().endswith(".pdf"):
         write_two_axis_report(d, args.report)
     else:

@@ -15,11 +15,9 @@ walls: :mod:`mems_stereo.viz.calib_report_2d`).
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
-from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter, add_parents_argument, save_system_output
@@ -69,19 +67,23 @@ def add_arguments(p):
                    help="write a calibration report, also for a failed calibration "
                         f"({suffix_help('calibrate', 'report')}): the PDF report (estimates "
                         "with σ against nominal, correlations, residuals, walls from above, "
-                        "checks, what to record next; for a failure why), or the JSON "
-                        "diagnostic report (estimates, σ, covariance, per-wall values, "
-                        "checks)")
+                        "checks, what to record next; for a failure why), or the same as "
+                        "JSON; page 1 and the JSON's header: date (UTC), version, the "
+                        "system's device_id, --operator, input files with SHA-256")
+    p.add_argument("--operator", default=None, metavar="NAME",
+                   help="who calibrated, recorded in the report's header (default: none)")
 
 
 def _write_report(res, args, rep) -> None:
-    """``--report``: JSON (``res.to_dict()``) or, for ``.pdf``, the calibration report."""
-    if str(args.report).lower().endswith(".pdf"):
-        from mems_stereo.viz.calib_report import write_calibration_report
+    """``--report``: the calibration report, PDF or (``.json``) the same for machines."""
+    from mems_stereo.viz.calib_report import write_calibration_report
+    from mems_stereo.viz.calib_report_header import calibration_header
 
-        write_calibration_report(res, args.report, recordings=args.recordings)
-    else:
-        Path(args.report).write_text(json.dumps(res.to_dict(), indent=1))
+    write_calibration_report(res, args.report, recordings=args.recordings,
+                             header=calibration_header(
+                                 args.recordings, system_spec=args.system,
+                                 distances_file=args.target_distances_file,
+                                 operator=args.operator, system=res.system if res else None))
     rep.info(f"wrote report {args.report}")
 
 

@@ -57,6 +57,10 @@ def add_arguments(p):
                         "process here, one recording after the other)")
     p.add_argument("--workers", type=int, default=2,
                    help="workers of the LocalCluster with --scheduler local (default 2)")
+    p.add_argument("--stamp", default=None, metavar="TIME",
+                   help="the time of a ROS 2 bag's cloud (-o .mcap/.db3): ISO 8601 with a time "
+                        "zone, seconds since 1970-01-01 UTC, or 'now' (default: the recording's "
+                        "shot clock at its first shot)")
 
 
 def _settings(args):
@@ -79,8 +83,10 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
 def run(args) -> int:
     # the pipeline and the writers load on use: every command module loads at start-up
     from mems_stereo.pipeline.run import process_recording
+    from mems_stereo.viz.export_ros2 import check_stamp_option
 
     rep = Reporter(args)
+    check_stamp_option(args.output, args.stamp)  # refused before any work
     system = resolve_system(args.system) if args.system else None
     settings = _settings(args)
     recs = [Path(r) for r in args.recordings]
@@ -120,9 +126,11 @@ def run(args) -> int:
                 results.append(process_recording(r, system=system, settings=settings,
                                                  labels_path=args.labels, progress=tick))
     from mems_stereo.viz.export import write_cloud
+    from mems_stereo.viz.export_ros2 import cloud_stamp_ns
 
     for res, target in zip(results, targets):
-        outputs = [write_cloud(target, res.cloud)]
+        outputs = [write_cloud(target, res.cloud,
+                               stamp_ns=cloud_stamp_ns(target, args.stamp, res.source))]
         if args.labels:
             outputs.append(Path(args.labels))
         if args.histograms:

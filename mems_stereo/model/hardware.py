@@ -117,6 +117,8 @@ class System:
     tdc: TDC
     speed_of_light: float = 299704644.5
     calibration: dict | None = field(default=None, compare=False)
+    #: the hardware's identifier (serial number, asset tag; JSON ``device_id``), or None
+    device_id: str | None = field(default=None, compare=False)
 
     def __repr__(self) -> str:
         sc, rc = self.scanner, self.receiver

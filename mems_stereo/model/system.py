@@ -81,7 +81,10 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     calib = d.get("calibration")
     if calib is not None and not isinstance(calib, dict):
         raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
-    system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
+    device = d.get("device_id")
+    if device is not None and (not isinstance(device, str) or not device.strip()):
+        raise ctx.fail("device_id", f"expected a non-empty string, found {device!r}")
+    system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib), device_id=device)
     check_plausible(system, source)
     return system
 
@@ -255,6 +258,8 @@ def system_to_dict(system: System) -> dict:
         d["scanner"]["phase_offset"] = float(s.phase_offset)
     if s.axis2 is not None:  # two-axis extension (docs/two_axis.md)
         d["scanner"]["axis2"] = axis2_to_dict(s.axis2)
+    if system.device_id is not None:
+        d["device_id"] = str(system.device_id)
     if system.calibration is not None:
         d["calibration"] = copy.deepcopy(system.calibration)
     return d

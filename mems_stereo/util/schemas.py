@@ -120,6 +120,8 @@ SYSTEM_FIELDS = {
         "offset": Field("number", False, "s", "time of code 1's start (default 0)"),
     }),
     "speed_of_light": _positive("m/s", "in air"),
+    "device_id": Field("string", doc="the hardware's identifier (serial number, asset tag), "
+                                     "shown in the calibration report (default: none)"),
     "calibration": Field("object|null", doc="written by mems-stereo calibrate",
                          fields=CALIBRATION_FIELDS),
 }
