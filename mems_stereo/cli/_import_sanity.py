@@ -89,7 +89,9 @@ def analyse_import(open_blocks: Callable[[], Iterable], info: StreamInfo, m: Ttt
     """Import the first ``seconds`` of a stream to a temporary file; its statistics
     and the verdicts of :func:`mems_stereo.io.import_checks.import_verdicts`.
 
-    A stream whose first seconds do not convert (no shots, fewer than two zero
+    The map's ``shots`` selection is not applied (photons before ``shots.first``
+    are skipped on purpose, not lost to a wiring fault).  A stream whose first
+    seconds do not convert (no shots, fewer than two zero
     crossings, ...) gives the conversion's error as a refusal (cause
     ``not importable``) besides the map's own verdicts.  The geometric
     evidence (polarity, column order) is measured only when no cheaper check
@@ -97,7 +99,8 @@ def analyse_import(open_blocks: Callable[[], Iterable], info: StreamInfo, m: Ttt
     """
     blocks = first_seconds(open_blocks, info, seconds)
     events = count_events(blocks())
-    m_s = replace(m, n_shots=None) if info.mode == "T3" else m
+    # the wiring is checked on every shot of the first seconds: ``shots`` only selects
+    m_s = replace(m, n_shots=None, first_shot=0)
     with tempfile.TemporaryDirectory(prefix="mems-stereo-import-") as d:
         path = Path(d) / "first_seconds.h5"
         try:

@@ -348,7 +348,7 @@ def _few_kept(s: ImportSample, m: TttrMap) -> Verdict:
     elif top == "on unmapped inputs":
         fld, why = "pixels", "the pixels' inputs are wrong (shifted?)"
     elif top == "outside the shots":
-        fld, why = "shots.first", "the shots start late or the shot clock is wrong"
+        fld, why = "shot_clock", "photons before the first shot clock: the clock is wrong"
     elif st.below_codes * 2 > st.out_of_range:
         fld, why = "tdc.delay_bins", "codes below 1: tdc.delay_bins too large"
     else:
