@@ -317,3 +317,24 @@ def test_photon_hdf5_wiring_is_checked_the_same(stream, base_map, tmp_path):
 def _map_system(d: dict):
     m = map_from_dict(d, "m.json", SAMPLES)
     return m, m.system
+
+
+def test_pure_shift_and_dead_pixel():
+    """Active unmapped and silent mapped inputs: the shift that explains both, or a dead pixel."""
+    from mems_stereo.io.tttr import ImportStats
+    from mems_stereo.io.tttr_map import TttrMap
+
+    m = TttrMap(np.array([[0, 0, 0], [1, 1, 0], [2, 2, 0]]))
+
+    def verdicts(photons: dict):
+        s = ic.ImportSample(1.0, 1001, 0.05, 20000.0, 20000.0, 101, 0.05, 1000.0,
+                            ImportStats(photons=sum(photons.values())),
+                            ic.EventCounts(photons, {1: 50, 2: 51}, 1001), 1e-12, 64e-12)
+        return [v for v in ic.photon_verdicts(s, m) if v.cause == ic.CAUSE_PIXELS_SHIFTED]
+
+    assert verdicts({0: 100, 1: 100, 2: 100, 7: 5}) == []  # 5 % of a pixel: cross-talk
+    v = verdicts({0: 100, 1: 100})
+    assert len(v) == 1 and "mapped input 2 has (almost) none: dead pixels" in v[0].text
+    v = verdicts({1: 100, 2: 100, 3: 100})  # wired one input up: channel c is pixel c - 1
+    assert len(v) == 1 and not v[0].refuse and "add 1 to each pixel's channel" in v[0].text
+    assert "input 3 carries 100 photons but no pixel; mapped input 0 has" in v[0].text

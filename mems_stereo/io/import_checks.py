@@ -388,9 +388,14 @@ def _shift_verdict(s: ImportSample, m: TttrMap) -> Verdict | None:
         one = len(silent) == 1
         parts.append(f"mapped input{'' if one else 's'} {_few(silent)} ha"
                      f"{'s' if one else 've'} (almost) none")
-    fix = (f"the pixels' inputs look shifted by {best:+d}: "
-           f"{'add' if best > 0 else 'subtract'} {abs(best)} {'to' if best > 0 else 'from'} "
-           f"each pixel's channel" if best else "map those inputs, or check the pixels' channels")
+    if best:
+        fix = (f"the pixels' inputs look shifted by {best:+d}: "
+               f"{'add' if best > 0 else 'subtract'} {abs(best)} "
+               f"{'to' if best > 0 else 'from'} each pixel's channel")
+    elif unmapped_active:
+        fix = "map those inputs, or check the pixels' channels"
+    else:
+        fix = "dead pixels, or check the pixels' channels"
     return Verdict(False, "pixels", CAUSE_PIXELS_SHIFTED, "; ".join(parts) + f": {fix}")
 
 
