@@ -23,6 +23,7 @@ from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
 from mems_stereo.errors import FormatError, MemsStereoError, NotObservableError
 from mems_stereo.io.recording import Recording, read_recording
+from mems_stereo.io.recording_checks import check_codes_fit
 from mems_stereo.model.system import System, resolve_system
 
 
@@ -86,6 +87,7 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
             priors.append((j, distance_kind, float(d), float(sd)))
     walls = []
     for r in recs:
+        check_codes_fit(r.bins, nominal.tdc.n_bins, r.source, file_bins=r.system.tdc.n_bins)
         if tuple(r.system.receiver.image_size) != tuple(nominal.receiver.image_size):
             raise FormatError(f"expected image_size {nominal.receiver.image_size} like the "
                               f"nominal system, found {r.system.receiver.image_size}", r.source)
@@ -194,6 +196,8 @@ def read_target_distances(path, recordings, default_std: float | None = None):
     if kind not in ("axis", "normal"):
         raise FormatError(f"expected 'axis' or 'normal', found {kind!r}", src, "kind")
     std0 = doc.get("std", 1e-3 if default_std is None else default_std)
+    if not isinstance(std0, (int, float)) or not math.isfinite(std0) or std0 <= 0:
+        raise FormatError(f"expected a positive number (m), found {std0!r}", src, "std")
     entries = doc.get("targets")
     if not isinstance(entries, list):
         raise FormatError("expected a list of {recording, distance[, std]}", src, "targets")

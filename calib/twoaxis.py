@@ -42,6 +42,7 @@ from scipy.optimize import least_squares
 from mems_stereo.errors import NotObservableError
 from mems_stereo.geometry.twoaxis import timing_sigma
 from mems_stereo.io.recording2d import Recording2D, read_recording_2d
+from mems_stereo.io.recording_checks import check_codes_fit
 from mems_stereo.model.scanner import phase_from_zero_crossings
 from mems_stereo.model.scanner2d import require_two_axis, scan_direction_2d
 from mems_stereo.model.system import System
@@ -341,7 +342,11 @@ def _inputs(recordings, system: System | None, observations):
                                      f"found {len(recs)} recording(s)")
         for r in recs:  # monitors and gate must agree (a FormatError naming the field)
             check_gate(r)
-    return recs, (recs[0].system if system is None else system)
+    sys0 = recs[0].system if system is None else system
+    for r in recs:  # every code within the TDC of the system used
+        check_codes_fit(r.event_code, sys0.tdc.n_bins, r.source, "/events/code",
+                        r.system.tdc.n_bins)
+    return recs, sys0
 
 
 def _intrinsics_prior(sys0: System, intrinsics) -> dict:

@@ -110,7 +110,7 @@ def test_unknown_preset_lists_the_presets(capsys):
         ms.preset("nope")
     assert main(["info", "--system", "burkard2023"]) == 2
     err = capsys.readouterr().err.splitlines()
-    assert len(err) == 2 and "neither a preset nor a system file" in err[0]
+    assert len(err) == 2 and "--system: unknown preset 'burkard2023'" in err[0]
     assert "did you mean 'burkard2022'?" in err[1]
 
 

@@ -321,3 +321,171 @@ def test_cli_one_line_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0
     assert err.endswith(f"{bad}: scanner.phase_ofset: unknown field; did you mean phase_offset?")
+
+
+# ------------------------------------------- mutation over every declared key
+
+#: the characters a typo inserts or substitutes (keys are lower-case snake case)
+_ALPHABET = "abcdefghijklmnopqrstuvwxyz0123456789_"
+#: sampled insertions and substitutions per position (deletions, transpositions: all)
+_PER_POSITION = 2
+
+
+def all_typos(key: str, rng) -> list[str]:
+    """One-character typos of ``key``: every deletion and every transposition of
+    neighbours; at each position a deterministic sample of insertions and of
+    substitutions (the keyboard neighbour, a doubled letter, and ``_PER_POSITION``
+    further characters drawn by ``rng``)."""
+    out = [key[:i] + key[i + 1:] for i in range(len(key))]
+    out += [key[:i] + key[i + 1] + key[i] + key[i + 2:] for i in range(len(key) - 1)]
+    for i in range(len(key) + 1):
+        ins = {_neighbour(key[i - 1]) if i else "_", key[i - 1] if i else key[0]}
+        ins |= set(rng.sample(_ALPHABET, _PER_POSITION))
+        out += [key[:i] + c + key[i:] for c in sorted(ins)]
+    for i in range(len(key)):
+        sub = {_neighbour(key[i])} | set(rng.sample(_ALPHABET, _PER_POSITION))
+        out += [key[:i] + c + key[i + 1:] for c in sorted(sub) if c != key[i]]
+    seen, uniq = {key}, []
+    for t in out:
+        if t and t not in seen:
+            seen.add(t)
+            uniq.append(t)
+    return uniq
+
+
+def schema_objects(fields: dict, path: str = ""):
+    """``(dotted path, members, parent Field or None)`` of every object whose members a
+    schema declares: nested objects, list items, name-keyed values and each variant
+    of a scene object (``objects[type=box]``)."""
+    yield path, fields, None
+    for name, f in fields.items():
+        yield from _field_objects(f, f"{path}.{name}" if path else name)
+
+
+def _field_objects(f: Field, path: str):
+    if f.fields is not None:
+        yield from schema_objects(f.fields, path)
+    if f.values is not None:
+        yield from _field_objects(f.values, f"{path}.<name>")
+    if f.items is not None:
+        yield from _field_objects(f.items, f"{path}[]")
+    if f.variants is not None:
+        for kind, members in f.variants[1].items():
+            for p, m, _ in schema_objects(members, f"{path}[type={kind}]"):
+                yield p, m, (f if p == f"{path}[type={kind}]" else None)
+
+
+def _filled(fields: dict, variant_kind: str | None = None) -> dict:
+    """An object with every declared member (``const`` members at their value; the
+    others a placeholder: key checks come before value checks)."""
+    d = {k: (f.const if f.const is not None else 0) for k, f in fields.items()}
+    if variant_kind is not None:
+        d["type"] = variant_kind
+    return d
+
+
+def test_every_declared_key_typo_refused_with_did_you_mean(capsys):
+    """Each one-character typo of every key of every schema (util/schemas.py) is
+    refused by the schema check with "did you mean KEY?" (100 %)."""
+    import random
+
+    from mems_stereo.util.jsonfile import FieldChecker, check_schema, check_value
+
+    rng = random.Random(32)
+    ck = FieldChecker("x.json")
+    total, keys, other_keys, failures = 0, 0, 0, []
+    for kind, top in SCHEMAS.items():
+        for path, fields, variant in schema_objects(top):
+            vkind = path.rsplit("[type=", 1)[1][:-1] if variant is not None else None
+            valid = _filled(fields, vkind)
+            for key in fields:
+                keys += 1
+                for typo in all_typos(key, rng):
+                    if typo in fields:  # another declared key: not a typo of this one
+                        other_keys += 1
+                        continue
+                    d = _renamed(valid, key, typo)
+                    total += 1
+                    try:
+                        if variant is not None:  # the scene object's variants by "type"
+                            check_value(d, variant, ck, path)
+                        else:
+                            check_schema(d, fields, ck, path)
+                    except FormatError as e:
+                        if f"did you mean {key}?" in str(e):
+                            continue
+                        failures.append(f"{kind}: {path}.{typo} (for {key}): {e}")
+                    else:
+                        failures.append(f"{kind}: {path}.{typo} (for {key}): accepted")
+    refused = total - len(failures)
+    with capsys.disabled():
+        print(f"\nschema mutation test: {refused} of {total} one-character typos of {keys} "
+              f"declared keys (all {len(SCHEMAS)} kinds) refused with the right did-you-mean "
+              f"({100.0 * refused / total:.1f} %); {other_keys} typos that are other "
+              "declared keys not counted")
+    assert not failures, f"{len(failures)} failures:\n" + "\n".join(failures[:30])
+    assert keys > 120 and total > 10 * keys
+
+
+def test_all_typos_helper():
+    import random
+
+    t = all_typos("ab", random.Random(0))
+    assert {"a", "b", "ba"} <= set(t) and "ab" not in t and len(t) == len(set(t))
+    assert all(abs(len(x) - 2) <= 1 for x in t)
+    assert all(edit_distance_one(x, "ab") for x in t)
+
+
+def edit_distance_one(a: str, b: str) -> bool:
+    """An independent check (not the package's edit distance): ``a`` is one deletion,
+    insertion, substitution or neighbour transposition away from ``b``."""
+    if abs(len(a) - len(b)) > 1 or a == b:
+        return False
+    if len(a) == len(b):
+        diff = [i for i in range(len(a)) if a[i] != b[i]]
+        return len(diff) == 1 or (len(diff) == 2 and diff[1] == diff[0] + 1
+                                  and a[diff[0]] == b[diff[1]] and a[diff[1]] == b[diff[0]])
+    s, t = (a, b) if len(a) < len(b) else (b, a)
+    return any(t[:i] + t[i + 1:] == s for i in range(len(t)))
+
+
+MUTATED_CLI = [
+    # (command line, file written, kind of the file, dotted key, typo)
+    (["info", "--system", "{f}"], "s.json", "nominal_system.json", ("tdc", "bin_width"),
+     "bin_widht"),
+    (["simulate", "{f}", "-o", "{d}/o.h5"], "scene.json", "room_scene.json",
+     ("objects", 0, "reflectivity"), "reflectivty"),
+    (["calibrate", "{s}/calib_1.5m.h5", "--target-distances-file", "{f}", "-o", "{d}/c.json"],
+     "dist.json", "calib_distances.json", ("targets", 0, "distance"), "distnace"),
+    (["import", "{s}/room48.ptu", "--map", "{f}", "-o", "{d}/o.h5"], "map.json",
+     "room48_map.json", ("zero_crossings", "rising_edge"), "rising_egde"),
+]
+
+
+@pytest.mark.parametrize("argv, name, src, key, typo", MUTATED_CLI,
+                         ids=[m[1] for m in MUTATED_CLI])
+def test_key_typo_through_the_cli(argv, name, src, key, typo, tmp_path, capsys):
+    from mems_stereo.cli import main
+
+    d = read_json_file(SAMPLES / src)
+    parent = _at(d, key[:-1])
+    new = _renamed(parent, key[-1], typo)
+    parent.clear()
+    parent.update(new)
+    f = tmp_path / name
+    f.write_text(json.dumps(d))
+    if name == "map.json":  # the map names its system relative to itself
+        (tmp_path / "room48_system.json").write_text((SAMPLES / "room48_system.json").read_text())
+    args = [a.replace("{f}", str(f)).replace("{d}", str(tmp_path)).replace("{s}", str(SAMPLES))
+            for a in argv]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err
+    dotted = ".".join(f"[{k}]" if isinstance(k, int) else k for k in key[:-1] + (typo,))
+    dotted = dotted.replace(".[", "[")
+    parent_dotted = dotted[:-len(typo)]
+    assert err.endswith((f"{f}: {dotted}: unknown field; did you mean {key[-1]}?",
+                         f"{f}: {parent_dotted}{key[-1]}: required field is missing; found "
+                         f"{typo} — did you mean {key[-1]}?")), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        [name] + (["room48_system.json"] if name == "map.json" else []))

@@ -69,6 +69,17 @@ def save_system_output(system, path, result=None):
     return save_system(system, path)
 
 
+def check_color_by(cloud, color_by: str, source) -> None:
+    """Refuse, naming the cloud file, a ``--color-by`` attribute the cloud lacks (the
+    default ``range`` is missing from clouds written by other software)."""
+    if color_by in cloud.attributes or color_by in ("x", "y", "z"):
+        return
+    have = ", ".join(sorted(cloud.attributes)) or "no attributes"
+    choices = ", ".join(sorted(set(cloud.attributes)) + ["x", "y", "z"])
+    raise FormatError(f"no attribute {color_by!r} to colour by (the file has "
+                      f"{have}); expected --color-by one of {choices}", source=str(source))
+
+
 def command_key(args) -> str:
     """``process``, or ``plot histograms`` for commands with sub-figures."""
     fig = getattr(args, "figure", None)
@@ -182,8 +193,13 @@ def check_input_consistency(command: str, args) -> None:
     * ``process`` and ``calibrate``: the zero-crossing polarity of every
       one-axis recording against its detections
       (:func:`mems_stereo.cli._crosscheck.check_polarity`);
-    * ``calibrate``: every recording's /system must agree.
+    * ``calibrate``: the ``--target-distances-file`` (read first: cheap); every
+      recording's /system must agree.
     """
+    if command == "calibrate" and getattr(args, "target_distances_file", None):
+        from mems_stereo.calib.calibrate import read_target_distances
+
+        read_target_distances(args.target_distances_file, args.recordings)  # cheap: first
     if command in ("process", "calibrate"):
         _check_polarities(command, args)
     if command != "calibrate" or len(args.recordings) < 2:

@@ -17,7 +17,6 @@ Each check raises :class:`~mems_stereo.errors.OptionError` naming the option.
 from __future__ import annotations
 
 import contextlib
-import difflib
 import os
 import stat
 from pathlib import Path
@@ -25,8 +24,7 @@ from pathlib import Path
 from mems_stereo import data
 from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES
 from mems_stereo.errors import FormatError, OptionError
-from mems_stereo.model.presets import TWO_AXIS_PRESETS
-from mems_stereo.model.system import PRESETS
+from mems_stereo.model.presets import UnknownPresetError, system_source
 from mems_stereo.util.jsonfile import read_json_file
 from mems_stereo.util.paths import file_kind, require_input_file
 
@@ -50,11 +48,6 @@ def samples_dir(explicit=None) -> Path:
     return c
 
 
-def _preset_names() -> list[str]:
-    """Every preset name a ``--system`` option takes (one- and two-axis)."""
-    return sorted(PRESETS) + sorted(TWO_AXIS_PRESETS)
-
-
 def _real(p: Path) -> str:
     return os.path.realpath(os.path.abspath(p))
 
@@ -76,16 +69,22 @@ def describe(p: Path) -> str:
 
 # ------------------------------------------------------------------ inputs
 
-def _missing_named_input(name: str, kind: str, v) -> OptionError:
-    """The error for a ``--system``/``--target-distances-file`` value that is no file."""
-    if kind == "system":
-        names = _preset_names()
-        close = difflib.get_close_matches(str(v), names, n=1, cutoff=0.5)
-        return OptionError(f"{v!r} is neither a preset nor a system file (file not found)\n"
-                           + (f"did you mean {close[0]!r}? " if close else "")
-                           + f"presets: {', '.join(names)}", field=opt(name))
+def _missing_named_input(name: str, v) -> OptionError:
+    """The error for a ``--target-distances-file`` (``--system``: see :func:`_system_path`)
+    value that is no file."""
     return OptionError(f"expected an existing file, found {v!r} (file not found)",
                        field=opt(name))
+
+
+def _system_path(name: str, v) -> list[Path]:
+    """A ``--system`` value through the one resolution of every command
+    (:func:`~mems_stereo.model.presets.system_source`): an existing file (checked),
+    else a preset (no path), else the error naming the option."""
+    try:
+        src = system_source(v)
+    except UnknownPresetError as e:
+        raise OptionError(str(e), field=opt(name)) from None
+    return [] if isinstance(src, str) else [require_input_file(src, None)]
 
 
 def _input_paths(name: str, kind: str, v) -> list[Path]:
@@ -94,8 +93,8 @@ def _input_paths(name: str, kind: str, v) -> list[Path]:
         paths = [require_input_file(x, None) for x in v]
         _refuse_repeated(name, paths)
         return paths
-    if kind == "system" and str(v) in _preset_names():
-        return []
+    if kind == "system":
+        return _system_path(name, v)
     if kind == "dir":
         p = Path(v)
         if not p.is_dir():
@@ -110,7 +109,7 @@ def _input_paths(name: str, kind: str, v) -> list[Path]:
     except FileNotFoundError:
         if name not in _NAMED_INPUTS:
             raise
-        raise _missing_named_input(name, kind, v) from None
+        raise _missing_named_input(name, v) from None
 
 
 def _identity(p: Path):

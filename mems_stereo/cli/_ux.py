@@ -48,6 +48,54 @@ class HelpfulParser(argparse.ArgumentParser):
                     opts += sub.all_option_strings()
         return sorted(set(opts))
 
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102 - remembers args
+        self.last_args = list(sys.argv[1:] if args is None else args)
+        return super().parse_known_args(args, namespace)
+
+    def command_parser(self) -> tuple[str, HelpfulParser]:
+        """The (sub)command the last parsed command line names, and its parser
+        (``plot acquisition``: the figure's); ``("", self)`` when it names none."""
+        words, parser = [], self
+        for a in getattr(self, "last_args", []):
+            subs = parser.subcommands.choices if parser.subcommands is not None else {}
+            if a in subs and isinstance(subs[a], HelpfulParser):
+                words.append(a)
+                parser = subs[a]
+        return " ".join(words), parser
+
+    def commands_with(self, option: str) -> list[str]:
+        """The subcommands (``plot acquisition`` for figures) that take ``option``."""
+        if self.subcommands is None:
+            return []
+        out = []
+        for name, sub in self.subcommands.choices.items():
+            if not isinstance(sub, HelpfulParser):
+                continue
+            if option in sub._option_string_actions:
+                out.append(name)
+            out += [f"{name} {x}" for x in sub.commands_with(option)]
+        return out
+
+    def option_hint(self, word: str) -> str | None:
+        """The advice for an unrecognised argument ``word`` (None for a non-option):
+        the nearest option of the command named, else the commands that take that
+        option (or its nearest) — never the word itself."""
+        if not word.startswith("-"):
+            return None
+        name = word.split("=")[0]
+        cmd, parser = self.command_parser()
+        here = f"not of {cmd}" if cmd else "not of mems-stereo itself"
+        if name in self.all_option_strings():  # a real option, of other commands
+            return f"{name} is an option of {', '.join(self.commands_with(name))}, {here}"
+        own = [o for o in parser._option_string_actions if o.startswith("--")]
+        s = suggest(name, own) if parser is not self else None
+        if s:
+            return f"did you mean {s} (not {name})?"
+        s = suggest(name, self.all_option_strings())
+        if not s:
+            return None
+        return f"did you mean {s} (an option of {', '.join(self.commands_with(s))}, {here})?"
+
     def error(self, message: str):  # noqa: D102 - argparse's hook
         hint = None
         m = re.search(r"invalid choice: '([^']*)' \(choose from (.*)\)", message)
@@ -58,15 +106,12 @@ class HelpfulParser(argparse.ArgumentParser):
             hint = f"did you mean '{s}'?" if s else None
         m = re.search(r"unrecognized arguments: (.*)", message)
         if m:
-            hints = []
-            for word in m.group(1).split():
-                if word.startswith("-"):
-                    s = suggest(word.split("=")[0], self.all_option_strings())
-                    if s:
-                        hints.append(f"did you mean {s} (not {word})?")
+            hints = [h for h in map(self.option_hint, m.group(1).split()) if h]
             hint = " ".join(hints) or None
         # one line (no usage block): what is wrong, and where to look
-        text = f"{self.prog}: error: {' '.join(message.split())} (see {self.prog} --help)"
+        cmd = self.command_parser()[0] if m else ""
+        text = (f"{self.prog}: error: {' '.join(message.split())} "
+                f"(see {self.prog}{' ' + cmd if cmd else ''} --help)")
         if hint:
             text += f"\n  {hint}"
         self.exit(2, text + "\n")

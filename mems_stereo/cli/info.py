@@ -6,6 +6,7 @@ import math
 
 from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._writes import suffix_help
+from mems_stereo.errors import FormatError
 from mems_stereo.model.acquisition import acquisition_statistics
 from mems_stereo.model.system import resolve_system
 
@@ -27,6 +28,21 @@ def add_acquisition_arguments(p):
                    help="f_mech/f_rep (default: from the system; the paper's Fig. 2 uses 0.0785)")
 
 
+def check_tdc_reaches(system, distance: float, spec) -> None:
+    """Refuse a system whose TDC window (``tdc.offset`` + ``n_bins`` × ``bin_width``)
+    ends before the round trip to a target at ``distance`` m (its returns could not
+    be recorded); ``spec`` is the ``--system`` value, named in the message."""
+    t = system.tdc
+    end = t.offset + t.n_bins * t.bin_width
+    tof = 2.0 * distance / system.speed_of_light
+    if tof > end:
+        reach = 0.5 * end * system.speed_of_light
+        raise FormatError(f"{t.n_bins} codes of {t.bin_width * 1e12:g} ps reach "
+                          f"{reach:.3g} m; expected a TDC window that covers the target at "
+                          f"--distance {distance:g} m ({tof * 1e9:.4g} ns round trip)",
+                          source=str(spec), field="tdc.n_bins")
+
+
 def add_arguments(p):
     add_acquisition_arguments(p)
     p.add_argument("--plot", default=None,
@@ -37,6 +53,7 @@ def add_arguments(p):
 def run(args) -> int:
     rep = Reporter(args)
     system = resolve_system(args.system)
+    check_tdc_reaches(system, args.distance, args.system)
     st = acquisition_statistics(system, args.shots, args.distance, frequency_ratio=args.ratio)
     s, r, la, t = system.scanner, system.receiver, system.laser, system.tdc
     rep.info(f"system: {args.system}")

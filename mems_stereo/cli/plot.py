@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import argparse
 
-from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._common import Reporter, add_parents_argument, check_color_by
 from mems_stereo.cli._ux import epilog
 from mems_stereo.cli._writes import suffix_help
-from mems_stereo.cli.info import add_acquisition_arguments
+from mems_stereo.cli.info import add_acquisition_arguments, check_tdc_reaches
 from mems_stereo.io.histograms import read_histograms
 from mems_stereo.model.acquisition import acquisition_statistics
 from mems_stereo.model.system import resolve_system
@@ -76,6 +76,7 @@ def run(args) -> int:
     rep = Reporter(args)
     if args.figure == "acquisition":
         system = resolve_system(args.system)
+        check_tdc_reaches(system, args.distance, args.system)
         st = acquisition_statistics(system, args.shots, args.distance,
                                     frequency_ratio=args.ratio)
         ratio = args.ratio if args.ratio is not None else system.scanner.f_mech / system.laser.f_rep
@@ -94,6 +95,7 @@ def run(args) -> int:
         from mems_stereo.viz.export import read_cloud
 
         cloud = read_cloud(args.cloud)
+        check_color_by(cloud, args.color_by, args.cloud)
         out = plots.plot_cloud_topview(cloud, args.output, color_by=args.color_by)
         rep.info(f"{out}: {len(cloud)} points")
     return 0

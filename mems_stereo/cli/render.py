@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 
-from mems_stereo.cli._common import Reporter, add_parents_argument
+from mems_stereo.cli._common import Reporter, add_parents_argument, check_color_by
 from mems_stereo.cli._writes import suffix_help
 from mems_stereo.model.system import resolve_system
 from mems_stereo.viz.colormap import ColorScale
@@ -50,6 +50,7 @@ def run(args) -> int:
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)
+    check_color_by(cloud, args.color_by, args.cloud)
     deco = None
     if args.decorate or args.system or args.ellipsoids:
         deco = Decorations(system=resolve_system(args.system) if args.system else None,

@@ -9,6 +9,7 @@ import numpy as np
 from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._writes import suffix_help
+from mems_stereo.errors import FormatError
 from mems_stereo.model.scanner2d import is_two_axis
 from mems_stereo.model.system import resolve_any_system
 
@@ -43,6 +44,16 @@ def add_arguments(p):
                    help="probability that a detection fires a neighbour pixel (default 0)")
 
 
+def check_codes_written(system, true_system, args) -> None:
+    """The recording's ``/system`` (``--system``) must take every code the photons get
+    (from ``--true-system``'s TDC): else ``process`` would refuse the file written."""
+    if true_system is not None and true_system.tdc.n_bins > system.tdc.n_bins:
+        raise FormatError(f"{system.tdc.n_bins} codes, fewer than the "
+                          f"{true_system.tdc.n_bins} of --true-system {args.true_system} that "
+                          "generates the recording's codes; expected at least as many",
+                          source=str(args.system), field="tdc.n_bins")
+
+
 def run(args) -> int:
     rep = Reporter(args)
     if args.shots < 1:
@@ -58,6 +69,7 @@ def run(args) -> int:
 
     system = resolve_any_system(args.system)
     true_system = resolve_any_system(args.true_system) if args.true_system else None
+    check_codes_written(system, true_system, args)
     scene = load_scene(args.scene)
     rep.detail(f"{scene!r}")
     if is_two_axis(system):  # two-axis scanner, 2-D array: cli/_twoaxis.py

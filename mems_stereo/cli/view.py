@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from mems_stereo.cli._common import Reporter
+from mems_stereo.cli._common import Reporter, check_color_by
 
 NAME = "view"
 HELP = "show a point cloud in an interactive Open3D window, coloured by an attribute"
@@ -26,6 +26,7 @@ def run(args) -> int:
 
     rep = Reporter(args)
     cloud = read_cloud(args.cloud)
+    check_color_by(cloud, args.color_by, args.cloud)
     rep.detail(f"{args.cloud}: {len(cloud)} points; close the window to return")
     view_cloud(cloud, color_by=args.color_by, cmap=args.cmap, point_size=args.point_size,
                window_name=f"mems-stereo: {args.cloud}")

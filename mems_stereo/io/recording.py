@@ -28,6 +28,7 @@ from mems_stereo.io.recording_checks import (
     FORMAT_NAME,
     FORMAT_VERSION,
     RecordingHeader,
+    check_label_values,
     check_truth,
     read_truth,
     validate_header,
@@ -255,8 +256,10 @@ def iter_shot_chunks(path: str | os.PathLike, chunk_shots: int = 4096,
                                   "/shots/bins")
             item = (s0, h5.read(t_all, source, np.s_[s0:s1]).astype(np.float64), blk)
             if truth_labels:
-                item = item + ((h5.read(lab, source, np.s_[s0:s1]) if lab is not None
-                                else None),)
+                labs = h5.read(lab, source, np.s_[s0:s1]) if lab is not None else None
+                if labs is not None:
+                    check_label_values(labs, source, s0)
+                item = item + (labs,)
             yield item
             s0 = s1
 

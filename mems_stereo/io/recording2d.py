@@ -42,6 +42,7 @@ from mems_stereo.io import hdf5 as h5
 from mems_stereo.io.recording_checks import (
     FORMAT_NAME,
     FORMAT_VERSION,
+    check_shot_stride,
     read_crossings,
     read_shot_times,
     read_truth,
@@ -163,6 +164,7 @@ def read_recording_2d(path: str | os.PathLike, *, truth: bool = True) -> Recordi
         system = validate_header(f, source, scan_axes=SCAN_AXES)
         a2 = require_two_axis(system, f"{source}:/system")
         t = read_shot_times(f, source)
+        check_shot_stride(t, system.laser.f_rep, source)
         zc, rising = read_crossings(f, source, system.scanner.f_mech)
         if a2.mode == "resonant":
             z2, r2 = read_crossings(f, source, a2.f_mech, "/scanner/axis2")

@@ -131,6 +131,39 @@ def read_shot_times(f: h5py.File, source: str) -> np.ndarray:
     return t
 
 
+def check_codes_fit(codes: np.ndarray, n_bins: int, source: str, field: str = "/shots/bins",
+                    file_bins: int | None = None) -> None:
+    """Refuse TDC ``codes`` (a recording's, any shape) above the ``n_bins`` of the system
+    used to read them (``file_bins``: the recording's own, named in the message)."""
+    top = int(np.max(codes)) if np.size(codes) else 0
+    if top > n_bins:
+        own = f" (the recording's own system has n_bins = {file_bins})" if file_bins else ""
+        raise FormatError(f"expected codes 0..{n_bins} (tdc.n_bins of the system used), "
+                          f"found {top}{own}", source, field)
+
+
+#: accepted ratio of the median shot interval to the laser period 1 / ``laser.f_rep``
+#: (either way): one shot per laser period, with jitter, dropped shots and a nominal
+#: f_rep that differs from the true one
+SHOT_STRIDE_TOLERANCE = 1.5
+
+
+def check_shot_stride(t: np.ndarray, f_rep: float, source: str) -> None:
+    """Refuse shot times whose median interval is not about one laser period
+    (``f_rep`` Hz, /system's ``laser.f_rep``; within :data:`SHOT_STRIDE_TOLERANCE`):
+    shot times in other units or of a sub-sampled clock would give wrong angles."""
+    if t.size < 2:
+        return
+    stride = float(np.median(np.diff(t[: 1 << 20])))
+    ratio = stride * f_rep
+    if 1 / SHOT_STRIDE_TOLERANCE <= ratio <= SHOT_STRIDE_TOLERANCE:
+        return
+    raise FormatError(f"the median shot interval {stride * 1e6:.6g} µs is {ratio:.3g} laser "
+                      f"periods (laser.f_rep = {f_rep:g} Hz of /system: "
+                      f"{1e6 / f_rep:.6g} µs); expected one shot per laser period",
+                      source, "/shots/time")
+
+
 def read_crossings(f: h5py.File, source: str, f_mech: float, group: str = "/scanner"):
     """``GROUP/zero_crossings`` (float64 s) and ``GROUP/rising`` (0/1) of a resonant
     axis, validated and cross-checked against its ``f_mech`` (Hz); returns
@@ -157,6 +190,7 @@ def validate_recording_file(f: h5py.File, source: str, check_codes: bool = True,
     """
     system = validate_header(f, source)
     t = read_shot_times(f, source)
+    check_shot_stride(t, system.laser.f_rep, source)
     b_ds = h5.dataset(f, "/shots/bins", source)
     w, h = system.receiver.image_size
     if b_ds.ndim != 3 or b_ds.shape[0] != t.size or b_ds.shape[1:] != (h, w):
@@ -190,6 +224,23 @@ def check_truth(f: h5py.File, b_ds: h5py.Dataset, source: str) -> None:
                               f" found {lab.dtype} {lab.shape}", source, "/truth/label")
 
 
+#: the label values of ``/truth/label``: 0 none, 1 laser return, 2 background
+TRUTH_LABELS = (0, 1, 2)
+
+
+def check_label_values(lab: np.ndarray, source: str, first: int = 0) -> None:
+    """Refuse ``/truth/label`` values other than :data:`TRUTH_LABELS` (``lab``: the
+    labels of shots, or events, ``first`` onwards), naming the first bad one."""
+    lab = np.asarray(lab)
+    if lab.size == 0 or (lab.min() >= 0 and lab.max() <= TRUTH_LABELS[-1]):
+        return
+    bad = np.flatnonzero((lab.reshape(-1) < 0) | (lab.reshape(-1) > TRUTH_LABELS[-1]))[0]
+    where = np.unravel_index(bad, lab.shape)
+    index = ", ".join(str(int(i) + (first if k == 0 else 0)) for k, i in enumerate(where))
+    raise FormatError(f"expected labels 0 (none), 1 (laser return) or 2 (background), found "
+                      f"{lab.reshape(-1)[bad]} at [{index}]", source, "/truth/label")
+
+
 def read_truth(f: h5py.File, source: str = "", attrs: bool = False) -> dict:
     """The optional ``/truth`` group's datasets (and, with ``attrs``, its scalar
     attributes) as a dict; anything but a group there is ignored (processing
@@ -204,6 +255,8 @@ def read_truth(f: h5py.File, source: str = "", attrs: bool = False) -> dict:
             if isinstance(g.get(k), h5py.Dataset):
                 ds = h5.dataset(f, f"/truth/{k}", source, whole=True)
                 truth[k] = h5.read(ds, source)
+                if k == "label" and truth[k].dtype.kind in "iu":
+                    check_label_values(truth[k], source)
         if attrs:
             try:
                 truth.update({k: v for k, v in g.attrs.items()})

@@ -1,20 +1,27 @@
-"""Named systems: the paper's one-axis system and two two-axis examples.
+"""Named systems: the paper's one-axis system and two two-axis examples, in one registry.
 
 Each preset is a function returning a :class:`~mems_stereo.model.hardware.System`;
-:data:`PRESETS` (one-axis) and :data:`TWO_AXIS_PRESETS` map their names to them.
-Resolving a name, a path or an instance to a system is
-:func:`mems_stereo.model.system.resolve_system`.
+:data:`PRESETS` maps every preset's name to it (one- and two-axis), the subsets
+:data:`ONE_AXIS_PRESETS` and :data:`TWO_AXIS_PRESETS` the names of each kind.
+What a system argument names (an existing file, else a preset, else an error
+that says which file is missing or which preset was meant) is
+:func:`system_source`; every command's ``--system`` and
+:func:`mems_stereo.model.system.resolve_system` go through it.
 """
 
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
+from mems_stereo.errors import FormatError, UnknownNameError
 from mems_stereo.model.hardware import TDC, Laser, Receiver, Scanner, System
 from mems_stereo.model.scanner2d import Axis2, fast_axis
+from mems_stereo.util.jsonfile import closest_key
 
 
 def theta0_for_working_distance(baseline_x: float, working_distance: float) -> float:
@@ -51,9 +58,6 @@ def burkard2022(working_distance: float = 2.5) -> System:
         tdc=TDC(bin_width=312.5e-12, n_bins=4096, offset=0.0),
         speed_of_light=299704644.5,
     )
-
-
-PRESETS = {"burkard2022": burkard2022}
 
 
 def outer_axis_for(scanner: Scanner) -> np.ndarray:
@@ -124,4 +128,99 @@ def raster128x96() -> System:
                            1570.0, math.radians(12.0), 8.0, math.radians(12.5), 400e3)
 
 
+#: the one-axis presets (name → function returning the System)
+ONE_AXIS_PRESETS = {"burkard2022": burkard2022}
+#: the two-axis presets (name → function returning the System)
 TWO_AXIS_PRESETS = {"lissajous64": lissajous64, "raster128x96": raster128x96}
+#: every preset, one- and two-axis (name → function returning the System): the one
+#: registry behind :func:`mems_stereo.model.system.preset`, every ``--system`` option
+#: and ``ms.PRESETS``
+PRESETS = ONE_AXIS_PRESETS | TWO_AXIS_PRESETS
+
+
+# --------------------------------------------------------------------------
+# what a system argument names
+
+
+class UnknownPresetError(FormatError, UnknownNameError):
+    """A system argument that names neither an existing file nor a preset (a
+    ``FormatError``, hence ``ValueError``; also an
+    :class:`~mems_stereo.errors.UnknownNameError`, hence ``KeyError``, as a failed
+    look-up in :data:`PRESETS` is).  The message's advice line names the nearest
+    existing file or preset and lists the presets."""
+
+    def __str__(self) -> str:  # KeyError would print the message's repr
+        return str(self.args[0]) if self.args else ""
+
+
+def presets_advice(name: str) -> str:
+    """``did you mean 'X'? presets: ...`` (the nearest preset, where one is near)."""
+    near = closest_key(str(name), sorted(PRESETS))
+    return ((f"did you mean {near!r}? " if near else "")
+            + f"presets: {', '.join(sorted(PRESETS))}")
+
+
+def looks_like_path(spec: str) -> bool:
+    """Whether a system argument is meant as a file: it has a folder part
+    (``/``), a suffix (``.json``) or starts with ``~`` or ``.`` — no preset does."""
+    s = str(spec)
+    seps = [x for x in (os.sep, os.altsep, "/") if x]
+    return any(x in s for x in seps) or s.startswith(("~", ".")) or bool(Path(s).suffix)
+
+
+#: entries of a folder looked at for a "did you mean" file name
+_MAX_LISTED = 5000
+
+
+def nearby_file(spec: str) -> str | None:
+    """The existing file in ``spec``'s folder whose name is nearest ``spec``'s
+    (one or two typing mistakes), as the user would type it; None when none is near."""
+    p = Path(spec)
+    folder = p.parent
+    try:
+        with os.scandir(folder) as it:
+            names = [e.name for _i, e in zip(range(_MAX_LISTED), it)
+                     if e.is_file() and e.name != p.name]
+    except OSError:
+        return None
+    near = closest_key(p.name, names)
+    if near is None:
+        return None
+    return near if str(folder) in ("", ".") and "/" not in str(spec) else str(folder / near)
+
+
+def system_source(spec: str | os.PathLike) -> Path | str:
+    """What a system argument names: an existing file (its ``Path``), else a preset
+    (its name), else :class:`UnknownPresetError` saying which:
+
+    * a path-looking value (:func:`looks_like_path`) that does not exist:
+      ``FILE: not found``, advising the nearest existing file of that folder
+      (:func:`nearby_file`) or the nearest preset;
+    * a bare name that is no preset: ``unknown preset 'NAME'``, advising the
+      nearest preset (or the nearest file of the working folder).
+
+    A folder named like a preset does not hide the preset.
+    """
+    s = os.fspath(spec)
+    p = Path(s)
+    if p.exists() and not (s in PRESETS and p.is_dir()):
+        return p
+    if s in PRESETS:
+        return s
+    presets = f"presets: {', '.join(sorted(PRESETS))}"
+    if looks_like_path(s):
+        near, preset = nearby_file(s), closest_key(p.stem, sorted(PRESETS))
+        if near is not None:
+            advice = f"did you mean {near}?"
+        elif preset is not None:
+            advice = f"did you mean the preset {preset!r} (named without a folder or suffix)?"
+        else:
+            where = "" if p.parent.is_dir() else f" (there is no folder {p.parent})"
+            advice = f"expected an existing system JSON file{where}, or a preset; {presets}"
+        raise UnknownPresetError(f"not found\n{advice}", source=s)
+    preset = closest_key(s, sorted(PRESETS))
+    near = nearby_file(s) if preset is None else None
+    advice = (f"did you mean {preset!r}? " if preset else
+              f"did you mean the file {near}? " if near else "")
+    raise UnknownPresetError(f"unknown preset {s!r}\n{advice}{presets}, or the path of a "
+                             "system JSON file")

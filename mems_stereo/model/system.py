@@ -11,7 +11,6 @@ dotted field, what was expected and what was found.
 from __future__ import annotations
 
 import copy
-import difflib
 import json
 import math
 import os
@@ -21,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from mems_stereo.errors import FormatError, UnknownNameError
 from mems_stereo.model.hardware import (
     ALLOWED_DIST_LENGTHS,
     TDC,
@@ -34,8 +32,10 @@ from mems_stereo.model.hardware import (
 )
 from mems_stereo.model.presets import (
     PRESETS,
-    TWO_AXIS_PRESETS,
+    UnknownPresetError,
     burkard2022,
+    presets_advice,
+    system_source,
     theta0_for_working_distance,
 )
 from mems_stereo.model.scanner2d import axis2_from_dict, axis2_to_dict
@@ -180,8 +180,14 @@ PLAUSIBLE: dict[str, tuple[float, float]] = {
 }
 
 
+#: shortest accepted baseline ``|scanner.position|`` (m): below it the mirror sits at
+#: the receiver's projection centre and no depth can be triangulated
+MIN_BASELINE = 1e-3
+
+
 def check_plausible(system: System, source: str = "<dict>") -> None:
-    """Refuse physically implausible values (bounds: :data:`PLAUSIBLE`).
+    """Refuse physically implausible values (bounds: :data:`PLAUSIBLE`; a baseline
+    shorter than :data:`MIN_BASELINE`).
 
     Raises :class:`~mems_stereo.errors.FormatError` naming the field, the value
     and the bounds.
@@ -216,6 +222,12 @@ def check_plausible(system: System, source: str = "<dict>") -> None:
             shown = a.tolist() if a.size > 1 else float(a[0])
             raise ctx.fail(name, f"expected a physically plausible value in [{lo:g}, {hi:g}], "
                                  f"found {shown!r}")
+    baseline = float(np.linalg.norm(np.asarray(s.position, float)))
+    if baseline < MIN_BASELINE:  # the mirror at the projection centre: nothing to triangulate
+        raise ctx.fail("scanner.position", f"expected the mirror away from the receiver's "
+                                           f"projection centre (a baseline of at least "
+                                           f"{MIN_BASELINE * 1e3:g} mm), found a baseline of "
+                                           f"{baseline * 1e3:.3g} mm: no depth by triangulation")
 
 
 def system_to_dict(system: System) -> dict:
@@ -305,59 +317,37 @@ def save_system(system: System, path: str | os.PathLike) -> Path:
 # resolving a name or a path
 
 
-class UnknownPresetError(FormatError, UnknownNameError):
-    """An unknown preset name (a ``FormatError``, hence ``ValueError``; also an
-    :class:`~mems_stereo.errors.UnknownNameError`, hence ``KeyError``, as a failed
-    look-up in :data:`PRESETS` is).  The message lists the presets."""
-
-    def __str__(self) -> str:  # KeyError would print the message's repr
-        return str(self.args[0]) if self.args else ""
-
-
-def _presets_advice(name: str) -> str:
-    close = difflib.get_close_matches(str(name), sorted(PRESETS), n=1, cutoff=0.5)
-    return ((f"did you mean {close[0]!r}? " if close else "")
-            + f"presets: {', '.join(sorted(PRESETS))}")
-
-
 def preset(name: str) -> System:
-    """A named preset system (``"burkard2022"``; :data:`PRESETS` lists them).
+    """A named preset system (:data:`PRESETS` lists them, one- and two-axis).
 
     Examples
     --------
     >>> sorted(ms.PRESETS)
-    ['burkard2022']
+    ['burkard2022', 'lissajous64', 'raster128x96']
     >>> ms.preset("burkard2022")  # doctest: +NORMALIZE_WHITESPACE
     <System 192x1 px receiver, baseline (-125, 0, 0) mm, theta0 760.4 mrad, f_mech 1570 Hz,
      f_rep 20000 Hz, TDC 4096 x 312.5 ps>
     """
     try:
         return PRESETS[name]()
-    except KeyError:
-        raise UnknownPresetError(f"unknown preset {name!r}\n{_presets_advice(name)}",
+    except (KeyError, TypeError):
+        raise UnknownPresetError(f"unknown preset {name!r}\n{presets_advice(str(name))}",
                                  field="preset") from None
 
 
 def resolve_system(spec: str | os.PathLike | System) -> System:
-    """A System from an instance, a preset name or a JSON path.
+    """A System from an instance, an existing JSON file or a preset name (one- or
+    two-axis), in that order (:func:`~mems_stereo.model.presets.system_source`).
 
-    A string that is neither a preset nor an existing file raises
-    :class:`UnknownPresetError` listing the presets (with a suggestion for a
-    near miss).
+    Anything else raises :class:`UnknownPresetError`: a path that does not exist
+    as ``FILE: not found`` advising the nearest file of its folder, a name that is
+    no preset advising the nearest preset.
     """
     if isinstance(spec, System):
         return spec
-    if isinstance(spec, str) and spec in PRESETS:
-        return preset(spec)
-    if not Path(spec).exists():
-        raise UnknownPresetError(f"{str(spec)!r} is neither a preset nor a system file\n"
-                                 f"{_presets_advice(str(spec))}, or the path of a system JSON "
-                                 "file", field="system")
-    return load_system(spec)
+    src = system_source(spec)
+    return preset(src) if isinstance(src, str) else load_system(src)
 
 
-def resolve_any_system(spec: str | os.PathLike | System) -> System:
-    """Like :func:`resolve_system`, with the two-axis presets (:data:`TWO_AXIS_PRESETS`)."""
-    if isinstance(spec, str) and spec in TWO_AXIS_PRESETS:
-        return TWO_AXIS_PRESETS[spec]()
-    return resolve_system(spec)
+#: the same as :func:`resolve_system` (every preset resolves through one registry)
+resolve_any_system = resolve_system

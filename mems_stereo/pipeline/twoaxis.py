@@ -45,6 +45,7 @@ from mems_stereo.geometry.gating import GateSpec, gate_half_width, gate_pixels
 from mems_stereo.geometry.twoaxis import jacobian_2d, pixel_point_2d, timing_sigma
 from mems_stereo.geometry.uncertainty import polar_from_cartesian
 from mems_stereo.io.recording2d import Recording2D, read_recording_2d
+from mems_stereo.io.recording_checks import check_codes_fit
 from mems_stereo.model.camera import normalized_coordinates
 from mems_stereo.model.scanner2d import require_two_axis, scan_angles_2d, scan_direction_2d
 from mems_stereo.model.system import System
@@ -417,6 +418,8 @@ def process_recording_2d(recording: Recording2D | str | os.PathLike,
         raise FormatError(f"expected image_size {rec.system.receiver.image_size} like the "
                           f"recording, found {system.receiver.image_size}", "--system",
                           "receiver.image_size")
+    check_codes_fit(rec.event_code, system.tdc.n_bins, rec.source, "/events/code",
+                    rec.system.tdc.n_bins)
     timings["read"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sd = shot_directions(rec, system)

@@ -240,28 +240,47 @@ def _is_type(v: Any, t: str) -> bool:
     return v is None  # "null"
 
 
-def edit_distance(a: str, b: str) -> int:
+def edit_distance(a: str, b: str, limit: int | None = None) -> int:
     """Optimal-string-alignment distance: insertions, deletions, substitutions and
-    transpositions of neighbours each count 1."""
+    transpositions of neighbours each count 1.
+
+    With ``limit`` only the band ``|i − j| <= limit`` is computed and any distance
+    above ``limit`` is returned as ``limit + 1`` (exact up to ``limit``; a typo
+    check needs no more).
+    """
+    big = len(a) + len(b) + 1
+    band = big if limit is None else limit
+    if abs(len(a) - len(b)) > band:
+        return band + 1
     prev2: list[int] = []
-    prev = list(range(len(b) + 1))
+    prev = [j if j <= band else big for j in range(len(b) + 1)]
     for i, ca in enumerate(a, 1):
-        cur = [i] + [0] * len(b)
-        for j, cb in enumerate(b, 1):
-            cur[j] = min(prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (ca != cb))
+        lo, hi = max(1, i - band), min(len(b), i + band)
+        cur = [big] * (len(b) + 1)
+        cur[0] = i if i <= band else big
+        for j in range(lo, hi + 1):
+            cb = b[j - 1]
+            v = min(prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (ca != cb))
             if i > 1 and j > 1 and ca == b[j - 2] and a[i - 2] == cb:
-                cur[j] = min(cur[j], prev2[j - 2] + 1)
+                v = min(v, prev2[j - 2] + 1)
+            cur[j] = v
+        if limit is not None and min(cur[max(0, lo - 1):hi + 1]) > limit:
+            return limit + 1
         prev2, prev = prev, cur
-    return prev[-1]
+    return prev[-1] if limit is None else min(prev[-1], limit + 1)
 
 
 def closest_key(key: str, known) -> str | None:
     """The known key nearest ``key`` (a typo of it), or None when none is near."""
     key = str(key)
+    low = key.lower()
     best, best_d = None, None
     for k in known:
-        d = edit_distance(key.lower(), k.lower())
-        if d <= max(1, min(len(k), len(key)) // 4) and (best_d is None or d < best_d):
+        limit = max(1, min(len(k), len(key)) // 4)
+        if abs(len(k) - len(key)) > limit:  # the distance is at least the length change
+            continue
+        d = edit_distance(low, k.lower(), limit)
+        if d <= limit and (best_d is None or d < best_d):
             best, best_d = k, d
     if best is None:
         close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.75)
