@@ -280,6 +280,21 @@ GAPS = [
      ["plot", "histograms", "{d}/h.h5", "-o", "{d}/t.png"], "h.h5: /signal"),
 ]
 
+def _map_system(name):
+    def b(d: Path):
+        m = _read(SAMPLES / "room48_map.json")
+        m["system"] = name
+        (d / "map.json").write_text(json.dumps(m))
+        _copy_system(d)
+    return b
+
+
+IMPORT = ["import", "{s}/room48.ptu", "--map", "{d}/map.json", "-o", "{d}/o.h5"]
+GAPS += [("map-system-typo", _map_system("room48_sytem.json"), IMPORT,
+          "map.json: system: {d}/room48_sytem.json: not found"),
+         ("map-system-no-preset", _map_system("burkard2021"), IMPORT,
+          "map.json: system: unknown preset 'burkard2021'")]
+
 #: every command that takes --system, with a typo'd path: "FILE: not found"
 SYSTEM_ARGV = {
     "info": ["info"], "simulate": SIM, "plot": ["plot", "acquisition", "-o", "{d}/a.png"],

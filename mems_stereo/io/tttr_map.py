@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mems_stereo.model.presets import UnknownPresetError, looks_like_path
 from mems_stereo.model.system import System, resolve_system, system_from_dict
 from mems_stereo.util.jsonfile import FieldChecker, check_schema, read_json_file, shown
 from mems_stereo.util.schemas import MAP_FIELDS
@@ -156,7 +157,11 @@ def _system_from(ck: FieldChecker, spec, source: str, base_dir: str | os.PathLik
     if isinstance(spec, str):
         p = Path(spec)
         cand = p if p.is_absolute() else Path(base_dir) / p
-        return resolve_system(str(cand) if cand.exists() else spec)
+        as_path = cand.exists() or looks_like_path(spec)
+        try:
+            return resolve_system(str(cand) if as_path else spec)
+        except UnknownPresetError as e:  # named as the map's field (the file, relative to it)
+            raise ck.fail("system", f"{cand}: {e.reason}" if as_path else e.reason) from None
     raise ck.fail("system", f"expected a file name, preset or object, found {shown(spec)}")
 
 
