@@ -59,6 +59,24 @@ def _f(v, factor: float = 1.0):
     return x if math.isfinite(x) else None
 
 
+def jsonable(v):
+    """``v`` with NumPy values as Python ones, non-finite floats as None and anything
+    else unknown as its text: strict JSON whatever a result carries."""
+    if isinstance(v, dict):
+        return {str(k): jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return [jsonable(x) for x in (v.tolist() if isinstance(v, np.ndarray) else v)]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return _f(v)
+    if v is None or isinstance(v, str):
+        return v
+    return str(v)
+
+
 def load_walls(recordings=None, targets=None) -> list | None:
     """The calibration's walls reduced for the report: ``targets`` as given, else
     each recording (Recording or path) through
@@ -143,7 +161,7 @@ def report_dict(d: ReportData, residuals=(), result=None) -> dict:
     res = [None if r is None else dict(residual_summary(r), source=d.target_names[j])
            for j, r in enumerate(residuals)]
     to_dict = getattr(result, "to_dict", None)
-    return {"format": FORMAT_NAME, "version": 1, "header": d.header, "ok": d.ok,
+    return jsonable({"format": FORMAT_NAME, "version": 1, "header": d.header, "ok": d.ok,
             "verdict": head, "verdict_lines": lines, "reason": d.reason, "kind": d.kind,
             "units": {k: u for k, (_, u) in REPORT_UNITS.items()},
             "parameters": params, "fixed": list(d.fixed),
@@ -153,4 +171,4 @@ def report_dict(d: ReportData, residuals=(), result=None) -> dict:
             "walls": [_wall_entry(d, j, t) for j, t in enumerate(d.walls)],
             "residuals": res, "checks": checks_of(d), "record_next": record_next(d),
             "warnings": list(d.warnings),
-            "result": to_dict() if callable(to_dict) else None}
+            "result": to_dict() if callable(to_dict) else None})
