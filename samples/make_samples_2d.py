@@ -6,11 +6,18 @@
 
 Made by :func:`mems_stereo.sim.simulate2d.simulate_2d` with
 ``numpy.random.default_rng(seed)``, the presets ``lissajous64`` and
-``raster128x96`` (written as ``<name>_system.json``) and the scene
-``twoaxis_scene.json`` (walls, floor, boxes, cylinders), at 100 kHz background;
-and three flat-wall calibration recordings ``lissajous64_calib_<d>m.h5`` made by
-``lissajous64_calib_true_system.json`` (the nominal preset off by the offsets in
-``CALIB_OFFSETS``) at reduced laser power (``CALIB_PEAK_POWER``).
+``raster128x96`` (the nominal systems, written into the files and as
+``<name>_system.json``) and the scene ``twoaxis_scene.json`` (walls, floor,
+boxes, cylinders), at 100 kHz background; and three flat-wall calibration
+recordings ``lissajous64_calib_<d>m.h5`` at reduced laser power
+(``CALIB_PEAK_POWER``).
+
+One story per scanner, as for the line sensor (samples/make_samples.py): the
+Lissajous scanner's recordings, ``lissajous64.h5`` and its three walls, are
+all made by one true system, ``lissajous64_calib_true_system.json`` (the
+nominal preset off by the offsets in ``CALIB_OFFSETS``); the walls calibrate
+it.  No walls ship for the raster scanner: ``raster128x96.h5`` is made by its
+nominal preset (``Sample2D.true_system = "nominal"``).
 Only the per-event truth labels are stored (the per-shot truth would triple
 the files); ``benchmarks/bench_twoaxis.py`` scores them against the scene.
 """
@@ -38,16 +45,18 @@ class Sample2D:
     name: str  # preset and output stem
     seed: int
     n_shots: int
+    true_system: str  # "calib" (nominal + CALIB_OFFSETS, the walls' system) or "nominal"
     background_hz: float = 1e5
 
 
 SAMPLES_2D = [
-    Sample2D("lissajous64", 21, 60000),
-    Sample2D("raster128x96", 22, 100000),
+    Sample2D("lissajous64", 21, 60000, "calib"),
+    Sample2D("raster128x96", 22, 100000, "nominal"),
 ]
 
 
-#: the calibration walls' true system: nominal lissajous64 + these (SI units)
+#: the Lissajous samples' true system (lissajous64.h5 and the calibration walls):
+#: nominal lissajous64 + these (SI units)
 CALIB_OFFSETS = {"theta0": +3e-3, "theta0_2": -2e-3, "theta_mech_max": +7.9e-4,
                  "theta_mech_max_2": -9.6e-4, "phase_offset": 0.01, "phase_offset_2": -0.015,
                  "baseline_x": +0.004, "baseline_y": +0.003, "baseline_z": +0.002,
@@ -59,6 +68,7 @@ CALIB_PEAK_POWER = 0.03  # W: μ <= 0.5 photons per shot on the walls (little pi
 
 
 def calib_true_system():
+    """The true system of the Lissajous samples: the preset + ``CALIB_OFFSETS``."""
     from mems_stereo.calib.twoaxis import get_param_2d, with_params_2d
 
     nom = TWO_AXIS_PRESETS["lissajous64"]()
@@ -96,9 +106,10 @@ def make_calib(out: Path) -> list[Path]:
 def make(sample: Sample2D, out: Path) -> Path:
     system = TWO_AXIS_PRESETS[sample.name]()
     save_system(system, out / f"{sample.name}_system.json")
+    true = calib_true_system() if sample.true_system == "calib" else None
     rec = simulate_2d(system, load_scene(HERE / "twoaxis_scene.json"), sample.n_shots,
                       rng=np.random.default_rng(sample.seed),
-                      background_hz=sample.background_hz,
+                      background_hz=sample.background_hz, true_system=true,
                       options=Simulation2DOptions(truth_per_shot=False))
     return write_recording_2d(out / f"{sample.name}.h5", rec)
 

@@ -161,3 +161,44 @@ def test_charuco_intrinsics_feed_the_raster_calibration():
     assert abs(v["fx"] - fx_true) < max(1.0, 4 * s["fx"])
     for n in ("baseline_x", "baseline_y", "baseline_z", "theta0", "theta0_2"):
         assert abs(v[n] - get_param_2d(true, n)) < 4 * s[n]
+
+
+def _make_samples_2d():
+    import importlib.util
+    import sys
+
+    spec = importlib.util.spec_from_file_location("make_samples_2d",
+                                                  ROOT / "samples" / "make_samples_2d.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["make_samples_2d"] = mod  # dataclasses look their module up
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_lissajous_sample_and_walls_share_one_true_system():
+    """lissajous64.h5 and its walls: one true system (the shipped JSON, the script's
+    offsets), the nominal preset in the files; the recording's laser returns are all
+    classified with the true system and a sixth of them lost with the nominal one."""
+    from dataclasses import replace
+
+    from mems_stereo.io.recording2d import read_recording_2d
+    from mems_stereo.model.system import load_system, system_to_dict
+    from mems_stereo.pipeline.twoaxis import process_recording_2d
+
+    mod = _make_samples_2d()
+    true = load_system(ROOT / "samples" / "lissajous64_calib_true_system.json")
+    assert system_to_dict(true) == system_to_dict(mod.calib_true_system())
+    assert {s.name: s.true_system for s in mod.SAMPLES_2D} == {"lissajous64": "calib",
+                                                               "raster128x96": "nominal"}
+    for d in ("1.5", "2.5", "4.0"):  # the walls carry the nominal preset too
+        wall = read_recording_2d(ROOT / "samples" / f"lissajous64_calib_{d}m.h5", truth=False)
+        assert system_to_dict(wall.system) == system_to_dict(lissajous64())
+    rec = read_recording_2d(ROOT / "samples" / "lissajous64.h5")
+    assert system_to_dict(rec.system) == system_to_dict(lissajous64())
+    k = int(np.searchsorted(rec.event_shot, 8000))  # the first 8000 shots
+    sub = replace(rec, shot_time=rec.shot_time[:8000], read_count=rec.read_count[:8000],
+                  event_shot=rec.event_shot[:k], event_pixel=rec.event_pixel[:k],
+                  event_code=rec.event_code[:k],
+                  truth={**rec.truth, "label": rec.truth["label"][:k]})
+    assert process_recording_2d(sub, system=true).truth["recall"] > 0.999
+    assert process_recording_2d(sub).truth["recall"] < 0.9

@@ -65,3 +65,25 @@ def score_result(result, truth_label, scene) -> dict:
     out["recall"] = float(tr.get("recall", float("nan")))
     out["noise_rejection"] = float(tr.get("noise_rejection", float("nan")))
     return out
+
+
+def score_result_2d(result, recording, scene) -> dict:
+    """All figures of one processed two-axis recording, defined as :func:`score_result`'s.
+
+    result : :class:`~mems_stereo.pipeline.twoaxis.Result2D` of ``recording``.
+    recording : :class:`~mems_stereo.io.recording2d.Recording2D` with its per-event
+        ``/truth/label`` (E,) uint8 (1 laser return, 2 background).
+    scene : the scene it was simulated from.
+
+    A pixel is illuminated when at least one of its recorded detections is a
+    laser return.  Returns :func:`cloud_scores` plus ``recall`` and
+    ``noise_rejection`` (``result.truth``).
+    """
+    w, h = recording.system.receiver.image_size
+    signal = np.asarray(recording.event_pixel)[np.asarray(recording.truth["label"]) == 1]
+    illum = np.bincount(signal, minlength=w * h).reshape(h, w) > 0
+    out = cloud_scores(result.cloud, scene, illum)
+    tr = result.truth or {}
+    out["recall"] = float(tr.get("recall", float("nan")))
+    out["noise_rejection"] = float(tr.get("noise_rejection", float("nan")))
+    return out
