@@ -295,6 +295,21 @@ GAPS += [("map-system-typo", _map_system("room48_sytem.json"), IMPORT,
          ("map-system-no-preset", _map_system("burkard2021"), IMPORT,
           "map.json: system: unknown preset 'burkard2021'")]
 
+# empty file names (they would mean the working folder): refused naming the argument
+GAPS += [(f"empty-{'-'.join(a for a in argv[:2] if a and not a.startswith('{'))}-{k}",
+          _ply_without_range, argv, expect) for k, (argv, expect) in enumerate([
+              (["process", "", "-o", "{d}/o.ply"], "recordings: expected a file name"),
+              (["process", "{s}/room.h5", "-o", ""], "--output: expected a file name"),
+              (["process", "{s}/room.h5", "-o", "{d}/o.ply", "--labels", ""], "--labels:"),
+              (CAL + ["--target-distances-file", ""], "--target-distances-file: expected"),
+              (["simulate", "", "-o", "{d}/o.h5"], "scene: expected a file name"),
+              (["plot", "cloud", "", "-o", "{d}/t.png"], "cloud: expected a file name"),
+              (["render", "{d}/c.ply", "-o", ""], "--output: expected a file name"),
+              (["export", "", "-o", "{d}/e.las"], "cloud: expected a file name"),
+              (["import", "", "--map", "{s}/room48_map.json", "-o", "{d}/o.h5"],
+               "input: expected a file name"),
+              (["info", "--plot", ""], "--plot: expected a file name")])]
+
 #: every command that takes --system, with a typo'd path: "FILE: not found"
 SYSTEM_ARGV = {
     "info": ["info"], "simulate": SIM, "plot": ["plot", "acquisition", "-o", "{d}/a.png"],
@@ -310,6 +325,8 @@ for _cmd, _argv in SYSTEM_ARGV.items():
                  "--system: {d}/calibratd.json: not found"))
     GAPS.append((f"system-no-preset-{_cmd}", _ply_without_range,
                  _argv + ["--system", "lisajous64"], "--system: unknown preset 'lisajous64'"))
+    GAPS.append((f"system-empty-{_cmd}", _ply_without_range, _argv + ["--system", ""],
+                 "--system: expected a system JSON file or a preset, found an empty name"))
 
 
 @pytest.mark.parametrize("name, build, argv, expect", GAPS, ids=[g[0] for g in GAPS])

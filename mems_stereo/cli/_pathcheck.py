@@ -87,8 +87,21 @@ def _system_path(name: str, v) -> list[Path]:
     return [] if isinstance(src, str) else [require_input_file(src, None)]
 
 
+#: positional arguments (named as such in messages, not as ``--options``)
+_POSITIONAL = ("recordings", "scene", "cloud", "histograms", "input")
+
+
+def _refuse_empty(name: str, v) -> None:
+    """An empty path would mean the working folder ("."): refused naming the argument."""
+    if isinstance(v, (str, os.PathLike)) and not os.fspath(v).strip():
+        raise OptionError("expected a file name, found an empty string",
+                          field=name if name in _POSITIONAL else opt(name))
+
+
 def _input_paths(name: str, kind: str, v) -> list[Path]:
     """The checked path(s) of one input argument (none for a preset name)."""
+    for x in (v if kind == "files" else [v] if kind != "system" else []):
+        _refuse_empty(name, x)
     if kind == "files":
         paths = [require_input_file(x, None) for x in v]
         _refuse_repeated(name, paths)
@@ -174,6 +187,7 @@ def resolve_outputs(outputs: dict, args) -> list[tuple[str, Path, str]]:
         v = getattr(args, name, None)
         if v is None:
             continue
+        _refuse_empty(name, v)
         if kind == "cloud-or-dir":
             kind = "dir-of-clouds" if len(getattr(args, "recordings", [])) > 1 else "cloud"
         out.append((name, Path(v), kind))

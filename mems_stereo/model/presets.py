@@ -202,6 +202,9 @@ def system_source(spec: str | os.PathLike) -> Path | str:
     A folder named like a preset does not hide the preset.
     """
     s = os.fspath(spec)
+    if not s.strip():
+        raise UnknownPresetError("expected a system JSON file or a preset, found an empty "
+                                 f"name\npresets: {', '.join(sorted(PRESETS))}")
     p = Path(s)
     if p.exists() and not (s in PRESETS and p.is_dir()):
         return p
