@@ -269,7 +269,7 @@ def _two_axis(rep, out: Path, smp: Path, render: bool) -> tuple[list[Path], list
             continue
         ply = out / f"{name}.ply"
         walls = sorted(smp.glob(f"{name}_calib_*m.h5"))
-        if walls:  # its true system differs from the nominal one: calibrate it
+        if walls and (smp / "twoaxis_scene.json").exists():  # a true system to calibrate
             gain, verdicts, cal = _two_axis_gain(rep, out, smp, walls)
             written.append(cal)
         else:
