@@ -8,6 +8,7 @@ from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._writes import suffix_help
 from mems_stereo.errors import FormatError
 from mems_stereo.model.acquisition import acquisition_statistics
+from mems_stereo.model.presets import PRESETS
 from mems_stereo.model.system import resolve_system
 
 NAME = "info"
@@ -20,7 +21,8 @@ EXAMPLE = ["mems-stereo info --system burkard2022 --shots 400 --distance 2.5 --p
 def add_acquisition_arguments(p):
     """The options of the acquisition statistics (shared with ``plot acquisition``)."""
     p.add_argument("--system", default="burkard2022",
-                   help="system JSON file or preset name (default: burkard2022)")
+                   help=f"system JSON file or preset ({', '.join(PRESETS)}; default: "
+                        "burkard2022)")
     p.add_argument("--shots", type=int, default=400, help="number of laser shots (default 400)")
     p.add_argument("--distance", type=float, default=2.5,
                    help="distance of a flat target, m (default 2.5)")

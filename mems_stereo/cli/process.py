@@ -34,8 +34,8 @@ def add_arguments(p):
                    help=f"point cloud to write ({suffix_help('process', 'output')}); with "
                         "several recordings a folder that receives <name>.ply for each")
     p.add_argument("--system", default=None,
-                   help="system JSON to process with (e.g. a calibrated one; default: the "
-                        "recording's /system)")
+                   help="system JSON or preset to process with (e.g. a calibrated one; "
+                        "default: the recording's /system)")
     p.add_argument("--labels", default=None,
                    help=f"write the event labels here ({suffix_help('process', 'labels')})")
     p.add_argument("--histograms", default=None,

@@ -10,8 +10,9 @@ from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._writes import suffix_help
 from mems_stereo.errors import FormatError
+from mems_stereo.model.presets import PRESETS
 from mems_stereo.model.scanner2d import is_two_axis
-from mems_stereo.model.system import resolve_any_system
+from mems_stereo.model.system import resolve_system
 
 NAME = "simulate"
 HELP = "simulate a recording of a scene (JSON of primitives/meshes) with ground truth"
@@ -34,8 +35,7 @@ def add_arguments(p):
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--system", default="burkard2022",
                    help="nominal system written into the recording: JSON file or preset "
-                        "(burkard2022; two-axis: lissajous64, raster128x96; default "
-                        "burkard2022)")
+                        f"({', '.join(PRESETS)}; default burkard2022)")
     p.add_argument("--true-system", default=None,
                    help="system that generates the photons (default: --system)")
     p.add_argument("--drift", type=float, default=0.0,
@@ -67,8 +67,8 @@ def run(args) -> int:
         write_simulation,
     )
 
-    system = resolve_any_system(args.system)
-    true_system = resolve_any_system(args.true_system) if args.true_system else None
+    system = resolve_system(args.system)
+    true_system = resolve_system(args.true_system) if args.true_system else None
     check_codes_written(system, true_system, args)
     scene = load_scene(args.scene)
     rep.detail(f"{scene!r}")
