@@ -357,9 +357,11 @@ def test_option_of_another_command_advice():
     assert rc == 2 and "did you mean --color-by (not --colour-by)?" in err
 
 
-def test_every_preset_through_every_system_option(tmp_path):
-    """One registry: every preset resolves in every command's --system check (here
-    ``info``, whose only input is the system) and in ``ms.PRESETS``."""
+def test_every_preset_resolves_in_the_cli_and_the_api(tmp_path):
+    """One registry: every preset of ``ms.PRESETS`` passes the --system check every
+    command shares (run through ``info``, whose only input is the system) and
+    ``ms.preset``; the --system path check of the commands is one function (the
+    typo cases above run it through each command)."""
     import mems_stereo as ms
     from mems_stereo.model.presets import TWO_AXIS_PRESETS
 
