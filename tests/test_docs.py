@@ -111,19 +111,26 @@ def _outside_repository(tmp_path: Path) -> Path:
 
 
 @pytest.mark.slow
-def test_every_code_block_of_the_docs_runs(tmp_path, capsys):
+@pytest.mark.parametrize("doc", DOCS, ids=lambda d: d.name)
+def test_every_code_block_of_the_docs_runs(doc, tmp_path):
+    """One test per document, so that pytest-xdist spreads the documents over the cores."""
+    cwd = _outside_repository(tmp_path / doc.stem)
+    cwd.mkdir()
+    for b in collect(doc):
+        if b.skip is None:
+            run_block(b, cwd)
+
+
+def test_code_blocks_marked_not_to_run(capsys):
     n_run, skipped = 0, []
     for doc in DOCS:
-        cwd = _outside_repository(tmp_path / doc.stem)
-        cwd.mkdir()
         for b in collect(doc):
             if b.skip is not None:
                 skipped.append(f"{b.file.relative_to(ROOT)}:{b.line} ({b.skip})")
-                continue
-            run_block(b, cwd)
-            n_run += 1
+            else:
+                n_run += 1
     with capsys.disabled():
-        print(f"\n[docs] {n_run} code blocks of README.md and docs/*.md executed; "
+        print(f"\n[docs] {n_run} code blocks of README.md and docs/*.md run; "
               f"{len(skipped)} marked not to run: " + "; ".join(skipped))
     assert n_run >= 8
     # the README's set-up commands and API-reference build, the C++ reader of
@@ -159,31 +166,33 @@ def test_help_shows_the_examples():
         assert p.description, name
 
 
+def _help_example_names() -> list[str]:
+    # tests/test_demo.py runs the demo's example exactly
+    return [name for name in help_examples() if name != "demo"]
+
+
 @pytest.mark.slow
-def test_every_help_example_runs(tmp_path, capsys):
+@pytest.mark.parametrize("name", _help_example_names())
+def test_every_help_example_runs(name, tmp_path):
+    """One test per command (and plot figure), spread over the cores by pytest-xdist."""
     from mems_stereo.cli import build_parser
 
-    n_run, parsed = 0, []
-    for name, lines in help_examples().items():
-        if name == "demo":  # tests/test_demo.py runs exactly this example
+    cwd = _outside_repository(tmp_path / name.replace(" ", "_"))
+    cwd.mkdir()
+    for line in help_examples()[name]:
+        argv = shlex.split(line, comments=True)
+        assert argv[0] == "mems-stereo", line
+        if argv[1] == "view":  # opens a window: parse it, do not run it
+            build_parser().parse_args(argv[1:])
             continue
-        cwd = _outside_repository(tmp_path / name.replace(" ", "_"))
-        cwd.mkdir()
-        for line in lines:
-            argv = shlex.split(line, comments=True)
-            assert argv[0] == "mems-stereo", line
-            if argv[1] == "view":  # opens a window: parse it, do not run it
-                build_parser().parse_args(argv[1:])
-                parsed.append(line)
-                continue
-            p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
-                               capture_output=True, text=True, timeout=600)
-            assert p.returncode == 0, f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
-            n_run += 1
-    with capsys.disabled():
-        print(f"\n[docs] {n_run} --help example lines executed from empty folders; "
-              f"{len(parsed)} parsed only (view needs a display); demo: tests/test_demo.py")
-    assert n_run >= 20
+        p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
+                           capture_output=True, text=True, timeout=600)
+        assert p.returncode == 0, f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+
+
+def test_enough_help_examples_run():
+    lines = [ln for name in _help_example_names() for ln in help_examples()[name]]
+    assert sum(" view " not in f" {ln} " for ln in lines) >= 20
 
 
 def test_collector_finds_blocks_and_markers(tmp_path):
