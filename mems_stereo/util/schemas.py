@@ -185,6 +185,10 @@ _COMMON = {
     "type": Field("string", True, doc="plane, box, sphere, cylinder or mesh"),
     "reflectivity": Field("number", True, doc="Lambertian albedo in (0, 1]"),
     "name": Field("string", doc="label (default type and index)"),
+    "velocity": Field(_NUMBERS, False, "m/s", "3 numbers: velocity, world frame (default "
+                                              "0; the pose written is the one at time 0)"),
+    "angular_rate": Field(_NUMBERS, False, "rad/s", "3 numbers: rotation vector rate about "
+                                                    "the centre (mesh: translation)"),
 }
 _CENTER = Field(_NUMBERS, True, "m", "3 numbers: centre")
 _ROTATION = Field(_NUMBERS, False, "deg", "3 numbers: Euler angles x, y, z")
