@@ -23,7 +23,7 @@ import stat
 from pathlib import Path
 
 from mems_stereo import data
-from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES
+from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES, frames_to_folder
 from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.model.presets import TWO_AXIS_PRESETS
 from mems_stereo.model.system import PRESETS
@@ -175,8 +175,11 @@ def resolve_outputs(outputs: dict, args) -> list[tuple[str, Path, str]]:
         v = getattr(args, name, None)
         if v is None:
             continue
+        if kind == "frames":  # live -o: a folder (DIR/, or one that exists) or a bag
+            kind = "dir" if str(v).endswith(("/", os.sep)) or os.path.isdir(v) else "cloud"
         if kind == "cloud-or-dir":
-            kind = "dir-of-clouds" if len(getattr(args, "recordings", [])) > 1 else "cloud"
+            many = len(getattr(args, "recordings", [])) > 1 or frames_to_folder(args)
+            kind = "dir-of-clouds" if many else "cloud"
         out.append((name, Path(v), kind))
     return out
 

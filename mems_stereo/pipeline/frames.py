@@ -76,8 +76,10 @@ class FrameShots:
     rising: np.ndarray
 
 
-def _checked_rate(frame_rate, frame_shots):
-    """Exactly one of a positive frame rate (Hz) and a positive number of shots."""
+def checked_frame_rate(frame_rate, frame_shots):
+    """``(frame_rate, frame_shots)`` checked: exactly one of a positive frame rate (Hz,
+    float) and a positive number of shots (int); the other None.  Raises
+    :class:`~mems_stereo.errors.OptionError`."""
     if (frame_rate is None) == (frame_shots is None):
         raise OptionError("expected exactly one of frame_rate (Hz) and frame_shots")
     if frame_rate is not None:
@@ -108,7 +110,7 @@ class FrameProcessor:
 
     def __init__(self, system: System, *, frame_rate=None, frame_shots=None,
                  settings: Settings | None = None, fusion: bool = True):
-        self.frame_rate, self.frame_shots = _checked_rate(frame_rate, frame_shots)
+        self.frame_rate, self.frame_shots = checked_frame_rate(frame_rate, frame_shots)
         self.system = system
         self.settings = Settings() if settings is None else settings
         self.table = run_table(system, self.settings)
