@@ -314,9 +314,12 @@ def iter_frames(source, system: System | None = None, *, frame_rate=None, frame_
     >>> frames = list(ms.iter_frames(ms.data.path("room.h5"), frame_rate=50))
     >>> [(f.index, round(f.start, 3), round(f.end, 3), f.counts.shots) for f in frames]
     [(0, 0.0, 0.02, 400), (1, 0.02, 0.04, 400)]
-    >>> cloud = frames[1].cloud
-    >>> bool(np.all((cloud["t"] >= 0.02) & (cloud["t"] < 0.04))), int(cloud["age"].max())
-    (True, 2)
+    >>> cloud = frames[1].cloud             # fused with frame 0 where they agree
+    >>> sorted(set(cloud["age"].tolist())), bool(np.all(cloud["t"] < 0.04))
+    ([1, 2], True)
+    >>> alone = list(ms.iter_frames(ms.data.path("room.h5"), frame_rate=50, fusion=False))
+    >>> bool(np.all((alone[1].cloud["t"] >= 0.02) & (alone[1].cloud["age"] == 1)))
+    True
     """
     if isinstance(source, (Recording, str, bytes, os.PathLike)):
         chunks: Iterable = recording_chunks(source, chunk_shots)

@@ -167,15 +167,16 @@ def returns_over_time(returns: Callable[[Scene, np.ndarray], dict], scene: Scene
 
 
 def _grouped(scene: MovingScene, times: np.ndarray, fn, n: int, width: int = 1) -> np.ndarray:
-    """``fn(scene at t, index)`` over the points grouped by slices of their times; (n,)
-    or (n, width) float64."""
+    """``fn(scene at t, index)`` over the points grouped by slices of :data:`MOTION_STEP`
+    of their times (each group at its points' mean time); (n,) or (n, width) float64."""
     out = np.zeros((n, width))
     if not n:
         return out[:, 0] if width == 1 else out
-    key = np.floor(np.asarray(times, np.float64) / MOTION_STEP)
+    t = np.asarray(times, np.float64)
+    key = np.floor(t / MOTION_STEP)
     for kv in np.unique(key):
         sel = np.flatnonzero(key == kv)
-        out[sel] = np.asarray(fn(scene.at((kv + 0.5) * MOTION_STEP), sel)).reshape(sel.size, -1)
+        out[sel] = np.asarray(fn(scene.at(float(t[sel].mean())), sel)).reshape(sel.size, -1)
     return out[:, 0] if width == 1 else out
 
 

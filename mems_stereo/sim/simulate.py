@@ -299,7 +299,8 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     Parameters
     ----------
     system : the nominal System written into the recording.
-    scene : :class:`~mems_stereo.sim.scene.Scene`.
+    scene : :class:`~mems_stereo.sim.scene.Scene` (objects with a ``velocity`` or an
+        ``angular_rate`` move: :mod:`mems_stereo.sim.motion`).
     n_shots : K >= 1.
     rng : numpy.random.Generator (the only source of randomness).
     background_hz : ambient detections per second per pixel, scalar or (H, W)
