@@ -1,0 +1,299 @@
+"""Live mode (issue 31): sources, the bounded frame queue, ``mems-stereo live``.
+
+Frames of a live source are those of ``process --frame-rate`` (byte for byte through
+the CLI, array for array through the sources); a slow consumer drops whole frames,
+counted and listed; SIGINT ends a run with every finished frame written.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from mems_stereo import data
+from mems_stereo.cli import main
+from mems_stereo.errors import FormatError
+from mems_stereo.io.live_h5 import GrowingH5Source, LiveRecordingWriter
+from mems_stereo.io.live_sources import LiveSource, ReplaySource, parse_rate
+from mems_stereo.io.recording import read_recording
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.frames import Frame, iter_frames
+from mems_stereo.pipeline.live_queue import LiveRun
+from mems_stereo.pipeline.pass1 import Counts
+
+ROOM = data.path("room.h5")
+
+
+@pytest.fixture(scope="module")
+def room():
+    return read_recording(ROOM)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """The frames of room.h5 at 50 Hz as iter_frames makes them from the file."""
+    return list(iter_frames(ROOM, frame_rate=50))
+
+
+def _same_frames(got, ref) -> None:
+    assert [f.index for f in got] == [f.index for f in ref]
+    for a, b in zip(got, ref):
+        assert (a.start, a.end, a.counts) == (b.start, b.end, b.counts)
+        assert np.array_equal(a.cloud.points, b.cloud.points)
+        assert a.cloud.attributes.keys() == b.cloud.attributes.keys()
+        for k in b.cloud.attributes:
+            assert np.array_equal(a.cloud.attributes[k], b.cloud.attributes[k]), k
+
+
+def _feed(rec, step: int, send) -> None:
+    """Call ``send(times, bins, zc, rising)`` with the shots in steps of ``step`` and the
+    zero crossings up to each step's last shot (as an acquisition knows them)."""
+    zc, ri, zi = rec.zero_crossings, rec.rising, 0
+    for a in range(0, rec.n_shots, step):
+        t = rec.shot_time[a:a + step]
+        zj = int(np.searchsorted(zc, t[-1], side="right"))
+        send(t, rec.bins[a:a + step], zc[zi:zj], ri[zi:zj])
+        zi = zj
+    send(np.zeros(0), rec.bins[:0], zc[zi:], ri[zi:])
+
+
+# ------------------------------------------------------------------ sources
+
+def test_parse_rate():
+    assert parse_rate("max") is None and parse_rate("1") == 1.0 and parse_rate("2.5") == 2.5
+    for bad in ("0", "-1", "nan", "fast"):
+        with pytest.raises(FormatError, match="--rate"):
+            parse_rate(bad)
+
+
+def test_paced_replay_follows_the_recording_clock(room):
+    """At rate r each piece is handed on when its last shot is due: wall ≈ duration / r."""
+    src = ReplaySource(ROOM, rate=0.1)
+    t0 = time.monotonic()
+    lag = []
+    for c in src:
+        lag.append(time.monotonic() - src.due(float(c.shot_time[-1])))
+    wall = time.monotonic() - t0
+    dur = float(room.shot_time[-1] - room.shot_time[0]) / 0.1
+    assert dur <= wall < dur + 0.3
+    assert min(lag) >= 0 and np.median(lag) < 0.05
+
+
+def test_growing_h5_file_swmr(room, reference, tmp_path):
+    """A writer thread appends shots and crossings (SWMR); the reader follows the file while
+    it grows and its frames are those of the finished recording."""
+    path = tmp_path / "growing.h5"
+    started = threading.Event()
+
+    def writer():
+        with LiveRecordingWriter(path, room.system, chunk_shots=64) as w:
+            started.set()
+
+            def send(t, b, z, r):
+                w.append(t, b, z, r)
+                time.sleep(0.005)
+            _feed(room, 50, send)
+
+    th = threading.Thread(target=writer)
+    th.start()
+    started.wait(5)
+    src = GrowingH5Source(path, idle_timeout=5)
+    chunks = list(src)
+    th.join()
+    assert src.ended == "finished" and len(chunks) > 2
+    assert sum(c.n_shots for c in chunks) == room.n_shots
+    _same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
+    # the finished file reads as an ordinary recording
+    assert np.array_equal(read_recording(path).bins, room.bins)
+
+
+def test_growing_h5_idle_timeout(room, tmp_path):
+    """A writer that stops writing (without finishing) ends the stream after the idle time."""
+    path = tmp_path / "stalled.h5"
+    w = LiveRecordingWriter(path, room.system).__enter__()
+    try:
+        w.append(room.shot_time[:100], room.bins[:100], room.zero_crossings[:10],
+                 room.rising[:10])
+        src = GrowingH5Source(path, idle_timeout=0.3)
+        t0 = time.monotonic()
+        n = sum(c.n_shots for c in src)
+        assert src.ended == "idle" and 0.3 <= time.monotonic() - t0 < 2
+        assert n == 100
+    finally:
+        w.close()
+
+
+def test_zmq_socket_on_loopback(room, reference):
+    zmq = pytest.importorskip("zmq")
+    from mems_stereo.io.live_zmq import ZmqSource, send_end, send_shots, send_system
+
+    ctx = zmq.Context()
+    push = ctx.socket(zmq.PUSH)
+    push.setsockopt(zmq.LINGER, 1000)
+    port = push.bind_to_random_port("tcp://127.0.0.1")
+
+    def sender():
+        send_system(push, room.system)
+        _feed(room, 64, lambda t, b, z, r: send_shots(push, t, b, z, r))
+        send_end(push)
+
+    th = threading.Thread(target=sender)
+    th.start()
+    src = ZmqSource(f"tcp://127.0.0.1:{port}", idle_timeout=5, context=ctx)
+    chunks = list(src)
+    th.join()
+    assert src.ended == "finished"
+    _same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
+    # a message whose parts do not match its header is refused, not read
+    th = threading.Thread(target=lambda: (send_system(push, room.system), push.send_multipart(
+        [b'{"format": "mems-stereo/live", "version": 1, "type": "shots", "n_shots": 2}',
+         np.zeros(2).tobytes(), b"\0" * 10, b"", b""])))
+    th.start()
+    src = ZmqSource(f"tcp://127.0.0.1:{port}", idle_timeout=5, context=ctx)
+    with pytest.raises(FormatError, match="message 2.*bins.*768 bytes"):
+        list(src)
+    th.join()
+    push.close()
+    ctx.term()
+
+
+# ------------------------------------------------------------------ the bounded queue
+
+class _Source(LiveSource):
+    """Chunks of 10 shots every ``pause`` s, frames of 100 shots (shots at 1 kHz)."""
+
+    def __init__(self, system, n_shots: int, pause: float, can_wait: bool):
+        super().__init__(system, "test")
+        self.n, self.pause, self.can_wait = n_shots, pause, can_wait
+
+    def chunks(self):
+        h, w = self.system.receiver.height, self.system.receiver.width
+        for a in range(0, self.n, 10):
+            time.sleep(self.pause)
+            if self.stopped:
+                return
+            t = (a + np.arange(10)) * 1e-3
+            yield self.chunk(t, np.zeros((10, h, w), np.uint16), np.zeros(0), np.zeros(0))
+        self.ended = "finished"
+
+
+class _Processor:
+    """Frames of 0.1 s from the shots pushed (a stand-in that counts them, no processing)."""
+
+    frame_rate, frame_shots = 10.0, None
+
+    def __init__(self):
+        self.t, self.i = [], 0
+
+    def _frames(self, upto: float):
+        out = []
+        while (self.i + 1) * 0.1 <= upto + 1e-9:
+            n = sum(1 for t in self.t if self.i * 0.1 - 1e-9 <= t < (self.i + 1) * 0.1 - 1e-9)
+            out.append(Frame(self.i, self.i * 0.1, (self.i + 1) * 0.1,
+                             PointCloud(np.zeros((0, 3)), {}), Counts(n, 0, 0, 0, 0, 0, 0)))
+            self.i += 1
+        return out
+
+    def push(self, chunk):
+        self.t += chunk.shot_time.tolist()
+        return self._frames(float(chunk.shot_time[-1]) - 1e-3)
+
+    def flush(self):
+        return self._frames(max(self.t) + 1e-3)
+
+
+@pytest.mark.parametrize("can_wait", [False, True])
+def test_slow_sink_drops_whole_frames_counted(room, can_wait):
+    """Frames of 100 shots arrive every 0.02 s; the sink takes 0.1 s a frame.  A live source
+    loses whole frames (never part of one), each counted and listed, the queue never above
+    its bound; a source that can wait (replay at max) loses none."""
+    written, queued = [], []
+
+    def write(f):
+        queued.append(run.adm.queued)
+        written.append(f)
+        time.sleep(0.1)
+
+    run = LiveRun(_Source(room.system, 2000, 0.002, can_wait), _Processor(), write,
+                  max_queued=2)
+    st = run.run()
+    n = len(written) + st.frames_dropped
+    assert n == 20 and st.frames_written == len(written)
+    assert sorted({f.index for f in written} | set(st.dropped)) == list(range(20))
+    assert all(f.counts.shots == 100 for f in written)  # written frames are whole
+    assert st.shots + st.shots_dropped == 2000 and st.shots_dropped == 100 * st.frames_dropped
+    assert max(queued) <= 2
+    if can_wait:
+        assert st.dropped == [] and "0 dropped" in st.summary()
+    else:
+        assert st.frames_dropped >= 5
+        assert f"{st.frames_dropped} dropped" in st.summary()
+
+
+def test_stop_writes_finished_frames_only(room):
+    """stop() mid-stream: the frames whose shots were complete are written, not the partial one."""
+    written = []
+    run = LiveRun(_Source(room.system, 2000, 0.002, True), _Processor(), written.append)
+    threading.Timer(0.2, run.stop).start()
+    st = run.run()
+    assert st.ended == "stopped" and 0 < st.frames_written < 20
+    assert all(f.counts.shots == 100 for f in written)
+    assert [f.index for f in written] == list(range(len(written)))
+
+
+# ------------------------------------------------------------------ the command
+
+def test_live_replay_identical_to_process_frames(tmp_path):
+    a, b = tmp_path / "live", tmp_path / "process"
+    assert main(["live", "-q", "--replay", str(ROOM), "--rate", "max", "--frame-rate", "50",
+                 "-o", f"{a}/"]) == 0
+    assert main(["process", "-q", str(ROOM), "--frame-rate", "50", "-o", f"{b}/"]) == 0
+    names = sorted(p.name for p in b.iterdir())
+    assert names == ["room_000000.ply", "room_000001.ply"]
+    assert sorted(p.name for p in a.iterdir()) == names
+    for n in names:
+        assert (a / n).read_bytes() == (b / n).read_bytes(), n
+
+
+def test_live_refuses_bad_options(tmp_path, capsys):
+    for argv, what in [([], "SOURCE"), (["--replay", str(ROOM), "-o", f"{tmp_path}/"],
+                                        "--frame-rate"),
+                       (["--replay", str(ROOM), "--frame-rate", "10"], "--output"),
+                       (["--replay", str(ROOM), "--rate", "0", "--frame-rate", "10",
+                         "-o", f"{tmp_path}/x/"], "--rate")]:
+        assert main(["live", *argv]) == 2
+        err = capsys.readouterr().err
+        assert what in err and len(err.strip().splitlines()) == 1, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_sigint_ends_cleanly_with_finished_frames(tmp_path):
+    out = tmp_path / "frames"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    p = subprocess.Popen([sys.executable, "-c", "from mems_stereo.cli import main; main()",
+                          "live", "--replay", str(ROOM), "--rate", "0.002", "--frame-rate", "200",
+                          "--queue-frames", "1",
+                          "-o", f"{out}/"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and not (out.is_dir() and any(out.glob("*.ply"))):
+        time.sleep(0.05)
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = p.communicate(timeout=30)
+    assert p.returncode == 0, stderr
+    assert "stopped by SIGINT" in stdout and " written" in stdout, stdout
+    files = sorted(out.iterdir())
+    assert files and all(f.suffix == ".ply" and not f.name.startswith(".") for f in files)
+    n = int(stdout.split(" frame")[0].rsplit(" ", 1)[-1])
+    assert len(files) == n < 8
+    from mems_stereo.viz.export import read_cloud
+
+    for f in files:
+        read_cloud(f)  # complete files only
