@@ -297,3 +297,65 @@ def test_sigint_ends_cleanly_with_finished_frames(tmp_path):
 
     for f in files:
         read_cloud(f)  # complete files only
+
+
+# ------------------------------------------------------------------ viewers
+
+def test_browser_viewer_sends_a_frame_to_a_websocket_client(reference):
+    """The Foxglove WebSocket server advertises /mems_stereo/points and sends a subscribed
+    client each frame (a client on loopback speaking the Foxglove protocol)."""
+    pytest.importorskip("foxglove")
+    import asyncio
+    import json
+    import struct
+
+    from tornado.httpclient import HTTPRequest
+    from tornado.websocket import websocket_connect
+
+    from mems_stereo.viz.live_viewer import FIELDS, FoxgloveViewer
+
+    v = FoxgloveViewer(port=0)
+
+    async def client():
+        ws = await websocket_connect(HTTPRequest(v.url), subprotocols=["foxglove.sdk.v1"])
+        chans = []
+        while not chans:
+            m = json.loads(await asyncio.wait_for(ws.read_message(), 5))
+            chans = m.get("channels", []) if m.get("op") == "advertise" else []
+        assert chans[0]["topic"] == "/mems_stereo/points"
+        assert chans[0]["schemaName"] == "foxglove.PointCloud"
+        await ws.write_message(json.dumps({"op": "subscribe", "subscriptions": [
+            {"id": 7, "channelId": chans[0]["id"]}]}))
+        await asyncio.sleep(0.3)
+        v.write(reference[1])
+        m = await asyncio.wait_for(ws.read_message(), 5)
+        ws.close()
+        return m
+
+    try:
+        m = asyncio.run(client())
+    finally:
+        v.close()
+    op, sub, stamp = struct.unpack_from("<BIQ", m)
+    assert (op, sub, stamp) == (1, 7, round(reference[1].start * 1e9))
+    stride = sum(np.dtype(dt).itemsize for _, dt, _ in FIELDS)
+    assert len(m) > len(reference[1].cloud) * stride  # the packed points and their fields
+
+
+@pytest.mark.render
+def test_open3d_viewer_headless(reference):
+    from mems_stereo.viz.live_viewer import Open3DViewer
+    from mems_stereo.viz.render import render_available
+
+    ok, why = render_available()
+    if not ok:
+        pytest.skip(f"headless OpenGL unavailable: {why}")
+    v = Open3DViewer(visible=False)
+    try:
+        for f in reference:
+            v.write(f)
+        img = np.asarray(v.vis.capture_screen_float_buffer(True))
+        assert len(v.pcd.points) == len(reference[-1].cloud)
+        assert (img < 0.99).any(axis=2).sum() >= len(reference[-1].cloud)  # points drawn
+    finally:
+        v.close()
