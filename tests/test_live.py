@@ -309,10 +309,9 @@ def test_browser_viewer_sends_a_frame_to_a_websocket_client(reference):
     import json
     import struct
 
+    from mems_stereo.viz.live_viewer import FIELDS, FoxgloveViewer
     from tornado.httpclient import HTTPRequest
     from tornado.websocket import websocket_connect
-
-    from mems_stereo.viz.live_viewer import FIELDS, FoxgloveViewer
 
     v = FoxgloveViewer(port=0)
 
