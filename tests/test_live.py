@@ -13,6 +13,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -358,3 +359,42 @@ def test_open3d_viewer_headless(reference):
         assert (img < 0.99).any(axis=2).sum() >= len(reference[-1].cloud)  # points drawn
     finally:
         v.close()
+
+
+def test_ptu_file_being_written(tmp_path):
+    """A T2 PTU file written record block by block (a partial record at every step) is
+    followed; its shots are those `mems-stereo import` makes of the finished file."""
+    from mems_stereo.io.live_ptu import PtuTailSource
+    from mems_stereo.io.ptu import ptu_stream
+    from mems_stereo.io.tttr import events_to_recording
+    from mems_stereo.io.tttr_map import load_map
+
+    ptu = data.path("room48.ptu")
+    m = load_map(data.path("room48_map.json"))
+    info, blocks = ptu_stream(ptu)
+    events_to_recording(blocks, info, m, m.system, tmp_path / "ref.h5")
+    ref = read_recording(tmp_path / "ref.h5")
+    raw = Path(ptu).read_bytes()
+    path = tmp_path / "growing.ptu"
+    path.write_bytes(raw[:752])  # the header (its record offset)
+    started = threading.Event()
+
+    def writer():
+        with open(path, "ab") as f:
+            started.set()
+            for a in range(752, len(raw), 4001):  # 4001: records cut in the middle
+                f.write(raw[a:a + 4001])
+                f.flush()
+                time.sleep(0.002)
+
+    th = threading.Thread(target=writer)
+    th.start()
+    started.wait(5)
+    src = PtuTailSource(path, m, m.system, idle_timeout=3, block_records=500)
+    chunks = list(src)
+    th.join()
+    assert src.ended == "finished" and len(chunks) > 5
+    assert np.array_equal(np.concatenate([c.shot_time for c in chunks]), ref.shot_time)
+    assert np.array_equal(np.concatenate([c.bins for c in chunks]), ref.bins)
+    zc = np.unique(np.concatenate([c.zero_crossings for c in chunks]))
+    assert np.array_equal(zc, ref.zero_crossings)

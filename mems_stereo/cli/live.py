@@ -14,8 +14,8 @@ from mems_stereo.errors import OptionError
 from mems_stereo.model.system import resolve_system
 
 NAME = "live"
-HELP = ("frames of a live source (a recording replayed at its own pace, a recording being "
-        "written, a ZeroMQ socket) processed and written as they come")
+HELP = ("frames of a live source (a recording replayed at its own pace, a recording or PTU "
+        "file being written, a ZeroMQ socket) processed and written as they come")
 EXAMPLE = ["mems-stereo samples -o samples",
            "mems-stereo live --replay samples/room.h5 --rate max --frame-rate 50 -o frames/    "
            "# frames/room_000000.ply, ... as process --frame-rate (docs/live.md)",
@@ -27,8 +27,8 @@ ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")
 
 def add_arguments(p):
     p.add_argument("source", nargs="?", metavar="SOURCE",
-                   help="a recording being written (HDF5 SWMR) or a ZeroMQ address "
-                        "tcp://HOST:PORT (docs/live.md)")
+                   help="a recording being written (HDF5 SWMR), a PTU file being written "
+                        "(with --map) or a ZeroMQ address tcp://HOST:PORT (docs/live.md)")
     p.add_argument("--replay", default=None, metavar="REC.h5",
                    help="replay a recording as a live source instead")
     p.add_argument("--rate", default="1",
@@ -52,7 +52,10 @@ def add_arguments(p):
     g.add_argument("--no-temporal", action="store_true",
                    help="every frame on its own (no temporal fusion of the pixels' history)")
     p.add_argument("--system", default=None,
-                   help="system JSON or preset to process with (default: the source's)")
+                   help="system JSON or preset to process with (default: the source's; a PTU "
+                        "file: its mapping's)")
+    p.add_argument("--map", default=None, metavar="MAP.json",
+                   help="channel mapping of a PTU source (format mems-stereo/tttr-map)")
     p.add_argument("--queue-frames", type=int, default=3,
                    help="frames queued for processing at most; a frame arriving when the queue "
                         "is full is dropped and counted (default 3)")
@@ -82,6 +85,12 @@ def _check(args) -> None:
         raise OptionError("expected -o DIR/ or OUT.mcap, or --view", field="--output")
     if args.replay is None and args.rate != "1":
         raise OptionError("--rate paces a --replay only", field="--rate")
+    is_ptu = args.source is not None and Path(args.source).suffix.lower() == ".ptu"
+    if is_ptu and args.map is None:
+        raise OptionError("a PTU source needs its channel mapping: --map MAP.json",
+                          field="--map")
+    if args.map is not None and not is_ptu:
+        raise OptionError("--map is for a PTU source", field="--map")
 
 
 def open_source(args):
@@ -99,8 +108,14 @@ def open_source(args):
     if not Path(src).exists():
         raise FileNotFoundError(2, "file not found", src)
     if Path(src).suffix.lower() == ".ptu":
-        raise OptionError("a PTU file is not a live source yet; convert it with mems-stereo "
-                          "import and --replay the recording", field="SOURCE")
+        from mems_stereo.io.live_ptu import PtuTailSource
+        from mems_stereo.io.tttr_map import load_map
+
+        m = load_map(args.map)
+        system = resolve_system(args.system) if args.system else m.system
+        if system is None:
+            raise OptionError("the mapping names no system; give --system", field="--system")
+        return PtuTailSource(src, m, system, idle_timeout=idle)
     from mems_stereo.io.live_h5 import GrowingH5Source
 
     return GrowingH5Source(src, idle_timeout=idle)

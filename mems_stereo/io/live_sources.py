@@ -16,6 +16,7 @@ Sources (``mems-stereo live``, docs/live.md):
 - :class:`~mems_stereo.io.live_h5.GrowingH5Source`: a recording being written
   (HDF5 single-writer/multiple-reader).
 - :class:`~mems_stereo.io.live_zmq.ZmqSource`: shot chunks on a ZeroMQ socket.
+- :class:`~mems_stereo.io.live_ptu.PtuTailSource`: a PicoQuant PTU file being written.
 
 Each source has ``stop()`` (thread-safe: the iteration ends at its next wait),
 ``can_wait`` (True where the data waits for a slow consumer without loss, so a
