@@ -115,3 +115,20 @@ def test_points_without_a_finite_sigma_pass_alone_and_reset_the_pixel(bad):
     assert out["age"][7] == 1 and out["age"][8] == 2
     out = fus.update(frame_cloud(np.full(W, 2.0), 0.01, t=2))
     assert out["age"][7] == 1 and out["age"][8] == 3
+
+
+def test_frames_that_scatter_beyond_their_sigma_inflate_it_by_the_birge_ratio():
+    """Ranges alternating ±2σ about 3 m (inside the k = 2.97 bound, never a restart):
+    χ² = Σ w (r − r̄)², and σ_r is (Σw)^−½ · sqrt(χ²/(n − 1))."""
+    fus = TemporalFusion(1, W, 0.997)
+    sig = 0.02
+    r = 3.0 + 2 * sig * np.array([1, -1, 1, -1, 1, -1])
+    for i, ri in enumerate(r):
+        out = fus.update(frame_cloud(np.full(W, ri), sig, t=i))
+    w = np.full(r.size, 1 / sig ** 2)
+    mean = (w * r).sum() / w.sum()
+    chi2 = (w * (r - mean) ** 2).sum()
+    assert np.all(out["age"] == 6)
+    np.testing.assert_allclose(out["range"], mean, rtol=1e-12)
+    np.testing.assert_allclose(out["sigma_r"], np.sqrt(chi2 / 5 / w.sum()), rtol=1e-9)
+    np.testing.assert_allclose(out["sigma_z"], out["sigma_r"], rtol=1e-9)  # σ_z = σ_r here

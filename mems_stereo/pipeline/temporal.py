@@ -14,11 +14,14 @@ its last restart.  A new point of the pixel *agrees* with that history when
 
 An agreeing point is added (weights w = 1/σ_r²: the fused range and position are the
 w-weighted means, σ_r = (Σw)^−½, the other σ propagated through the fixed weights,
-``sqrt(Σ w² σ²)/Σw``); one that does not agree restarts the pixel's history with itself.
+``sqrt(Σ w² σ²)/Σw``, each σ times the history's Birge ratio where its frames scatter
+more than their σ say, as the pipeline scales a peak's σ by its detections' reduced χ²);
+one that does not agree restarts the pixel's history with itself.
 Nothing is forgotten otherwise: a static surface sharpens as 1/√age, a moving one
 restarts as soon as it has moved by about kσ.  Under the Gaussian errors the bound
-assumes, a static pixel restarts falsely with probability 1 − confidence per frame
-(measured: docs/frames.md).
+assumes, a static pixel's first false restart comes with probability 1 − confidence per
+frame; a restart starts from the outlier that failed, so more follow (measured:
+docs/frames.md).
 """
 
 from __future__ import annotations
@@ -53,6 +56,7 @@ class TemporalFusion:
         self.wsum = np.zeros(P)
         self.wx = np.zeros((P, 3))
         self.wr = np.zeros(P)
+        self.wr2 = np.zeros(P)
         self.w2s = np.zeros((P, len(FUSED_SIGMAS)))
         self.csum = np.zeros(P)
         self.ct = np.zeros(P)
@@ -91,6 +95,7 @@ class TemporalFusion:
         self.wsum[p] += w
         self.wx[p] += w[:, None] * cloud.points[sel]
         self.wr[p] += w * a["range"][sel]
+        self.wr2[p] += w * a["range"][sel] ** 2
         sig = np.stack([np.asarray(a.get(k, np.zeros(n)), np.float64) for k in FUSED_SIGMAS],
                        axis=1)
         self.w2s[p] += (w[:, None] * sig[sel]) ** 2
@@ -100,8 +105,18 @@ class TemporalFusion:
         self.band[p] = band[sel]
         return self._fused(cloud, pix, ok)
 
+    def scatter_ratio(self, pix: np.ndarray) -> np.ndarray:
+        """(n,) Birge ratio of each pixel's history: sqrt of its reduced χ² of the ranges
+        about their weighted mean, ``Σw(r − r̄)²/(age − 1)``, where it exceeds 1, else 1
+        (1 for a history of one frame)."""
+        ws = self.wsum[pix]
+        chi2 = np.maximum(self.wr2[pix] - self.wr[pix] ** 2 / ws, 0.0)
+        dof = np.maximum(self.age[pix] - 1, 1)
+        return np.sqrt(np.maximum(chi2 / dof, 1.0))
+
     def _reset(self, pix: np.ndarray) -> None:
-        for arr in (self.age, self.wsum, self.wx, self.wr, self.w2s, self.csum, self.ct):
+        for arr in (self.age, self.wsum, self.wx, self.wr, self.wr2, self.w2s, self.csum,
+                    self.ct):
             arr[pix] = 0
 
     def _fused(self, cloud: PointCloud, pix: np.ndarray, ok: np.ndarray) -> PointCloud:
@@ -111,8 +126,9 @@ class TemporalFusion:
         pts = cloud.points.copy()
         p = pix[ok]
         ws = self.wsum[p]
+        birge = self.scatter_ratio(p)
         pts[ok] = self.wx[p] / ws[:, None]
-        for name, vals in (("range", self.wr[p] / ws), ("sigma_r", 1.0 / np.sqrt(ws)),
+        for name, vals in (("range", self.wr[p] / ws), ("sigma_r", birge / np.sqrt(ws)),
                            ("t", self.ct[p] / np.maximum(self.csum[p], 1e-300))):
             v = np.array(a[name], np.float64)
             v[ok] = vals
@@ -120,7 +136,7 @@ class TemporalFusion:
         for j, name in enumerate(FUSED_SIGMAS):
             if name in a:
                 v = np.array(a[name], np.float64)
-                v[ok] = np.sqrt(self.w2s[p, j]) / ws
+                v[ok] = birge * np.sqrt(self.w2s[p, j]) / ws
                 a[name] = v
         counts = np.array(a["counts"])
         counts[ok] = np.rint(self.csum[p]).astype(counts.dtype)
