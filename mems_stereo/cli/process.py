@@ -178,14 +178,15 @@ def _check_frame_options(args, recs, two_axis: bool) -> bool:
         if getattr(args, name):
             raise FormatError(f"--{name} is not used with frames", field=f"--{name}")
     out = Path(args.output)
-    bag = out.suffix.lower() in FRAME_BAG_SUFFIXES and not out.is_dir()
+    named_bag = Path(translate(str(out))).suffix.lower() in FRAME_BAG_SUFFIXES
+    if named_bag and len(recs) > 1:
+        raise FormatError("a bag of frames takes one recording; give a folder (DIR/)",
+                          field="--output")
+    bag = named_bag and not out.is_dir()
     if not bag and not out.is_dir():
         raise FormatError(f"with frames expected a folder (DIR/) or a "
                           f"{' or '.join(FRAME_BAG_SUFFIXES)} bag, found "
                           f"{translate(str(out))}",
-                          field="--output")
-    if bag and len(recs) > 1:
-        raise FormatError("a bag of frames takes one recording; give a folder (DIR/)",
                           field="--output")
     return bag
 
