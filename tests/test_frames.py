@@ -176,3 +176,18 @@ def test_cli_refusals_write_nothing(tmp_path, monkeypatch, capsys, argv, where):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and where in err[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_chunks_carrying_only_their_own_zero_crossings(frames, rec):
+    """A live source's chunks carry the crossings within one mechanical period of their
+    shots, not the recording's: the same frames."""
+    m = 1.0 / rec.system.scanner.f_mech
+    chunks = []
+    for c in recording_chunks(rec, 150):
+        near = (c.zero_crossings >= c.shot_time[0] - m) & (c.zero_crossings <= c.shot_time[-1] + m)
+        chunks.append(Recording(c.system, c.shot_time, c.bins, c.zero_crossings[near],
+                                c.rising[near], c.truth, "live"))
+    got = list(iter_frames(iter(chunks), frame_rate=50))
+    assert len(got) == len(frames)
+    for f, g in zip(frames, got):
+        same_clouds(f.cloud, g.cloud)
