@@ -220,7 +220,7 @@ class FrameProcessor:
         self.frames_done += 1
         cloud, counts = frame_cloud(self.system, shots, self.settings, self.table,
                                     f"{self._source} frame {index}")
-        if self.fusion is not None:
+        if self.fusion is not None and len(cloud):  # an empty window has no pixel to fuse
             cloud = self.fusion.update(cloud)
         else:
             cloud.attributes["age"] = np.ones(len(cloud), np.int32)
