@@ -57,8 +57,8 @@ def add_arguments(p):
     p.add_argument("--map", default=None, metavar="MAP.json",
                    help="channel mapping of a PTU source (format mems-stereo/tttr-map)")
     p.add_argument("--queue-frames", type=int, default=3,
-                   help="frames queued for processing at most; a frame arriving when the queue "
-                        "is full is dropped and counted (default 3)")
+                   help="frames waiting for processing at most; when full, the oldest waiting "
+                        "frame is dropped for the newest, and counted (default 3)")
     p.add_argument("--idle-timeout", type=float, default=10.0,
                    help="end when a growing file or a socket brings nothing new for this many "
                         "seconds (default 10; 0: wait until Ctrl-C)")

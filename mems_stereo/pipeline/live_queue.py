@@ -6,11 +6,12 @@ its own, cuts its shots at the frame boundaries of the
 ``iter_frames``), and hands them through a queue to the caller's thread, which
 processes them and writes each finished frame (``write(frame)``).
 
-The queue is bounded in frames: a frame is admitted when its first shot arrives if
-fewer than ``max_queued`` admitted frames wait in the queue (a frame leaves it when
-processing takes its first shots); otherwise the whole frame is dropped (none of its
-shots reach the processor), counted and listed by index, never silently and never a
-growing backlog.  A source whose data waits
+The queue is bounded in frames: at most ``max_queued`` admitted frames wait in it (a
+frame leaves it when processing takes its first shots).  A frame whose first shot
+arrives when it is full takes the place of the oldest waiting frame, which is dropped
+whole (none of its shots reach the processor): the newest data is processed first, the
+latency stays within about ``max_queued`` + 1 processing times, and every drop is
+counted and listed by index, never silent, never a growing backlog.  A source whose data waits
 without loss (a replay at ``--rate max``: ``source.can_wait``) makes the reader wait
 instead, so nothing is dropped.
 
@@ -189,6 +190,11 @@ class LiveRun:
             if self.source.can_wait:
                 while a.queued >= a.max_queued and not self._stop.is_set():
                     a.cond.wait(POLL)
+            if a.queued >= a.max_queued and not self.source.can_wait:
+                old = next(j for j in a.admitted if j > a.taken)  # the oldest waiting
+                a.admitted.remove(old)
+                a.dropped.add(old)
+                a.queued -= 1
             ok = a.queued < a.max_queued and not self._stop.is_set()
             if ok:
                 a.queued += 1
@@ -208,7 +214,8 @@ class LiveRun:
                 for i, s in a.split(t):
                     ok = a.current_ok if i == a.current else self._admit(i)
                     if not ok:
-                        self.stats.shots_dropped += s.stop - s.start
+                        with a.cond:
+                            self.stats.shots_dropped += s.stop - s.start
                         continue
                     part = Recording(chunk.system, t[s], chunk.bins[s], chunk.zero_crossings,
                                      chunk.rising, {}, chunk.source)
@@ -258,8 +265,11 @@ class LiveRun:
                 continue
             if piece.chunk is None:
                 break
-            if piece.index != self.adm.taken:  # a frame's first shots: it leaves the queue
-                with self.adm.cond:
+            with self.adm.cond:
+                if piece.index in self.adm.dropped:  # made room for a newer frame
+                    self.stats.shots_dropped += piece.chunk.n_shots
+                    continue
+                if piece.index != self.adm.taken:  # a frame's first shots: it leaves the queue
                     self.adm.taken = piece.index
                     self.adm.queued -= 1
                     self.adm.cond.notify_all()
