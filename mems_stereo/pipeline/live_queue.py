@@ -317,7 +317,10 @@ class LiveRun:
         self._take(f)
         due = self.source.due(f.end)
         with self.adm.cond:
-            ref = due if due is not None else self.adm.complete_wall.get(f.index, now)
+            cw = self.adm.complete_wall
+            ref = due if due is not None else cw.get(f.index, now)
+            for j in [j for j in cw if j <= f.index]:  # frames up to f are done with
+                del cw[j]
         self.stats.frames_written += 1
         self.stats.latency.append(now - ref)
         self.stats.written_at.append(now - self._t_start)
