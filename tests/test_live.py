@@ -418,3 +418,17 @@ def test_ptu_file_being_written(tmp_path):
     assert np.array_equal(np.concatenate([c.bins for c in chunks]), ref.bins)
     zc = np.unique(np.concatenate([c.zero_crossings for c in chunks]))
     assert np.array_equal(zc, ref.zero_crossings)
+
+
+def test_live_growing_file_through_the_command(room, tmp_path):
+    """``mems-stereo live REC.h5``: a recording written by the live writer (here finished
+    before the run) gives the frames ``process --frame-rate`` gives of the same shots."""
+    rec = tmp_path / "acq.h5"
+    with LiveRecordingWriter(rec, room.system) as w:
+        _feed(room, 200, w.append)
+    a, b = tmp_path / "live", tmp_path / "process"
+    assert main(["live", "-q", str(rec), "--frame-rate", "50", "-o", f"{a}/"]) == 0
+    assert main(["process", "-q", str(ROOM), "--frame-rate", "50", "-o", f"{b}/"]) == 0
+    assert sorted(p.name for p in a.iterdir()) == ["acq_000000.ply", "acq_000001.ply"]
+    for i in range(2):
+        assert (a / f"acq_{i:06d}.ply").read_bytes() == (b / f"room_{i:06d}.ply").read_bytes()
