@@ -295,11 +295,12 @@ def test_live_refuses_bad_options(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_sigint_ends_cleanly_with_finished_frames(tmp_path):
     out = tmp_path / "frames"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     p = subprocess.Popen([sys.executable, "-c", "from mems_stereo.cli import main; main()",
-                          "live", "--replay", str(ROOM), "--rate", "0.002", "--frame-rate", "200",
+                          "live", "--replay", str(ROOM), "--rate", "0.003", "--frame-rate", "200",
                           "--queue-frames", "1",
                           "-o", f"{out}/"],
                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
