@@ -111,6 +111,7 @@ class FrameProcessor:
     def __init__(self, system: System, *, frame_rate=None, frame_shots=None,
                  settings: Settings | None = None, fusion: bool = True):
         self.frame_rate, self.frame_shots = checked_frame_rate(frame_rate, frame_shots)
+        load_kernels()
         self.system = system
         self.settings = Settings() if settings is None else settings
         self.table = run_table(system, self.settings)
@@ -225,6 +226,18 @@ class FrameProcessor:
         else:
             cloud.attributes["age"] = np.ones(len(cloud), np.int32)
         return Frame(index, float(start), float(end), cloud, counts)
+
+
+def load_kernels() -> bool:
+    """Import numba (True where it is installed): frames come one after another for as
+    long as the source runs, so the stages' compiled kernels
+    (:func:`~mems_stereo.util.lazy_numba.compiled_if_loaded`: the same numbers as their
+    NumPy forms) pay for their one load (numba's disk cache) from the second frame on."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:  # pragma: no cover - numba is a declared dependency
+        return False
+    return True
 
 
 def _empty_cloud(n_shots: int, unknown: int) -> tuple[PointCloud, Counts]:
