@@ -60,7 +60,8 @@ from mems_stereo.pipeline.histograms import accumulate_histograms, moving_averag
 _LAZY = {"process_recording": "mems_stereo.pipeline.run",
          "classify_recording": "mems_stereo.pipeline.pass1",
          "Settings": "mems_stereo.pipeline.settings",
-         "PointCloud": "mems_stereo.pipeline.cloud"}
+         "PointCloud": "mems_stereo.pipeline.cloud",
+         "iter_frames": "mems_stereo.pipeline.frames"}
 
 
 def __getattr__(name):
@@ -72,7 +73,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "accumulate_histograms", "background_rate_mle", "data", "moving_average",
-    "PRESETS", "PointCloud", "Settings", "classify_recording", "process_recording",
+    "PRESETS", "PointCloud", "Settings", "classify_recording", "iter_frames",
+    "process_recording",
     "FormatError", "GeometryError", "MemsStereoError", "NotObservableError", "Recording",
     "System", "acquisition_statistics", "epipolar_pixels", "epipolar_residual",
     "epipolar_segment", "iter_shot_chunks", "load_system", "mirror_normal",

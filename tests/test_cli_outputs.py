@@ -86,8 +86,10 @@ def cached(ctx, monkeypatch):
     """The fits and the processing answer from the module's results."""
     monkeypatch.setattr(calib_mod, "calibrate_system", lambda *a, **k: ctx["cal_line"])
     monkeypatch.setattr(twoaxis_mod, "calibrate_two_axis", lambda *a, **k: ctx["cal_two"])
-    def process(*a, **k):  # the labels are written by the pipeline itself
-        return _PROCESS(*a, **k) if k.get("labels_path") else ctx["proc_line"]
+    def process(*a, **k):  # the labels are written by the pipeline itself; frames (a
+        # table passed) are each a small recording of their own
+        real = k.get("labels_path") or k.get("table") is not None
+        return _PROCESS(*a, **k) if real else ctx["proc_line"]
 
     monkeypatch.setattr(run_mod, "process_recording", process)
     monkeypatch.setattr(pipe2d_mod, "process_recording_2d", lambda *a, **k: ctx["proc_two"])
@@ -131,6 +133,9 @@ def _argv(cmd: str, opt: str, kind: str, out: str, c: dict, tmp: Path) -> list |
         return ["plot", "acquisition", "--shots", "50", "--system", SYSTEMS[kind], "-o", out]
     if cmd == "info":
         return ["info", "--shots", "50", "--system", SYSTEMS[kind], "--plot", out]
+    if cmd == "live":  # frames of a line-sensor recording replayed
+        return ["live", "--replay", RECS["line"], "--rate", "max", "--frame-shots", "400",
+                "-o", out]
     raise AssertionError(f"no command line for {cmd} {opt}")
 
 
@@ -138,7 +143,8 @@ def _cases():
     for (cmd, opt), w in sorted(WRITES.items()):
         for sfx in w.suffixes:
             for kind in ("line", "two"):
-                if (cmd, kind) in (("import", "two"), ("plot histograms", "two")):
+                if (cmd, kind) in (("import", "two"), ("plot histograms", "two"),
+                                   ("live", "two")):
                     continue  # no input of that kind exists for the command
                 yield pytest.param(cmd, opt, sfx, kind, id=f"{cmd}-{opt}-{kind}{sfx}")
 

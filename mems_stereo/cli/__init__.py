@@ -33,7 +33,7 @@ from mems_stereo.cli._ux import HelpfulParser, epilog, examples
 COMMAND_MODULES = [
     "info", "simulate", "process", "calibrate", "export", "view", "render", "plot", "demo",
     "import_",
-    "samples",
+    "samples", "live",
 ]
 
 

@@ -123,6 +123,9 @@ RULES: dict[str, dict[str, Callable]] = {
     "render": dict(_RENDER),
     "plot histograms": {"max_code": count(1, 65535), "row": count(0, 1 << 20)},
     "demo": {"samples": sample_folder},
+    "live": {"frame_shots": count(1, 10**9), "queue_frames": count(1, 1000),
+             "idle_timeout": between(0.0, 1e6), "confidence": probability_open(),
+             "min_range": between(0.0, 1e4, lo_open=True), "false_alarm": probability_open()},
 }
 
 

@@ -71,6 +71,7 @@ IO: dict[str, Spec] = {
     "plot histograms": Spec({"histograms": "file"}, {"output": "plot"}),
     "plot cloud": Spec({"cloud": "file"}, {"output": "plot"}),
     "demo": Spec({"samples": "dir"}, {"output": "dir"}),
+    "live": Spec({"replay": "file", "system": "system", "map": "file"}, {"output": "frames"}),
 }
 
 _STACK: list[OutputPlan] = []

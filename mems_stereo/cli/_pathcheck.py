@@ -22,7 +22,7 @@ import stat
 from pathlib import Path
 
 from mems_stereo import data
-from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES
+from mems_stereo.cli._writes import CLOUD_SUFFIXES, PLOT_SUFFIXES, WRITES, frames_to_folder
 from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.model.presets import UnknownPresetError, system_source
 from mems_stereo.util.jsonfile import read_json_file
@@ -188,8 +188,11 @@ def resolve_outputs(outputs: dict, args) -> list[tuple[str, Path, str]]:
         if v is None:
             continue
         _refuse_empty(name, v)
+        if kind == "frames":  # live -o: a folder (DIR/, or one that exists) or a bag
+            kind = "dir" if str(v).endswith(("/", os.sep)) or os.path.isdir(v) else "cloud"
         if kind == "cloud-or-dir":
-            kind = "dir-of-clouds" if len(getattr(args, "recordings", [])) > 1 else "cloud"
+            many = len(getattr(args, "recordings", [])) > 1 or frames_to_folder(args)
+            kind = "dir-of-clouds" if many else "cloud"
         out.append((name, Path(v), kind))
     return out
 

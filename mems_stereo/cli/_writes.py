@@ -16,6 +16,11 @@ _CLOUD = "mems_stereo.viz.export:write_cloud"
 _FIGURE = "mems_stereo.viz.plots:_save"
 CLOUD_SUFFIXES = (".ply", ".pcd", ".las", ".laz", ".mcap", ".db3")
 PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+#: ``process --frame-rate/--frame-shots -o``: a ROS 2 bag of frames
+#: (mems_stereo.viz.export_frames.FrameBagSink), else a folder of one file per frame in
+#: one of :data:`FRAME_FORMATS` (FrameFolderSink, ``--frame-format``)
+FRAME_BAG_SUFFIXES = (".mcap", ".db3")
+FRAME_FORMATS = ("ply", "pcd", "las", "laz")
 
 
 @dataclass(frozen=True)
@@ -59,6 +64,9 @@ WRITES: dict[tuple[str, str], Written] = {
     ("plot histograms", "output"): Written(_same(PLOT_SUFFIXES, _FIGURE)),
     ("plot cloud", "output"): Written(_same(PLOT_SUFFIXES, _FIGURE)),
     ("demo", "output"): Written({}, folder=True),
+    # a bag of frames, or a folder of frames (DIR/) written as they come
+    ("live", "output"): Written(
+        _same(FRAME_BAG_SUFFIXES, "mems_stereo.viz.export_frames:FrameBagSink"), folder=True),
 }
 
 
@@ -74,3 +82,14 @@ def suffix_help(command: str, option: str) -> str:
 
 PARENTS_HELP = ("create the missing folders of the output paths (as mkdir -p); without it a "
                 "missing folder is refused")
+
+
+def frames_to_folder(args) -> bool:
+    """Whether ``process``'s ``-o`` receives a folder of frames: frames asked for
+    (``--frame-rate``/``--frame-shots``) and the output ends in a slash or is a folder."""
+    import os
+
+    if getattr(args, "frame_rate", None) is None and getattr(args, "frame_shots", None) is None:
+        return False
+    out = str(getattr(args, "output", "") or "")
+    return out.endswith(("/", os.sep)) or os.path.isdir(out)

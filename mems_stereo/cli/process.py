@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
 from mems_stereo.cli._common import Reporter, add_parents_argument, report_peaks_truth_outputs
-from mems_stereo.cli._writes import suffix_help
+from mems_stereo.cli._writes import FRAME_BAG_SUFFIXES, FRAME_FORMATS, suffix_help
 from mems_stereo.errors import FormatError
 from mems_stereo.io.histograms import write_histograms
 from mems_stereo.io.recording2d import is_two_axis_recording
@@ -20,7 +21,10 @@ EXAMPLE = ["mems-stereo samples -o samples",
            "--histograms room_hist.h5",
            "mems-stereo process samples/room.h5 -o room_true.ply "
            "--system samples/calib_true_system.json    # or your calibrated system "
-           "(mems-stereo calibrate --help)"]
+           "(mems-stereo calibrate --help)",
+           "mems-stereo process samples/room.h5 --frame-rate 50 -o frames/    "
+           "# frames/room_000000.ply, ... (docs/frames.md)",
+           "mems-stereo process samples/room.h5 --frame-shots 400 -o room_frames.mcap"]
 
 
 #: defaults of the options the two-axis pipeline has no use for (refused when changed)
@@ -61,6 +65,23 @@ def add_arguments(p):
                    help="the time of a ROS 2 bag's cloud (-o .mcap/.db3): ISO 8601 with a time "
                         "zone, seconds since 1970-01-01 UTC, or 'now' (default: the recording's "
                         "shot clock at its first shot)")
+    add_frame_arguments(p)
+
+
+def add_frame_arguments(p) -> None:
+    """``--frame-rate``, ``--frame-shots``, ``--frame-format``, ``--no-temporal``."""
+    g = p.add_argument_group("frames (docs/frames.md)")
+    g.add_argument("--frame-rate", type=float, default=None, metavar="HZ",
+                   help="a cloud every 1/HZ s of the recording: -o DIR/ (a trailing slash or "
+                        "an existing folder) receives DIR/<name>_<index:06d>.ply per frame, "
+                        f"-o OUT{' or OUT'.join(FRAME_BAG_SUFFIXES)} one PointCloud2 per frame; "
+                        "points carry t (s) and age (frames)")
+    g.add_argument("--frame-shots", type=int, default=None, metavar="N",
+                   help="a cloud every N shots (instead of --frame-rate)")
+    g.add_argument("--frame-format", default="ply", choices=FRAME_FORMATS,
+                   help="file format of the frames in a folder (default ply)")
+    g.add_argument("--no-temporal", action="store_true",
+                   help="every frame on its own (no temporal fusion of the pixels' history)")
 
 
 def _settings(args):
@@ -94,6 +115,8 @@ def run(args) -> int:
         if not r.exists():
             raise FileNotFoundError(2, "file not found", str(r))
     two = [is_two_axis_recording(r) for r in recs]
+    if args.frame_rate is not None or args.frame_shots is not None:
+        return run_frames(args, rep, recs, system, settings, any(two))
     if any(two):  # two-axis recordings: cli/_twoaxis.py
         if not all(two):
             raise FormatError("expected all one-axis or all two-axis recordings, found both",
@@ -138,4 +161,65 @@ def run(args) -> int:
             outputs.append(write_histograms(args.histograms, h["raw"], h["signal"], h["noise"],
                                             attrs={"source": str(res.source)}))
         report_result(rep, res, outputs)
+    return 0
+
+
+def _check_frame_options(args, recs, two_axis: bool) -> bool:
+    """Refuse what frames do not take (before any work); returns whether the frames go
+    to a ROS 2 bag (else to a folder)."""
+    from mems_stereo.cli._outputs import translate
+
+    if args.frame_rate is not None and args.frame_shots is not None:
+        raise FormatError("expected one of --frame-rate and --frame-shots, found both",
+                          field="--frame-rate")
+    if args.frame_rate is not None and not (math.isfinite(args.frame_rate)
+                                            and args.frame_rate > 0):
+        raise FormatError(f"expected a positive number of Hz, found {args.frame_rate:g}",
+                          field="--frame-rate")
+    if args.frame_shots is not None and args.frame_shots < 1:
+        raise FormatError(f"expected a positive number of shots, found {args.frame_shots}",
+                          field="--frame-shots")
+    if two_axis:
+        raise FormatError("frames are made of line-sensor recordings; two-axis recordings "
+                          "are processed whole", field="--frame-rate")
+    # a frame's message is stamped with the frame's start on the recording's clock
+    for name in ("labels", "histograms", "scheduler", "stamp"):
+        if getattr(args, name, None):
+            raise FormatError(f"--{name} is not used with frames", field=f"--{name}")
+    out = Path(args.output)
+    named_bag = Path(translate(str(out))).suffix.lower() in FRAME_BAG_SUFFIXES
+    if named_bag and len(recs) > 1:
+        raise FormatError("a bag of frames takes one recording; give a folder (DIR/)",
+                          field="--output")
+    bag = named_bag and not out.is_dir()
+    if not bag and not out.is_dir():
+        raise FormatError(f"with frames expected a folder (DIR/) or a "
+                          f"{' or '.join(FRAME_BAG_SUFFIXES)} bag, found "
+                          f"{translate(str(out))}",
+                          field="--output")
+    return bag
+
+
+def run_frames(args, rep: Reporter, recs, system, settings, two_axis: bool) -> int:
+    """``process --frame-rate/--frame-shots``: each recording's frames
+    (:func:`~mems_stereo.pipeline.frames.iter_frames`) to a folder or a bag."""
+    from mems_stereo.pipeline.frames import iter_frames
+    from mems_stereo.viz.export_frames import FrameBagSink, FrameFolderSink
+
+    bag = _check_frame_options(args, recs, two_axis)
+    for r in recs:
+        sink = (FrameBagSink(args.output) if bag
+                else FrameFolderSink(args.output, r.stem, args.frame_format))
+        n_frames = n_points = 0
+        with sink, rep.progress(total=None, desc=r.name) as bar:
+            for frame in iter_frames(r, system, frame_rate=args.frame_rate,
+                                     frame_shots=args.frame_shots, settings=settings,
+                                     fusion=not args.no_temporal,
+                                     chunk_shots=settings.chunk_shots):
+                where = sink.write(frame)
+                n_frames += 1
+                n_points += len(frame.cloud)
+                bar.update(frame.counts.shots)
+        rep.info(f"{r}: {n_frames} frames, {n_points} points")
+        rep.info(f"wrote {where if bag else Path(args.output)}")
     return 0

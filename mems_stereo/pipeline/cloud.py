@@ -17,7 +17,11 @@ sigma_phi   float64 (N,)      propagated std of the angle in the x–z plane, ra
 
 Optional: ``row`` int32, ``label`` uint8 (when events are exported),
 ``sigma_x``, ``sigma_y``, ``sigma_z`` float64 (m), ``code`` float64 (peak
-TDC code), anything else of shape (N,).
+TDC code), anything else of shape (N,).  A frame's cloud
+(:mod:`mems_stereo.pipeline.frames`) adds ``t`` float64 (s, the recording's clock: the
+mean time of the shots the point's detections came from), ``age`` int32 (frames of
+history fused into the point, :mod:`mems_stereo.pipeline.temporal`) and ``step_lo``,
+``step_hi`` int32 (its scan-angle band); a cloud of the whole recording has none of them.
 """
 
 from __future__ import annotations

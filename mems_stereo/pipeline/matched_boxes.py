@@ -5,10 +5,13 @@ p-value over them (:class:`BoxGrid`), coarse to fine where the grid is large.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import pdtrc
+
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 #: the most (step × cell) positions a candidate's grid is searched at in full; beyond
 #: (a whole scan's band of steps: candidates search it all, see
@@ -24,6 +27,10 @@ COARSE_TOP = 4
 #: in the refinement the Poisson tail is evaluated only at boxes whose deviance
 #: N ln(N/B) − (N − B) is within this of the largest
 DEVIANCE_MARGIN = 5.0
+#: boxes below which the Poisson tail is evaluated at every valid box (no pruning)
+PRUNE_MIN_BOXES = 64
+#: a reference tail below this (near underflow) evaluates every valid box
+PRUNE_MIN_TAIL = 1e-280
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,11 +81,21 @@ class BoxGrid:
         in blocks of fc (see :meth:`counts`; :meth:`coarse_background` blocks steps)."""
         e_lo = self.c_lo + self.cell * (k0 + fc * np.arange(-(-(k1 - k0) // fc)))
         e_hi = np.minimum(e_lo + self.cell * fc - 1, self.c_lo + self.cell * k1 - 1)
-        a_c = np.maximum(e_lo[None, :], self.lo[j0:j1, None])
-        b_c = np.minimum(e_hi[None, :], self.hi[j0:j1, None])
-        pr = np.where(b_c >= a_c, np.exp((a_c - 1.0) * self.log1mh)
-                      - np.exp(b_c * self.log1mh), 0.0)
-        return self.nps[j0:j1, None] * pr
+        lo, hi, nps = self.lo[j0:j1], self.hi[j0:j1], self.nps[j0:j1]
+        kernel = compiled_if_loaded(_background_py)
+        if kernel is not None and lo.size and e_lo.size:
+            # where a cell meets a step's interval, a - 1 and b lie in [k0, k1]
+            k0 = max(int(e_lo.min()), int(lo.min())) - 1
+            k1 = max(k0, min(int(e_hi.max()), int(hi.max())))
+            table = np.exp(np.arange(k0, k1 + 1) * self.log1mh)
+            return kernel(np.asarray(lo, np.int64), np.asarray(hi, np.int64),
+                          np.asarray(nps, np.float64), e_lo.astype(np.int64),
+                          e_hi.astype(np.int64), table, k0)
+        a_c = np.maximum(e_lo[None, :], lo[:, None])
+        b_c = np.minimum(e_hi[None, :], hi[:, None])
+        pr = np.where(b_c >= a_c, _powers(a_c - 1, self.log1mh)
+                      - _powers(b_c, self.log1mh), 0.0)
+        return nps[:, None] * pr
 
     def coarse_background(self, fs: int, fc: int):
         """The background of blocks of ``fs`` steps × ``fc`` cells over the whole grid,
@@ -145,8 +162,7 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
     tail only at boxes whose Poisson deviance is within :data:`DEVIANCE_MARGIN` of the
     largest (the smallest p lies among them: ln p ≈ −deviance up to slowly varying
     terms)."""
-    N_box = box_sums(D, box_s, box_c)
-    B_box = box_sums(B, box_s, box_c)
+    N_box, B_box = box_sums(np.stack([D, B]), box_s, box_c)
     half = box_s // 2
     valid = np.zeros(N_box.shape, bool)
     if D.shape[0] > 2 * half:
@@ -170,15 +186,104 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
         dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
         valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
     p = np.ones(N_box.shape)  # the tail at the valid boxes only (pdtrc is the cost)
+    tail = _contenders(N_box, B_box, valid)
     with np.errstate(invalid="ignore"):
-        p[valid] = pdtrc(np.maximum(N_box[valid] - 1, 0), np.maximum(B_box[valid], 1e-12))
+        p[tail] = pdtrc(np.maximum(N_box[tail] - 1, 0), np.maximum(B_box[tail], 1e-12))
     k = int(np.argmin(p))
     jj, ci = divmod(k, D.shape[1])
     return BestBox(p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci])
 
 
+def _contenders(N_box, B_box, valid) -> np.ndarray:
+    """``valid`` less the boxes whose Poisson tail surely exceeds the smallest.
+
+    The tail ``P(X >= N | B)`` is at least ``P(X = N | B)``, whose logarithm is, by
+    Stirling's bounds on ln N!, at least ``−dev − ln(2πN)/2 − 1/(12N)`` (dev the
+    Poisson deviance ``N ln(N/B) − (N − B)``, N >= 1).  A box whose bound lies above
+    the tail of the box of largest deviance (by a margin far above the rounding of
+    these sums) can neither hold the minimum nor tie with it: the tail is evaluated at
+    the rest only, and the minimum is the same box with the same value as over all."""
+    n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
+    if n_v.size < PRUNE_MIN_BOXES:
+        return valid
+    dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+    i = int(np.argmax(dev))
+    with np.errstate(invalid="ignore"):
+        p_ref = float(pdtrc(max(n_v[i] - 1, 0), b_v[i]))
+    if not (p_ref > PRUNE_MIN_TAIL and np.isfinite(dev[i])) or n_v.min() < 1:
+        return valid  # near underflow, NaN, a fractional count: every valid box
+    log_point = -dev - 0.5 * np.log(2 * math.pi * n_v) - 1.0 / (12.0 * n_v)
+    margin = 1e-8 * (np.abs(dev) + n_v + b_v) + 1e-9
+    out = valid.copy()
+    out[valid] = ~(log_point > math.log(p_ref) + margin)
+    return out
+
+
 def box_sums(A, h: int, w: int) -> np.ndarray:
-    """Centred box sums of (h, w) (odd) over a 2-D array, zeros beyond its edges."""
-    a = np.pad(A, ((h // 2 + 1, h // 2), (w // 2 + 1, w // 2)))
-    c = np.cumsum(np.cumsum(a, axis=0), axis=1)
-    return c[h:, w:] - c[:-h, w:] - c[h:, :-w] + c[:-h, :-w]
+    """Centred box sums of (h, w) (odd) over the last two axes of a float64 array
+    (k, n, m) or (n, m), zeros beyond its edges: the differences of the running sums
+    (along the steps, then the cells) of the array padded with zeros.  Compiled
+    (:func:`_box_sums_py`, the same additions in the same order: the same numbers)
+    where numba is loaded."""
+    A = np.asarray(A, np.float64)
+    kernel = compiled_if_loaded(_box_sums_py)
+    if kernel is not None:
+        return kernel(np.ascontiguousarray(A.reshape((-1,) + A.shape[-2:])),
+                      int(h), int(w)).reshape(A.shape)
+    n, m = A.shape[-2:]
+    a = np.zeros(A.shape[:-2] + (n + h, m + w))  # A padded with zeros
+    a[..., h // 2 + 1:h // 2 + 1 + n, w // 2 + 1:w // 2 + 1 + m] = A
+    c = np.cumsum(np.cumsum(a, axis=-2), axis=-1)
+    return c[..., h:, w:] - c[..., :-h, w:] - c[..., h:, :-w] + c[..., :-h, :-w]
+
+
+def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
+    """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel)."""
+    k, n, m = A.shape
+    c = np.zeros((n + h, m + w))
+    out = np.empty((k, n, m))
+    for q in range(k):
+        c[:, :] = 0.0
+        for i in range(n):
+            for j in range(m):
+                c[i + h // 2 + 1, j + w // 2 + 1] = A[q, i, j]
+        for i in range(1, n + h):  # running sums along the steps
+            for j in range(m + w):
+                c[i, j] = c[i - 1, j] + c[i, j]
+        for i in range(n + h):  # then along the cells
+            for j in range(1, m + w):
+                c[i, j] = c[i, j - 1] + c[i, j]
+        for i in range(n):
+            for j in range(m):
+                out[q, i, j] = c[i + h, j + w] - c[i, j + w] - c[i + h, j] + c[i, j]
+    return out
+
+
+def _background_py(lo, hi, nps, e_lo, e_hi, table, k0):  # pragma: no cover - numba
+    """:meth:`BoxGrid.background` loop by loop (the numba kernel): ``lo``, ``hi``,
+    ``nps`` (J,) the steps' accepted codes and valid shots, ``e_lo``, ``e_hi`` (K,) the
+    cells' codes, ``table[i]`` = exp((k0 + i) · ln(1 − h)); returns (J, K) float64."""
+    J, K = lo.shape[0], e_lo.shape[0]
+    out = np.empty((J, K))
+    for j in range(J):
+        for k in range(K):
+            a = max(e_lo[k], lo[j])
+            b = min(e_hi[k], hi[j])
+            if b >= a:
+                out[j, k] = nps[j] * (table[a - 1 - k0] - table[b - k0])
+            else:
+                out[j, k] = nps[j] * 0.0
+    return out
+
+
+def _powers(k, log_base) -> np.ndarray:
+    """``exp(k · log_base)`` of the integer array ``k`` (float64, the same numbers as
+    ``np.exp(k * log_base)``): from a table over ``k``'s range where that is smaller
+    than ``k`` (a box grid repeats each code's value over its steps)."""
+    k = np.asarray(k)
+    if k.size == 0:
+        return np.exp(k * log_base)
+    k0, k1 = int(k.min()), int(k.max())
+    if k1 - k0 + 1 >= k.size:
+        return np.exp(k * log_base)
+    return np.exp(np.arange(k0, k1 + 1) * log_base)[k - k0]

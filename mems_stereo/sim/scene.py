@@ -341,6 +341,9 @@ def _object_from_dict(o: Any, i: int, ck: _Checker, base_dir: Path) -> SceneObje
     else:  # mesh
         v, t, mesh_params = _mesh_from_file(o, pre, ck, base_dir)
         p.update(mesh_params)
+    for key in ("velocity", "angular_rate"):  # motion (mems_stereo.sim.motion)
+        if key in o:
+            p[key] = ck.vec(o[key], f"{pre}.{key}", 3)
     return SceneObject(kind, name, refl, np.asarray(v, float), np.asarray(t, np.int64), p)
 
 

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mems_stereo.sim.motion import surface_distance_at, true_hits_at
+
 #: m: the point error is evaluated for true surfaces within this range
 MAX_TRUE_RANGE = 6.0
 
@@ -87,3 +89,39 @@ def score_result_2d(result, recording, scene) -> dict:
     out["recall"] = float(tr.get("recall", float("nan")))
     out["noise_rejection"] = float(tr.get("noise_rejection", float("nan")))
     return out
+
+
+#: m: a point farther than max(3σ_r, this) from every true surface is false
+FALSE_MIN = 0.1
+
+
+def frame_scores(cloud, scene, lit) -> dict:
+    """Each point of a frame scored against the scene at the point's own time ``t``.
+
+    cloud : :class:`~mems_stereo.pipeline.cloud.PointCloud` with ``row``, ``pixel``,
+    ``range``, ``sigma_r`` and ``t`` (s; a frame's cloud).  scene : a
+    :class:`~mems_stereo.sim.scene.Scene`, moving or not (:mod:`mems_stereo.sim.motion`).
+    lit : (H, W) bool, pixels with a true laser return among the frame's shots.
+
+    Returns a dict of (N,) arrays ``error`` (m: range − the true surface's range on the
+    ray through the point, capped at twice the point's distance to the nearest surface,
+    as benchmarks/bench_scenarios.py), ``sigma`` (σ_r), ``object`` (the true surface's
+    object, −1 none), ``false`` (bool: farther than max(3σ_r, :data:`FALSE_MIN`) from
+    every surface), and ``coverage`` (lit pixels with a point that is not false / lit
+    pixels), ``lit`` (their number).
+    """
+    t = cloud["t"] if len(cloud) else np.zeros(0)
+    hits = true_hits_at(scene, cloud.points, t)
+    near = surface_distance_at(scene, cloud.points, t)
+    err = (cloud["range"] - hits.range) if len(cloud) else np.zeros(0)
+    with np.errstate(invalid="ignore"):
+        err = np.sign(err) * np.minimum(np.abs(err), 2.0 * near)
+    sig = cloud["sigma_r"] if len(cloud) else np.zeros(0)
+    false = ~(near <= np.maximum(3.0 * sig, FALSE_MIN))
+    good = np.zeros(np.shape(lit), bool)
+    if len(cloud):
+        good[cloud["row"][~false], cloud["pixel"][~false]] = True
+    n_lit = int(np.sum(lit))
+    return {"error": err, "sigma": sig, "object": hits.object, "false": false,
+            "coverage": float(np.sum(good & lit) / n_lit) if n_lit else float("nan"),
+            "lit": n_lit}

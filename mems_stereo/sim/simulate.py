@@ -33,6 +33,7 @@ from mems_stereo.model.system import System
 from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
 from mems_stereo.physics.pulse import PulseShape
 from mems_stereo.physics.spot import SpotModel, spot_fractions
+from mems_stereo.sim.motion import as_moving, returns_over_time
 from mems_stereo.sim.photons import (
     DENSE_BACKGROUND,
     background_first_arrivals,
@@ -298,7 +299,8 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     Parameters
     ----------
     system : the nominal System written into the recording.
-    scene : :class:`~mems_stereo.sim.scene.Scene`.
+    scene : :class:`~mems_stereo.sim.scene.Scene` (objects with a ``velocity`` or an
+        ``angular_rate`` move: :mod:`mems_stereo.sim.motion`).
     n_shots : K >= 1.
     rng : numpy.random.Generator (the only source of randomness).
     background_hz : ambient detections per second per pixel, scalar or (H, W)
@@ -331,6 +333,7 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     if not 0.0 <= crosstalk <= 1.0:
         raise OptionError(f"crosstalk: expected a probability in [0, 1], found {crosstalk}")
     link = LinkBudget() if opt.link is None else opt.link
+    scene = as_moving(scene)  # objects with a velocity: cast at each shot's time
     spot = SpotModel() if opt.spot is None else opt.spot
     w, h = system.receiver.image_size
     rates = _rates(background_hz, dark_count_hz, (h, w))
@@ -353,7 +356,9 @@ def simulate(system: System, scene: Scene, n_shots: int, *, rng: np.random.Gener
     mu_on = np.zeros(n_shots)
     for s0 in range(0, n_shots, CHUNK_SHOTS):
         s1 = min(n_shots, s0 + CHUNK_SHOTS)
-        ret = shot_returns(ts, scene, theta[s0:s1], link=link, spot=spot, n_emitted=n_emit)
+        ret = returns_over_time(  # a moving scene slice by slice (sim.motion)
+            lambda sc, th: shot_returns(ts, sc, th, link=link, spot=spot, n_emitted=n_emit),
+            scene, shot_time[s0:s1], theta[s0:s1])
         bins[s0:s1], label[s0:s1], mu_on[s0:s1] = _simulate_chunk(
             ts, ret, rates, pulse_shape, spot, crosstalk, rng)
         point[s0:s1], obj[s0:s1], path[s0:s1] = ret["point"], ret["object"], ret["path_length"]

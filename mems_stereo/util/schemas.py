@@ -10,15 +10,17 @@ reader.  ``docs/formats.md`` ("Schemas") is generated from these tables
 
 Kinds (:data:`SCHEMAS`): ``system`` (``mems-stereo/system``), ``tttr-map``
 (``mems-stereo/tttr-map``), ``target-distances``
-(``mems-stereo/target-distances``) and ``scene`` (``mems-stereo/scene``).
+(``mems-stereo/target-distances``) and ``scene`` (``mems-stereo/scene``).  Not a file:
+:data:`LIVE_MESSAGE_FIELDS`, the JSON header of a ZeroMQ live message (``mems-stereo/live``,
+its table in docs/live.md).
 """
 
 from __future__ import annotations
 
 from mems_stereo.util.jsonfile import Field
 
-__all__ = ["DISTANCES_FIELDS", "MAP_FIELDS", "SCENE_FIELDS", "SCHEMAS", "SYSTEM_FIELDS",
-           "schema_markdown"]
+__all__ = ["DISTANCES_FIELDS", "LIVE_MESSAGE_FIELDS", "MAP_FIELDS", "SCENE_FIELDS", "SCHEMAS",
+           "SYSTEM_FIELDS", "schema_markdown"]
 
 _NUMBERS = "array"  # numbers in nested lists; shapes are checked by the readers
 
@@ -187,6 +189,10 @@ _COMMON = {
     "type": Field("string", True, doc="plane, box, sphere, cylinder or mesh"),
     "reflectivity": Field("number", True, doc="Lambertian albedo in (0, 1]"),
     "name": Field("string", doc="label (default type and index)"),
+    "velocity": Field(_NUMBERS, False, "m/s", "3 numbers: velocity, world frame (default "
+                                              "0; the pose written is the one at time 0)"),
+    "angular_rate": Field(_NUMBERS, False, "rad/s", "3 numbers: rotation vector rate about "
+                                                    "the centre (mesh: translation)"),
 }
 _CENTER = Field(_NUMBERS, True, "m", "3 numbers: centre")
 _ROTATION = Field(_NUMBERS, False, "deg", "3 numbers: Euler angles x, y, z")
@@ -214,6 +220,17 @@ SCENE_FIELDS = {
     "name": Field("string", doc="the scene's name"),
     "objects": Field("array", True, doc="the objects", items=Field(
         "object", variants=("type", _OBJECT_VARIANTS))),
+}
+
+# ------------------------------------------------------------------ live messages
+# (a message header, not a file kind: documented in docs/live.md, read by io/live_zmq.py)
+
+LIVE_MESSAGE_FIELDS = {
+    "format": Field("string", True, doc="the message kind", const="mems-stereo/live"),
+    "version": Field("integer", True, doc="format version", const=1),
+    "type": Field("string", True, doc='"system", "shots" or "end" (docs/live.md)'),
+    "n_shots": Field("integer", doc="shots k in a shots message (default 0)"),
+    "n_zero_crossings": Field("integer", doc="zero crossings z in a shots message (default 0)"),
 }
 
 #: file kind → its declared top-level fields

@@ -1,0 +1,216 @@
+"""Live frames (issue 31): per-frame latency, throughput, drops and memory of a live replay.
+
+For each recording (``room``: room light, 100 kHz background per pixel; ``flood``: dense
+floodlight, 6 MHz per pixel: nearly every pixel-slot holds a detection), each frame rate
+(--frame-rates, default 10 20 50 Hz) and each replay rate (--rates, default 1 and max) a
+fresh process runs what ``mems-stereo live --replay REC --rate R --frame-rate HZ -o DIR/``
+runs: the replay source in its own thread, the frame-bounded queue (3 frames), the
+FrameProcessor (warmed up on a synthetic frame before the clock starts) and the folder
+sink writing one PLY per frame.  Printed per run: frames written and dropped, the latency
+of each written frame (wall time when its cloud was written minus the time its end was
+due on the recording's clock, replayed; at ``max``: minus when its last shot arrived),
+median / p99 / max, against the targets (median <= 1 frame period, p99 <= 2, no drop at
+rate 1), throughput (frames and recording seconds per wall second), CPU seconds per wall
+second (how much of the two cores the two threads use), and the resident memory (VmRSS)
+sampled every 0.5 s: its peak in the first and in the last quarter of the run (flat: the
+same) and ru_maxrss.
+
+The recordings are SIMULATED (``benchmarks/_dense.py``, the room scene, seeds 7 and 8)
+with --seconds of shots (default 2 s = 40,000 shots) and cached in --dir; a replay at
+rate 1 loops the recording for --minutes (default 0: one pass), each pass shifted by a
+whole number of mechanical periods so the scan goes on.
+
+Run:  nice .venv/bin/python benchmarks/bench_frames.py [--recordings room flood]
+      [--frame-rates 10 20 50] [--rates 1 max] [--seconds 2] [--minutes 0] [--dir /tmp/bf]
+The log goes to benchmarks/results/bench_frames_<UTC time>.log.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent
+sys.path.insert(0, str(ROOT))
+SEEDS = {"room": (7, 1e5), "flood": (8, 6e6)}
+
+
+def cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return f"{line.split(':', 1)[1].strip()} ({os.cpu_count()} cores)"
+    except OSError:
+        pass
+    return f"{platform.processor() or platform.machine()} ({os.cpu_count()} cores)"
+
+
+def vm_rss_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+# ------------------------------------------------------------------ the child run
+
+def looped_source(path: str, rate, seconds: float):
+    """A ReplaySource that replays ``path`` for ``seconds`` of recording time (at least one
+    pass), each pass shifted by a whole number of mechanical periods."""
+    from mems_stereo.io.live_sources import PIECE_SECONDS, ReplaySource
+
+    class Looped(ReplaySource):
+        def chunks(self):
+            t = self.t_first
+            rec_s = float(self.zero_crossings[-1] - t)
+            period = math.ceil(rec_s * self.system.scanner.f_mech) / self.system.scanner.f_mech
+            loops = max(1, math.ceil(seconds / period))
+            self.wall0 = time.monotonic()
+            last_z = -np.inf
+            for k in range(loops):
+                for c in ReplaySource(self.path, None, chunk_shots=2048).chunks():
+                    ts, zc = c.shot_time + k * period, c.zero_crossings + k * period
+                    keep = zc > last_z + 1e-6
+                    zc, ri = zc[keep], c.rising[keep]
+                    if zc.size:
+                        last_z = float(zc[-1])
+                    step = max(1, int(PIECE_SECONDS * self.system.laser.f_rep))
+                    for a in range(0, ts.size, step if self.rate else ts.size):
+                        s = slice(a, a + (step if self.rate else ts.size))
+                        due = self.due(float(ts[s][-1]))
+                        if due is not None and self._stop.wait(max(0.0, due - time.monotonic())):
+                            self.ended = "stopped"
+                            return
+                        yield self.chunk(ts[s], c.bins[s], zc, ri)
+            self.ended = "finished"
+
+    return Looped(path, rate)
+
+
+def child(path: str, hz: float, rate, seconds: float) -> dict:
+    from mems_stereo.viz.export_frames import FrameFolderSink
+
+    from mems_stereo.pipeline.frames import FrameProcessor
+    from mems_stereo.pipeline.live_queue import LiveRun
+    from mems_stereo.pipeline.live_warmup import warm_up
+
+    src = looped_source(path, rate, seconds)
+    proc = FrameProcessor(src.system, frame_rate=hz)
+    warm = warm_up(proc)
+    rss, done = [], threading.Event()
+
+    def sample():
+        t0 = time.monotonic()
+        while not done.wait(0.5):
+            rss.append((time.monotonic() - t0, vm_rss_mb()))
+
+    threading.Thread(target=sample, daemon=True).start()
+    c0 = time.process_time()
+    with tempfile.TemporaryDirectory() as d:
+        sink = FrameFolderSink(d, "bench")
+        st = LiveRun(src, proc, sink.write, max_queued=3).run()
+    done.set()
+    cpu = time.process_time() - c0
+    r = np.array([v for _, v in rss]) if rss else np.array([vm_rss_mb()])
+    q = max(1, r.size // 4)
+    lat = np.asarray(st.latency) * 1e3
+    return {"written": st.frames_written, "dropped": st.frames_dropped, "shots": st.shots,
+            "shots_dropped": st.shots_dropped, "wall": st.wall, "cpu": cpu, "warm_up": warm,
+            "lat_median": float(np.median(lat)) if lat.size else None,
+            "lat_p99": float(np.percentile(lat, 99)) if lat.size else None,
+            "lat_max": float(lat.max()) if lat.size else None,
+            "rss_first": float(r[:q].max()), "rss_last": float(r[-q:].max()),
+            "rss_max": float(r.max()), "samples": int(r.size),
+            "maxrss": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+# ------------------------------------------------------------------ the parent
+
+def recording(name: str, seconds: float, d: Path) -> Path:
+    from _dense import make_dense_recording
+
+    seed, bg = SEEDS[name]
+    n = int(round(seconds * 20000))
+    path = d / f"{name}_{n}.h5"
+    if not path.exists():
+        t0 = time.perf_counter()
+        info = make_dense_recording(path, n, seed, background_hz=bg)
+        print(f"simulated {path.name}: {n} shots, {bg / 1e6:g} MHz background, seed {seed}, "
+              f"{info['bytes_on_disk'] / 1e6:.0f} MB ({time.perf_counter() - t0:.0f} s)",
+              flush=True)
+    return path
+
+
+def line(name: str, hz: float, rate, r: dict, rec_seconds: float) -> str:
+    period = 1e3 / hz
+    ok = (r["lat_median"] is not None and r["lat_median"] <= period
+          and r["lat_p99"] <= 2 * period and (rate is None or r["dropped"] == 0))
+    lat = ("no frame written" if r["lat_median"] is None else
+           f"latency median {r['lat_median']:.0f} / p99 {r['lat_p99']:.0f} / max "
+           f"{r['lat_max']:.0f} ms (period {period:.0f} ms)")
+    return (f"  {name:5s} {hz:4g} Hz rate {'max' if rate is None else f'{rate:g}':>3s}: "
+            f"{r['written']} written, {r['dropped']} dropped; {lat}; "
+            f"{r['written'] / r['wall']:.2f} frames/s, {rec_seconds / r['wall']:.2f}x real "
+            f"time; CPU {r['cpu'] / r['wall']:.2f} cores, "
+            f"{r['cpu'] / max(r['written'], 1):.2f} CPU s per frame written; RSS first/last "
+            f"quarter {r['rss_first']:.0f}/{r['rss_last']:.0f} MB (max {r['maxrss']:.0f}); warm-up "
+            f"{r['warm_up']:.1f} s; targets {'met' if ok else 'NOT met'}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--recordings", nargs="+", default=["room", "flood"], choices=list(SEEDS))
+    ap.add_argument("--frame-rates", nargs="+", type=float, default=[10.0, 20.0, 50.0])
+    ap.add_argument("--rates", nargs="+", default=["1", "max"])
+    ap.add_argument("--seconds", type=float, default=2.0, help="recording length, s")
+    ap.add_argument("--minutes", type=float, default=0.0,
+                    help="replay at rate 1 loops the recording this long (0: one pass)")
+    ap.add_argument("--dir", default=None)
+    ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.child:
+        path, hz, rate, seconds = a.child
+        print(json.dumps(child(path, float(hz), None if rate == "max" else float(rate),
+                               float(seconds))))
+        return 0
+    d = Path(a.dir or tempfile.mkdtemp(prefix="bench_frames_"))
+    d.mkdir(parents=True, exist_ok=True)
+    stamp = time.strftime("%Y%m%d_%H%M%S", time.gmtime())
+    log = ROOT / "results" / f"bench_frames_{stamp}.log"
+    out = [f"bench_frames {stamp} UTC; CPU {cpu_model()}; load average "
+           f"{os.getloadavg()[0]:.1f}; argv {' '.join(sys.argv[1:])}"]
+    print(out[0], flush=True)
+    for name in a.recordings:
+        path = recording(name, a.seconds, d)
+        for hz in a.frame_rates:
+            for rtext in a.rates:
+                rate = None if rtext == "max" else float(rtext)
+                secs = a.minutes * 60 if (rate is not None and a.minutes) else 0.0
+                p = subprocess.run([sys.executable, __file__, "--child", str(path), str(hz),
+                                    rtext, str(secs)], capture_output=True, text=True)
+                if p.returncode:
+                    out.append(f"  {name} {hz:g} Hz rate {rtext}: FAILED {p.stderr[-400:]}")
+                else:
+                    r = json.loads(p.stdout.strip().splitlines()[-1])
+                    out.append(line(name, hz, rate, r, max(secs, a.seconds)))
+                print(out[-1], flush=True)
+    log.parent.mkdir(exist_ok=True)
+    log.write_text("\n".join(out) + "\n")
+    print(f"log: {log}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

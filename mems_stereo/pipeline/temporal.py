@@ -1,0 +1,156 @@
+"""Temporal fusion of frames: each pixel's points merged over frames while they agree.
+
+A pixel sees at most one point per frame (one peak per pixel, with its scan-angle band:
+the interval table's steps ``step_lo..step_hi`` its pass 2 counted).  For every pixel
+:class:`TemporalFusion` keeps the inverse-variance sums of the points it has fused since
+its last restart.  A new point of the pixel *agrees* with that history when
+
+* its band overlaps the history's last band (the beam meets the pixel's ray at the same
+  scan angles, i.e. the same spot of the surface), and
+* its range and the history's fused range differ by at most
+  ``k·sqrt(σ_r² + σ_acc²)`` — the pipeline's own consistency test (the stereo/ToF test
+  of :func:`~mems_stereo.pipeline.fusion.consistent_points`, the classifier's bound),
+  k = Φ⁻¹((1 + confidence)/2) (2.97 at the default 0.997).
+
+An agreeing point is added (weights w = 1/σ_r²: the fused range and position are the
+w-weighted means, σ_r = (Σw)^−½, the other σ propagated through the fixed weights,
+``sqrt(Σ w² σ²)/Σw``, each σ times the history's Birge ratio where its frames scatter
+more than their σ say, as the pipeline scales a peak's σ by its detections' reduced χ²);
+one that does not agree restarts the pixel's history with itself.
+Nothing is forgotten otherwise: a static surface sharpens as 1/√age, a moving one
+restarts as soon as it has moved by about kσ.  Under the Gaussian errors the bound
+assumes, a static pixel's first false restart comes with probability 1 − confidence per
+frame; a restart starts from the outlier that failed, so more follow (measured:
+docs/frames.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.consistency import k_from_confidence
+
+#: the attributes the fusion replaces by their fused values (besides points)
+FUSED_SIGMAS = ("sigma_x", "sigma_y", "sigma_z", "sigma_phi")
+
+
+class TemporalFusion:
+    """Per-pixel history of fused points of a ``height`` × ``width`` receiver (pixel
+    ``row·width + col``).
+
+    :meth:`update` takes a frame's cloud (attributes ``row``, ``pixel``, ``range``,
+    ``sigma_r``, ``counts``, ``t``, ``step_lo``, ``step_hi`` and the σ of
+    :data:`FUSED_SIGMAS` where present) and returns it fused with each pixel's history:
+    points, ``range``, ``sigma_r``, the σ, ``counts`` (summed) and ``t`` (count-weighted
+    mean) replaced, ``age`` (int32, frames fused) added; the other attributes stay the
+    frame's.  ``tests`` and ``restarts`` count the points that met a history and those
+    of them that did not agree with it.
+    """
+
+    def __init__(self, height: int, width: int, confidence: float = 0.997):
+        self.k = k_from_confidence(confidence)
+        self.width = int(width)
+        P = int(height) * self.width
+        self.age = np.zeros(P, np.int32)
+        self.wsum = np.zeros(P)
+        self.wx = np.zeros((P, 3))
+        self.wr = np.zeros(P)
+        self.wr2 = np.zeros(P)
+        self.w2s = np.zeros((P, len(FUSED_SIGMAS)))
+        self.csum = np.zeros(P)
+        self.ct = np.zeros(P)
+        self.band = np.zeros((P, 2), np.int64)
+        self.tests = 0
+        self.restarts = 0
+
+    def agrees(self, pix: np.ndarray, r: np.ndarray, sigma_r: np.ndarray,
+               band: np.ndarray) -> np.ndarray:
+        """(N,) bool: which points agree with their pixel's history (none without one)."""
+        has = self.age[pix] > 0
+        ws = np.where(has, self.wsum[pix], 1.0)
+        r_acc = self.wr[pix] / ws
+        with np.errstate(invalid="ignore"):
+            z = np.abs(r - r_acc) / np.sqrt(sigma_r ** 2 + 1.0 / ws)
+        overlap = (band[:, 0] <= self.band[pix, 1]) & (band[:, 1] >= self.band[pix, 0])
+        return has & overlap & (z <= self.k)
+
+    def update(self, cloud: PointCloud) -> PointCloud:
+        """The frame's cloud fused with each pixel's history (see the class)."""
+        a = cloud.attributes
+        n = len(cloud)
+        pix = pixel_index(cloud, self.width)
+        s_r = np.asarray(a["sigma_r"], np.float64)
+        ok = np.isfinite(s_r) & (s_r > 0) & np.all(np.isfinite(cloud.points), axis=1)
+        band = np.stack([a["step_lo"], a["step_hi"]], axis=1).astype(np.int64) if n \
+            else np.zeros((0, 2), np.int64)
+        agree = self.agrees(pix, a["range"], s_r, band) & ok
+        had = (self.age[pix] > 0) & ok
+        self.tests += int(had.sum())
+        self.restarts += int((had & ~agree).sum())
+        self._reset(pix[~agree])
+        p, sel = pix[ok], ok
+        w = 1.0 / s_r[sel] ** 2
+        self.age[p] += 1
+        self.wsum[p] += w
+        self.wx[p] += w[:, None] * cloud.points[sel]
+        self.wr[p] += w * a["range"][sel]
+        self.wr2[p] += w * a["range"][sel] ** 2
+        sig = np.stack([np.asarray(a.get(k, np.zeros(n)), np.float64) for k in FUSED_SIGMAS],
+                       axis=1)
+        self.w2s[p] += (w[:, None] * sig[sel]) ** 2
+        c = np.asarray(a["counts"], np.float64)[sel]
+        self.csum[p] += c
+        self.ct[p] += c * np.asarray(a["t"], np.float64)[sel]
+        self.band[p] = band[sel]
+        return self._fused(cloud, pix, ok)
+
+    def scatter_ratio(self, pix: np.ndarray) -> np.ndarray:
+        """(n,) Birge ratio of each pixel's history: sqrt of its reduced χ² of the ranges
+        about their weighted mean, ``Σw(r − r̄)²/(age − 1)``, where it exceeds 1, else 1
+        (1 for a history of one frame)."""
+        ws = self.wsum[pix]
+        chi2 = np.maximum(self.wr2[pix] - self.wr[pix] ** 2 / ws, 0.0)
+        dof = np.maximum(self.age[pix] - 1, 1)
+        return np.sqrt(np.maximum(chi2 / dof, 1.0))
+
+    def _reset(self, pix: np.ndarray) -> None:
+        for arr in (self.age, self.wsum, self.wx, self.wr, self.wr2, self.w2s, self.csum,
+                    self.ct):
+            arr[pix] = 0
+
+    def _fused(self, cloud: PointCloud, pix: np.ndarray, ok: np.ndarray) -> PointCloud:
+        """The cloud with its points' fused values (points not ``ok`` stay as they are,
+        age 1)."""
+        a = dict(cloud.attributes)
+        pts = cloud.points.copy()
+        p = pix[ok]
+        ws = self.wsum[p]
+        birge = self.scatter_ratio(p)
+        pts[ok] = self.wx[p] / ws[:, None]
+        for name, vals in (("range", self.wr[p] / ws), ("sigma_r", birge / np.sqrt(ws)),
+                           ("t", self.ct[p] / np.maximum(self.csum[p], 1e-300))):
+            v = np.array(a[name], np.float64)
+            v[ok] = vals
+            a[name] = v
+        for j, name in enumerate(FUSED_SIGMAS):
+            if name in a:
+                v = np.array(a[name], np.float64)
+                v[ok] = birge * np.sqrt(self.w2s[p, j]) / ws
+                a[name] = v
+        counts = np.array(a["counts"])
+        counts[ok] = np.rint(self.csum[p]).astype(counts.dtype)
+        a["counts"] = counts
+        age = np.ones(len(cloud), np.int32)
+        age[ok] = self.age[p]
+        a["age"] = age
+        return PointCloud(pts, a)
+
+
+def pixel_index(cloud: PointCloud, width: int) -> np.ndarray:
+    """(N,) int64 flat pixel ``row·width + pixel`` of each point (row 0 where the cloud
+    has no ``row``)."""
+    col = np.asarray(cloud["pixel"], np.int64)
+    if "row" not in cloud.attributes:
+        return col
+    return np.asarray(cloud["row"], np.int64) * int(width) + col
