@@ -350,7 +350,7 @@ def test_option_of_another_command_advice():
     """An option of another command is named as such, never "--x (not --x)"."""
     rc, err, _ = run_cli(["info", "--confidence", "0.5"])
     assert rc == 2 and "(not --confidence)" not in err
-    assert err.splitlines()[1] == "  --confidence is an option of process, not of info"
+    assert err.splitlines()[1] == "  --confidence is an option of process and live, not of info"
     rc, err, _ = run_cli(["info", "--confidenc", "0.5"])
     assert "did you mean --confidence (an option of process, not of info)?" in err
     rc, err, _ = run_cli(["plot", "cloud", "c.ply", "-o", "t.png", "--colour-by", "z"])

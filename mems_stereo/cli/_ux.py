@@ -86,7 +86,9 @@ class HelpfulParser(argparse.ArgumentParser):
         cmd, parser = self.command_parser()
         here = f"not of {cmd}" if cmd else "not of mems-stereo itself"
         if name in self.all_option_strings():  # a real option, of other commands
-            return f"{name} is an option of {', '.join(self.commands_with(name))}, {here}"
+            cmds = self.commands_with(name)
+            listed = " and ".join([", ".join(cmds[:-1]), cmds[-1]] if len(cmds) > 1 else cmds)
+            return f"{name} is an option of {listed}, {here}"
         own = [o for o in parser._option_string_actions if o.startswith("--")]
         s = suggest(name, own) if parser is not self else None
         if s:
