@@ -352,7 +352,7 @@ def test_option_of_another_command_advice():
     assert rc == 2 and "(not --confidence)" not in err
     assert err.splitlines()[1] == "  --confidence is an option of process and live, not of info"
     rc, err, _ = run_cli(["info", "--confidenc", "0.5"])
-    assert "did you mean --confidence (an option of process, not of info)?" in err
+    assert "did you mean --confidence (an option of process and live, not of info)?" in err
     rc, err, _ = run_cli(["plot", "cloud", "c.ply", "-o", "t.png", "--colour-by", "z"])
     assert rc == 2 and "did you mean --color-by (not --colour-by)?" in err
 

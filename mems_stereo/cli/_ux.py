@@ -86,9 +86,7 @@ class HelpfulParser(argparse.ArgumentParser):
         cmd, parser = self.command_parser()
         here = f"not of {cmd}" if cmd else "not of mems-stereo itself"
         if name in self.all_option_strings():  # a real option, of other commands
-            cmds = self.commands_with(name)
-            listed = " and ".join([", ".join(cmds[:-1]), cmds[-1]] if len(cmds) > 1 else cmds)
-            return f"{name} is an option of {listed}, {here}"
+            return f"{name} is an option of {_listed(self.commands_with(name))}, {here}"
         own = [o for o in parser._option_string_actions if o.startswith("--")]
         s = suggest(name, own) if parser is not self else None
         if s:
@@ -96,7 +94,7 @@ class HelpfulParser(argparse.ArgumentParser):
         s = suggest(name, self.all_option_strings())
         if not s:
             return None
-        return f"did you mean {s} (an option of {', '.join(self.commands_with(s))}, {here})?"
+        return f"did you mean {s} (an option of {_listed(self.commands_with(s))}, {here})?"
 
     def error(self, message: str):  # noqa: D102 - argparse's hook
         hint = None
@@ -219,3 +217,8 @@ class StatusProgress:
     def __exit__(self, *exc):
         self.bar.close()
         return False
+
+
+def _listed(names: list[str]) -> str:
+    """``['a']`` -> ``a``; ``['a', 'b', 'c']`` -> ``a, b and c``."""
+    return " and ".join([", ".join(names[:-1]), names[-1]]) if len(names) > 1 else names[0]
