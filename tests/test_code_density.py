@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from mems_stereo.calib.code_density import code_edges, code_widths, first_photon_tables
+
 from mems_stereo.errors import ShapeError
 
 

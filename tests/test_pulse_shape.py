@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from mems_stereo.calib.pulse_shape import fit_pulse_shape
+
 from mems_stereo.errors import ShapeError
 
 CORE = 0.4e-9
