@@ -3,12 +3,21 @@
     python samples/make_samples.py              # all samples, into samples/
     python samples/make_samples.py --only room  # one of: room floodlight calib
     python samples/make_samples.py --out /tmp/s # elsewhere (tests compare two runs)
+    python samples/make_samples.py --hardware imperfect --out /tmp/s
+                                                # recorded by imperfect hardware
 
 Every recording is made by :func:`mems_stereo.sim.simulate` with a
 ``numpy.random.default_rng(seed)``; the seeds, shot counts and backgrounds
 are listed in ``SAMPLES`` below and in samples/README.md.  All of them are
 recorded by one true system (nominal + ``CALIB_OFFSETS``, written as
 calib_true_system.json) and carry the nominal system in ``/system``.
+
+``--hardware imperfect`` records them with the hardware model of
+``docs/hardware.md`` added to the true system (:data:`HARDWARE_SEED`,
+``mems_stereo.sim.Imperfections.typical()``: 0.3 % third harmonic, edge delays
+300 / 100 ns, a 20 % tail of 2 ns, 100 ps per-pixel offsets, DNL), as a real
+prototype records them; the true system written then carries those members.
+The bundled samples are the ideal-hardware ones.
 """
 
 from __future__ import annotations
@@ -21,7 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from mems_stereo.model.system import System, burkard2022, save_system
-from mems_stereo.sim import SimulationOptions, load_scene, simulate, write_simulation
+from mems_stereo.sim import (
+    Imperfections,
+    SimulationOptions,
+    load_scene,
+    simulate,
+    write_simulation,
+)
 
 HERE = Path(__file__).resolve().parent
 
@@ -33,6 +48,10 @@ CALIB_OFFSETS = {
     "tdc_offset": 1.0e-9,  # s
     "phase_offset": 0.012,  # rad
 }
+
+
+#: seed of the imperfections' random parts (per-pixel offsets, DNL) for --hardware imperfect
+HARDWARE_SEED = 30
 
 
 @dataclass(frozen=True)
@@ -67,9 +86,18 @@ def calib_true_system() -> System:
     return nom.with_params(**params)
 
 
-def make_sample(s: Sample, out: Path) -> Path:
+def with_hardware(system: System, hardware: str) -> System:
+    """``system`` as recorded by ``"ideal"`` hardware (itself) or ``"imperfect"``
+    (``Imperfections.typical()`` drawn with :data:`HARDWARE_SEED`)."""
+    if hardware == "ideal":
+        return system
+    return Imperfections.typical().apply(system, np.random.default_rng(HARDWARE_SEED))
+
+
+def make_sample(s: Sample, out: Path, hardware: str = "ideal") -> Path:
     nominal = nominal_system()
-    true = calib_true_system() if s.true_system == "calib" else nominal
+    true = with_hardware(calib_true_system() if s.true_system == "calib" else nominal,
+                         hardware)
     rec = simulate(nominal, load_scene(HERE / s.scene), s.n_shots,
                    rng=np.random.default_rng(s.seed), background_hz=s.background_hz,
                    true_system=true, options=SimulationOptions(drift=s.drift))
@@ -82,16 +110,20 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(HERE), help="output folder (default: samples/)")
     ap.add_argument("--only", choices=["room", "floodlight", "calib"], default=None)
+    ap.add_argument("--hardware", choices=["ideal", "imperfect"], default="ideal",
+                    help="record with ideal hardware (default; the bundled samples) or "
+                         "with typical imperfections (docs/hardware.md)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    true = with_hardware(calib_true_system(), args.hardware)
     for name, system in (("nominal_system", nominal_system()),
-                         ("calib_true_system", calib_true_system())):
+                         ("calib_true_system", true)):
         save_system(system, out / f"{name}.json").chmod(0o644)
     for s in SAMPLES:
         if args.only and not s.name.startswith(args.only):
             continue
-        p = make_sample(s, out)
+        p = make_sample(s, out, args.hardware)
         print(f"{p}  ({p.stat().st_size / 1e6:.2f} MB, seed {s.seed}, {s.n_shots} shots, "
               f"{s.background_hz:g} Hz)")
     return 0

@@ -42,7 +42,7 @@ from mems_stereo.model.camera import pixels_to_rays
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import path_length_from_codes
-from mems_stereo.physics.pulse import FWHM_PER_SIGMA
+from mems_stereo.physics.pulse import pulse_sigma_of
 from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA
 
 #: default 1-σ scan-angle uncertainty, rad (mirror angle; the beam turns by 2θ)
@@ -123,7 +123,7 @@ def spreads_for(system: System, *, timing_jitter: float = 0.0,
     pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
     su = math.sqrt(ex * ex / 12.0 + (spot_sigma / pitch[0]) ** 2)
     sv = math.sqrt(ey * ey / 12.0 + (spot_sigma / pitch[1]) ** 2)
-    sp = system.laser.pulse_fwhm / FWHM_PER_SIGMA if include_pulse else 0.0
+    sp = pulse_sigma_of(system.laser) if include_pulse else 0.0  # docs/hardware.md
     sq = system.tdc.bin_width / math.sqrt(12.0)
     st = math.sqrt(sp * sp + timing_jitter ** 2 + sq * sq)
     names = tuple(param_names)

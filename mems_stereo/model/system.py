@@ -32,6 +32,7 @@ from mems_stereo.model.hardware import (
     validate_camera_matrix,
     validate_normal_basis,
 )
+from mems_stereo.model.hardware_json import hardware_from_dict, hardware_to_dict
 from mems_stereo.model.presets import (
     PRESETS,
     TWO_AXIS_PRESETS,
@@ -81,6 +82,7 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     calib = d.get("calibration")
     if calib is not None and not isinstance(calib, dict):
         raise ctx.fail("calibration", f"expected an object, found {type(calib).__name__}")
+    scanner, laser, tdc = hardware_from_dict(d, receiver, scanner, laser, tdc, ctx)
     system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib))
     check_plausible(system, source)
     return system
@@ -255,6 +257,7 @@ def system_to_dict(system: System) -> dict:
         d["scanner"]["phase_offset"] = float(s.phase_offset)
     if s.axis2 is not None:  # two-axis extension (docs/two_axis.md)
         d["scanner"]["axis2"] = axis2_to_dict(s.axis2)
+    hardware_to_dict(s, la, t, d)  # the hardware model's members (docs/hardware.md)
     if system.calibration is not None:
         d["calibration"] = copy.deepcopy(system.calibration)
     return d

@@ -19,7 +19,13 @@ import numpy as np
 
 from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import spreads_for
-from mems_stereo.physics.first_photon import MU_MAX, firing_probability, first_photon_delay
+from mems_stereo.physics.first_photon import (
+    MU_MAX,
+    firing_probability,
+    first_photon_delay,
+    shape_delay_excess,
+)
+from mems_stereo.physics.pulse import pulse_shape_of
 from mems_stereo.physics.spot import spot_fraction
 
 #: peaks per block of the first-photon correction (by peak index; see
@@ -224,7 +230,7 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     # background that fires the pixel first removes the late part of the
     # pulse: the recorded returns' density is the pulse's times exp(−λt),
     # a further shift of −λσ² (exact for a Gaussian pulse)
-    d = d - acc.rate_hz[idx] * sigma * sigma
+    d = with_pulse_shape(s, sp, d - acc.rate_hz[idx] * sigma * sigma, mu, sigma)
     dL[ok] = -c * d  # path length to add: the arrivals were early by d
     dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
     # the model's own systematic uncertainty (pulse shape, spot profile, the
@@ -241,6 +247,16 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     D, G = acc.sums.tof.dL()
     x, C = tof
     return FirstPhotonCorrection(**out, tof=(x + D * dL[:, None], C + G * dvar[:, None, None]))
+
+
+def with_pulse_shape(system, spreads, delay, mu, sigma: float):
+    """``delay`` (s) plus what a non-Gaussian pulse (``docs/hardware.md``) adds to the
+    Gaussian model's first-photon delay at μ0 = ``mu`` (:func:`shape_delay_excess`);
+    ``delay`` itself for the Gaussian pulse."""
+    if system.laser.pulse_shape is None:
+        return delay
+    shape = pulse_shape_of(system.laser, spreads.sigma_t_jitter)
+    return delay + shape_delay_excess(mu, shape, sigma)
 
 
 def _beyond_model(acc, q, n_band, f_band, mu):
