@@ -30,7 +30,11 @@ from mems_stereo.model.tdc import (
     path_length_from_codes,
 )
 from mems_stereo.model.trajectory import trajectory_shape, zero_crossing_phases
-from mems_stereo.physics.first_photon import first_photon_mean_delay
+from mems_stereo.physics.first_photon import (
+    ShapeExcess,
+    first_photon_mean_delay,
+    first_photon_mean_truncated,
+)
 from mems_stereo.physics.pulse import (
     PulseShape,
     emg_cdf,
@@ -142,6 +146,18 @@ def test_ex_gaussian_first_photon_mean_against_monte_carlo():
     se = first.std() / math.sqrt(first.size)
     assert first_photon_mean_delay(mu, shape) == pytest.approx(mc, abs=4 * se + 2e-12)
     assert first_photon_mean_delay(1e-12, shape) == pytest.approx(w * tau, rel=1e-4)
+    # the TDC window opening at −1 ns: photons before it are lost
+    d2 = np.where(d >= -1e-9, d, np.inf)
+    first2 = np.minimum.reduceat(d2, np.concatenate([[0], np.cumsum(n)[:-1]]))
+    first2 = first2[np.isfinite(first2)]
+    se2 = first2.std() / math.sqrt(first2.size)
+    got = first_photon_mean_truncated(np.array([mu]), np.array([-1e-9]), shape)[0, 0]
+    assert got == pytest.approx(first2.mean(), abs=4 * se2 + 2e-12)
+    # the Gaussian model plus the shape's excess is the shape's first-photon mean
+    mean_g = first_photon_mean_truncated(np.array([mu]), np.array([-1e-9 - w * tau]),
+                                         PulseShape.gaussian(2.3548200450309493 * 3e-9))
+    ex = ShapeExcess(shape, 3e-9)(mu, -1e-9 - w * tau)
+    assert mean_g[0, 0] + ex == pytest.approx(got - w * tau, abs=0.01 * 3e-9)  # table interp.
     lz = full_system().laser
     samples = (rng.normal(0, lz.pulse_fwhm / 2.3548200450309493, 200_000)
                + np.where(rng.random(200_000) < 0.2, rng.exponential(2e-9, 200_000), 0.0))
@@ -237,3 +253,27 @@ def test_imperfect_recording_processed_with_the_full_model_is_as_good_as_ideal()
     e_cos = np.abs(th_cos - rec.truth["theta"])
     assert np.median(e_full) < 2e-5 and e_full.max() < 1.5e-4
     assert np.median(e_cos) > 5 * np.median(e_full) and e_cos.max() > 5e-4
+
+
+@pytest.mark.stress
+def test_simulated_background_fills_codes_by_their_widths():
+    """The simulator's code-density signature (floodlight, 1000 shots, ~10 s): the first
+    background photon's code N has P ∝ exp(−λ e_{N−1}) − exp(−λ e_N) with the DNL's
+    edges e (χ²/dof ≈ 1), not with equal widths."""
+    from mems_stereo.model.tdc import code_edges
+    from mems_stereo.sim import load_scene, simulate
+
+    nom = burkard2022()
+    true = Imperfections(dnl_periodic=0.15).apply(nom, np.random.default_rng(2))
+    rec = simulate(nom, load_scene(SAMPLES / "room_scene.json"), 1000,
+                   rng=np.random.default_rng(3), background_hz=6e6, true_system=true)
+    b = rec.bins[rec.truth["label"] == 2].astype(np.int64)
+    h = np.bincount(b, minlength=4097)[1:301]
+    lam = 6e6 + 1e3  # background + dark counts
+    chi2 = []
+    for tdc in (true.tdc, nom.tdc):
+        e = code_edges(tdc)
+        p = np.exp(-lam * e[:-1]) - np.exp(-lam * e[1:])
+        ex = p[:300] / p.sum() * b.size
+        chi2.append(np.sum((h - ex) ** 2 / ex) / 300)
+    assert chi2[0] < 1.3 < 2.0 < chi2[1]

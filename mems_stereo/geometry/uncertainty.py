@@ -113,7 +113,8 @@ def spreads_for(system: System, *, timing_jitter: float = 0.0,
     ----------
     timing_jitter : float, s, 1-σ trigger + SPAD jitter.
     sigma_theta : float, rad, 1-σ scan (mirror) angle.
-    include_pulse : add the laser pulse (σ = pulse_fwhm / 2.3548).
+    include_pulse : add the laser pulse (its σ, :func:`~mems_stereo.physics.pulse.pulse_sigma_of`:
+        pulse_fwhm / 2.3548 for the Gaussian).
     spot_sigma : float, m on the sensor, 1-σ of the laser spot's image,
         added in quadrature to the pixel extent (converted with the pitch).
     pixel_extent : ``"pixel"`` or ``"spad"``, see :func:`pixel_extent_px`.

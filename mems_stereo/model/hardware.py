@@ -197,6 +197,7 @@ class System:
         sc, rc = self.scanner, self.receiver
         b = np.asarray(sc.position, dtype=np.float64) * 1e3
         cal = ", calibrated" if self.calibration else ""
+        cal += "" if self.ideal_hardware else ", hardware model"
         return (f"<System {rc.width}x{rc.height} px receiver, baseline ({b[0]:.4g}, {b[1]:.4g}, "
                 f"{b[2]:.4g}) mm, theta0 {sc.theta0 * 1e3:.4g} mrad, "
                 f"f_mech {sc.f_mech:g} Hz, f_rep {self.laser.f_rep:g} Hz, "
