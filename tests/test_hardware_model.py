@@ -133,6 +133,27 @@ def test_harmonic_trajectory_and_edge_delays_recovered_from_the_monitor():
     assert np.max(np.abs(th0 - traj.theta(t))) > 1e-4  # what the ideal model misses
 
 
+def test_two_axis_fast_axis_follows_its_harmonics_and_edges():
+    from dataclasses import replace
+
+    from mems_stereo.model.presets import lissajous64
+    from mems_stereo.model.scanner2d import Axis2Monitor, scan_angles_2d
+
+    s = lissajous64()
+    sc = replace(s.scanner, harmonics=(Harmonic(3, 0.004, 0.5),),
+                 monitor=MonitorEdges(250e-9, 50e-9))
+    a2 = sc.axis2
+    t = np.arange(2000) / s.laser.f_rep
+    rng = np.random.default_rng(4)
+    tr1 = Trajectory.from_scanner(sc, phase=0.3)
+    zc, ri = monitor_zero_crossings(tr1, t, rng, 0.0)
+    tr2 = Trajectory(a2.f_mech, 1.1, 0.0, 0.0, a2.theta0, a2.theta_mech_max, 0.0)
+    z2, r2 = monitor_zero_crossings(tr2, t, rng, 0.0)
+    th1, _, valid = scan_angles_2d(t, zc, ri, Axis2Monitor(zero_crossings=z2, rising=r2), sc)
+    assert valid.all()
+    np.testing.assert_allclose(th1, tr1.theta(t), atol=1e-9)
+
+
 def test_ex_gaussian_first_photon_mean_against_monte_carlo():
     sig, w, tau, mu = 2e-9, 0.3, 3e-9, 2.5
     shape = ex_gaussian_shape(sig, w, tau)
