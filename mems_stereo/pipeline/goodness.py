@@ -52,7 +52,7 @@ SWEEPS = 12
 AGREEMENT_RMS = 1.3
 
 ADVICE = {
-    "scan phase": ("residuals follow the scan phase like a {detail} of the mirror",
+    "scan phase": ("residuals follow the scan phase like a {detail}",
                    "calibrate with trajectory harmonics (mems-stereo calibrate --model full)"),
     "scan direction": ("rising and falling sweeps disagree by {detail}",
                        "unequal monitor edge delays: calibrate with edge delays "
@@ -191,7 +191,8 @@ def _details(name: str, coef, effect: float, groups: int, scale: float, unit: st
     if name == "scan phase":
         amp = np.hypot(coef[0::2], coef[1::2])
         i = int(np.argmax(amp))
-        return f"{_ordinal(i + 2)} harmonic (amplitude {amp[i] * scale:.3g} {unit})"
+        return (f"{_ordinal(i + 2)} harmonic of the mirror (amplitude {amp[i] * scale:.3g} "
+                f"{unit})")
     if name == "scan direction":
         return f"{2.0 * abs(float(coef[0])) * scale:.3g} {unit}"
     if name in ("pixel", "TDC code"):
