@@ -106,10 +106,13 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
         raise ValueError(f"model: expected 'ideal' or 'full', found {model!r}")
     out = fit_walls(walls, nominal, free=free, fix=fix, priors=priors,
                     on_unobservable=on_unobservable, progress=progress, **fit_kwargs)
-    if out and model == "full":
-        from mems_stereo.calib.full_model import add_hardware_terms
+    if model == "full":
+        from mems_stereo.calib.full_model import add_hardware_terms, rescue
 
-        out = add_hardware_terms(out, tuple(harmonics), progress, **fit_kwargs)
+        if not out and out.kind == "estimate":
+            out = rescue(out, walls, nominal, priors, tuple(harmonics), progress, **fit_kwargs)
+        if out:
+            out = add_hardware_terms(out, tuple(harmonics), progress, **fit_kwargs)
     if out:
         from mems_stereo.calib.goodness import judge
 

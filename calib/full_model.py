@@ -10,6 +10,7 @@ An ideal-hardware calibration selects nothing and is returned unchanged.
 
 from __future__ import annotations
 
+import numpy as np
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib.fit import fit_walls
 from mems_stereo.calib.solver import StartValues
@@ -23,6 +24,8 @@ RECORD_ADVICE = {
 }
 
 
+#: a term of the rescue fit further than this many σ from ideal is kept
+KEEP_SIGMA = 3.0
 #: rounds of forward selection
 MAX_STEPS = 4
 
@@ -103,3 +106,38 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     out.extra["pixel_offsets"] = po
     out.system = out.system.replace(calibration=out.calibration_dict())
     return out
+
+
+def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=None,
+           **fit_kwargs):
+    """A full-model calibration when the ideal model's fit converged but failed its
+    checks (a misfit the hardware terms may explain): every candidate term free from
+    the failed fit's values, then the terms within :data:`KEEP_SIGMA` σ of ideal
+    dropped and the rest fitted again.  Returns the result, or ``failure`` unchanged
+    when the failed fit has no values for every wall or the extended fits fail too."""
+    d = failure.details or {}
+    if "values" not in d or "walls" not in d or len(d["walls"]) != len(walls):
+        return failure
+    names = [n for b in hf.candidate_blocks(orders).values() for n in b]
+    free = list(d["values"]) + names
+    start = StartValues({**d["values"], **{n: nominal.get_param(n) for n in names}},
+                        np.asarray(d["walls"], dtype=np.float64))
+    if progress:
+        progress("the ideal model failed its checks: fitting every hardware term")
+    r = fit_walls(walls, nominal, free=free, priors=priors, initial=start,
+                  on_unobservable="warn", **fit_kwargs)
+    if not r:
+        return failure
+    keep = [n for n in names if n in r.names and n not in r.unobservable
+            and abs(r.values[n]) > KEEP_SIGMA * r.std[n]]
+    blocks = {n.split("_")[0] for n in keep}  # a harmonic keeps both its terms
+    keep = [n for n in names if n.split("_")[0] in blocks]
+    values, wp = r.extra["problem"].layout.unpack(r.extra["x"])
+    r2 = fit_walls(walls, nominal, free=list(d["values"]) + keep, priors=priors,
+                   initial=StartValues(values, wp), on_unobservable="warn", **fit_kwargs)
+    if not r2:
+        return failure
+    r2.warnings.insert(0, "the ideal model failed its checks (" + failure.reason[:120]
+                       + "...): the hardware terms " + (", ".join(keep) or "none")
+                       + " were fitted")
+    return r2

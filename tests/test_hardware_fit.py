@@ -114,3 +114,29 @@ def test_score_tests_and_pixel_offsets():
     c = po2.covered & np.isfinite(po2.std)
     err = (po2.value[c] - (off[c] - np.average(off[c], weights=1 / po2.std[c] ** 2)))
     assert np.sqrt(np.mean((err / po2.std[c]) ** 2)) == pytest.approx(1.0, abs=0.5)
+
+
+def test_hardware_page_renders(tmp_path):
+    from types import SimpleNamespace
+
+    from matplotlib.backends.backend_pdf import PdfPages
+    from matplotlib.figure import Figure
+    from mems_stereo.calib.code_density import code_widths
+    from mems_stereo.calib.goodness import calibration_goodness
+    from mems_stereo.calib.pulse_shape import fit_pulse_shape
+    from mems_stereo.viz.calib_report_hardware import hardware_page, inl_panel
+
+    rng = np.random.default_rng(3)
+    prob, x = _synthetic_problem(rng)
+    result = SimpleNamespace(system=prob.system, extra={
+        "problem": prob, "x": x, "pixel_offsets": pixel_offsets(prob, x),
+        "hardware_tests": score_tests(prob, x, candidate_blocks((3,))),
+        "goodness": calibration_goodness(prob, x),
+        "pulse": fit_pulse_shape(rng.normal(0.0, 1e-9, 800), window=(-5e-9, 5e-9))})
+    path = tmp_path / "hw.pdf"
+    with PdfPages(str(path)) as pdf:
+        assert hardware_page(pdf, result)
+        assert not hardware_page(pdf, SimpleNamespace(extra={}))  # a failure: no page
+    assert path.read_bytes()[:4] == b"%PDF"
+    codes = rng.integers(0, 33, size=(500, 4))
+    inl_panel(Figure().subplots(), code_widths(codes, 32))

@@ -174,7 +174,7 @@ def test_report_for_the_bundled_walls(tmp_path):
     assert res
     p = write_calibration_report(res, tmp_path / "walls.pdf", recordings=recs)
     n, data = _pdf_pages(p)
-    assert n == 4 and b"CONVERGED" in data
+    assert n == 5 and b"CONVERGED" in data  # + the hardware page (issue 30)
     # the recomputed residuals of the real walls: centred, about a pixel's spread
     from mems_stereo.calib.association import wall_data
     from mems_stereo.viz.calib_report import inliers
