@@ -121,11 +121,15 @@ class MonitorEdges:
 class PulseModel:
     """A pulse shape beyond the Gaussian (``docs/hardware.md``).
 
-    model : ``"ex-gaussian"``: the density (1 − w)·N(0, σ) + w·EMG(σ, τ), σ from the
+    Attributes
+    ----------
+    model : str
+        ``"ex-gaussian"``: the density (1 − w)·N(0, σ) + w·EMG(σ, τ), σ from the
         laser's ``pulse_fwhm`` (delay 0 is the Gaussian core's peak), w =
         ``tail_fraction``, τ = ``tail_decay`` (s); or ``"table"``: ``times`` (m,) s
         increasing and ``power`` (m,) ≥ 0, the measured instrument response.
-    tail_fraction_std, tail_decay_std : σ where estimated, else None.
+    tail_fraction_std, tail_decay_std : float or None
+        σ where estimated, else None.
     """
 
     model: str = "ex-gaussian"

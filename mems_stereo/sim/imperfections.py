@@ -58,13 +58,19 @@ def dnl_code_widths(n_bins: int, rng: np.random.Generator, periodic: float = 0.1
 class Imperfections:
     """Amounts of the five imperfections (0 / empty / None: that one is ideal).
 
-    harmonics : tuple of :class:`~mems_stereo.model.hardware.Harmonic` (amplitude
-        relative to θ_mech,max).
-    rising_delay, falling_delay : s, the monitor's edge delays (both 0: none).
-    tail_fraction, tail_decay : the ex-gaussian pulse's tail (share, s).
-    pixel_offset_sigma : s, σ of the per-pixel TDC offsets (drawn, mean removed).
-    dnl_periodic, dnl_period, dnl_random : the code widths (LSB, codes, LSB;
-        :func:`dnl_code_widths`).
+    Attributes
+    ----------
+    harmonics : tuple
+        :class:`~mems_stereo.model.hardware.Harmonic` s (amplitude relative to
+        θ_mech,max).
+    rising_delay, falling_delay : float
+        s, the monitor's edge delays (both 0: none).
+    tail_fraction, tail_decay : float
+        the ex-gaussian pulse's tail (share, s).
+    pixel_offset_sigma : float
+        s, σ of the per-pixel TDC offsets (drawn, mean removed).
+    dnl_periodic, dnl_period, dnl_random : float, int, float
+        the code widths (LSB, codes, LSB; :func:`dnl_code_widths`).
     """
 
     harmonics: tuple = ()
