@@ -298,3 +298,20 @@ def test_simulated_background_fills_codes_by_their_widths():
         ex = p[:300] / p.sum() * b.size
         chi2.append(np.sum((h - ex) ** 2 / ex) / 300)
     assert chi2[0] < 1.3 < 2.0 < chi2[1]
+
+
+def test_tabulated_pulse_moments_and_code_time():
+    from dataclasses import replace
+
+    from mems_stereo.model.hardware import PulseModel, pulse_mean_delay
+
+    sig, shift = 2e-9, 0.7e-9
+    t = np.linspace(-15e-9, 15e-9, 3001)
+    laser = replace(burkard2022().laser, pulse_shape=PulseModel(
+        "table", times=t, power=np.exp(-0.5 * ((t - shift) / sig) ** 2)))
+    assert pulse_mean_delay(laser) == pytest.approx(shift, rel=1e-6)
+    assert pulse_sigma_of(laser) == pytest.approx(sig, rel=1e-4)
+    s = burkard2022().replace(laser=laser)
+    L = detection_path_length(np.array([100]), s)
+    L0 = path_length_from_codes(np.array([100]), s.tdc, s.speed_of_light)
+    assert L[0] == pytest.approx(L0[0] - s.speed_of_light * shift, abs=1e-9)
