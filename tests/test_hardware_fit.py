@@ -132,7 +132,7 @@ def test_hardware_page_renders(tmp_path):
         "problem": prob, "x": x, "pixel_offsets": pixel_offsets(prob, x),
         "hardware_tests": score_tests(prob, x, candidate_blocks((3,))),
         "goodness": calibration_goodness(prob, x),
-        "pulse": fit_pulse_shape(rng.normal(0.0, 1e-9, 800), window=(-5e-9, 5e-9))})
+        "pulse": fit_pulse_shape(rng.normal(0.0, 1e-9, 300), window=(-5e-9, 5e-9))})
     path = tmp_path / "hw.pdf"
     with PdfPages(str(path)) as pdf:
         assert hardware_page(pdf, result)
@@ -140,3 +140,21 @@ def test_hardware_page_renders(tmp_path):
     assert path.read_bytes()[:4] == b"%PDF"
     codes = rng.integers(0, 33, size=(500, 4))
     inl_panel(Figure().subplots(), code_widths(codes, 32))
+
+
+def test_calibration_goodness_refuses_naming_the_effect():
+    from types import SimpleNamespace
+
+    from mems_stereo.calib.goodness import judge
+
+    def result(offsets):
+        prob, x = _synthetic_problem(np.random.default_rng(2), offsets)
+        return SimpleNamespace(extra={"problem": prob, "x": x}, warnings=[], elapsed=0.0)
+
+    clean = result(None)
+    assert judge(clean) is clean and clean.extra["goodness"][0].passed
+    off = np.zeros(192)
+    off[::2] = 1.5e-9
+    failed = judge(result(off - off.mean()))
+    assert not failed and failed.kind == "estimate"
+    assert "per-pixel TDC offsets" in failed.reason and "--inflate-sigma" in failed.reason
