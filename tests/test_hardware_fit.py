@@ -123,7 +123,7 @@ def test_hardware_page_renders(tmp_path):
     from matplotlib.figure import Figure
     from mems_stereo.calib.code_density import code_widths
     from mems_stereo.calib.goodness import calibration_goodness
-    from mems_stereo.calib.pulse_shape import fit_pulse_shape
+    from mems_stereo.calib.pulse_shape import PulseFit
     from mems_stereo.viz.calib_report_hardware import hardware_page, inl_panel
 
     rng = np.random.default_rng(3)
@@ -132,7 +132,9 @@ def test_hardware_page_renders(tmp_path):
         "problem": prob, "x": x, "pixel_offsets": pixel_offsets(prob, x),
         "hardware_tests": score_tests(prob, x, candidate_blocks((3,))),
         "goodness": calibration_goodness(prob, x),
-        "pulse": fit_pulse_shape(rng.normal(0.0, 1e-9, 300), window=(-5e-9, 5e-9))})
+        "pulse": PulseFit(0.0, 1e-9, 0.2, 2e-9, 0.4e-9, 0.01, dict.fromkeys(
+            ("shift", "sigma", "tail_fraction", "tail_decay", "background", "mean_delay"),
+            0.1), np.eye(5), -10.0, -20.0, 1.2e-9, 1000, 0.0)})
     path = tmp_path / "hw.pdf"
     with PdfPages(str(path)) as pdf:
         assert hardware_page(pdf, result)
