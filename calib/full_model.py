@@ -66,6 +66,22 @@ def _fit_terms(result, chosen: list, fit_kwargs: dict):
     return r1
 
 
+def _pulse(result) -> None:
+    """``result.extra["pulse"]``: the pulse shape from the walls' low-pile-up returns
+    (:mod:`mems_stereo.calib.pulse_shape`; for the report, not written), when there
+    are enough of them."""
+    from mems_stereo.calib.pulse_shape import fit_pulse_shape, wall_return_residuals
+    from mems_stereo.errors import ShapeError
+
+    prob = result.extra["problem"]
+    res, window = wall_return_residuals(prob, result.extra["x"])
+    try:
+        result.extra["pulse"] = fit_pulse_shape(res, window=window,
+                                                quantum=prob.system.tdc.bin_width)
+    except ShapeError:
+        pass
+
+
 def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kwargs):
     """The full-model calibration from an ideal-model ``result`` (see the module).
 
@@ -103,6 +119,7 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
                                 "left at 0 (record walls whose returns cover every pixel)")
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
     out.extra["hardware_tests"] = tests + [po.test]
+    _pulse(out)
     out.extra["pixel_offsets"] = po
     out.system = out.system.replace(calibration=out.calibration_dict())
     return out

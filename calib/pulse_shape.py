@@ -233,3 +233,34 @@ def fit_pulse_shape(residuals, *, window=None, quantum: float = 0.0) -> PulseFit
     return PulseFit(float(p[0]), core, float(p[2]), float(p[3]), float(p[2] * p[3]),
                     float(p[4]), sd, cov, -float(nll), -float(nllg), gcore, int(x.size),
                     float(quantum))
+
+
+def wall_return_residuals(prob, x, max_signal: float = 0.3):
+    """Return-time residuals of a fitted wall calibration at low pile-up, s.
+
+    ``prob`` : :class:`~mems_stereo.calib.problem.Problem` with its cells; ``x`` its
+    fitted parameters.  For every cell that fired and whose expected signal photons
+    ``m`` (the spot's share on the pixel) are at most ``max_signal`` (the first photon
+    is then the return's, not the earliest of several): its time less the predicted
+    return time τ.  Returns (residuals (N,), window (lo, hi)) with the window
+    −5σ … +10σ of the pulse; background detections in it are the fit's uniform share.
+    """
+    from mems_stereo.calib.problem import spot_share
+
+    lay = prob.layout
+    _, walls = lay.unpack(x)
+    out = []
+    for j in range(lay.T):
+        c = prob.cells[j]
+        pred, ok, _ = prob.predictions(x, j, c.shots)
+        pos = np.searchsorted(c.shots, c.shot)
+        pc = pred[pos]
+        if prob.pixel_offsets is not None:
+            W = prob.system.receiver.width
+            pc[:, 0] += prob.pixel_offsets[(c.row * W + c.col).astype(np.int64)]
+        s = min(max(math.exp(walls[j, 4]), 0.12), 6.0)
+        m = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref) * spot_share(c.col, pc[:, 1], s)[0]
+        sel = ok[pos] & np.isfinite(c.t) & (m <= max_signal) & (m > 0.01 * max_signal)
+        out.append(c.t[sel] - pc[sel, 0])
+    r = np.concatenate(out) if out else np.zeros(0)
+    return r, (-5.0 * prob.sigma, 10.0 * prob.sigma)
