@@ -71,6 +71,7 @@ def _pulse(result) -> None:
     (:mod:`mems_stereo.calib.pulse_shape`; for the report, not written), when there
     are enough of them."""
     from mems_stereo.calib.pulse_shape import fit_pulse_shape, wall_return_residuals
+
     from mems_stereo.errors import ShapeError
 
     prob = result.extra["problem"]
