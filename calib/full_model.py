@@ -24,8 +24,6 @@ RECORD_ADVICE = {
 }
 
 
-#: a term of the rescue fit further than this many σ from ideal is kept
-KEEP_SIGMA = 3.0
 #: rounds of forward selection
 MAX_STEPS = 4
 
@@ -126,36 +124,56 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     return out
 
 
+def _failed_problem(failure, walls, nominal, priors, fit_kwargs):
+    """The ideal problem at a failed fit's values, on fresh cells: (problem, x) or None."""
+    from mems_stereo.calib.problem import Layout, Problem
+    from mems_stereo.calib.solver import build_cells
+
+    from mems_stereo.errors import NotObservableError
+    from mems_stereo.physics.pulse import pulse_sigma
+
+    d = failure.details or {}
+    if "values" not in d or "walls" not in d or len(d["walls"]) != len(walls):
+        return None
+    lay = Layout(list(d["values"]), len(walls), nominal.receiver.height > 1)
+    sigma = pulse_sigma(nominal.laser.pulse_fwhm, fit_kwargs.get("jitter", 50e-12))
+    prob = Problem(walls, nominal, lay, sigma, priors)
+    x = lay.pack(d["values"], np.asarray(d["walls"], dtype=np.float64))
+    try:
+        return prob, build_cells(prob, x, radius=2)
+    except NotObservableError:
+        return None
+
+
 def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=None,
            **fit_kwargs):
     """A full-model calibration when the ideal model's fit converged but failed its
-    checks (a misfit the hardware terms may explain): every candidate term free from
-    the failed fit's values, then the terms within :data:`KEEP_SIGMA` σ of ideal
-    dropped and the rest fitted again.  Returns the result, or ``failure`` unchanged
-    when the failed fit has no values for every wall or the extended fits fail too."""
-    d = failure.details or {}
-    if "values" not in d or "walls" not in d or len(d["walls"]) != len(walls):
+    checks: the score tests of :mod:`~mems_stereo.calib.hardware_fit` at the failed
+    fit's values; the significant blocks fitted from there.  Returns the result, or
+    ``failure`` unchanged when the fit did not reach its checks (did not converge), no
+    block is significant, the failed fit has no values
+    for every wall, or the extended fit fails too (a misfit no hardware term explains:
+    a wrong distance, a wall that is not flat)."""
+    if "checks" not in (failure.details or {}):  # not converged, or no wall: no misfit
         return failure
-    names = [n for b in hf.candidate_blocks(orders).values() for n in b]
-    free = list(d["values"]) + names
-    start = StartValues({**d["values"], **{n: nominal.get_param(n) for n in names}},
-                        np.asarray(d["walls"], dtype=np.float64))
+    got = _failed_problem(failure, walls, nominal, priors, fit_kwargs)
+    if got is None:
+        return failure
+    prob, x = got
+    tests = hf.score_tests(prob, x, hf.candidate_blocks(orders))
+    keep = [n for t in tests if t.selected for n in t.names]
+    if not keep:
+        return failure
     if progress:
-        progress("the ideal model failed its checks: fitting every hardware term")
-    r = fit_walls(walls, nominal, free=free, priors=priors, initial=start,
-                  on_unobservable="warn", **fit_kwargs)
+        progress("the ideal model failed its checks: fitting "
+                 + ", ".join(t.name for t in tests if t.selected))
+    d = failure.details
+    start = StartValues({**d["values"], **{n: nominal.get_param(n) for n in keep}},
+                        np.asarray(d["walls"], dtype=np.float64))
+    r = fit_walls(walls, nominal, free=list(d["values"]) + keep, priors=priors,
+                  initial=start, on_unobservable="warn", **fit_kwargs)
     if not r:
         return failure
-    keep = [n for n in names if n in r.names and n not in r.unobservable
-            and abs(r.values[n]) > KEEP_SIGMA * r.std[n]]
-    blocks = {n.split("_")[0] for n in keep}  # a harmonic keeps both its terms
-    keep = [n for n in names if n.split("_")[0] in blocks]
-    values, wp = r.extra["problem"].layout.unpack(r.extra["x"])
-    r2 = fit_walls(walls, nominal, free=list(d["values"]) + keep, priors=priors,
-                   initial=StartValues(values, wp), on_unobservable="warn", **fit_kwargs)
-    if not r2:
-        return failure
-    r2.warnings.insert(0, "the ideal model failed its checks (" + failure.reason[:120]
-                       + "...): the hardware terms " + (", ".join(keep) or "none")
-                       + " were fitted")
-    return r2
+    r.warnings.insert(0, "the ideal model failed its checks (" + failure.reason[:120]
+                      + "...): the hardware terms " + ", ".join(keep) + " were fitted")
+    return r
