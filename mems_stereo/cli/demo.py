@@ -10,7 +10,9 @@ system that differs from the nominal one written in the files, as real
 hardware does; the demo processes the room and floodlight recordings with
 the nominal and with the calibrated system and prints the gain against the
 samples' truth (median point error, signal recall, coverage of the
-illuminated pixels).
+illuminated pixels).  Its last step does the same on the samples recorded by
+imperfect hardware, with the ideal and the full hardware model
+(:mod:`mems_stereo.cli.demo_hardware`).
 """
 
 from __future__ import annotations
