@@ -66,7 +66,9 @@ def wall_data(recording, late_start: float = LATE_START) -> WallData:
     tdc = recording.system.tdc
     lam = background_rates(bins, tdc.bin_width, tdc.n_bins, late_start)
     return WallData(np.asarray(ph, dtype=np.float64)[ok], bins, lam, tdc.bin_width,
-                    recording.source)
+                    recording.source, np.asarray(recording.shot_time, dtype=np.float64)[ok],
+                    np.asarray(recording.zero_crossings, dtype=np.float64),
+                    np.asarray(recording.rising, dtype=bool))
 
 
 def cells_near_track(w: WallData, pred: np.ndarray, ok: np.ndarray, radius: int,

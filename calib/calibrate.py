@@ -36,7 +36,8 @@ def _as_recording(r) -> Recording:
 def calibrate_system(recordings, system: System | str | os.PathLike | None = None, *,
                      fix=(), free=None, target_distances=None, distance_std=1e-3,
                      distance_kind: str = "axis", on_unobservable: str = "raise",
-                     progress=None, **fit_kwargs) -> CalibrationResult | CalibrationFailure:
+                     progress=None, model: str = "full",
+                     **fit_kwargs) -> CalibrationResult | CalibrationFailure:
     """Estimate the system from recordings of flat walls, one wall per recording.
 
     Parameters
@@ -52,8 +53,14 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     distance_std : σ of a measured distance, m (scalar or one per recording).
     on_unobservable : "raise" (a failure naming the parameter) or "warn".
     progress : optional callable(str) for status lines.
-    fit_kwargs : passed to :func:`mems_stereo.calib.fit.fit_walls` (``jitter``,
-        ``max_std``).
+    model : "full" — the hardware terms the walls call for (trajectory harmonics of
+        ``harmonics`` orders, the monitor's edge delay, per-pixel TDC offsets;
+        :mod:`mems_stereo.calib.full_model`); "ideal" — today's model only.
+    fit_kwargs : ``harmonics`` (orders tested, default 2–5); ``inflate_sigma``
+        (default False): when the residuals show structure the model does not
+        explain (:mod:`mems_stereo.calib.goodness`), return the result with σ
+        inflated to cover it (and a warning) instead of a failure; the rest go to
+        :func:`mems_stereo.calib.fit.fit_walls` (``jitter``, ``max_std``).
 
     Returns
     -------
@@ -95,8 +102,23 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     if progress:
         progress(f"read {len(walls)} recording(s), "
                  f"{sum(w.n_shots for w in walls)} shots with a known phase")
+    inflate_sigma = bool(fit_kwargs.pop("inflate_sigma", False))
+    harmonics = tuple(fit_kwargs.pop("harmonics", (2, 3, 4, 5)))
+    if model not in ("ideal", "full"):
+        raise ValueError(f"model: expected 'ideal' or 'full', found {model!r}")
     out = fit_walls(walls, nominal, free=free, fix=fix, priors=priors,
                     on_unobservable=on_unobservable, progress=progress, **fit_kwargs)
+    if model == "full":
+        from mems_stereo.calib.full_model import add_hardware_terms, rescue
+
+        if not out and out.kind == "estimate":
+            out = rescue(out, walls, nominal, priors, tuple(harmonics), progress, **fit_kwargs)
+        if out:
+            out = add_hardware_terms(out, tuple(harmonics), progress, **fit_kwargs)
+    if out:
+        from mems_stereo.calib.goodness import judge
+
+        out = judge(out, inflate_sigma)
     out.elapsed = time.perf_counter() - t0
     if out:
         from mems_stereo.calib.result import format_report

@@ -39,12 +39,38 @@ PARAM_SCALE = {"theta0": 1e-3, "theta_mech_max": 1e-3, "phase_offset": 1e-3,
                "tdc_offset": 1e-10, "baseline_x": 1e-3, "baseline_y": 1e-3,
                "baseline_z": 1e-3, "fx": 1.0, "cx": 0.1,
                "alpha": 1e-3, "beta": 1e-3, "dist": 1e-3}
+#: the hardware model's terms the fit can estimate (docs/hardware.md): harmonics of the
+#: mirror's trajectory (relative to theta_mech_max) and the monitor's rising-edge delay
+#: (the falling edge's is held: their mean is the phase offset's)
+MAX_HARMONIC = 8
+HARDWARE_PARAMS = tuple(f"harmonic{k}_{p}" for k in range(2, MAX_HARMONIC + 1)
+                        for p in ("cos", "sin")) + ("edge_rising_delay",)
+PARAM_SCALE.update({n: 1e-4 for n in HARDWARE_PARAMS[:-1]})
+PARAM_SCALE["edge_rising_delay"] = 1e-8
 #: units for reports: (factor, unit)
 PARAM_UNIT = {"theta0": (1e3, "mrad"), "theta_mech_max": (1e3, "mrad"),
               "phase_offset": (1e3, "mrad"), "tdc_offset": (1e9, "ns"),
               "baseline_x": (1e3, "mm"), "baseline_y": (1e3, "mm"), "baseline_z": (1e3, "mm"),
               "fx": (1.0, "px"), "cx": (1.0, "px"), "alpha": (1e3, "mrad"),
               "beta": (1e3, "mrad"), "dist": (1e3, "mm")}
+PARAM_UNIT.update({n: (1e2, "%") for n in HARDWARE_PARAMS[:-1]})
+PARAM_UNIT["edge_rising_delay"] = (1e9, "ns")
+
+
+def harmonic_orders(orders=(2, 3, 4, 5)) -> list:
+    """The fit's names of the harmonics of ``orders``: harmonic{k}_cos, harmonic{k}_sin."""
+    return [f"harmonic{k}_{p}" for k in orders for p in ("cos", "sin")]
+
+
+def trajectory(values: dict, phase) -> np.ndarray:
+    """g(ψ) = cos ψ + Σ_k (c_k cos kψ + s_k sin kψ) of ψ = ``phase`` (+ offset), with the
+    harmonic coefficients ``harmonic{k}_cos`` / ``_sin`` found in ``values``."""
+    g = np.cos(phase)
+    for name, v in values.items():
+        if name.startswith("harmonic") and v != 0.0:
+            k = int(name[8:name.index("_")])
+            g = g + v * (np.cos(k * phase) if name.endswith("_cos") else np.sin(k * phase))
+    return g
 
 
 def plane_normal(alpha, beta=0.0) -> np.ndarray:
@@ -87,7 +113,14 @@ def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
         return values[name] if name in values else system.get_param(name)
 
     sc = system.scanner
-    th = v("theta0") + v("theta_mech_max") * np.cos(np.asarray(phase) + v("phase_offset"))
+    psi = np.asarray(phase) + v("phase_offset")
+    if sc.harmonics or any(n.startswith("harmonic") for n in values):
+        coef = {f"harmonic{h.order}_{p}": system.get_param(f"harmonic{h.order}_{p}")
+                for h in sc.harmonics for p in ("cos", "sin")}
+        coef.update({n: x for n, x in values.items() if n.startswith("harmonic")})
+        th = v("theta0") + v("theta_mech_max") * trajectory(coef, psi)
+    else:
+        th = v("theta0") + v("theta_mech_max") * np.cos(psi)
     e1, e2 = np.asarray(sc.normal_basis, dtype=np.float64)
     dl = np.asarray(sc.laser_direction, dtype=np.float64)
     c, s_ = np.cos(th)[:, None], np.sin(th)[:, None]

@@ -36,7 +36,13 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from mems_stereo.calib.model import PARAM_SCALE, SYSTEM_PARAMS, beam_hits, plane_normal
+from mems_stereo.calib.model import (
+    HARDWARE_PARAMS,
+    PARAM_SCALE,
+    SYSTEM_PARAMS,
+    beam_hits,
+    plane_normal,
+)
 from scipy.special import ndtr
 
 from mems_stereo.model.system import System
@@ -56,6 +62,9 @@ class WallData:
     bins : (K, H, W) uint16 TDC codes of those shots (0: no detection).
     background : (H, W) float64 Hz, each pixel's background rate (late window).
     bin_width : s.  source : str, for messages.
+    shot_time : (K,) s, zero_crossings : (Z,) s, rising : (Z,) bool — the monitor's
+    record, kept so that the phase follows a fitted trajectory or edge delay
+    (None: the phase is fixed).
     """
 
     phase: np.ndarray
@@ -63,6 +72,9 @@ class WallData:
     background: np.ndarray
     bin_width: float
     source: str = "<memory>"
+    shot_time: np.ndarray | None = None
+    zero_crossings: np.ndarray | None = None
+    rising: np.ndarray | None = None
 
     @property
     def n_shots(self) -> int:
@@ -75,7 +87,8 @@ class Layout:
     / :data:`WALL_SCALE` around a reference point."""
 
     def __init__(self, names, n_walls: int, two_d: bool):
-        self.names = [n for n in SYSTEM_PARAMS if n in names]
+        self.names = ([n for n in SYSTEM_PARAMS if n in names]
+                      + [n for n in HARDWARE_PARAMS if n in names])
         self.T = int(n_walls)
         self.two_d = bool(two_d)
         self.wall_names = (["alpha", "beta", "dist", "logmu", "logspot"] if two_d
@@ -240,6 +253,25 @@ class Problem:
         self.cells: list = [None] * layout.T
         pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
         self.pitch_ratio = float(pitch[0] / pitch[1])
+        off = system.tdc.pixel_offsets
+        #: (H·W,) s, each pixel's TDC start delay added to its cells' τ (None: none)
+        self.pixel_offsets = None if off is None else np.asarray(off, dtype=np.float64)
+        self._hw_phase = any(n in HARDWARE_PARAMS for n in layout.names) or bool(
+            system.scanner.harmonics or system.scanner.monitor is not None)
+
+    def phase(self, values: dict, j: int, shots=None) -> np.ndarray:
+        """Monitor phase of wall j's shots (all, or ``shots``): recorded, or from the
+        monitor's record with the trajectory and edge delays of ``values`` and the
+        system (:func:`mems_stereo.model.scanner.phase_from_zero_crossings`)."""
+        w = self.walls[j]
+        if not self._hw_phase or w.shot_time is None:
+            return w.phase if shots is None else w.phase[shots]
+        from mems_stereo.model.scanner import phase_from_zero_crossings
+
+        hw = {n: v for n, v in values.items() if n in HARDWARE_PARAMS}
+        sc = self.system.with_params(**hw).scanner
+        t = w.shot_time if shots is None else w.shot_time[shots]
+        return phase_from_zero_crossings(t, w.zero_crossings, w.rising, sc)[0]
 
     # ------------------------------------------------------------------ model
     def predictions(self, x, j: int, shots=None, steps: bool = False):
@@ -247,8 +279,7 @@ class Problem:
         system + plane parameters when ``steps``): (S, 4), ok (S,), J (S, 4, P)."""
         lay = self.layout
         values, walls = lay.unpack(x)
-        w = self.walls[j]
-        ph = w.phase if shots is None else w.phase[shots]
+        ph = self.phase(values, j, shots)
         p0, ok = shot_model(self.system, values, walls[j], ph)
         if not steps:
             return p0, ok, None
@@ -261,7 +292,9 @@ class Problem:
             xp = x.copy()
             xp[i] += h
             vp, wp = lay.unpack(xp)
-            pp, _ = shot_model(self.system, vp, wp[j], ph)
+            moves_phase = i < lay.n_sys and lay.names[i] in HARDWARE_PARAMS
+            php = self.phase(vp, j, shots) if moves_phase else ph
+            pp, _ = shot_model(self.system, vp, wp[j], php)
             J[:, :, q] = (pp - p0) / h
         J[~np.isfinite(J)] = 0.0
         return p0, ok, (J, geo)
@@ -277,6 +310,9 @@ class Problem:
         pc = pred[pos]
         good = ok[pos]
         pc = np.where(good[:, None], pc, [0.0, -1e6, -1e6, 0.0])
+        if self.pixel_offsets is not None:
+            W = self.system.receiver.width
+            pc[:, 0] += self.pixel_offsets[(c.row * W + c.col).astype(np.int64)]
         ll, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], self.sigma, lay.two_d,
                            self.pitch_ratio)
         if not grad:

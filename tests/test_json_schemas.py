@@ -289,7 +289,8 @@ def test_every_bundled_json_loads():
 def _distances_loader_path(f: Path):
     from calib.calibrate import read_target_distances
 
-    read_target_distances(f, ["calib_1.5m.h5"])
+    # each distances file names its own recordings (calib_*, imperfect_calib_*)
+    read_target_distances(f, [read_json_file(f)["targets"][0]["recording"]])
 
 
 def test_written_files_load_back():

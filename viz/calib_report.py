@@ -458,6 +458,9 @@ def write_calibration_report(result, path: str | os.PathLike, *, recordings=None
                 _estimates_page(pdf, d)
             _residual_page(pdf, d, res)
             _planes_page(pdf, d, res, d.system)
+            from mems_stereo.viz.calib_report_hardware import hardware_page
+
+            hardware_page(pdf, result)  # issue 30: hardware terms, goodness of fit
         else:
             _failure_page(pdf, d, _time_histograms(walls) if walls else [])
         info = pdf.infodict()

@@ -63,6 +63,15 @@ def add_arguments(p):
                    help="σ of a measured distance, m (default: the file's, else 0.001)")
     p.add_argument("--allow-unobservable", action="store_true",
                    help="warn instead of failing when a parameter is not observable")
+    p.add_argument("--model", choices=["full", "ideal"], default="full",
+                   help="full (default): also estimate the hardware terms the walls call for "
+                        "(mirror trajectory harmonics, monitor edge delay, per-pixel TDC "
+                        "offsets: docs/calibration.md); ideal: the cosine mirror and ideal TDC")
+    p.add_argument("--harmonics", type=int, default=5, metavar="K",
+                   help="highest harmonic order of the mirror's trajectory tested (default 5)")
+    p.add_argument("--inflate-sigma", action="store_true",
+                   help="when the residuals show structure the model does not explain, write "
+                        "the result with σ inflated to cover it (and say so) instead of failing")
     p.add_argument("--report", default=None, metavar="PATH",
                    help="write a calibration report, also for a failed calibration "
                         f"({suffix_help('calibrate', 'report')}): the PDF report (estimates "
@@ -121,7 +130,9 @@ def run(args) -> int:
         res = calibrate_system(args.recordings, args.system, fix=args.fix, free=free,
                                target_distances=dists, distance_std=stds, distance_kind=kind,
                                on_unobservable="warn" if args.allow_unobservable else "raise",
-                               progress=status)
+                               progress=status, model=args.model,
+                               harmonics=tuple(range(2, max(args.harmonics, 1) + 1)),
+                               inflate_sigma=args.inflate_sigma)
     elapsed = time.perf_counter() - t0
     for w in res.warnings:
         rep.info(f"warning: {w}")

@@ -12,6 +12,9 @@ the nominal and with the calibrated system and prints the gain against the
 samples' truth (median point error, signal recall, coverage of the
 illuminated pixels).  The two-axis step does the same for the Lissajous
 scanner: its walls calibrate the true system that recorded ``lissajous64.h5``.
+Its last step does the same on the samples recorded by
+imperfect hardware, with the ideal and the full hardware model
+(:mod:`mems_stereo.cli.demo_hardware`).
 """
 
 from __future__ import annotations
@@ -284,6 +287,21 @@ def _two_axis(rep, out: Path, smp: Path, render: bool) -> tuple[list[Path], list
     return written, gain, verdicts
 
 
+def _imperfect_hardware(rep, smp: Path) -> dict | None:
+    """Step 7: the imperfect-hardware samples, nominal vs ideal vs full model
+    (:mod:`mems_stereo.cli.demo_hardware`); None when the samples lack them."""
+    from mems_stereo.cli import demo_hardware as dh
+
+    if not (smp / dh.IMPERFECT_ROOM).exists():
+        return None
+    _step(rep, "7. imperfect hardware (docs/hardware.md): nominal vs calibrated with the ideal "
+               "and with the full model, against the truth")
+    comp = dh.hardware_comparison(smp)
+    for line in dh.format_comparison(comp):
+        rep.info(line)
+    return comp
+
+
 def run(args) -> int:
     rep = Reporter(args)
     out = Path(args.output)
@@ -305,6 +323,7 @@ def run(args) -> int:
     written += _figures(rep, out, clouds, not args.no_render)
     files, gain2d, verdicts2d = _two_axis(rep, out, smp, not args.no_render)
     written += files
+    hardware = _imperfect_hardware(rep, smp)
 
     _step(rep, "outputs")
     missing = [p for p in written if not Path(p).exists()]
@@ -313,7 +332,8 @@ def run(args) -> int:
     summary = {"outputs": [str(p) for p in written], "seconds": time.perf_counter() - t_start,
                "calibration_gain": gain, "calibration_gain_verdicts": verdicts,
                "two_axis_calibration_gain": gain2d,
-               "two_axis_calibration_gain_verdicts": verdicts2d}
+               "two_axis_calibration_gain_verdicts": verdicts2d,
+               "imperfect_hardware": hardware}
     (out / "demo_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     rep.info(f"done in {summary['seconds']:.0f} s; every output is in {out}/")
     if missing:

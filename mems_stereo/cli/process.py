@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 
 from mems_stereo.cli import _twoaxis
@@ -99,6 +100,11 @@ def report_result(rep: Reporter, res, outputs=()) -> None:
                 if c["shots_unknown_angle"] else ""))
     rep.info(f"  raw counts {c['raw']}, classified signal {c['signal']}, noise {c['noise']}")
     report_peaks_truth_outputs(rep, res, outputs)
+    from mems_stereo.pipeline.goodness import stereo_tof_agreement  # named misfit (issue 30)
+
+    for line in stereo_tof_agreement(res.cloud).warnings:
+        if not rep.quiet:
+            print(f"mems-stereo process: warning: {res.source}: {line}", file=sys.stderr)
 
 
 def run(args) -> int:

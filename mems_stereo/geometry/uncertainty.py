@@ -42,7 +42,7 @@ from mems_stereo.model.camera import pixels_to_rays
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import path_length_from_codes
-from mems_stereo.physics.pulse import FWHM_PER_SIGMA
+from mems_stereo.physics.pulse import pulse_sigma_of
 from mems_stereo.physics.spot import DEFAULT_SPOT_SIGMA
 
 #: default 1-σ scan-angle uncertainty, rad (mirror angle; the beam turns by 2θ)
@@ -113,7 +113,8 @@ def spreads_for(system: System, *, timing_jitter: float = 0.0,
     ----------
     timing_jitter : float, s, 1-σ trigger + SPAD jitter.
     sigma_theta : float, rad, 1-σ scan (mirror) angle.
-    include_pulse : add the laser pulse (σ = pulse_fwhm / 2.3548).
+    include_pulse : add the laser pulse (its σ, :func:`~mems_stereo.physics.pulse.pulse_sigma_of`:
+        pulse_fwhm / 2.3548 for the Gaussian).
     spot_sigma : float, m on the sensor, 1-σ of the laser spot's image,
         added in quadrature to the pixel extent (converted with the pitch).
     pixel_extent : ``"pixel"`` or ``"spad"``, see :func:`pixel_extent_px`.
@@ -123,7 +124,7 @@ def spreads_for(system: System, *, timing_jitter: float = 0.0,
     pitch = np.asarray(system.receiver.pixel_pitch, dtype=np.float64)
     su = math.sqrt(ex * ex / 12.0 + (spot_sigma / pitch[0]) ** 2)
     sv = math.sqrt(ey * ey / 12.0 + (spot_sigma / pitch[1]) ** 2)
-    sp = system.laser.pulse_fwhm / FWHM_PER_SIGMA if include_pulse else 0.0
+    sp = pulse_sigma_of(system.laser) if include_pulse else 0.0  # docs/hardware.md
     sq = system.tdc.bin_width / math.sqrt(12.0)
     st = math.sqrt(sp * sp + timing_jitter ** 2 + sq * sq)
     names = tuple(param_names)

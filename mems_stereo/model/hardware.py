@@ -11,6 +11,8 @@ are :mod:`mems_stereo.model.presets`.
 
 from __future__ import annotations
 
+import math
+import re
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -67,6 +69,9 @@ class Scanner:
         zero-crossing monitor (added field, default 0; estimated by calibration)
     axis2 : optional second mirror axis (:class:`mems_stereo.model.scanner2d.Axis2`,
         JSON ``scanner.axis2``); None for the one-axis scanner of version 1
+    harmonics : tuple of :class:`Harmonic`, the trajectory beyond the cosine
+        (``docs/hardware.md``); empty for the ideal mirror
+    monitor : :class:`MonitorEdges` or None, the monitor's edge delays (None: ideal)
     """
 
     position: np.ndarray
@@ -77,25 +82,99 @@ class Scanner:
     theta_mech_max: float
     phase_offset: float = 0.0
     axis2: Any = None
+    harmonics: tuple = ()
+    monitor: Any = None
+
+
+@dataclass(frozen=True)
+class Harmonic:
+    """One harmonic of the mirror's trajectory (``docs/hardware.md``).
+
+    θ_mech = θ_mech,max · (cos φ + Σ amplitude · cos(order · φ + phase)).
+
+    order : int >= 2; amplitude : relative to θ_mech,max (0.003 = 0.3 %);
+    phase : rad; amplitude_std, phase_std : σ where estimated, else None.
+    """
+
+    order: int
+    amplitude: float
+    phase: float = 0.0
+    amplitude_std: float | None = None
+    phase_std: float | None = None
+
+
+@dataclass(frozen=True)
+class MonitorEdges:
+    """The zero-crossing monitor's delays per edge (comparator delay and hysteresis).
+
+    A recorded rising (falling) crossing is the true zero crossing plus
+    ``rising_delay`` (``falling_delay``), s; ``*_std`` σ where estimated, else None.
+    """
+
+    rising_delay: float = 0.0
+    falling_delay: float = 0.0
+    rising_delay_std: float | None = None
+    falling_delay_std: float | None = None
+
+
+@dataclass(frozen=True)
+class PulseModel:
+    """A pulse shape beyond the Gaussian (``docs/hardware.md``).
+
+    Attributes
+    ----------
+    model : str
+        ``"ex-gaussian"``: the density (1 − w)·N(0, σ) + w·EMG(σ, τ), σ from the
+        laser's ``pulse_fwhm`` (delay 0 is the Gaussian core's peak), w =
+        ``tail_fraction``, τ = ``tail_decay`` (s); or ``"table"``: ``times`` (m,) s
+        increasing and ``power`` (m,) ≥ 0, the measured instrument response.
+    tail_fraction_std, tail_decay_std : float or None
+        σ where estimated, else None.
+    """
+
+    model: str = "ex-gaussian"
+    tail_fraction: float = 0.0
+    tail_decay: float = 0.0
+    tail_fraction_std: float | None = None
+    tail_decay_std: float | None = None
+    times: Any = None
+    power: Any = None
 
 
 @dataclass(frozen=True)
 class Laser:
-    """Pulsed laser: repetition rate (Hz), pulse FWHM (s), wavelength (m)."""
+    """Pulsed laser: repetition rate (Hz), pulse FWHM (s), wavelength (m); and an
+    optional :class:`PulseModel` (None: the Gaussian of ``pulse_fwhm``)."""
 
     f_rep: float
     pulse_fwhm: float
     wavelength: float
+    pulse_shape: Any = None
 
 
 @dataclass(frozen=True)
 class TDC:
     """Time-to-digital converter: code N in 1..n_bins has
-    ``t_TOF = (N - 1/2) * bin_width - offset`` (seconds)."""
+    ``t_TOF = (N - 1/2) * bin_width - offset`` (seconds) for the ideal converter.
+
+    With ``code_widths`` (n_bins,) in units of ``bin_width`` (DNL: width − 1) code
+    N's centre is ``bin_width · (Σ_{i<N} w_i + w_N / 2)``; with ``pixel_offsets``
+    (H·W,) s (row-major) pixel p's time is less ``pixel_offsets[p]``
+    (:mod:`mems_stereo.model.tdc`).  ``*_std``: σ where estimated, else None.
+    """
 
     bin_width: float
     n_bins: int
     offset: float = 0.0
+    pixel_offsets: Any = None
+    pixel_offsets_std: Any = None
+    code_widths: Any = None
+    code_widths_std: Any = None
+
+    @property
+    def ideal(self) -> bool:
+        """No per-pixel offsets and equal code widths."""
+        return self.pixel_offsets is None and self.code_widths is None
 
 
 @dataclass(frozen=True)
@@ -124,10 +203,19 @@ class System:
         sc, rc = self.scanner, self.receiver
         b = np.asarray(sc.position, dtype=np.float64) * 1e3
         cal = ", calibrated" if self.calibration else ""
+        cal += "" if self.ideal_hardware else ", hardware model"
         return (f"<System {rc.width}x{rc.height} px receiver, baseline ({b[0]:.4g}, {b[1]:.4g}, "
                 f"{b[2]:.4g}) mm, theta0 {sc.theta0 * 1e3:.4g} mrad, "
                 f"f_mech {sc.f_mech:g} Hz, f_rep {self.laser.f_rep:g} Hz, "
                 f"TDC {self.tdc.n_bins} x {self.tdc.bin_width * 1e12:.4g} ps{cal}>")
+
+    @property
+    def ideal_hardware(self) -> bool:
+        """True when no member of the hardware model (``docs/hardware.md``) is set:
+        a cosine trajectory, equal monitor edges, a Gaussian pulse, an ideal TDC."""
+        sc = self.scanner
+        return (not sc.harmonics and sc.monitor is None and self.laser.pulse_shape is None
+                and self.tdc.ideal)
 
     @property
     def baseline(self) -> np.ndarray:
@@ -143,12 +231,16 @@ class System:
 
         Known names: ``theta0``, ``theta_mech_max``, ``phase_offset``,
         ``f_mech``, ``tdc_offset``, ``baseline_x``, ``baseline_y``,
-        ``baseline_z``, ``fx``, ``cx``.
+        ``baseline_z``, ``fx``, ``cx``; the hardware model's (``docs/hardware.md``):
+        ``harmonic{k}_cos``, ``harmonic{k}_sin``, ``edge_rising_delay``,
+        ``edge_falling_delay``, ``pulse_tail_fraction``, ``pulse_tail_decay``,
+        ``pixel_offset_{i}``.
         """
         sc, tdc, rc = self.scanner, self.tdc, self.receiver
         pos = np.array(sc.position, dtype=np.float64)
         K = np.array(rc.camera_matrix, dtype=np.float64)
         sc_kw: dict[str, Any] = {}
+        hw: dict[str, float] = {}
         for name, value in params.items():
             value = float(value)
             if name in ("theta0", "theta_mech_max", "phase_offset", "f_mech"):
@@ -162,10 +254,13 @@ class System:
             elif name == "cx":
                 K[0, 2] = value
             else:
-                raise UnknownNameError(f"unknown system parameter {name!r}")
+                hw[name] = value
         sc = replace(sc, position=pos, **sc_kw)
         rc = replace(rc, camera_matrix=K)
-        return replace(self, scanner=sc, tdc=tdc, receiver=rc)
+        laser = self.laser
+        for name, value in hw.items():
+            sc, laser, tdc = _with_hardware_param(sc, laser, tdc, name, value, rc)
+        return replace(self, scanner=sc, tdc=tdc, receiver=rc, laser=laser)
 
     def get_param(self, name: str) -> float:
         """Value of a named scalar parameter (names as in :meth:`with_params`)."""
@@ -179,7 +274,87 @@ class System:
             return float(self.receiver.camera_matrix[0, 0])
         if name == "cx":
             return float(self.receiver.camera_matrix[0, 2])
-        raise UnknownNameError(f"unknown system parameter {name!r}")
+        return _hardware_param(self, name)
+
+
+def pulse_mean_delay(laser: Laser) -> float:
+    """Mean delay (s) of the pulse after its delay 0 (the Gaussian core's peak):
+    0 for the Gaussian, w·τ for the ex-gaussian, the centroid of a table."""
+    p = laser.pulse_shape
+    if p is None:
+        return 0.0
+    if p.model == "table":
+        t = np.asarray(p.times, dtype=np.float64)
+        w = np.asarray(p.power, dtype=np.float64)
+        return float(np.trapezoid(t * w, t) / np.trapezoid(w, t))
+    return float(p.tail_fraction * p.tail_decay)
+
+
+# --------------------------------------------------------------------------
+# the hardware model's named parameters
+
+_HARMONIC = re.compile(r"harmonic([0-9]+)_(cos|sin)")
+_PIXEL = re.compile(r"pixel_offset_([0-9]+)")
+
+
+def _harmonic_coefficients(sc: Scanner, order: int) -> tuple[float, float]:
+    """(cos, sin) coefficients of a harmonic: A cos(kφ + ψ) = c cos kφ + s sin kφ."""
+    for h in sc.harmonics:
+        if h.order == order:
+            return h.amplitude * math.cos(h.phase), -h.amplitude * math.sin(h.phase)
+    return 0.0, 0.0
+
+
+def _with_hardware_param(sc: Scanner, laser: Laser, tdc: TDC, name: str, value: float,
+                         rc: Receiver):
+    """(scanner, laser, tdc) with one hardware-model parameter set (names: see
+    :meth:`System.with_params`)."""
+    m = _HARMONIC.fullmatch(name)
+    if m and int(m.group(1)) >= 2:
+        k = int(m.group(1))
+        c, s = _harmonic_coefficients(sc, k)
+        c, s = (value, s) if m.group(2) == "cos" else (c, value)
+        old = [h for h in sc.harmonics if h.order == k]
+        new = (replace(old[0], amplitude=math.hypot(c, s), phase=math.atan2(-s, c)) if old
+               else Harmonic(k, math.hypot(c, s), math.atan2(-s, c)))
+        hs = tuple(sorted([h for h in sc.harmonics if h.order != k] + [new],
+                          key=lambda h: h.order))
+        return replace(sc, harmonics=hs), laser, tdc
+    if name in ("edge_rising_delay", "edge_falling_delay"):
+        mon = sc.monitor if sc.monitor is not None else MonitorEdges()
+        mon = replace(mon, **{name[5:]: value})
+        return replace(sc, monitor=mon), laser, tdc
+    if name in ("pulse_tail_fraction", "pulse_tail_decay"):
+        ps = laser.pulse_shape if laser.pulse_shape is not None else PulseModel()
+        if ps.model != "ex-gaussian":
+            raise UnknownNameError(f"{name}: the pulse is tabulated, not ex-gaussian")
+        return sc, replace(laser, pulse_shape=replace(ps, **{name[6:]: value})), tdc
+    m = _PIXEL.fullmatch(name)
+    n_pix = rc.width * rc.height
+    if m and int(m.group(1)) < n_pix:
+        off = (np.zeros(n_pix) if tdc.pixel_offsets is None
+               else np.array(tdc.pixel_offsets, dtype=np.float64))
+        off[int(m.group(1))] = value
+        return sc, laser, replace(tdc, pixel_offsets=off)
+    raise UnknownNameError(f"unknown system parameter {name!r}")
+
+
+def _hardware_param(system: System, name: str) -> float:
+    """Value of a hardware-model parameter (0 where the member is absent)."""
+    sc, laser, tdc = system.scanner, system.laser, system.tdc
+    m = _HARMONIC.fullmatch(name)
+    if m and int(m.group(1)) >= 2:
+        c, s = _harmonic_coefficients(sc, int(m.group(1)))
+        return c if m.group(2) == "cos" else s
+    if name in ("edge_rising_delay", "edge_falling_delay"):
+        return 0.0 if sc.monitor is None else float(getattr(sc.monitor, name[5:]))
+    if name in ("pulse_tail_fraction", "pulse_tail_decay"):
+        ps = laser.pulse_shape
+        return 0.0 if ps is None else float(getattr(ps, name[6:]))
+    m = _PIXEL.fullmatch(name)
+    if m and int(m.group(1)) < system.receiver.width * system.receiver.height:
+        return 0.0 if tdc.pixel_offsets is None else float(tdc.pixel_offsets[int(m.group(1))])
+    raise UnknownNameError(f"unknown system parameter {name!r}")
 
 
 # --------------------------------------------------------------------------

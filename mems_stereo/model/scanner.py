@@ -19,6 +19,11 @@ import numpy as np
 
 from mems_stereo.errors import FormatError, GeometryError
 from mems_stereo.model.hardware import Scanner, validate_normal_basis
+from mems_stereo.model.trajectory import (
+    crossing_phases_model,
+    mechanical_angle,
+    true_crossing_times,
+)
 
 PHASE_FALLING = 0.5 * math.pi
 PHASE_RISING = 1.5 * math.pi
@@ -98,7 +103,7 @@ def crossing_phases(zero_crossings, rising) -> np.ndarray:
     return phases
 
 
-def phase_from_zero_crossings(times, zero_crossings, rising):
+def phase_from_zero_crossings(times, zero_crossings, rising, scanner: Scanner | None = None):
     """Scan phase φ at each time, interpolated between recorded zero crossings.
 
     Parameters
@@ -106,6 +111,10 @@ def phase_from_zero_crossings(times, zero_crossings, rising):
     times : (K,) float64, s, e.g. the shot trigger times.
     zero_crossings : (Z,) float64, s, increasing.
     rising : (Z,) 0/1, 1 where θ_mech rose through zero.
+    scanner : optional; where it has harmonics or monitor edge delays
+        (``docs/hardware.md``) the crossings' times lose their edge's delay and
+        their phases are the trajectory's roots
+        (:mod:`mems_stereo.model.trajectory`); otherwise it is not used.
 
     Returns
     -------
@@ -127,6 +136,9 @@ def phase_from_zero_crossings(times, zero_crossings, rising):
     """
     zc, r = validate_zero_crossings(zero_crossings, rising)
     phases = crossing_phases(zc, r)
+    if scanner is not None and (scanner.harmonics or scanner.monitor is not None):
+        zc = true_crossing_times(zc, r, scanner.monitor)
+        phases = crossing_phases_model(phases, r, scanner.harmonics)
     t = np.asarray(times, dtype=np.float64)
     valid = (t >= zc[0]) & (t <= zc[-1]) & np.isfinite(t)
     phase = np.full(t.shape, np.nan)
@@ -135,7 +147,11 @@ def phase_from_zero_crossings(times, zero_crossings, rising):
 
 
 def scan_angle_from_phase(phase, scanner: Scanner) -> np.ndarray:
-    """θ = θ0 + θ_max · cos(φ + phase_offset), rad (NaN where φ is NaN)."""
+    """θ = θ0 + θ_max · cos(φ + phase_offset), rad (NaN where φ is NaN); with the
+    scanner's harmonics θ = θ0 + θ_max · g(φ + phase_offset)
+    (:func:`mems_stereo.model.trajectory.trajectory_shape`)."""
+    if scanner.harmonics:
+        return scanner.theta0 + mechanical_angle(phase, scanner)
     phi = np.asarray(phase) + scanner.phase_offset
     return scanner.theta0 + scanner.theta_mech_max * np.cos(phi)
 
@@ -154,7 +170,7 @@ def scan_angles(times, zero_crossings, rising, scanner: Scanner):
     >>> theta.shape, bool(valid.all()), np.round(theta[:3], 4)
     ((800,), True, array([0.5533, 0.5853, 0.6591]))
     """
-    phase, valid = phase_from_zero_crossings(times, zero_crossings, rising)
+    phase, valid = phase_from_zero_crossings(times, zero_crossings, rising, scanner)
     return scan_angle_from_phase(phase, scanner), valid
 
 

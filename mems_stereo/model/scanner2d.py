@@ -40,7 +40,7 @@ import numpy as np
 
 from mems_stereo.errors import FormatError, GeometryError
 from mems_stereo.model.hardware import Scanner, System
-from mems_stereo.model.scanner import phase_from_zero_crossings, reflect
+from mems_stereo.model.scanner import phase_from_zero_crossings, reflect, scan_angle_from_phase
 from mems_stereo.util.jsonfile import FieldChecker
 
 MODES = ("resonant", "quasistatic")
@@ -249,8 +249,9 @@ def scan_angles_2d(times, zero_crossings, rising, monitor2: Axis2Monitor, scanne
     """
     a2 = require_two_axis_scanner(scanner)
     t = np.asarray(times, dtype=np.float64)
-    ph1, v1 = phase_from_zero_crossings(t, zero_crossings, rising)
-    th1 = scanner.theta0 + scanner.theta_mech_max * np.cos(ph1 + scanner.phase_offset)
+    # the fast axis with its hardware model (harmonics, monitor edges; docs/hardware.md)
+    ph1, v1 = phase_from_zero_crossings(t, zero_crossings, rising, scanner)
+    th1 = scan_angle_from_phase(ph1, scanner)
     if a2.mode == "resonant":
         if monitor2.zero_crossings is None:
             raise FormatError("expected zero crossings of the resonant axis 2, found none",

@@ -30,6 +30,7 @@ from mems_stereo.model.hardware import (
     validate_camera_matrix,
     validate_normal_basis,
 )
+from mems_stereo.model.hardware_json import hardware_from_dict, hardware_to_dict
 from mems_stereo.model.presets import (
     PRESETS,
     UnknownPresetError,
@@ -84,6 +85,7 @@ def system_from_dict(d: dict, source: str = "<dict>") -> System:
     device = d.get("device_id")
     if device is not None and (not isinstance(device, str) or not device.strip()):
         raise ctx.fail("device_id", f"expected a non-empty string, found {device!r}")
+    scanner, laser, tdc = hardware_from_dict(d, receiver, scanner, laser, tdc, ctx)
     system = System(receiver, scanner, laser, tdc, c, copy.deepcopy(calib), device_id=device)
     check_plausible(system, source)
     return system
@@ -270,6 +272,7 @@ def system_to_dict(system: System) -> dict:
         d["scanner"]["phase_offset"] = float(s.phase_offset)
     if s.axis2 is not None:  # two-axis extension (docs/two_axis.md)
         d["scanner"]["axis2"] = axis2_to_dict(s.axis2)
+    hardware_to_dict(s, la, t, d)  # the hardware model's members (docs/hardware.md)
     if system.device_id is not None:
         d["device_id"] = str(system.device_id)
     if system.calibration is not None:

@@ -37,7 +37,7 @@ from mems_stereo.io.labels import LABEL_NOISE, LABEL_NONE, LABEL_SIGNAL
 from mems_stereo.model.camera import normalized_coordinates, pixel_grid
 from mems_stereo.model.scanner import scan_direction, scan_direction_derivative
 from mems_stereo.model.system import System
-from mems_stereo.model.tdc import codes_from_path_length, path_length_from_codes
+from mems_stereo.model.tdc import detection_codes, detection_path_length
 
 DEFAULT_CONFIDENCE = 0.997
 
@@ -189,14 +189,16 @@ def accepted_code_intervals(system: System, theta, confidence: float = DEFAULT_C
     K = th.shape[0]
     lo = np.ones((K, rc.height, rc.width), dtype=np.int32)
     hi = np.zeros((K, rc.height, rc.width), dtype=np.int32)
-    c, tdc = system.speed_of_light, system.tdc
+    tdc = system.tdc
+    pixel = np.arange(rc.height * rc.width).reshape(rc.height, rc.width)
     for a in range(0, K, max(1, int(chunk_shots))):
         b = min(K, a + chunk_shots)
         pb = path_length_bounds(system, th[a:b], confidence, spreads, min_range)
         with np.errstate(invalid="ignore"):
-            # code N's bin centre: L_N = c·((N − ½)·bin − offset) (model.tdc)
-            nlo = np.ceil(codes_from_path_length(pb.L_lo, tdc, c))
-            nhi = np.floor(codes_from_path_length(np.minimum(pb.L_hi, 1e12), tdc, c))
+            # code N's bin centre: L_N = c·((N − ½)·bin − offset) (model.tdc; with the
+            # hardware model the code centres, pixel offsets and pulse delay)
+            nlo = np.ceil(detection_codes(pb.L_lo, system, pixel))
+            nhi = np.floor(detection_codes(np.minimum(pb.L_hi, 1e12), system, pixel))
         ok = np.isfinite(nlo) & np.isfinite(nhi)
         nlo = np.clip(np.where(ok, nlo, 1), 1, tdc.n_bins)
         nhi = np.clip(np.where(ok, nhi, 0), 0, tdc.n_bins)
@@ -276,7 +278,8 @@ def classify_detections(system: System, shot_idx, rows, cols, codes, theta,
     th = np.asarray(theta, dtype=np.float64)[np.asarray(shot_idx)]
     u = np.asarray(cols, dtype=np.float64)
     v = np.asarray(rows, dtype=np.float64)
-    L = path_length_from_codes(codes, system.tdc, system.speed_of_light)
+    pixel = np.asarray(rows, np.int64) * system.receiver.width + np.asarray(cols, np.int64)
+    L = detection_path_length(codes, system, pixel)
     p = np.asarray(system.scanner.position, dtype=np.float64)
 
     def offsets(sys_, u, v, L, theta):

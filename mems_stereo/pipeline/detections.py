@@ -28,7 +28,7 @@ from mems_stereo.geometry.uncertainty import (
 )
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
-from mems_stereo.model.tdc import path_length_from_codes
+from mems_stereo.model.tdc import detection_path_length
 from mems_stereo.pipeline.detection_kernel import compiled_entries, entries
 from mems_stereo.util.lazy_numba import compiled_if_loaded
 
@@ -405,7 +405,10 @@ def _detection_inputs(system: System, shot_idx, rows, cols, codes, theta) -> Det
     th = th_all[shot_idx]
     u = np.asarray(cols, dtype=np.float64).ravel()
     v = np.asarray(rows, dtype=np.float64).ravel()
-    L = path_length_from_codes(np.asarray(codes).ravel(), system.tdc, system.speed_of_light)
+    # the hardware model's code times (docs/hardware.md); ideal: the FORMAT v1 rule
+    pixel = (None if system.tdc.pixel_offsets is None
+             else np.rint(v).astype(np.int64) * system.receiver.width + np.rint(u).astype(np.int64))
+    L = detection_path_length(np.asarray(codes).ravel(), system, pixel)
     if not (u.shape == v.shape == L.shape == th.shape):
         raise GeometryError(f"shot_idx, rows, cols, codes: expected equal shapes, found "
                             f"{shot_idx.shape}, {v.shape}, {u.shape}, {L.shape}")

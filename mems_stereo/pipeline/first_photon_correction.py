@@ -19,7 +19,14 @@ import numpy as np
 
 from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import spreads_for
-from mems_stereo.physics.first_photon import MU_MAX, firing_probability, first_photon_delay
+from mems_stereo.model.hardware import pulse_mean_delay
+from mems_stereo.physics.first_photon import (
+    MU_MAX,
+    ShapeExcess,
+    firing_probability,
+    first_photon_delay,
+)
+from mems_stereo.physics.pulse import pulse_shape_of
 from mems_stereo.physics.spot import spot_fraction
 
 #: peaks per block of the first-photon correction (by peak index; see
@@ -189,7 +196,7 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
            "angle_bias": np.zeros(acc.Q)}
     # pulse centre from the fused point (stereo-dominated near the TDC start)
     tau = path_length_of_point(fused_point, s.scanner.position) / s.speed_of_light
-    tau = tau + s.tdc.offset
+    tau = tau + s.tdc.offset + pulse_mean_delay(s.laser)  # the pulse's mean (0: Gaussian)
     ok = (acc.band[1] >= acc.band[0]) & np.isfinite(tau) & np.isfinite(acc.centre)
     if sigma <= 0 or not np.any(ok):
         return FirstPhotonCorrection(**out, tof=tof)
@@ -224,7 +231,7 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     # background that fires the pixel first removes the late part of the
     # pulse: the recorded returns' density is the pulse's times exp(−λt),
     # a further shift of −λσ² (exact for a Gaussian pulse)
-    d = d - acc.rate_hz[idx] * sigma * sigma
+    d = with_pulse_shape(acc, sp, d - acc.rate_hz[idx] * sigma * sigma, mu, idx, tau[idx])
     dL[ok] = -c * d  # path length to add: the arrivals were early by d
     dvar[ok] = c * c * (var - sigma * sigma)  # first-photon timing variance replaces σ²
     # the model's own systematic uncertainty (pulse shape, spot profile, the
@@ -241,6 +248,36 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     D, G = acc.sums.tof.dL()
     x, C = tof
     return FirstPhotonCorrection(**out, tof=(x + D * dL[:, None], C + G * dvar[:, None, None]))
+
+
+def with_pulse_shape(acc, spreads, delay, mu, idx, tau):
+    """``delay`` (s) of the peaks ``idx`` plus what a non-Gaussian pulse
+    (``docs/hardware.md``) adds to the Gaussian model's first-photon delay
+    (``delay`` itself for the Gaussian pulse).
+
+    At each step of a peak's band the pixel receives μ_j = μ0·f_j photons; the shape's
+    excess delay there (:class:`ShapeExcess`, against the Gaussian of the model's
+    σ) is weighted by the detections it expects, n_j·(1 − e^(−μ_j)), as the peak's mean
+    weighs its detections.  ``mu`` (Q',) the peaks' μ0; ``tau`` (Q',) s the TDC time of
+    their pulse's mean (the window opens at −tau: both pulses are truncated there).
+    """
+    system = acc.system
+    if system.laser.pulse_shape is None:
+        return delay
+    sigma = math.hypot(spreads.sigma_t_pulse, spreads.sigma_t_jitter)
+    excess = ShapeExcess(pulse_shape_of(system.laser, spreads.sigma_t_jitter), sigma)
+    out = np.array(delay, dtype=np.float64)
+    for a in range(0, idx.size, FP_BLOCK):
+        band = band_steps(acc, idx[a:a + FP_BLOCK], full=True)
+        mu_j = mu[a:a + FP_BLOCK, None] * band.spot
+        wgt = band.shots * -np.expm1(-mu_j)
+        start = -tau[a:a + FP_BLOCK, None]
+        ex = excess(mu_j, start)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_ex = np.sum(wgt * np.nan_to_num(ex), axis=1) / np.sum(wgt, axis=1)
+        out[a:a + FP_BLOCK] += np.where(np.isfinite(mean_ex), mean_ex,
+                                        excess(mu[a:a + FP_BLOCK], start[:, 0]))
+    return out
 
 
 def _beyond_model(acc, q, n_band, f_band, mu):

@@ -33,7 +33,7 @@ import numpy as np
 
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
-from mems_stereo.model.tdc import codes_from_path_length
+from mems_stereo.model.tdc import detection_codes
 from mems_stereo.pipeline.background_entries import (
     BackgroundEntries,
     BackgroundSubtraction,
@@ -136,7 +136,8 @@ def _acceptance(system: System, table, peaks):
         r = np.broadcast_to(np.asarray(centre, np.float64)[:, None], steps.shape).ravel()
         with np.errstate(invalid="ignore"):
             s = -pd + np.sqrt(pd * pd - p @ p + r ** 2)
-        code = np.floor(codes_from_path_length(s + r, system.tdc, system.speed_of_light))
+        pxb = np.broadcast_to(px[:, None], steps.shape).ravel()
+        code = np.floor(detection_codes(s + r, system, pxb))
         code = code.reshape(steps.shape)
         table.ensure(np.unique(steps))
         lo = table.lo[steps, px[:, None]]

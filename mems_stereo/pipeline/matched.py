@@ -45,6 +45,7 @@ import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
+from mems_stereo.physics.pulse import effective_fwhm
 from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_support import (
@@ -128,7 +129,7 @@ class _CandidateSearch:
         n_bins = system.tdc.n_bins
         self.cands, self.table, self.settings = cands, table, settings
         self.bw = system.tdc.bin_width
-        self.m = max(1, int(round(system.laser.pulse_fwhm / self.bw)))
+        self.m = max(1, int(round(effective_fwhm(system.laser) / self.bw)))
         self.cell = max(1, self.m // CELLS_PER_HALF_BOX)
         self.n_per_step = np.asarray(n_per_step, np.float64)
         q, step, code = decode_peak_keys(counts.keys, table.n_steps, n_bins + 1)

@@ -31,6 +31,7 @@ from mems_stereo.physics.background import (
     moving_sum,
     poisson_isf,
 )
+from mems_stereo.physics.pulse import effective_fwhm
 from mems_stereo.pipeline.histograms import moving_average
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.peak_support import (
@@ -338,7 +339,7 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
         inside = (b_lo >= scanned[0] - width // 4) & (b_hi <= scanned[-1] + width // 4)
         q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
     # the peak code: the strongest code of the signal histogram in the band's codes
-    S_codes = moving_average(S[q], max(1, int(round(system.laser.pulse_fwhm / bw))) | 1)
+    S_codes = moving_average(S[q], max(1, int(round(effective_fwhm(system.laser) / bw))) | 1)
     code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)

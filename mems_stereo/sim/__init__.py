@@ -14,6 +14,7 @@ from mems_stereo.physics.first_photon import first_photon_cdf, first_photon_mean
 from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
 from mems_stereo.physics.pulse import PulseShape
 from mems_stereo.physics.spot import SpotModel, spot_fractions
+from mems_stereo.sim.imperfections import Imperfections, imperfect_system
 from mems_stereo.sim.photons import background_first_arrivals, first_signal_arrival
 from mems_stereo.sim.scene import RayHits, Scene, SceneObject, load_scene, scene_from_dict
 from mems_stereo.sim.simulate import (
@@ -29,6 +30,6 @@ __all__ = [
     "SpotModel", "Trajectory",
     "background_first_arrivals", "emitted_photons", "expected_signal_photons",
     "first_photon_cdf", "first_photon_mean_delay", "first_signal_arrival", "load_scene",
-    "monitor_zero_crossings", "scene_from_dict",
+    "monitor_zero_crossings", "scene_from_dict", "Imperfections", "imperfect_system",
     "shot_returns", "simulate", "spot_fractions", "write_simulation",
 ]

@@ -14,6 +14,11 @@ Per shot k at t_k = start_time + k / f_rep:
    code N = floor(τ / bin_width) + 1, 0 when nothing arrives in the window;
 5. optional optical crosstalk to a neighbouring pixel.
 
+The true system's hardware model (``docs/hardware.md``: trajectory harmonics,
+monitor edge delays, pulse shape, per-pixel TDC offsets, code widths) is
+simulated where it is set (:mod:`.imperfections`; ideal hardware draws the
+same numbers as without it).
+
 Everything uses the *true* system; the recording carries the nominal one.
 """
 
@@ -31,8 +36,9 @@ from mems_stereo.model.camera import project_points
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.physics.link_budget import LinkBudget, emitted_photons, expected_signal_photons
-from mems_stereo.physics.pulse import PulseShape
+from mems_stereo.physics.pulse import PulseShape, pulse_shape_of
 from mems_stereo.physics.spot import SpotModel, spot_fractions
+from mems_stereo.sim.imperfections import pixel_delays, tdc_codes
 from mems_stereo.sim.motion import as_moving, returns_over_time
 from mems_stereo.sim.photons import (
     DENSE_BACKGROUND,
@@ -78,8 +84,8 @@ class SimulationOptions:
 
 
 def _pulse_for(true_system: System, pulse, timing_jitter: float) -> PulseShape:
-    if pulse is None:
-        return PulseShape.gaussian(true_system.laser.pulse_fwhm, timing_jitter)
+    if pulse is None:  # the true laser's pulse model (the Gaussian without one)
+        return pulse_shape_of(true_system.laser, timing_jitter)
     if isinstance(pulse, PulseShape):
         return pulse
     times, power = pulse
@@ -197,6 +203,8 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
     ks, ri, ci = np.nonzero(sel)
     slot_sig = ks * npix + rows[ks, ri] * w + cols[ks, ci]
     delay = ret["path_length"][ks] / true_system.speed_of_light + tdc.offset
+    if tdc.pixel_offsets is not None:
+        delay = delay + pixel_delays(tdc, slot_sig % npix)
     tau_sig, _ = first_signal_arrival(mu_slot[sel], delay, pulse, window, rng)
 
     flat_rate = rates.reshape(-1)
@@ -208,7 +216,9 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
         has_sig = np.isfinite(tau_sig)
         s_slot, s_tau = slot_sig[has_sig], tau_sig[has_sig]
         win = s_tau < tau_bg_all[s_slot]
-        code = np.minimum(np.floor(s_tau[win] / bw) + 1, tdc.n_bins).astype(np.uint16)
+        if tdc.code_widths is not None:
+            bins = np.where(np.isfinite(tau_bg_all), tdc_codes(tau_bg_all, tdc), bins)
+        code = tdc_codes(s_tau[win], tdc)
         bins[s_slot[win]] = code
         label[s_slot[win]] = 1
         return _finish_chunk(bins, label, mu_slot, k, h, w, crosstalk, rng)
@@ -217,7 +227,7 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
     bins = np.zeros(n_slots, dtype=np.uint16)
     label = np.zeros(n_slots, dtype=np.uint8)
     code = tau * (1.0 / bw)  # non-negative: truncation is floor
-    bins[idx] = code.astype(np.uint16) + 1
+    bins[idx] = code.astype(np.uint16) + 1 if tdc.code_widths is None else tdc_codes(tau, tdc)
     label[idx] = 2
 
     # the earlier of signal and background wins
@@ -229,7 +239,7 @@ def _simulate_chunk(true_system: System, ret: dict, rates: np.ndarray, pulse: Pu
         found = idx[pos] == s_slot
         tau_bg[found] = tau[pos[found]]
     win = s_tau < tau_bg
-    code = np.minimum(np.floor(s_tau[win] / bw) + 1, tdc.n_bins).astype(np.uint16)
+    code = tdc_codes(s_tau[win], tdc)
     bins[s_slot[win]] = code
     label[s_slot[win]] = 1
 

@@ -207,7 +207,7 @@ def _shot_angles(ts: System, n_shots: int, rng, opt: Simulation2DOptions) -> _Sh
         phase2 = float(rng.uniform(0.0, 2 * math.pi))
     shot_time = np.arange(n_shots, dtype=np.float64) / ts.laser.f_rep
     traj1 = Trajectory(sc.f_mech, phase, 0.0, 0.0, sc.theta0, sc.theta_mech_max,
-                       sc.phase_offset)
+                       sc.phase_offset, tuple(sc.harmonics), sc.monitor)
     zc, rising = monitor_zero_crossings(traj1, shot_time, rng, opt.zc_jitter)
     theta1 = traj1.theta(shot_time)
     theta2, mon2 = _axis2_truth(ts, n_shots, shot_time, rng, phase2, opt.zc_jitter,

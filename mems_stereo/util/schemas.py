@@ -43,6 +43,35 @@ AXIS2_FIELDS = {
     "coupling": Field("number", False, "rad/rad", "mechanical crosstalk (default 0)"),
 }
 
+_STD = "σ where estimated (default: unknown)"
+
+HARMONIC_FIELDS = {
+    "order": Field("integer", True, doc="harmonic order k >= 2 of the scan phase"),
+    "amplitude": Field("number", True, "rel.", "A_k relative to theta_mech_max "
+                                              "(0.003 = 0.3 %)"),
+    "phase": Field("number", False, "rad", "ψ_k of A_k cos(k φ + ψ_k) (default 0)"),
+    "amplitude_std": Field("number", False, "rel.", _STD),
+    "phase_std": Field("number", False, "rad", _STD),
+}
+
+MONITOR_FIELDS = {
+    "rising_delay": Field("number", True, "s", "delay of a recorded rising crossing"),
+    "falling_delay": Field("number", True, "s", "delay of a recorded falling crossing"),
+    "rising_delay_std": Field("number", False, "s", _STD),
+    "falling_delay_std": Field("number", False, "s", _STD),
+}
+
+PULSE_SHAPE_FIELDS = {
+    "model": Field("string", True, doc='"ex-gaussian" (Gaussian core + exponential tail) '
+                                       'or "table" (measured response)'),
+    "tail_fraction": Field("number", False, doc="ex-gaussian: share w of the tail, [0, 1)"),
+    "tail_decay": Field("number", False, "s", "ex-gaussian: tail decay time τ"),
+    "tail_fraction_std": Field("number", False, doc=_STD),
+    "tail_decay_std": Field("number", False, "s", _STD),
+    "times": Field(_NUMBERS, False, "s", "table: increasing sample times (0: the peak)"),
+    "power": Field(_NUMBERS, False, doc="table: power at those times (any scale, >= 0)"),
+}
+
 _PARAMETER = Field("object", doc="one parameter's estimate", fields={
     "value": Field("number", True, doc="estimate (the parameter's unit)"),
     "std": Field("number|null", True, doc="standard deviation (null: unknown)"),
@@ -110,16 +139,29 @@ SYSTEM_FIELDS = {
                                                       "(default 0)"),
         "axis2": Field("object|null", doc="second axis (two-axis scanners)",
                        fields=AXIS2_FIELDS),
+        "harmonics": Field("array", doc="trajectory harmonics (docs/hardware.md; default "
+                                        "none: a cosine)", items=Field("object",
+                                                                        fields=HARMONIC_FIELDS)),
+        "monitor": Field("object", doc="zero-crossing monitor edge delays (docs/hardware.md; "
+                                       "default none)", fields=MONITOR_FIELDS),
     }),
     "laser": Field("object", True, doc="the pulsed laser", fields={
         "f_rep": _positive("Hz", "repetition rate"),
         "pulse_fwhm": Field("number", True, "s", "pulse width (FWHM)"),
         "wavelength": _positive("m", "wavelength"),
+        "pulse_shape": Field("object", doc="pulse beyond the Gaussian (docs/hardware.md; "
+                                           "default the Gaussian)", fields=PULSE_SHAPE_FIELDS),
     }),
     "tdc": Field("object", True, doc="the time-to-digital converter", fields={
         "bin_width": _positive("s", "code width"),
         "n_bins": Field("integer", True, doc="codes (1..65535)"),
         "offset": Field("number", False, "s", "time of code 1's start (default 0)"),
+        "pixel_offsets": Field(_NUMBERS, False, "s", "H·W numbers, row-major: each pixel's "
+                                                     "TDC start delay (docs/hardware.md)"),
+        "pixel_offsets_std": Field(_NUMBERS, False, "s", "H·W numbers: their σ"),
+        "code_widths": Field(_NUMBERS, False, "LSB", "n_bins numbers: code widths in units "
+                                                     "of bin_width (DNL + 1)"),
+        "code_widths_std": Field(_NUMBERS, False, "LSB", "n_bins numbers: their σ"),
     }),
     "speed_of_light": _positive("m/s", "in air"),
     "device_id": Field("string", doc="the hardware's identifier (serial number, asset tag), "

@@ -1,0 +1,179 @@
+"""``--model full``: the ideal-model calibration extended by the hardware terms it needs.
+
+:func:`add_hardware_terms` takes a converged ideal-model
+:class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
+:mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
+delay (from the ideal fit's solution), drops a term the walls do not determine
+(saying what to record), then adds the per-pixel TDC offsets when their test fails.
+An ideal-hardware calibration selects nothing and is returned unchanged.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from mems_stereo.calib import hardware_fit as hf
+from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.solver import StartValues
+
+#: what to record when a hardware term is not observable
+RECORD_ADVICE = {
+    "harmonic": "record walls that the beam crosses over the whole scan (wide walls at "
+                "two or more distances) so that the scan phase is sampled end to end",
+    "edge": "record walls at two or more distances so that both sweeps' returns are seen "
+            "at different ranges",
+}
+
+
+#: rounds of forward selection
+MAX_STEPS = 4
+
+
+def _advice(name: str) -> str:
+    return RECORD_ADVICE["harmonic" if name.startswith("harmonic") else "edge"]
+
+
+def _refit(result, names: list, fit_kwargs: dict):
+    """Fit ``result``'s walls with the system parameters ``result.names`` + ``names``
+    free, from ``result``'s solution."""
+    prob, x = result.extra["problem"], result.extra["x"]
+    values, walls = prob.layout.unpack(x)
+    start = StartValues({**values, **{n: prob.system.get_param(n) for n in names}}, walls)
+    return fit_walls(prob.walls, prob.system, free=list(result.names) + list(names),
+                     priors=prob.priors, initial=start, on_unobservable="warn", **fit_kwargs)
+
+
+def _fit_terms(result, chosen: list, fit_kwargs: dict):
+    """``result`` re-fitted with ``chosen`` free too; a term the walls do not determine
+    is dropped (a warning says what to record); ``result`` itself when nothing is left
+    or the fit fails (a warning says so)."""
+    r1 = _refit(result, chosen, fit_kwargs)
+    weak = [n for n in chosen if r1 and n in r1.unobservable]
+    if weak:
+        for n in weak:
+            result.warnings.append(f"{n} not observable from these walls (left ideal): "
+                                   f"{_advice(n)}")
+        chosen = [n for n in chosen if n not in weak]
+        if not chosen:
+            return result
+        r1 = _refit(result, chosen, fit_kwargs)
+    if not r1:
+        result.warnings.append(f"the fit with the hardware terms failed ({r1.reason}): "
+                               "the model without them is kept")
+        return result
+    r1.warnings[:0] = [w for w in result.warnings if w not in r1.warnings]
+    return r1
+
+
+def _pulse(result) -> None:
+    """``result.extra["pulse"]``: the pulse shape from the walls' low-pile-up returns
+    (:mod:`mems_stereo.calib.pulse_shape`; for the report, not written), when there
+    are enough of them."""
+    from mems_stereo.calib.pulse_shape import fit_pulse_shape, wall_return_residuals
+
+    from mems_stereo.errors import ShapeError
+
+    prob = result.extra["problem"]
+    res, window = wall_return_residuals(prob, result.extra["x"])
+    try:
+        result.extra["pulse"] = fit_pulse_shape(res, window=window,
+                                                quantum=prob.system.tdc.bin_width)
+    except ShapeError:
+        pass
+
+
+def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kwargs):
+    """The full-model calibration from an ideal-model ``result`` (see the module).
+
+    Returns a CalibrationResult whose ``extra["hardware_tests"]`` lists the
+    :class:`~mems_stereo.calib.hardware_fit.TermTest` of every candidate and
+    ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.hardware_fit.PixelOffsets`;
+    the ideal-model result when no term is selected or the extended fit fails.
+    """
+    blocks = hf.candidate_blocks(orders)
+    out, tests = result, []
+    for _ in range(MAX_STEPS):  # forward selection: test, fit the significant, test again
+        prob, x = out.extra["problem"], out.extra["x"]
+        todo = {k: v for k, v in blocks.items() if not set(v) & set(out.names)}
+        if not todo:
+            break
+        step = hf.score_tests(prob, x, todo)
+        tests = [t for t in tests if t.name not in todo] + step
+        sel = [t for t in step if t.selected]
+        if not sel:
+            break
+        best = min(sel, key=lambda t: (t.p_value, -t.lm))  # one block a round: a misfit
+        chosen = list(best.names)  # leaks into the other blocks' scores
+        if progress:
+            progress(f"hardware terms: {best.name} (score test p = {best.p_value:.1e})")
+        nxt = _fit_terms(out, chosen, fit_kwargs)
+        if nxt is out:
+            break
+        out = nxt
+    po = hf.pixel_offsets(out.extra["problem"], out.extra["x"])
+    if po.test.selected:
+        out.system = hf.with_pixel_offsets(out.system, po)
+        n_left = int((~po.covered).sum())
+        if n_left:
+            out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
+                                "left at 0 (record walls whose returns cover every pixel)")
+    out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
+    out.extra["hardware_tests"] = tests + [po.test]
+    _pulse(out)
+    out.extra["pixel_offsets"] = po
+    out.system = out.system.replace(calibration=out.calibration_dict())
+    return out
+
+
+def _failed_problem(failure, walls, nominal, priors, fit_kwargs):
+    """The ideal problem at a failed fit's values, on fresh cells: (problem, x) or None."""
+    from mems_stereo.calib.problem import Layout, Problem
+    from mems_stereo.calib.solver import build_cells
+
+    from mems_stereo.errors import NotObservableError
+    from mems_stereo.physics.pulse import pulse_sigma
+
+    d = failure.details or {}
+    if "values" not in d or "walls" not in d or len(d["walls"]) != len(walls):
+        return None
+    lay = Layout(list(d["values"]), len(walls), nominal.receiver.height > 1)
+    sigma = pulse_sigma(nominal.laser.pulse_fwhm, fit_kwargs.get("jitter", 50e-12))
+    prob = Problem(walls, nominal, lay, sigma, priors)
+    x = lay.pack(d["values"], np.asarray(d["walls"], dtype=np.float64))
+    try:
+        return prob, build_cells(prob, x, radius=2)
+    except NotObservableError:
+        return None
+
+
+def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=None,
+           **fit_kwargs):
+    """A full-model calibration when the ideal model's fit converged but failed its
+    checks: the score tests of :mod:`~mems_stereo.calib.hardware_fit` at the failed
+    fit's values; the significant blocks fitted from there.  Returns the result, or
+    ``failure`` unchanged when the fit did not reach its checks (did not converge), no
+    block is significant, the failed fit has no values
+    for every wall, or the extended fit fails too (a misfit no hardware term explains:
+    a wrong distance, a wall that is not flat)."""
+    if "checks" not in (failure.details or {}):  # not converged, or no wall: no misfit
+        return failure
+    got = _failed_problem(failure, walls, nominal, priors, fit_kwargs)
+    if got is None:
+        return failure
+    prob, x = got
+    tests = hf.score_tests(prob, x, hf.candidate_blocks(orders))
+    keep = [n for t in tests if t.selected for n in t.names]
+    if not keep:
+        return failure
+    if progress:
+        progress("the ideal model failed its checks: fitting "
+                 + ", ".join(t.name for t in tests if t.selected))
+    d = failure.details
+    start = StartValues({**d["values"], **{n: nominal.get_param(n) for n in keep}},
+                        np.asarray(d["walls"], dtype=np.float64))
+    r = fit_walls(walls, nominal, free=list(d["values"]) + keep, priors=priors,
+                  initial=start, on_unobservable="warn", **fit_kwargs)
+    if not r:
+        return failure
+    r.warnings.insert(0, "the ideal model failed its checks (" + failure.reason[:120]
+                      + "...): the hardware terms " + ", ".join(keep) + " were fitted")
+    return r

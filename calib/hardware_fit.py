@@ -1,0 +1,179 @@
+"""The hardware model's terms in the wall calibration: tested, selected, estimated.
+
+After the ideal-model fit (:func:`mems_stereo.calib.fit.fit_walls`):
+
+1. **score tests** (Rao's LM test, with the fit's outer-product information): for each
+   candidate block — the mirror's k-th harmonic (cos, sin; k in ``orders``), the
+   monitor's rising-edge delay — ``LM = g_bᵀ [I⁻¹]_bb g_b`` at the fitted point, χ²
+   with the block's size under the ideal model.  Only blocks with ``p < alpha`` are
+   estimated: an ideal-hardware calibration gets no new term (at that rate) and keeps
+   today's result;
+2. the selected terms are **fitted** with the others, from the ideal fit's solution
+   (:func:`refit`), with σ, correlations and the observability verdict of
+   :mod:`mems_stereo.calib.observability`;
+3. **per-pixel TDC offsets**: the score of each pixel's delay summed over its cells, one
+   Newton step from 0 (the offsets are far below the pulse σ), their mean left to
+   ``tdc_offset``; estimated when their joint score test fails (χ² with G − 1 dof);
+   a pixel no wall's return covers is left at 0 with no σ.
+
+Names follow :meth:`mems_stereo.model.hardware.System.with_params`; the falling
+edge's delay is held at its nominal value (the mean of the two is the phase offset).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from mems_stereo.calib.model import HARDWARE_PARAMS, harmonic_orders
+from mems_stereo.calib.problem import Layout, Problem, cell_terms
+from scipy import stats
+
+#: significance of a score test that admits a term into the fit
+ALPHA_SELECT = 1e-3
+#: harmonic orders tested by default
+DEFAULT_ORDERS = (2, 3, 4, 5)
+
+
+@dataclass(frozen=True)
+class TermTest:
+    """A candidate block's score test: ``name`` ("harmonic 3", "edge delays",
+    "pixel offsets"), its parameter ``names``, ``lm`` statistic, ``dof``,
+    ``p_value``, and ``selected`` (p < alpha)."""
+
+    name: str
+    names: tuple
+    lm: float
+    dof: int
+    p_value: float
+    selected: bool
+
+
+def candidate_blocks(orders=DEFAULT_ORDERS) -> dict:
+    """Block name → parameter names: each harmonic order, and the edge delay."""
+    out = {f"harmonic {k}": tuple(harmonic_orders((k,))) for k in orders}
+    out["edge delays"] = ("edge_rising_delay",)
+    return out
+
+
+def extended_problem(prob: Problem, x, extra) -> tuple:
+    """The problem ``prob`` with parameters ``extra`` (at their nominal values) added,
+    on the same cells: (problem, x)."""
+    lay = prob.layout
+    values, walls = lay.unpack(x)
+    names = list(lay.names) + [n for n in extra if n not in lay.names]
+    lay2 = Layout(names, lay.T, lay.two_d)
+    p2 = Problem(prob.walls, prob.system, lay2, prob.sigma, prob.priors)
+    p2.cells = list(prob.cells)
+    p2.pixel_offsets = prob.pixel_offsets
+    vals = {n: values.get(n, prob.system.get_param(n)) for n in lay2.names}
+    return p2, lay2.pack(vals, walls)
+
+
+def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT) -> list:
+    """One :class:`TermTest` per block, at the fitted ``x`` of ``prob``."""
+    extra = [n for b in blocks.values() for n in b]
+    p2, x2 = extended_problem(prob, x, extra)
+    _, g, H = p2.score(x2)
+    sc = p2.layout.scales
+    gs, Hs = g * sc, H * sc[:, None] * sc[None, :]
+    base = list(range(prob.layout.n_sys)) + list(range(p2.layout.n_sys, p2.layout.size))
+    out = []
+    for name, names in blocks.items():
+        bi = [p2.layout.names.index(n) for n in names]
+        idx = base + bi
+        try:
+            Hi = np.linalg.pinv(Hs[np.ix_(idx, idx)])
+        except np.linalg.LinAlgError:
+            continue
+        gb = gs[idx]
+        lm = float(gb @ Hi @ gb)
+        p = float(stats.chi2.sf(lm, len(names)))
+        out.append(TermTest(name, tuple(names), lm, len(names), p, p < alpha))
+    return out
+
+
+@dataclass(frozen=True)
+class PixelOffsets:
+    """Per-pixel TDC offsets from the cells' scores: ``value``, ``std`` (H·W,) s
+    (std NaN where no cell informs the pixel), the joint ``test``
+    (:class:`TermTest`) and ``covered`` (H·W,) bool."""
+
+    value: np.ndarray
+    std: np.ndarray
+    test: TermTest
+    covered: np.ndarray
+
+
+def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
+                  min_info_ratio: float = 1e-3) -> PixelOffsets:
+    """One Newton step of each pixel's TDC delay from 0 at the fitted ``x``, their
+    information-weighted mean removed (``tdc_offset`` holds it), and their joint
+    score test (see the module)."""
+    lay = prob.layout
+    _, walls = lay.unpack(x)
+    W, H = prob.system.receiver.width, prob.system.receiver.height
+    g = np.zeros(W * H)
+    info = np.zeros(W * H)
+    for j in range(lay.T):
+        c = prob.cells[j]
+        pred, ok, _ = prob.predictions(x, j, c.shots)
+        pos = np.searchsorted(c.shots, c.shot)
+        pc = np.where(ok[pos, None], pred[pos], [0.0, -1e6, -1e6, 0.0])
+        pix = (c.row * W + c.col).astype(np.int64)
+        if prob.pixel_offsets is not None:
+            pc[:, 0] += prob.pixel_offsets[pix]
+        _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
+                          prob.pitch_ratio)
+        d0 = np.where(ok[pos], d[:, 0], 0.0)
+        g += np.bincount(pix, d0, W * H)
+        info += np.bincount(pix, d0 * d0, W * H)
+    covered = info > min_info_ratio * max(float(info.max()), 1e-300)
+    val = np.where(covered, g / np.where(covered, info, 1.0), 0.0)
+    wsum = float(info[covered].sum())
+    mean = float((g[covered]).sum() / wsum) if wsum > 0 else 0.0
+    lm = float(np.sum(g[covered] ** 2 / info[covered]) - wsum * mean * mean)
+    dof = max(int(covered.sum()) - 1, 1)
+    p = float(stats.chi2.sf(lm, dof))
+    value = np.where(covered, val - mean, 0.0)
+    std = np.where(covered, 1.0 / np.sqrt(np.where(covered, info, 1.0)), np.nan)
+    return PixelOffsets(value, std, TermTest("pixel offsets", (), lm, dof, p, p < alpha),
+                        covered)
+
+
+def with_pixel_offsets(system, offsets: PixelOffsets):
+    """``system`` with the per-pixel offsets (added to any it has) and their σ."""
+    tdc = system.tdc
+    base = (np.zeros(offsets.value.size) if tdc.pixel_offsets is None
+            else np.asarray(tdc.pixel_offsets, dtype=np.float64))
+    std = np.where(offsets.covered, offsets.std, 0.0)
+    return system.replace(tdc=replace(tdc, pixel_offsets=base + offsets.value,
+                                      pixel_offsets_std=std))
+
+
+def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
+    """``system`` with the σ of its fitted harmonics (amplitude, phase) and edge delay
+    (delta method from the (cos, sin) covariance)."""
+    sc = system.scanner
+    hs = []
+    for h in sc.harmonics:
+        c, s = f"harmonic{h.order}_cos", f"harmonic{h.order}_sin"
+        if c in names and s in names:
+            i, k = names.index(c), names.index(s)
+            C = cov[np.ix_([i, k], [i, k])]
+            a = max(h.amplitude, 1e-300)
+            ga = np.array([values[c], values[s]]) / a  # ∂A/∂(c, s)
+            gp = np.array([values[s], -values[c]]) / (a * a)  # ∂ψ/∂(c, s), ψ = atan2(−s, c)
+            h = replace(h, amplitude_std=math.sqrt(max(float(ga @ C @ ga), 0.0)),
+                        phase_std=math.sqrt(max(float(gp @ C @ gp), 0.0)))
+        hs.append(h)
+    mon = sc.monitor
+    if mon is not None and "edge_rising_delay" in names:
+        mon = replace(mon, rising_delay_std=float(std["edge_rising_delay"]))
+    return system.replace(scanner=replace(sc, harmonics=tuple(hs), monitor=mon))
+
+
+def is_hardware(name: str) -> bool:
+    """Whether ``name`` is a hardware-model term of the fit."""
+    return name in HARDWARE_PARAMS

@@ -1,0 +1,115 @@
+"""The code-density test (calib/code_density.py): first-photon background with known code
+widths, signal windows, pixel groups; tables checked against a per-shot loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mems_stereo.calib.code_density import code_edges, code_widths, first_photon_tables
+
+from mems_stereo.errors import ShapeError
+
+
+def _widths(rng, m, periodic=0.3, random=0.05, period=8):
+    k = np.arange(m)
+    w = 1.0 + periodic * np.sin(2 * np.pi * k / period) + random * rng.standard_normal(m)
+    return w / w.mean()
+
+
+def _first_photons(rng, widths, rate, n_shots, signal=None):
+    """First-photon codes (K, P) of a TDC with ``widths`` (LSB) for background
+    ``rate`` (P,) per LSB; ``signal`` (K, P) extra photon times (LSB) or None."""
+    edges = code_edges(widths, 1.0)
+    t = rng.exponential(1.0 / np.asarray(rate), size=(n_shots, len(rate)))
+    if signal is not None:
+        t = np.minimum(t, signal)
+    return np.where(t < edges[-1], np.searchsorted(edges, t, side="right"), 0)
+
+
+def _tables_by_loop(codes, n_codes, lo, hi):
+    """Independent derivation: walk each shot and pixel code by code."""
+    K, P = codes.shape
+    ev = np.zeros((P, n_codes + 1), dtype=np.int64)
+    ar = np.zeros((P, n_codes + 1), dtype=np.int64)
+    for k in range(K):
+        for p in range(P):
+            c = codes[k, p]
+            for n in range(1, n_codes + 1):
+                if lo[k, p] <= n <= hi[k, p]:
+                    if c == n:
+                        break  # fired inside the window: censored
+                    continue
+                ar[p, n] += 1
+                if c == n:
+                    ev[p, n] += 1
+                    break
+    return ev, ar
+
+
+def test_tables_match_a_per_shot_loop():
+    rng = np.random.default_rng(4)
+    n_codes = 12
+    codes = rng.integers(0, n_codes + 1, size=(60, 3))
+    lo = rng.integers(1, n_codes + 1, size=(60, 3))
+    hi = lo + rng.integers(-2, 4, size=(60, 3))  # some empty windows (lo > hi)
+    ev, ar = first_photon_tables(codes, n_codes, (lo, hi))
+    ev0, ar0 = _tables_by_loop(codes, n_codes, lo, np.minimum(hi, n_codes))
+    np.testing.assert_array_equal(ev[:, 1:], ev0[:, 1:])
+    np.testing.assert_array_equal(ar[:, 1:], ar0[:, 1:])
+
+
+def test_widths_recovered_within_their_sigma_despite_signal():
+    rng = np.random.default_rng(11)
+    m, K, P = 96, 12000, 12
+    w = _widths(rng, m)
+    rate = rng.uniform(0.004, 0.015, P)  # pixels of unequal background
+    centre = rng.integers(8, m - 8, size=(K, 1))
+    sig = np.where(rng.random((K, P)) < 0.6,
+                   code_edges(w, 1.0)[centre] + rng.normal(0, 0.8, (K, P)), np.inf)
+    codes = _first_photons(rng, w, rate, K, sig)
+    est = code_widths(codes, m, window=(centre - 4, centre + 4))
+    pull = (est.width[0] - w) / est.width_sigma[0]
+    assert 0.8 < pull.std() < 1.2 and np.abs(pull).max() < 4.5
+    # σ is Poisson: w/√n
+    np.testing.assert_allclose(est.width_sigma[0], est.width[0] / np.sqrt(est.counts[0]))
+    # the pixels' rates per mean-width code, from independent draws
+    np.testing.assert_allclose(est.rate, rate, rtol=0.05)
+    # INL is the running sum of the DNL and closes at 0 (widths have mean 1)
+    np.testing.assert_allclose(est.inl[0], np.cumsum(est.dnl[0]))
+    assert abs(est.inl[0, -1]) < 1e-9 and est.inl_sigma[0, -1] < 1e-9
+    # without the windows the returns bias the codes they fall in
+    raw = code_widths(codes, m)
+    assert np.sqrt(np.mean((raw.width[0] - w) ** 2)) > 3 * np.sqrt(np.mean((est.width[0] - w) ** 2))
+
+
+def test_equal_widths_give_dnl_and_inl_within_sigma():
+    rng = np.random.default_rng(2)
+    m = 64
+    codes = _first_photons(rng, np.ones(m), np.full(8, 0.01), 8000)
+    est = code_widths(codes.reshape(8000, 2, 4), m)  # (K, H, W) accepted
+    assert np.abs(est.dnl / est.width_sigma).max() < 4.5
+    inner = est.inl_sigma[0] > 0
+    assert np.abs(est.inl[0][inner] / est.inl_sigma[0][inner]).max() < 4.5
+    # 2 % RMS needs ≈ 2500 detections per code: σ follows 1/√n
+    assert est.width_sigma.mean() == pytest.approx(1 / np.sqrt(est.counts.mean()), rel=0.05)
+
+
+def test_pixel_groups_have_their_own_widths():
+    rng = np.random.default_rng(3)
+    m, K = 48, 10000
+    wa, wb = _widths(rng, m, 0.3, 0.0, 6), _widths(rng, m, 0.0, 0.1)
+    ca = _first_photons(rng, wa, np.full(4, 0.012), K)
+    cb = _first_photons(rng, wb, np.full(4, 0.012), K)
+    est = code_widths(np.hstack([ca, cb]), m, groups=[0] * 4 + [1] * 4)
+    assert est.width.shape == (2, m)
+    for g, w in enumerate((wa, wb)):
+        assert np.abs((est.width[g] - w) / est.width_sigma[g]).max() < 4.5
+
+
+def test_bad_shapes_are_named():
+    with pytest.raises(ShapeError, match="codes"):
+        code_widths(np.zeros(10, dtype=int), 16)
+    with pytest.raises(ShapeError, match="codes"):
+        code_widths(np.full((4, 2), 20), 16)
+    with pytest.raises(ShapeError, match="groups"):
+        code_widths(np.zeros((4, 2), dtype=int), 16, groups=[0, 1, 2])

@@ -1,0 +1,162 @@
+"""The calibration's hardware terms (calib/model.py, calib/problem.py, calib/hardware_fit.py):
+the forward model against the hardware model's own functions, the score test's
+calibration on data the ideal model describes, the per-pixel offsets' one step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from mems_stereo.calib.hardware_fit import candidate_blocks, pixel_offsets, score_tests
+from mems_stereo.calib.model import HARDWARE_PARAMS, beam_hits, harmonic_orders, plane_normal
+from mems_stereo.calib.problem import Cells, Layout, Problem, WallData
+
+from mems_stereo.model.scanner import phase_from_zero_crossings, scan_angle_from_phase
+from mems_stereo.model.system import burkard2022
+
+
+def _theta_from_hits(system, values, phase):
+    """The scan angle beam_hits used, recovered from its beam direction."""
+    h = beam_hits(system, values, phase, plane_normal(0.0), 2.0)
+    d = h.point - system.baseline
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ref = beam_hits(system, {}, phase, plane_normal(0.0), 2.0)
+    return d, ref
+
+
+def test_trajectory_matches_the_hardware_model():
+    sys0 = burkard2022()
+    vals = {"harmonic3_cos": 0.004, "harmonic3_sin": -0.002, "harmonic2_cos": 0.001}
+    true = sys0.with_params(**vals)
+    phase = np.linspace(0.0, 2 * np.pi, 50)
+    th_model = scan_angle_from_phase(phase, true.scanner)  # E's model
+    # the same angle through the calibration's forward model: a system with that θ0
+    # and no harmonics must give the calibration's direction at every shot
+    d_cal = beam_hits(sys0, vals, phase, plane_normal(0.0), 2.0).point - sys0.baseline
+    for k in (0, 17, 33):
+        one = sys0.with_params(theta0=float(th_model[k]) - sys0.scanner.theta_mech_max
+                               * np.cos(phase[k] + sys0.scanner.phase_offset))
+        d_ref = beam_hits(one, {}, phase[k:k + 1], plane_normal(0.0), 2.0).point - one.baseline
+        np.testing.assert_allclose(d_cal[k], d_ref[0], rtol=1e-9, atol=1e-12)
+    # a system that carries the harmonics gives the same as the values
+    a = beam_hits(true, {}, phase, plane_normal(0.0), 2.0).point
+    np.testing.assert_allclose(a, beam_hits(sys0, vals, phase, plane_normal(0.0), 2.0).point,
+                               rtol=1e-12)
+    assert harmonic_orders((3,)) == ["harmonic3_cos", "harmonic3_sin"]
+    assert set(harmonic_orders((2, 5))) <= set(HARDWARE_PARAMS)
+
+
+def _wall(rng, n_shots=400):
+    f = 1570.0
+    zc = np.arange(0, 0.2, 0.5 / f) + 1e-4
+    rising = (np.arange(zc.size) % 2).astype(bool)
+    t = np.sort(rng.uniform(zc[0] + 1e-5, zc[-1] - 1e-5, n_shots))
+    ph, _ = phase_from_zero_crossings(t, zc, rising)
+    bins = np.zeros((n_shots, 1, 192), dtype=np.uint16)
+    return WallData(ph, bins, np.full((1, 192), 1e5), 3.125e-10, "w", t, zc, rising)
+
+
+def test_phase_follows_the_edge_delay_and_harmonics():
+    rng = np.random.default_rng(1)
+    w = _wall(rng)
+    sys0 = burkard2022()
+    lay = Layout(["theta0", "edge_rising_delay", "harmonic3_cos"], 1, False)
+    assert lay.names == ["theta0", "harmonic3_cos", "edge_rising_delay"]
+    prob = Problem([w], sys0, lay, 6e-9)
+    vals = {"theta0": 0.7, "edge_rising_delay": 2e-7, "harmonic3_cos": 0.003}
+    got = prob.phase(vals, 0)
+    sc = sys0.with_params(edge_rising_delay=2e-7, harmonic3_cos=0.003).scanner
+    want = phase_from_zero_crossings(w.shot_time, w.zero_crossings, w.rising, sc)[0]
+    np.testing.assert_array_equal(got, want)
+    # ideal values: the recorded phase, bit for bit
+    prob0 = Problem([w], sys0, Layout(["theta0"], 1, False), 6e-9)
+    assert prob0.phase({"theta0": 0.7}, 0) is w.phase
+
+
+def _synthetic_problem(rng, offsets=None):
+    """A problem whose cells' first photons are drawn from the model itself."""
+    sys0 = burkard2022()
+    w = _wall(rng, 6000)
+    lay = Layout(["theta0", "tdc_offset"], 1, False)
+    prob = Problem([w], sys0, lay, 1e-9)
+    wall = np.array([0.0, 0.0, 1.5, np.log(0.3), np.log(0.6)])
+    x = lay.pack({"theta0": sys0.scanner.theta0, "tdc_offset": 0.0}, wall[None, :])
+    pred, ok, _ = prob.predictions(x, 0)
+    shots = np.flatnonzero(ok & (pred[:, 1] > 3) & (pred[:, 1] < 188))
+    u = np.rint(pred[shots, 1])
+    cols = (u[:, None] + np.arange(-2, 3)[None, :]).ravel()
+    sh = np.repeat(shots, 5)
+    tau = pred[sh, 0] + (0.0 if offsets is None else offsets[cols.astype(int)])
+    share = np.exp(-0.5 * ((cols - pred[sh, 1]) / 0.6) ** 2) * 0.3 / (0.6 * np.sqrt(2 * np.pi))
+    n = rng.poisson(share)
+    t = np.where(n > 0, tau + rng.normal(0.0, 1e-9, sh.size), np.nan)
+    lg = float(np.median(pred[shots, 3]))
+    prob.cells[0] = Cells(sh, cols, np.zeros_like(cols), t, np.full(sh.size, 1e3), 60e-9,
+                          shots, lg)
+    return prob, lay.pack({"theta0": sys0.scanner.theta0, "tdc_offset": 0.0},
+                          np.array([[0.0, 0.0, 1.5, np.log(0.3), np.log(0.6)]]))
+
+
+def test_score_tests_and_pixel_offsets():
+    rng = np.random.default_rng(2)
+    prob, x = _synthetic_problem(rng)
+    tests = score_tests(prob, x, candidate_blocks((3,)))
+    assert [t.name for t in tests] == ["harmonic 3", "edge delays"]
+    assert all(np.isfinite(t.lm) and t.dof in (1, 2) for t in tests)
+    po = pixel_offsets(prob, x)
+    assert not po.test.selected  # no offsets in the data
+    # offsets of 1.5 ns on every other pixel are found, with σ that cover the error
+    off = np.zeros(192)
+    off[::2] = 1.5e-9
+    off -= off.mean()
+    prob2, x2 = _synthetic_problem(np.random.default_rng(2), off)
+    po2 = pixel_offsets(prob2, x2)
+    assert po2.test.selected
+    c = po2.covered & np.isfinite(po2.std)
+    err = (po2.value[c] - (off[c] - np.average(off[c], weights=1 / po2.std[c] ** 2)))
+    assert np.sqrt(np.mean((err / po2.std[c]) ** 2)) == pytest.approx(1.0, abs=0.5)
+
+
+def test_hardware_page_renders(tmp_path):
+    from types import SimpleNamespace
+
+    from matplotlib.backends.backend_pdf import PdfPages
+    from matplotlib.figure import Figure
+    from mems_stereo.calib.code_density import code_widths
+    from mems_stereo.calib.goodness import calibration_goodness
+    from mems_stereo.calib.pulse_shape import PulseFit
+    from mems_stereo.viz.calib_report_hardware import hardware_page, inl_panel
+
+    rng = np.random.default_rng(3)
+    prob, x = _synthetic_problem(rng)
+    result = SimpleNamespace(system=prob.system, extra={
+        "problem": prob, "x": x, "pixel_offsets": pixel_offsets(prob, x),
+        "hardware_tests": score_tests(prob, x, candidate_blocks((3,))),
+        "goodness": calibration_goodness(prob, x),
+        "pulse": PulseFit(0.0, 1e-9, 0.2, 2e-9, 0.4e-9, 0.01, dict.fromkeys(
+            ("shift", "sigma", "tail_fraction", "tail_decay", "background", "mean_delay"),
+            0.1), np.eye(5), -10.0, -20.0, 1.2e-9, 1000, 0.0)})
+    path = tmp_path / "hw.pdf"
+    with PdfPages(str(path)) as pdf:
+        assert hardware_page(pdf, result)
+        assert not hardware_page(pdf, SimpleNamespace(extra={}))  # a failure: no page
+    assert path.read_bytes()[:4] == b"%PDF"
+    codes = rng.integers(0, 33, size=(500, 4))
+    inl_panel(Figure().subplots(), code_widths(codes, 32))
+
+
+def test_calibration_goodness_refuses_naming_the_effect():
+    from types import SimpleNamespace
+
+    from mems_stereo.calib.goodness import judge
+
+    def result(offsets):
+        prob, x = _synthetic_problem(np.random.default_rng(2), offsets)
+        return SimpleNamespace(extra={"problem": prob, "x": x}, warnings=[], elapsed=0.0)
+
+    clean = result(None)
+    assert judge(clean) is clean and clean.extra["goodness"][0].passed
+    off = np.zeros(192)
+    off[::2] = 1.5e-9
+    failed = judge(result(off - off.mean()))
+    assert not failed and failed.kind == "estimate"
+    assert "per-pixel TDC offsets" in failed.reason and "--inflate-sigma" in failed.reason
