@@ -216,14 +216,20 @@ def test_slow_sink_drops_whole_frames_counted(room, can_wait):
     loses whole frames (never part of one), each counted and listed, the queue never above
     its bound; a source that can wait (replay at max) loses none."""
     written, queued = [], []
+    src = _Source(room.system, 2000, 0.002, can_wait)
 
     def write(f):
         queued.append(run.adm.queued)
         written.append(f)
         time.sleep(0.1)
+        # a live source outruns the sink on any machine, however loaded: the first write
+        # lasts until the source has delivered every shot
+        deadline = time.monotonic() + 20.0
+        while not can_wait and len(written) == 1 and src.ended is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.01)
 
-    run = LiveRun(_Source(room.system, 2000, 0.002, can_wait), _Processor(), write,
-                  max_queued=2)
+    run = LiveRun(src, _Processor(), write, max_queued=2)
     st = run.run()
     n = len(written) + st.frames_dropped
     assert n == 20 and st.frames_written == len(written)
