@@ -83,8 +83,9 @@ def test_paced_replay_follows_the_recording_clock(room):
         lag.append(time.monotonic() - src.due(float(c.shot_time[-1])))
     wall = time.monotonic() - t0
     dur = float(room.shot_time[-1] - room.shot_time[0]) / 0.1
-    assert dur <= wall < dur + 0.3
-    assert min(lag) >= 0 and np.median(lag) < 0.05
+    # never early; the upper bounds leave room for a loaded 2-core machine
+    assert dur <= wall < dur + 1.5
+    assert min(lag) >= 0 and np.median(lag) < 0.25
 
 
 def test_growing_h5_file_swmr(room, reference, tmp_path):
