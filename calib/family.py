@@ -129,6 +129,7 @@ class AnalyticWall:
         self._refl = float(reflectivity)
         self.objects = [self]
         self.name = "wall"
+        self.params: dict = {}  # a scene object's parameters: no velocity, it stands still
 
     @property
     def reflectivity(self) -> np.ndarray:
