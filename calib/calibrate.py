@@ -21,7 +21,7 @@ from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.fit import fit_walls
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
-from mems_stereo.errors import FormatError, MemsStereoError, NotObservableError
+from mems_stereo.errors import FormatError, MemsStereoError, NotObservableError, OptionError
 from mems_stereo.io.recording import Recording, read_recording
 from mems_stereo.io.recording_checks import check_codes_fit
 from mems_stereo.model.system import System, resolve_system
@@ -105,7 +105,7 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
     inflate_sigma = bool(fit_kwargs.pop("inflate_sigma", False))
     harmonics = tuple(fit_kwargs.pop("harmonics", (2, 3, 4, 5)))
     if model not in ("ideal", "full"):
-        raise ValueError(f"model: expected 'ideal' or 'full', found {model!r}")
+        raise OptionError(f"expected 'ideal' or 'full', found {model!r}", field="model")
     out = fit_walls(walls, nominal, free=free, fix=fix, priors=priors,
                     on_unobservable=on_unobservable, progress=progress, **fit_kwargs)
     if model == "full":
