@@ -70,7 +70,7 @@ def test_background_alone_gives_no_track(nominal):
     assert tr.u.size < MIN_TRACK_POINTS
 
 
-@pytest.mark.slow
+@pytest.mark.stress  # 12-17 s: with the stress runs (pytest -m stress)
 def test_walls_the_track_search_misses_are_found_by_the_pose_search(nominal):
     """One bright wall and two faint ones (0.05 and 0.08 photons per shot at 0.5–1
     MHz): the track search follows only the bright one, whose fit alone is

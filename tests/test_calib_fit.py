@@ -139,7 +139,7 @@ def test_calib3d_shaped_api(nominal):
     assert len(per_target) == 3 and "distance_axis" in per_target[0]
 
 
-@pytest.mark.slow
+@pytest.mark.stress  # 12-17 s: with the stress runs (pytest -m stress)
 def test_collapsed_spot_is_not_written_with_an_overconfident_sigma(nominal):
     """A family draw at 1/8 of its shots where, from the track-search start, one
     wall's fitted spot σ collapses onto its lower bound, which inflates the pixel

@@ -43,6 +43,7 @@ def test_threshold_is_the_bonferroni_quantile():
     assert threshold(100) < threshold(10_000)
 
 
+@pytest.mark.stress  # 15 s: with the stress runs (pytest -m stress)
 def test_background_alone_is_not_a_wall(nominal):
     """Pure background at 10 kHz–6 MHz: the best pose stays below the threshold, and
     the largest significance over the poses is what a maximum over ~10⁴ mostly
