@@ -20,10 +20,15 @@ import shutil
 import tempfile
 from pathlib import Path
 
-import numpy as np
 from mems_stereo.viz.cloud_common import check_cloud
 from mems_stereo.viz.export import write_cloud
-from mems_stereo.viz.export_ros2 import ROS_FRAME_ID, ROS_TOPIC, ros2_bag_dir
+from mems_stereo.viz.export_ros2 import (
+    ROS_FRAME_ID,
+    ROS_TOPIC,
+    pointcloud2_message,
+    pointcloud2_to_cloud,
+    ros2_bag_dir,
+)
 
 from mems_stereo.errors import FormatError
 from mems_stereo.pipeline.cloud import PointCloud
@@ -31,9 +36,6 @@ from mems_stereo.pipeline.cloud import PointCloud
 #: the file formats of a frame folder (``--frame-format``)
 FRAME_FORMATS = ("ply", "pcd", "las", "laz")
 _ROS_STORAGE = {".mcap": "MCAP", ".db3": "SQLITE3"}
-_PF = {"int8": 1, "uint8": 2, "int16": 3, "uint16": 4, "int32": 5, "uint32": 6,
-       "float32": 7, "float64": 8}
-_PF_DTYPE = {v: np.dtype(k) for k, v in _PF.items()}
 
 
 def frame_path(folder, stem: str, index: int, fmt: str = "ply") -> Path:
@@ -65,54 +67,6 @@ class FrameFolderSink:
     def __exit__(self, *exc):
         self.close()
         return False
-
-
-def _field_values(name: str, v: np.ndarray, path: Path) -> np.ndarray:
-    """An attribute in a PointField type (bool → uint8; 64-bit integers → 32 bits where
-    they fit; float16 → float32)."""
-    v = np.asarray(v)
-    if v.dtype == np.bool_:
-        return v.astype(np.uint8)
-    if v.dtype == np.float16:
-        return v.astype(np.float32)
-    if str(v.dtype) in _PF:
-        return v
-    if v.dtype.kind in "iu":
-        for t in ("int32", "uint32"):
-            info = np.iinfo(t)
-            if v.size == 0 or (int(v.min()) >= info.min and int(v.max()) <= info.max):
-                return v.astype(t)
-    raise FormatError(f"attribute {name!r} ({v.dtype}) has no sensor_msgs/PointField type",
-                      source=str(path), field=name)
-
-
-def pointcloud2_message(typestore, cloud: PointCloud, stamp_ns: int,
-                        frame_id: str = ROS_FRAME_ID, path: Path | None = None):
-    """A ``sensor_msgs/msg/PointCloud2`` of ``cloud`` (``typestore``: rosbags' ROS 2
-    Humble types); x, y, z FLOAT32 m, each attribute a field of its own type."""
-    names = ["x", "y", "z"]
-    cols = [cloud.points[:, i].astype(np.float32) for i in range(3)]
-    for k, v in cloud.attributes.items():
-        if k in ("x", "y", "z"):
-            raise FormatError(f"attribute name {k!r} is reserved", str(path), k)
-        names.append(k)
-        cols.append(_field_values(k, v, path or Path("<bag>")))
-    dt = np.dtype({"names": names, "formats": [c.dtype.newbyteorder("<") for c in cols]})
-    rec = np.empty(len(cloud), dtype=dt)
-    for n, c in zip(names, cols):
-        rec[n] = c
-    T = typestore.types
-    header = T["std_msgs/msg/Header"](
-        stamp=T["builtin_interfaces/msg/Time"](sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9),
-        frame_id=frame_id)
-    fields = [T["sensor_msgs/msg/PointField"](
-        name=n, offset=int(dt.fields[n][1]),
-        datatype=_PF[str(dt.fields[n][0].newbyteorder("="))], count=1) for n in names]
-    return T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
-        point_step=dt.itemsize, row_step=dt.itemsize * len(cloud),
-        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
-        is_dense=bool(np.isfinite(cloud.points).all()))
 
 
 def stamp_of(seconds: float) -> int:
@@ -211,16 +165,5 @@ def read_frames_bag(path, topic: str | None = None) -> list[tuple[int, PointClou
         conns = [c for c in reader.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"
                  and (topic is None or c.topic == topic)]
         for conn, stamp, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            dt = np.dtype({"names": [f.name for f in msg.fields],
-                           "formats": [_PF_DTYPE[f.datatype].newbyteorder("<")
-                                       for f in msg.fields],
-                           "offsets": [f.offset for f in msg.fields],
-                           "itemsize": msg.point_step})
-            rec = np.frombuffer(np.asarray(msg.data, np.uint8).tobytes(), dtype=dt,
-                                count=msg.width * msg.height)
-            pts = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
-            attrs = {f.name: rec[f.name].astype(rec[f.name].dtype.newbyteorder("="))
-                     for f in msg.fields if f.name not in ("x", "y", "z")}
-            out.append((int(stamp), PointCloud(pts, attrs)))
+            out.append((int(stamp), pointcloud2_to_cloud(reader.deserialize(raw, conn.msgtype))))
     return out

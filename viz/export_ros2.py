@@ -146,6 +146,53 @@ def _ros_field_values(name: str, v: np.ndarray, path: Path) -> np.ndarray:
                       source=str(path), field=name)
 
 
+def pointcloud2_message(typestore, cloud: PointCloud, stamp_ns: int,
+                        frame_id: str = ROS_FRAME_ID, path: Path | None = None):
+    """A ``sensor_msgs/msg/PointCloud2`` of ``cloud`` (``typestore``: rosbags' ROS 2
+    Humble types) stamped ``stamp_ns`` (ns since the Unix epoch): x, y, z FLOAT32 m,
+    each attribute a field of its own type; ``path`` names the output in errors."""
+    where = path if path is not None else Path("<bag>")
+    names = ["x", "y", "z"]
+    cols = [cloud.points[:, i].astype(np.float32) for i in range(3)]
+    for k, v in cloud.attributes.items():
+        if k in ("x", "y", "z"):
+            raise FormatError(f"attribute name {k!r} is reserved", str(where), k)
+        names.append(k)
+        cols.append(_ros_field_values(k, v, where))
+    dt = np.dtype({"names": names, "formats": [c.dtype.newbyteorder("<") for c in cols]})
+    rec = np.empty(len(cloud), dtype=dt)
+    for n, c in zip(names, cols):
+        rec[n] = c
+    T = typestore.types
+    stamp = int(stamp_ns)
+    header = T["std_msgs/msg/Header"](
+        stamp=T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
+        frame_id=frame_id)
+    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=int(dt.fields[n][1]),
+                                              datatype=_PF[str(dt.fields[n][0].newbyteorder("="))],
+                                              count=1) for n in names]
+    return T["sensor_msgs/msg/PointCloud2"](
+        header=header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
+        point_step=dt.itemsize, row_step=dt.itemsize * len(cloud),
+        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
+        is_dense=bool(np.isfinite(cloud.points).all()))
+
+
+def pointcloud2_to_cloud(m) -> PointCloud:
+    """The :class:`PointCloud` of a deserialised PointCloud2 ``m``: x, y, z float64 of its
+    fields, every other field an attribute in its own type (native byte order)."""
+    dt = np.dtype({"names": [f.name for f in m.fields],
+                   "formats": [_PF_DTYPE[f.datatype].newbyteorder(
+                       ">" if m.is_bigendian else "<") for f in m.fields],
+                   "offsets": [f.offset for f in m.fields], "itemsize": m.point_step})
+    a = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), dtype=dt,
+                      count=m.width * m.height)
+    pts = np.stack([a["x"], a["y"], a["z"]], axis=1).astype(np.float64)
+    attrs = {n: a[n].astype(a[n].dtype.newbyteorder("=")) for n in dt.names
+             if n not in ("x", "y", "z")}
+    return PointCloud(pts, attrs)
+
+
 def write_ros2_bag(path: str | os.PathLike, cloud: PointCloud, *, frame_id: str = ROS_FRAME_ID,
                    topic: str = ROS_TOPIC, stamp_ns: int | None = None) -> Path:
     """Write ``cloud`` as one sensor_msgs/msg/PointCloud2 message in a ROS 2 bag.
@@ -179,31 +226,9 @@ def write_ros2_bag(path: str | os.PathLike, cloud: PointCloud, *, frame_id: str 
     bag = ros2_bag_dir(p)
     if bag.exists() and not (bag / "metadata.yaml").is_file():
         raise FormatError("exists and is not a ROS 2 bag; not replacing it", str(bag))
-    names = ["x", "y", "z"]
-    cols = [cloud.points[:, i].astype(np.float32) for i in range(3)]
-    for k, v in cloud.attributes.items():
-        if k in ("x", "y", "z"):
-            raise FormatError(f"attribute name {k!r} is reserved", str(p), k)
-        names.append(k)
-        cols.append(_ros_field_values(k, v, p))
-    dt = np.dtype({"names": names, "formats": [c.dtype.newbyteorder("<") for c in cols]})
-    rec = np.empty(len(cloud), dtype=dt)
-    for n, c in zip(names, cols):
-        rec[n] = c
     ts = get_typestore(Stores.ROS2_HUMBLE)
-    T = ts.types
     stamp = int(stamp_ns)
-    header = T["std_msgs/msg/Header"](
-        stamp=T["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9),
-        frame_id=frame_id)
-    fields = [T["sensor_msgs/msg/PointField"](name=n, offset=int(dt.fields[n][1]),
-                                              datatype=_PF[str(dt.fields[n][0].newbyteorder("="))],
-                                              count=1) for n in names]
-    msg = T["sensor_msgs/msg/PointCloud2"](
-        header=header, height=1, width=len(cloud), fields=fields, is_bigendian=False,
-        point_step=dt.itemsize, row_step=dt.itemsize * len(cloud),
-        data=np.frombuffer(rec.tobytes(), dtype=np.uint8),
-        is_dense=bool(np.isfinite(cloud.points).all()))
+    msg = pointcloud2_message(ts, cloud, stamp, frame_id, p)
     raw = ts.serialize_cdr(msg, msg.__msgtype__)
     bag.parent.mkdir(parents=True, exist_ok=True)
     tmp_parent = Path(tempfile.mkdtemp(prefix=f".{bag.name}.", suffix=".part", dir=bag.parent))
@@ -262,17 +287,8 @@ def read_ros2_bag(path: str | os.PathLike, topic: str | None = None) -> PointClo
         conns = [c for c in r.connections if c.msgtype == "sensor_msgs/msg/PointCloud2"
                  and (topic is None or c.topic == topic)]
         for conn, _, raw in r.messages(connections=conns):
-            m = ts.deserialize_cdr(raw, conn.msgtype)
-            dt = np.dtype({"names": [f.name for f in m.fields],
-                           "formats": [_PF_DTYPE[f.datatype].newbyteorder(
-                               ">" if m.is_bigendian else "<") for f in m.fields],
-                           "offsets": [f.offset for f in m.fields], "itemsize": m.point_step})
-            a = np.frombuffer(np.asarray(m.data, np.uint8).tobytes(), dtype=dt,
-                              count=m.width * m.height)
-            pts = np.stack([a["x"], a["y"], a["z"]], axis=1).astype(np.float64)
-            attrs = {n: a[n].astype(a[n].dtype.newbyteorder("=")) for n in dt.names
-                     if n not in ("x", "y", "z")}
-            clouds.append(PointCloud(pts, ordered_attributes(attrs)))
+            c = pointcloud2_to_cloud(ts.deserialize_cdr(raw, conn.msgtype))
+            clouds.append(PointCloud(c.points, ordered_attributes(c.attributes)))
     if not clouds:
         raise FormatError("no sensor_msgs/msg/PointCloud2 messages"
                           + (f" on {topic}" if topic else ""), str(bag))
