@@ -177,11 +177,8 @@ def _process(rep, out: Path, smp: Path, cal: Path) -> tuple[dict, list[Path]]:
     return clouds, written
 
 
-def _gain(rep, smp: Path, cal: Path) -> tuple[dict, dict]:
-    """Step 4: nominal vs calibrated system against the samples' truth."""
-    _step(rep, "4. the gain of calibration: nominal vs calibrated system, against the samples' "
-               "truth (points whose true surface is within 6 m)")
-    gain = calibration_gain(smp, load_system(cal))
+def _report_gain(rep, gain: dict) -> dict:
+    """Print the nominal-vs-calibrated table of ``gain`` and its verdicts; returns them."""
     for line in format_gain(gain):
         rep.info(line)
     verdicts = gain_verdicts(gain)
@@ -190,6 +187,15 @@ def _gain(rep, smp: Path, cal: Path) -> tuple[dict, dict]:
                  f"{'yes' if v['median_error'] else 'NO'}, on coverage: "
                  f"{'yes' if v['coverage'] else 'NO'}; recall not worse: "
                  f"{'yes' if v['recall'] else 'NO'}")
+    return verdicts
+
+
+def _gain(rep, smp: Path, cal: Path) -> tuple[dict, dict]:
+    """Step 4: nominal vs calibrated system against the samples' truth."""
+    _step(rep, "4. the gain of calibration: nominal vs calibrated system, against the samples' "
+               "truth (points whose true surface is within 6 m)")
+    gain = calibration_gain(smp, load_system(cal))
+    verdicts = _report_gain(rep, gain)
     return gain, verdicts
 
 
@@ -249,14 +255,7 @@ def _two_axis_gain(rep, out: Path, smp: Path, walls: list[Path]) -> tuple[list, 
     ply = write_cloud(out / "lissajous64.ply", results["calibrated"].cloud)
     rep.info(f"  wrote {ply} (calibrated system)")
     rep.info("  lissajous64.h5, nominal vs calibrated system, against the sample's truth:")
-    for line in format_gain(gain):
-        rep.info(line)
-    verdicts = gain_verdicts(gain)
-    for scene, v in verdicts.items():
-        rep.info(f"  {scene}: calibrated better on median point error: "
-                 f"{'yes' if v['median_error'] else 'NO'}, on coverage: "
-                 f"{'yes' if v['coverage'] else 'NO'}; recall not worse: "
-                 f"{'yes' if v['recall'] else 'NO'}")
+    verdicts = _report_gain(rep, gain)
     return gain, verdicts, cal
 
 
