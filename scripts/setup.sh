@@ -4,7 +4,10 @@
 #      Mesa EGL/GL for headless rendering) and libdeflate (gzip'd recordings
 #      read twice as fast; mems_stereo/io/deflate_chunks.py), installed with
 #      apt when missing;
-#   2. a virtual environment in .venv with the package and its test tools.
+#   2. Debian's chromium and chromium-driver (the browser viewer's test drives
+#      the page of `mems-stereo live --view browser` in headless chromium),
+#      without their recommended packages;
+#   3. a virtual environment in .venv with the package and its test tools.
 # Re-running it is cheap: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,6 +21,17 @@ if [ ${#need_pkgs[@]} -gt 0 ]; then
   echo "[setup] installing system packages: ${need_pkgs[*]}" >&2
   $SUDO apt-get update -qq >&2
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq "${need_pkgs[@]}" >&2
+fi
+browser_pkgs=()
+for p in chromium chromium-driver; do
+  dpkg -s "$p" >/dev/null 2>&1 || browser_pkgs+=("$p")
+done
+if [ ${#browser_pkgs[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ]; then SUDO=""; else SUDO="sudo"; fi
+  echo "[setup] installing ${browser_pkgs[*]} (about 40 s)" >&2
+  [ ${#need_pkgs[@]} -gt 0 ] || $SUDO apt-get update -qq >&2
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends \
+    "${browser_pkgs[@]}" >&2
 fi
 
 PY=${PYTHON:-python3}

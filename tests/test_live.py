@@ -440,3 +440,45 @@ def test_live_growing_file_through_the_command(room, tmp_path):
     assert sorted(p.name for p in a.iterdir()) == ["acq_000000.ply", "acq_000001.ply"]
     for i in range(2):
         assert (a / f"acq_{i:06d}.ply").read_bytes() == (b / f"room_{i:06d}.ply").read_bytes()
+
+
+# ------------------------------------------------------------------ torn ends
+
+def test_growing_h5_unpublished_append_reported_not_read(room, tmp_path):
+    """Shots a writer appended but never published in /live/state (it stopped between
+    the two) are not read; the idle end says how many were left."""
+    import h5py
+
+    path = tmp_path / "acq.h5"
+    with LiveRecordingWriter(path, room.system) as w:
+        _feed(room, 200, w.append)
+    with h5py.File(path, "r+") as f:  # as if the last 50 shots were never published
+        f["/live/state"][...] = [room.n_shots - 50, room.zero_crossings.size, 0]
+    src = GrowingH5Source(path, idle_timeout=0.3)
+    got = np.concatenate([c.shot_time for c in src])
+    assert np.array_equal(got, room.shot_time[:-50])
+    assert src.ended.startswith("idle (50 shots, 0 zero crossings past"), src.ended
+
+
+def test_ptu_torn_last_record_reported_not_read(tmp_path):
+    """A PTU file whose writer stopped inside a record: the whole records are read, the
+    torn one is not, and the idle end says so (and how many of the header's records)."""
+    from mems_stereo.io.live_ptu import PtuTailSource
+    from mems_stereo.io.ptu import read_ptu_header
+    from mems_stereo.io.tttr_map import load_map
+
+    src_path = data.path("room48.ptu")
+    m = load_map(data.path("room48_map.json"))
+    raw = Path(src_path).read_bytes()
+    hdr = read_ptu_header(src_path)
+    off = len(raw) - 4 * hdr.n_records
+    k = hdr.n_records // 2
+    whole, torn = tmp_path / "whole.ptu", tmp_path / "torn.ptu"
+    whole.write_bytes(raw[:off + 4 * k])
+    torn.write_bytes(raw[:off + 4 * k + 3])
+    a = list(PtuTailSource(whole, m, m.system, idle_timeout=0.2))
+    src = PtuTailSource(torn, m, m.system, idle_timeout=0.2)
+    b = list(src)
+    assert np.array_equal(np.concatenate([c.bins for c in a]), np.concatenate([c.bins for c in b]))
+    assert src.ended == (f"idle ({k} of the header's {hdr.n_records} records written; a torn "
+                         "last record (3 bytes) left unread)")

@@ -37,6 +37,10 @@ def test_wheel_carries_the_samples(tmp_path):
         pytest.skip("pip could not fetch the build backend (no network)")
     assert p.returncode == 0, p.stderr[-2000:]
     (whl,) = wheels.glob("mems_stereo-*.whl")
+    import zipfile
+
+    names = zipfile.ZipFile(whl).namelist()  # the browser viewer's page (live --view browser)
+    assert {f"mems_stereo/viz/web/live.{x}" for x in ("html", "js", "css")} <= set(names)
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True)
     py = venv / "bin" / "python"

@@ -1,11 +1,15 @@
-"""Live viewers of frames (``mems-stereo live --view``): an Open3D window, or a browser.
+"""Live viewers of frames (``mems-stereo live --view KIND``): an Open3D window, a page in
+a browser, or the Foxglove app.
 
 :func:`open_viewer` gives a sink with ``write(frame)`` and ``close()``, like the frame
 writers of :mod:`mems_stereo.viz.export_frames`:
 
-- :class:`Open3DViewer` where there is a display: one window whose cloud is replaced by
-  each frame's, coloured by range (turbo, :mod:`mems_stereo.viz.colormap`).
-- :class:`FoxgloveViewer` elsewhere: a Foxglove WebSocket server (the ``foxglove-sdk``
+- :class:`Open3DViewer` (``open3d``) where there is a display: one window whose cloud is
+  replaced by each frame's, coloured by range (turbo, :mod:`mems_stereo.viz.colormap`).
+- :class:`~mems_stereo.viz.live_browser.BrowserViewer` (``browser``, the choice of
+  ``auto`` without a display): a self-contained page served on ``http://127.0.0.1:PORT/``
+  (nothing fetched from elsewhere), frames pushed to it over a WebSocket.
+- :class:`FoxgloveViewer` (``foxglove``): a Foxglove WebSocket server (the ``foxglove-sdk``
   package, optional: ``pip install mems-stereo[live-viewer]``) on
   ``ws://HOST:PORT`` publishing each frame as a ``foxglove.PointCloud`` on
   ``/mems_stereo/points`` (frame ``mems_stereo_receiver_optical_frame``, stamped with the
@@ -130,11 +134,25 @@ class Open3DViewer:
         return False
 
 
-def open_viewer(kind: str = "auto", port: int = 8765):
-    """The viewer sink: ``"open3d"``, ``"browser"`` (Foxglove WebSocket) or ``"auto"``
-    (Open3D where there is a display, else the browser one)."""
+#: the viewers ``open_viewer`` knows
+VIEWERS = ("auto", "open3d", "browser", "foxglove")
+
+
+def open_viewer(kind: str = "auto", port: int = 8765, host: str = "127.0.0.1"):
+    """The viewer sink: ``"open3d"``, ``"browser"`` (the page of
+    :mod:`~mems_stereo.viz.live_browser`), ``"foxglove"`` (Foxglove WebSocket) or
+    ``"auto"`` (Open3D where there is a display, else the browser page).  port, host:
+    where the browser page or the Foxglove server listens (port 0: a free one)."""
+    if kind not in VIEWERS:
+        raise OptionError(f"expected one of {', '.join(VIEWERS)}, found {kind!r}", field="--view")
     if kind == "auto":
         from mems_stereo.viz.view import has_display
 
         kind = "open3d" if has_display() else "browser"
-    return Open3DViewer() if kind == "open3d" else FoxgloveViewer(port=port)
+    if kind == "open3d":
+        return Open3DViewer()
+    if kind == "foxglove":
+        return FoxgloveViewer(host=host, port=port)
+    from mems_stereo.viz.live_browser import BrowserViewer
+
+    return BrowserViewer(host=host, port=port)

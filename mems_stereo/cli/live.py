@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 import signal
+import sys
 import threading
 from pathlib import Path
 
@@ -12,6 +13,7 @@ from mems_stereo.cli._common import Reporter, add_parents_argument
 from mems_stereo.cli._writes import FRAME_BAG_SUFFIXES, FRAME_FORMATS
 from mems_stereo.errors import OptionError
 from mems_stereo.model.system import resolve_system
+from mems_stereo.viz.live_viewer import VIEWERS
 
 NAME = "live"
 HELP = ("frames of a live source (a recording replayed at its own pace, a recording or PTU "
@@ -39,9 +41,16 @@ def add_arguments(p):
                         f"frame, --frame-format) or a ROS 2 bag ({', '.join(FRAME_BAG_SUFFIXES)}"
                         ": one PointCloud2 per frame); frames appear as they are finished")
     add_parents_argument(p)
-    p.add_argument("--view", action="store_true",
-                   help="show the frames as they come (an Open3D window where there is a "
-                        "display, else a browser viewer: docs/live.md)")
+    p.add_argument("--view", nargs="?", const="auto", default=None, choices=VIEWERS,
+                   metavar="KIND",
+                   help="show the frames as they come: open3d (a window), browser (a page "
+                        "served on http://127.0.0.1:PORT/, self-contained: open it in any "
+                        "browser of this machine), foxglove (a Foxglove WebSocket server, "
+                        "pip install 'mems-stereo[live-viewer]'); --view alone: open3d where "
+                        "there is a display, else browser (docs/live.md)")
+    p.add_argument("--view-port", type=int, default=8765, metavar="PORT",
+                   help="TCP port of the browser page or the Foxglove server on 127.0.0.1 "
+                        "(default 8765; 0: a free one, printed)")
     g = p.add_argument_group("frames (docs/frames.md)")
     g.add_argument("--frame-rate", type=float, default=None, metavar="HZ",
                    help="a cloud every 1/HZ s of the source's clock")
@@ -81,8 +90,11 @@ def _check(args) -> None:
                                             and args.frame_rate > 0):
         raise OptionError(f"expected a positive number of Hz, found {args.frame_rate!r}",
                           field="--frame-rate")
-    if args.output is None and not args.view:
+    if args.output is None and args.view is None:
         raise OptionError("expected -o DIR/ or OUT.mcap, or --view", field="--output")
+    if not 0 <= args.view_port <= 65535:
+        raise OptionError(f"expected a TCP port 0-65535, found {args.view_port}",
+                          field="--view-port")
     if args.replay is None and args.rate != "1":
         raise OptionError("--rate paces a --replay only", field="--rate")
     is_ptu = args.source is not None and Path(args.source).suffix.lower() == ".ptu"
@@ -147,17 +159,23 @@ def stop_on_signals(run):
             signal.signal(s, h)
 
 
-def _sinks(args, stem: str):
-    """The frame writers the arguments ask for (a list of objects with write/close)."""
+def _sinks(args, stem: str, rep: Reporter):
+    """The frame writers the arguments ask for (a list of objects with write/close); a
+    viewer that listens says where, on stdout, before the first frame."""
     sinks = []
     if args.output is not None:
         from mems_stereo.viz.export_frames import open_frame_sink
 
         sinks.append(open_frame_sink(args.output, stem, args.frame_format))
-    if args.view:
+    if args.view is not None:
         from mems_stereo.viz.live_viewer import open_viewer
 
-        sinks.append(open_viewer())
+        viewer = open_viewer(args.view, port=args.view_port)
+        sinks.append(viewer)
+        if getattr(viewer, "url", None):
+            what = "Foxglove WebSocket" if args.view == "foxglove" else "browser viewer"
+            rep.info(f"{what}: {viewer.url}")
+            sys.stdout.flush()  # read by whoever waits for it before the run ends
     return sinks
 
 
@@ -183,8 +201,9 @@ def run(args) -> int:
                           settings=settings, fusion=not args.no_temporal)
     if not source.can_wait:  # a clock runs: compiled kernels and tables ready before it starts
         warm_up(proc)
-    stem = Path(args.replay or str(args.source)).stem or "live"
-    sinks = _sinks(args, stem)
+    src = str(args.replay or args.source)
+    stem = "live" if src.startswith(ZMQ_SCHEMES) else (Path(src).stem or "live")
+    sinks = _sinks(args, stem, rep)
     with contextlib.ExitStack() as stack:
         for s in sinks:
             stack.enter_context(s)

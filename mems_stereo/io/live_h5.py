@@ -183,6 +183,21 @@ class GrowingH5Source(LiveSource):
                               "lengths", self.source, STATE)
         return n, z, bool(v[2])
 
+    def _unpublished(self, n: int, z: int) -> str:
+        """Items in the datasets past the counts of ``/live/state`` (an append whose
+        writer stopped before publishing it: never read), as words for ``ended``."""
+        if STATE not in self._f:
+            return ""
+        ds = [self._f[p] for p in ("/shots/time", "/shots/bins", "/scanner/zero_crossings",
+                                   "/scanner/rising")]
+        for d in ds:
+            d.refresh()
+        extra = (max(ds[0].shape[0], ds[1].shape[0]) - n, max(ds[2].shape[0], ds[3].shape[0]) - z)
+        if max(extra) <= 0:
+            return ""
+        return (f" ({extra[0]} shots, {extra[1]} zero crossings past {STATE}'s counts left "
+                "unread: an append not published)")
+
     def _read(self, rel: ShotRelease, n0: int, n: int, z0: int, z: int) -> None:
         f, src = self._f, self.source
         if z > z0:
@@ -211,7 +226,7 @@ class GrowingH5Source(LiveSource):
                 if got is not None:
                     yield self.chunk(*got)
                 if final or idle:
-                    self.ended = "finished" if final else "idle"
+                    self.ended = "finished" if final else "idle" + self._unpublished(n0, z0)
                     return
                 if got is None:
                     self._stop.wait(POLL_SECONDS)

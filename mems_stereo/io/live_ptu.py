@@ -107,10 +107,20 @@ class PtuTailSource(LiveSource):
                     return
                 if self.idle_timeout is not None and \
                         time.monotonic() - last_new > self.idle_timeout:
-                    self.ended = "idle"
+                    self.ended = "idle" + self._short(done)
                     return
                 self._stop.wait(POLL_SECONDS)
             self.ended = "stopped"
+
+    def _short(self, done: int) -> str:
+        """What an idle end left: the header's records not written, a torn last record."""
+        torn = (os.path.getsize(self.path) - self.offset) % 4
+        what = []
+        if self.hdr.n_records and done < self.hdr.n_records:
+            what.append(f"{done} of the header's {self.hdr.n_records} records written")
+        if torn:
+            what.append(f"a torn last record ({torn} bytes) left unread")
+        return f" ({'; '.join(what)})" if what else ""
 
     def _events(self, rel: ShotRelease) -> Iterator[EventBlock]:
         """Decoded blocks; their zero crossings go to ``rel`` on the way."""
