@@ -8,6 +8,10 @@ import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.errors import FormatError
+from mems_stereo.util.lazy_numba import compiled_if_loaded
+
+#: entries from which :func:`moving_sum` runs its compiled kernel where numba is loaded
+COMPILED_SUM_ENTRIES = 4096
 
 
 # --------------------------------------------------------------------------- pile-up
@@ -240,13 +244,21 @@ def expected_background_by_angle(table, n_per_step, rate_hz, pixels=None) -> np.
 
 # --------------------------------------------------------------------------- filter, threshold
 def moving_sum(hist, width: int) -> np.ndarray:
-    """Centred moving sum of ``width`` (odd) bins along the last axis; zeros beyond the ends."""
+    """Centred moving sum of ``width`` (odd) bins along the last axis; zeros beyond the ends.
+
+    The differences of the running sum of ``hist`` padded with ``width // 2 + 1`` zeros
+    before and ``width // 2`` after; compiled (:func:`_moving_sum_py`, the same running
+    additions in the same order: the same numbers) where numba is loaded."""
     width = int(width)
     if width < 1 or width % 2 == 0:
         raise FormatError(f"width must be an odd number >= 1, found {width}", field="width")
     h = np.asarray(hist, dtype=np.float64)
     half = width // 2
     n = h.shape[-1]
+    kernel = compiled_if_loaded(_moving_sum_py) if h.size >= COMPILED_SUM_ENTRIES else None
+    if kernel is not None and n:
+        rows = np.ascontiguousarray(h.reshape(-1, n))
+        return kernel(rows, width).reshape(h.shape)
     # the running sum of h padded with half + 1 zeros before and half after, written
     # in place (no padded copy): the same sums, as the zeros add nothing
     c = np.empty(h.shape[:-1] + (n + width,))
@@ -254,3 +266,26 @@ def moving_sum(hist, width: int) -> np.ndarray:
     np.cumsum(h, axis=-1, out=c[..., half + 1:half + 1 + n])
     c[..., half + 1 + n:] = c[..., half + n:half + n + 1]
     return c[..., width:] - c[..., :-width]
+
+
+def _moving_sum_py(rows, width):  # pragma: no cover - compiled by numba
+    """:func:`moving_sum` of (R, n) float64 rows, loop by loop (the numba kernel): per
+    row the running sum ``c`` (``np.cumsum``'s additions, in its order) padded with
+    ``half + 1`` zeros before and its last value after, then ``c[i + width] − c[i]``."""
+    R, n = rows.shape
+    half = width // 2
+    out = np.empty((R, n))
+    c = np.empty(n + width)
+    for r in range(R):
+        for i in range(half + 1):
+            c[i] = 0.0
+        acc = rows[r, 0]
+        c[half + 1] = acc
+        for i in range(1, n):
+            acc = acc + rows[r, i]
+            c[half + 1 + i] = acc
+        for i in range(half + 1 + n, n + width):
+            c[i] = acc
+        for i in range(n):
+            out[r, i] = c[i + width] - c[i]
+    return out

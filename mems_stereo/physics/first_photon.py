@@ -220,9 +220,46 @@ def detection_log_odds(f):
 
 def firing_probability(f):
     """P(inlier) of a shot with spot share f (…) on the μ0 grid -> (…, J), in (0, 1)."""
+    return per_share(_firing, f)
+
+
+def log_miss_probability(f):
+    """ln(1 − P(inlier)) of :func:`firing_probability` (…) -> (…, J)."""
+    return per_share(lambda g: np.log1p(-_firing(g)), f)
+
+
+def _firing(f):
     e = OUTLIER_PROBABILITY
     pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])
     return np.minimum(e + (1 - e) * pf, 1.0 - 1e-12)
+
+
+def per_share(func, f):
+    """``func`` of the spot shares ``f`` (…) -> (…, J), each share's row its own: the
+    shares that are 0 (the padding around a band, steps without shots: most of a short
+    frame's) take the row of one 0, the others are computed entry by entry — the same
+    numbers as ``func(f)``."""
+    f = np.asarray(f, dtype=np.float64)
+    zero = f == 0
+    if f.ndim == 0 or not np.any(zero):
+        return func(f)
+    out = np.empty(f.shape + (MU_GRID.size,))
+    out[zero] = func(np.zeros(1))[0]
+    some = ~zero
+    if np.any(some):
+        out[some] = func(f[some])
+    return out
+
+
+def _at_shares(func, mu_s, nonzero):
+    """``func`` (elementwise) of ``mu_s`` (Q, J, B), evaluated where the spot share
+    ``nonzero`` (Q, B) is not 0 and once for the rest (``mu_s`` 0 there): the same
+    numbers as ``func(mu_s)``."""
+    out = np.full(mu_s.shape, func(np.zeros(1))[0])
+    qi, bi = np.nonzero(nonzero)
+    if qi.size:
+        out[qi, :, bi] = func(mu_s[qi, :, bi])
+    return out
 
 
 def _band_lookup(a, lm, f_band):
@@ -281,9 +318,10 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma, mu_factor=No
     post = np.exp(ll - ll.max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)  # (Q, J)
     mu_s = MU_GRID[None, :, None] * f_band[:, None, :]  # (Q, J, B)
-    w = n_band[:, None, :] * -np.expm1(-mu_s)  # expected detections per step
-    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)
-    lm = np.log(np.clip(mu_s, 1e-4, MU_MAX))
+    nonzero = f_band != 0  # (the transcendental functions only where μ0·f is not 0)
+    w = n_band[:, None, :] * _at_shares(lambda m: -np.expm1(-m), mu_s, nonzero)
+    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)  # expected detections per step
+    lm = _at_shares(lambda m: np.log(np.clip(m, 1e-4, MU_MAX)), mu_s, nonzero)
     a = -np.asarray(tau0, dtype=np.float64) / sigma
     d, v = _band_lookup(a, lm, f_band)
     dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0

@@ -1,0 +1,65 @@
+"""The per-frame fast paths give the same bits as their reference forms: the compiled
+moving sum (:func:`mems_stereo.physics.background.moving_sum`) and the spot-share
+functions evaluated only where the share is not 0
+(:mod:`mems_stereo.physics.first_photon`)."""
+
+import numpy as np
+import pytest
+
+from mems_stereo.physics import background as bg
+from mems_stereo.physics import first_photon as fp
+
+
+def _bits(a):
+    a = np.asarray(a, np.float64)
+    return a.view(np.int64)
+
+
+@pytest.mark.parametrize(("shape", "width"), [((40, 700), 15), ((3, 40), 41), ((2, 3, 900), 9),
+                                              ((5000,), 1)])
+def test_moving_sum_compiled_equals_numpy(monkeypatch, shape, width):
+    pytest.importorskip("numba")
+    rng = np.random.default_rng(5)
+    h = rng.poisson(0.4, shape) * rng.random(shape)  # sparse, non-integer counts
+    monkeypatch.setattr(bg, "COMPILED_SUM_ENTRIES", 1)
+    fast = bg.moving_sum(h, width)
+    monkeypatch.setattr(bg, "COMPILED_SUM_ENTRIES", 1 << 62)
+    ref = bg.moving_sum(h, width)
+    assert fast.shape == ref.shape == shape
+    assert np.array_equal(_bits(fast), _bits(ref))
+    # independent: the centred window sum, zeros beyond the ends
+    flat = h.reshape(-1, shape[-1])
+    i = shape[-1] // 2
+    direct = flat[:, max(0, i - width // 2):i + width // 2 + 1].sum(axis=1)
+    assert np.allclose(fast.reshape(-1, shape[-1])[:, i], direct, rtol=1e-12)
+
+
+def _firing_direct(f):
+    e = fp.OUTLIER_PROBABILITY
+    pf = -np.expm1(-fp.MU_GRID * np.asarray(f, np.float64)[..., None])
+    return np.minimum(e + (1 - e) * pf, 1.0 - 1e-12)
+
+
+def test_share_functions_skip_zero_shares_with_same_bits():
+    rng = np.random.default_rng(3)
+    f = np.where(rng.random((7, 30)) < 0.8, 0.0, rng.random((7, 30)))  # mostly padding
+    assert np.array_equal(_bits(fp.firing_probability(f)), _bits(_firing_direct(f)))
+    assert np.array_equal(_bits(fp.log_miss_probability(f)),
+                          _bits(np.log1p(-_firing_direct(f))))
+    assert np.array_equal(_bits(fp.firing_probability(np.zeros((2, 3)))),
+                          _bits(_firing_direct(np.zeros((2, 3)))))
+    # the delay: its (Q, J, B) functions evaluated where μ0·f is not 0 only
+    n = np.where(f > 0, rng.integers(1, 6, f.shape), 0).astype(np.float64)
+    ll = rng.normal(size=(7, fp.MU_GRID.size))
+    tau = rng.uniform(-2e-9, 30e-9, 7)
+    got = fp.first_photon_delay(ll, f, n, tau, 0.5e-9, mu_factor=2.0)
+    mu_s = fp.MU_GRID[None, :, None] * f[:, None, :]
+    w = n[:, None, :] * -np.expm1(-mu_s)
+    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)
+    d, v = fp._table_lookup((-tau / 0.5e-9)[:, None, None], np.log(np.clip(mu_s, 1e-4,
+                                                                            fp.MU_MAX)))
+    dj = np.sum(w * d, axis=2)
+    post = np.exp(ll - ll.max(axis=1, keepdims=True))
+    post /= post.sum(axis=1, keepdims=True)
+    assert np.allclose(got[0], np.sum(post * dj, axis=1) * 0.5e-9, rtol=1e-12, atol=0)
+    assert np.all(np.isfinite(got[1])) and np.all(got[3] > 0)
