@@ -119,31 +119,60 @@ def test_page_draws_a_frame_coloured_by_range(browser, tmp_path):
         assert 2.0 <= rng_shown <= 5.0 and abs(sig_shown - 5.0 * rng_shown) < 0.2
 
 
-def test_live_replay_reaches_the_page(browser):
-    """``live --replay`` frames (the CLI's LiveRun with the viewer as its sink) reach an
-    open page: the last frame's index and point count, nothing dropped."""
+def test_frames_pushed_to_an_open_page(browser):
+    """An open page gets each frame as it is written: index, time window, point count,
+    and the frames dropped so far (the gaps in the indices written)."""
     from mems_stereo.viz.live_browser import BrowserViewer
 
-    from mems_stereo.io.live_sources import ReplaySource
-    from mems_stereo.pipeline.frames import FrameProcessor
-    from mems_stereo.pipeline.live_queue import LiveRun
-
-    written = []
     with BrowserViewer(port=0) as v:
         browser.get(v.url)
-        _wait_for(browser, lambda s: s["connected"])
-        source = ReplaySource(data.path("room.h5"), rate=None)
-        proc = FrameProcessor(source.system, frame_rate=50)
+        st = _wait_for(browser, lambda s: s["connected"])
+        assert st["frames"] == 0 and st["index"] is None
+        for index, n, dropped in ((0, 500, 0), (1, 800, 0), (4, 300, 2)):
+            f = _fan_frame(seed=index, n=n)
+            v.write(Frame(index, 0.1 * index, 0.1 * index + 0.1, f.cloud, f.counts))
+            st = _wait_for(browser, lambda s, i=index: s["index"] == i)
+            assert (st["points"], st["dropped"]) == (n, dropped)
+            assert abs(st["start"] - 0.1 * index) < 1e-12 and st["drawn"] > 0.9 * n
+        assert v.frames == 3 and v.dropped == 2
 
-        def write(f):
-            written.append(f)
-            v.write(f)
 
-        th = threading.Thread(target=lambda: LiveRun(source, proc, write).run())
-        th.start()
-        th.join(30)
-        assert len(written) == 2 and [f.index for f in written] == [0, 1]
-        last = written[-1]
-        st = _wait_for(browser, lambda s: s["index"] == last.index)
-        assert (st["points"], st["dropped"]) == (len(last.cloud), 0)
-        assert st["frames"] >= 1 and st["drawn"] >= 1
+@pytest.mark.slow
+def test_live_command_serves_the_page_until_ctrl_c(browser, tmp_path):
+    """``mems-stereo live --replay … --view browser --view-keep``: the page shows the last
+    frame the command wrote (its point count read back from the frame's file), the server
+    stays after the stream ends, and Ctrl-C ends the command cleanly."""
+    import os
+    import queue
+    import signal
+    import subprocess
+    import sys
+
+    from mems_stereo.viz.export import read_cloud
+
+    out = tmp_path / "frames"
+    cmd = [sys.executable, "-c", "import sys; from mems_stereo.cli import main; sys.exit(main())",
+           "live", "--replay", str(data.path("room.h5")), "--rate", "max", "--frame-rate", "50",
+           "--view", "browser", "--view-port", "0", "--view-keep", "-o", f"{out}/"]
+    p = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    lines: queue.Queue = queue.Queue()
+    reader = threading.Thread(target=lambda: [lines.put(ln) for ln in p.stdout], daemon=True)
+    reader.start()
+    try:
+        got = [lines.get(timeout=30)]
+        assert got[0].startswith("browser viewer: http://127.0.0.1:"), got
+        url = got[0].split(": ", 1)[1].strip()
+        while "stays open" not in got[-1]:
+            got.append(lines.get(timeout=30))
+        assert "2 frames written, 0 dropped" in "".join(got), got
+        browser.get(url)
+        st = _wait_for(browser, lambda s: s["index"] == 1)
+        assert st["points"] == len(read_cloud(out / "room_000001.ply")) and st["dropped"] == 0
+        p.send_signal(signal.SIGINT)
+        p.wait(timeout=10)
+    finally:
+        if p.poll() is None:
+            p.kill()
+    err = p.stderr.read()
+    assert p.returncode == 0 and err == "", err

@@ -7,6 +7,7 @@ import math
 import signal
 import sys
 import threading
+import types
 from pathlib import Path
 
 from mems_stereo.cli._common import Reporter, add_parents_argument
@@ -48,6 +49,9 @@ def add_arguments(p):
                         "browser of this machine), foxglove (a Foxglove WebSocket server, "
                         "pip install 'mems-stereo[live-viewer]'); --view alone: open3d where "
                         "there is a display, else browser (docs/live.md)")
+    p.add_argument("--view-keep", action="store_true",
+                   help="keep the viewer open after the stream ends, until Ctrl-C (to look "
+                        "at the last frame of a replay)")
     p.add_argument("--view-port", type=int, default=8765, metavar="PORT",
                    help="TCP port of the browser page or the Foxglove server on 127.0.0.1 "
                         "(default 8765; 0: a free one, printed)")
@@ -92,6 +96,8 @@ def _check(args) -> None:
                           field="--frame-rate")
     if args.output is None and args.view is None:
         raise OptionError("expected -o DIR/ or OUT.mcap, or --view", field="--output")
+    if args.view_keep and args.view is None:
+        raise OptionError("keeps a viewer open: add --view", field="--view-keep")
     if not 0 <= args.view_port <= 65535:
         raise OptionError(f"expected a TCP port 0-65535, found {args.view_port}",
                           field="--view-port")
@@ -159,54 +165,37 @@ def stop_on_signals(run):
             signal.signal(s, h)
 
 
-def _sinks(args, stem: str, rep: Reporter):
-    """The frame writers the arguments ask for (a list of objects with write/close); a
-    viewer that listens says where, on stdout, before the first frame."""
-    sinks = []
-    if args.output is not None:
-        from mems_stereo.viz.export_frames import open_frame_sink
+def _open_viewer(args, rep: Reporter):
+    """The viewer ``--view`` asks for, or None; one that listens says where, on stdout,
+    before the first frame."""
+    if args.view is None:
+        return None
+    from mems_stereo.viz.live_viewer import open_viewer
 
-        sinks.append(open_frame_sink(args.output, stem, args.frame_format))
-    if args.view is not None:
-        from mems_stereo.viz.live_viewer import open_viewer
-
-        viewer = open_viewer(args.view, port=args.view_port)
-        sinks.append(viewer)
-        if getattr(viewer, "url", None):
-            what = "Foxglove WebSocket" if args.view == "foxglove" else "browser viewer"
-            rep.info(f"{what}: {viewer.url}")
-            sys.stdout.flush()  # read by whoever waits for it before the run ends
-    return sinks
+    viewer = open_viewer(args.view, port=args.view_port)
+    if getattr(viewer, "url", None):
+        what = "Foxglove WebSocket" if args.view == "foxglove" else "browser viewer"
+        rep.info(f"{what}: {viewer.url}")
+        sys.stdout.flush()  # read by whoever waits for it before the run ends
+    return viewer
 
 
-def _output_kind(args) -> str:
-    out = str(args.output)
-    return "bag" if Path(out).suffix.lower() in FRAME_BAG_SUFFIXES and not out.endswith("/") \
-        and not Path(out).is_dir() else "folder"
-
-
-def run(args) -> int:
-    from mems_stereo.pipeline.frames import FrameProcessor
+def _run_frames(args, rep: Reporter, source, proc, viewer):
+    """Run the live source through ``proc`` into ``-o`` and the viewer; the outputs are
+    complete when it returns.  Returns (LiveStats, the signals that stopped it)."""
     from mems_stereo.pipeline.live_queue import LiveRun
-    from mems_stereo.pipeline.live_warmup import warm_up
-    from mems_stereo.pipeline.settings import Settings
 
-    _check(args)
-    rep = Reporter(args)
-    source = open_source(args)
-    system = resolve_system(args.system) if args.system else source.system
-    settings = Settings(confidence=args.confidence, min_range=args.min_range,
-                        false_alarm=args.false_alarm)
-    proc = FrameProcessor(system, frame_rate=args.frame_rate, frame_shots=args.frame_shots,
-                          settings=settings, fusion=not args.no_temporal)
-    if not source.can_wait:  # a clock runs: compiled kernels and tables ready before it starts
-        warm_up(proc)
     src = str(args.replay or args.source)
     stem = "live" if src.startswith(ZMQ_SCHEMES) else (Path(src).stem or "live")
-    sinks = _sinks(args, stem, rep)
     with contextlib.ExitStack() as stack:
-        for s in sinks:
-            stack.enter_context(s)
+        sinks = []
+        if args.output is not None:
+            from mems_stereo.viz.export_frames import open_frame_sink
+
+            sinks.append(stack.enter_context(open_frame_sink(args.output, stem,
+                                                             args.frame_format)))
+        if viewer is not None:
+            sinks.append(viewer)  # closed by the caller (it may stay open)
         bar = stack.enter_context(rep.progress(total=None, desc=source.source, unit="frame"))
 
         def write(frame):
@@ -220,9 +209,50 @@ def run(args) -> int:
         live = LiveRun(source, proc, write, max_queued=args.queue_frames, on_progress=progress)
         with stop_on_signals(live) as got:
             stats = live.run()
-    how = f" (stopped by {signal.Signals(got[0]).name})" if got else ""
-    rep.info(f"{source.source}: {stats.summary()}{how}")
-    if args.output is not None:
-        rep.info(f"  wrote {args.output}"
-                 + (" (one PointCloud2 per frame)" if _output_kind(args) == "bag" else ""))
+    return stats, got
+
+
+def _hold(rep: Reporter) -> None:
+    """``--view-keep``: the viewer stays until Ctrl-C or SIGTERM."""
+    rep.info("the viewer stays open: Ctrl-C ends")
+    sys.stdout.flush()
+    done = threading.Event()
+    with stop_on_signals(types.SimpleNamespace(stop=done.set)):
+        while not done.wait(0.2):
+            pass
+
+
+def _output_kind(args) -> str:
+    out = str(args.output)
+    return "bag" if Path(out).suffix.lower() in FRAME_BAG_SUFFIXES and not out.endswith("/") \
+        and not Path(out).is_dir() else "folder"
+
+
+def run(args) -> int:
+    from mems_stereo.pipeline.frames import FrameProcessor
+    from mems_stereo.pipeline.live_warmup import warm_up
+    from mems_stereo.pipeline.settings import Settings
+
+    _check(args)
+    rep = Reporter(args)
+    source = open_source(args)
+    system = resolve_system(args.system) if args.system else source.system
+    settings = Settings(confidence=args.confidence, min_range=args.min_range,
+                        false_alarm=args.false_alarm)
+    proc = FrameProcessor(system, frame_rate=args.frame_rate, frame_shots=args.frame_shots,
+                          settings=settings, fusion=not args.no_temporal)
+    if not source.can_wait:  # a clock runs: compiled kernels and tables ready before it starts
+        warm_up(proc)
+    with contextlib.ExitStack() as keep:
+        viewer = _open_viewer(args, rep)
+        if viewer is not None:
+            keep.enter_context(viewer)
+        stats, got = _run_frames(args, rep, source, proc, viewer)
+        how = f" (stopped by {signal.Signals(got[0]).name})" if got else ""
+        rep.info(f"{source.source}: {stats.summary()}{how}")
+        if args.output is not None:
+            rep.info(f"  wrote {args.output}"
+                     + (" (one PointCloud2 per frame)" if _output_kind(args) == "bag" else ""))
+        if viewer is not None and args.view_keep and not got:
+            _hold(rep)
     return 0
