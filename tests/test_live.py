@@ -482,3 +482,50 @@ def test_ptu_torn_last_record_reported_not_read(tmp_path):
     assert np.array_equal(np.concatenate([c.bins for c in a]), np.concatenate([c.bins for c in b]))
     assert src.ended == (f"idle ({k} of the header's {hdr.n_records} records written; a torn "
                          "last record (3 bytes) left unread)")
+
+
+def test_zmq_socket_through_the_command(room, tmp_path, capsys):
+    """``mems-stereo live tcp://…``: frames named ``live_<index>``; a malformed message in
+    the middle of a stream ends the command with one line, exit 2, and no bag."""
+    zmq = pytest.importorskip("zmq")
+    from mems_stereo.io.live_zmq import send_end, send_shots, send_system
+
+    ctx = zmq.Context()
+
+    def run(feed, out: str) -> int:
+        push = ctx.socket(zmq.PUSH)
+        push.setsockopt(zmq.LINGER, 1000)
+        port = push.bind_to_random_port("tcp://127.0.0.1")
+        th = threading.Thread(target=feed, args=(push,))
+        th.start()
+        try:
+            return main(["live", "-q", f"tcp://127.0.0.1:{port}", "--frame-rate", "50",
+                         "--idle-timeout", "5", "-o", out])
+        finally:
+            th.join()
+            push.close()
+
+    def whole(push):
+        send_system(push, room.system)
+        _feed(room, 200, lambda t, b, z, r: send_shots(push, t, b, z, r))
+        send_end(push)
+
+    def torn(push):
+        send_system(push, room.system)
+        k, zc = 600, room.zero_crossings
+        z = zc <= room.shot_time[k - 1]
+        send_shots(push, room.shot_time[:k], room.bins[:k], zc[z], room.rising[z])
+        push.send_multipart([b'{"format": "mems-stereo/live", "version": 1, "type": "shots", '
+                             b'"n_shots": 2}', np.zeros(2).tobytes(), b"\0" * 10, b"", b""])
+
+    try:
+        assert run(whole, f"{tmp_path}/frames/") == 0
+        assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == [
+            "live_000000.ply", "live_000001.ply"]
+        capsys.readouterr()
+        assert run(torn, str(tmp_path / "bag.mcap")) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "message 3: bins" in err, err
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+    finally:
+        ctx.term()
