@@ -128,12 +128,12 @@ def test_frames_pushed_to_an_open_page(browser):
         browser.get(v.url)
         st = _wait_for(browser, lambda s: s["connected"])
         assert st["frames"] == 0 and st["index"] is None
-        for index, n, dropped in ((0, 500, 0), (1, 800, 0), (4, 300, 2)):
+        for index, n, dropped in ((0, 0, 0), (1, 800, 0), (4, 300, 2)):  # 0: no point yet
             f = _fan_frame(seed=index, n=n)
             v.write(Frame(index, 0.1 * index, 0.1 * index + 0.1, f.cloud, f.counts))
             st = _wait_for(browser, lambda s, i=index: s["index"] == i)
             assert (st["points"], st["dropped"]) == (n, dropped)
-            assert abs(st["start"] - 0.1 * index) < 1e-12 and st["drawn"] > 0.9 * n
+            assert abs(st["start"] - 0.1 * index) < 1e-12 and st["drawn"] >= 0.9 * n
         assert v.frames == 3 and v.dropped == 2
 
 

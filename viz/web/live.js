@@ -87,7 +87,7 @@ function draw() {
   }
   pick = new Int32Array(w * h).fill(-1);
   state.drawn = 0;
-  if (!frame || !lut || !w || !h) { ctx.putImageData(img, 0, 0); return; }
+  if (!frame || !lut || !view || !w || !h) { ctx.putImageData(img, 0, 0); return; }
   const c = frame.cols, n = frame.head.points;
   const cam = camera();
   if (view.f === null) view.f = fitFocal(c, cam, w, h);
@@ -155,7 +155,7 @@ function showStatus() {
 function onFrame(buf) {
   frame = parse(buf);
   const hd = frame.head;
-  if (view === null) sensorView(frame.cols);
+  if (view === null && hd.points > 0) sensorView(frame.cols);  // fitted to the first points
   Object.assign(state, { index: hd.index, start: hd.start, end: hd.end, points: hd.points,
                          dropped: hd.dropped });
   draw();
