@@ -63,3 +63,37 @@ def test_share_functions_skip_zero_shares_with_same_bits():
     post /= post.sum(axis=1, keepdims=True)
     assert np.allclose(got[0], np.sum(post * dj, axis=1) * 0.5e-9, rtol=1e-12, atol=0)
     assert np.all(np.isfinite(got[1])) and np.all(got[3] > 0)
+
+
+@pytest.mark.parametrize(("shape", "h", "w"), [((2, 153, 40), 7, 9), ((2, 600, 6), 3, 5),
+                                               ((1, 4, 3), 9, 11), ((2, 1, 1), 1, 1)])
+def test_box_sums_kernel_equals_numpy(monkeypatch, shape, h, w):
+    pytest.importorskip("numba")
+    from mems_stereo.pipeline import matched_boxes as mb
+
+    rng = np.random.default_rng(11)
+    A = rng.poisson(0.5, shape) * rng.random(shape)
+    fast = mb.box_sums(A, h, w)
+    monkeypatch.setattr(mb, "compiled_if_loaded", lambda f: None)
+    ref = mb.box_sums(A, h, w)
+    assert np.array_equal(_bits(fast), _bits(ref))
+    # independent: one box by direct summation, zeros beyond the edges
+    q, i, j = shape[0] - 1, shape[1] // 2, shape[2] // 2
+    box = A[q, max(0, i - h // 2):i + h // 2 + 1, max(0, j - w // 2):j + w // 2 + 1].sum()
+    assert fast[q, i, j] == pytest.approx(box, rel=1e-12, abs=1e-12)
+
+
+def test_box_grid_counts_add_entries_in_order():
+    from mems_stereo.pipeline.matched_boxes import BoxGrid
+
+    rng = np.random.default_rng(2)
+    ds, dc, cnt = rng.integers(0, 60, 400), rng.integers(0, 25, 400), rng.random(400) * 3
+    g = BoxGrid(ds, dc, cnt, np.zeros(60), np.zeros(60), np.zeros(60), 0, 1, -0.01, 25)
+    for j0, j1, k0, k1, fs, fc in [(0, 60, 0, 25, 1, 1), (7, 41, 3, 20, 4, 3),
+                                   (0, 60, 0, 25, 7, 5)]:
+        D = g.counts(j0, j1, k0, k1, fs, fc)
+        ref = np.zeros((-(-(j1 - j0) // fs), -(-(k1 - k0) // fc)))
+        for a, b, c in zip(ds, dc, cnt):  # one by one, in the entries' order
+            if j0 <= a < j1 and k0 <= b < k1:
+                ref[(a - j0) // fs, (b - k0) // fc] += c
+        assert np.array_equal(_bits(D), _bits(ref))

@@ -114,9 +114,13 @@ class FrameProcessor:
         load_kernels()
         self.system = system
         self.settings = Settings() if settings is None else settings
-        self.table = run_table(system, self.settings)
+        # every row of the interval table now (tens of ms, kept in its disk cache): a
+        # frame then never computes rows, nor sorts its steps to find the missing ones
+        self.table = run_table(system, self.settings).fill_all()
+        self.table.save_cache()
         self.fusion = (TemporalFusion(system.receiver.height, system.receiver.width,
-                                      self.settings.confidence) if fusion else None)
+                                      self.settings.confidence, system=system)
+                       if fusion else None)
         self.margin = 1.0 / float(system.scanner.f_mech)
         self.frames_done = 0
         self._t0 = None

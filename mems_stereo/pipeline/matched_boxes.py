@@ -72,9 +72,11 @@ class BoxGrid:
         """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
         k0..k1−1, summed in blocks of fs steps × fc cells."""
         m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
-        D = np.zeros((-(-(j1 - j0) // fs), -(-(k1 - k0) // fc)))
-        np.add.at(D, ((self.ds[m] - j0) // fs, (self.dc[m] - k0) // fc), self.cnt[m])
-        return D
+        shape = (-(-(j1 - j0) // fs), -(-(k1 - k0) // fc))
+        # the entries added in their order from 0 (np.add.at's additions: the same numbers)
+        flat = ((self.ds[m] - j0) // fs) * shape[1] + (self.dc[m] - k0) // fc
+        return np.bincount(flat, weights=self.cnt[m],
+                           minlength=shape[0] * shape[1]).reshape(shape)
 
     def background(self, j0, j1, k0, k1, fc=1):
         """The expected background of steps j0..j1−1 × cells k0..k1−1, the cells summed
@@ -238,21 +240,33 @@ def box_sums(A, h: int, w: int) -> np.ndarray:
 
 
 def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
-    """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel)."""
+    """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel): the
+    running sums of A padded with zeros, along the steps (``col``, one row at a time) and
+    then along the cells (``c``), each the same addition as in two whole passes."""
     k, n, m = A.shape
-    c = np.zeros((n + h, m + w))
+    c = np.empty((n + h, m + w))
+    col = np.empty(m + w)
     out = np.empty((k, n, m))
+    i0, j0 = h // 2 + 1, w // 2 + 1  # where A starts in the padded array
     for q in range(k):
-        c[:, :] = 0.0
-        for i in range(n):
-            for j in range(m):
-                c[i + h // 2 + 1, j + w // 2 + 1] = A[q, i, j]
-        for i in range(1, n + h):  # running sums along the steps
-            for j in range(m + w):
-                c[i, j] = c[i - 1, j] + c[i, j]
-        for i in range(n + h):  # then along the cells
-            for j in range(1, m + w):
-                c[i, j] = c[i, j - 1] + c[i, j]
+        col[:] = 0.0  # the padded array's first row (zeros)
+        c[0, :] = 0.0
+        for i in range(1, n + h):
+            if i0 <= i < i0 + n:  # running sum along the steps (+ 0.0 over the padding)
+                for j in range(j0):
+                    col[j] = col[j] + 0.0
+                for j in range(m):
+                    col[j0 + j] = col[j0 + j] + A[q, i - i0, j]
+                for j in range(j0 + m, m + w):
+                    col[j] = col[j] + 0.0
+            else:
+                for j in range(m + w):
+                    col[j] = col[j] + 0.0
+            acc = col[0]
+            c[i, 0] = acc
+            for j in range(1, m + w):  # then along the cells
+                acc = acc + col[j]
+                c[i, j] = acc
         for i in range(n):
             for j in range(m):
                 out[q, i, j] = c[i + h, j + w] - c[i, j + w] - c[i + h, j] + c[i, j]
