@@ -20,8 +20,16 @@ with --seconds of shots (default 2 s = 40,000 shots) and cached in --dir; a repl
 rate 1 loops the recording for --minutes (default 0: one pass), each pass shifted by a
 whole number of mechanical periods so the scan goes on.
 
+With ``--base-src DIR`` (a checkout of another commit, e.g. ``git worktree add /tmp/base
+REV``) every configuration runs twice, alternating: that commit's package (its
+``mems_stereo``, ``viz`` and ``calib`` folders ahead of the editable install) and this
+one's; the lines are marked ``base`` and ``new`` and a last table gives the CPU s per
+frame of each and their ratio (process time: on a shared machine the wall-clock figures
+follow the load, printed with each run).
+
 Run:  nice .venv/bin/python benchmarks/bench_frames.py [--recordings room flood]
       [--frame-rates 10 20 50] [--rates 1 max] [--seconds 2] [--minutes 0] [--dir /tmp/bf]
+      [--base-src DIR]
 The log goes to benchmarks/results/bench_frames_<UTC time>.log.
 """
 
@@ -99,7 +107,22 @@ def looped_source(path: str, rate, seconds: float):
     return Looped(path, rate)
 
 
+def use_package(src: str) -> None:
+    """Import ``mems_stereo`` (with its ``viz`` and ``calib`` folders) from the checkout
+    ``src`` instead of the editable install."""
+    sys.meta_path[:] = [f for f in sys.meta_path
+                        if "__editable__" not in getattr(f, "__module__", "")]
+    sys.path.insert(0, src)
+    import mems_stereo
+
+    mems_stereo.__path__.append(src)  # viz/ and calib/ are top-level folders there
+    if not mems_stereo.__file__.startswith(src):
+        raise SystemExit(f"--base-src: mems_stereo imported from {mems_stereo.__file__}")
+
+
 def child(path: str, hz: float, rate, seconds: float) -> dict:
+    if os.environ.get("BENCH_PACKAGE_SRC"):
+        use_package(os.environ["BENCH_PACKAGE_SRC"])
     from mems_stereo.viz.export_frames import FrameFolderSink
 
     from mems_stereo.pipeline.frames import FrameProcessor
@@ -169,6 +192,21 @@ def line(name: str, hz: float, rate, r: dict, rec_seconds: float) -> str:
             f"{r['warm_up']:.1f} s; targets {'met' if ok else 'NOT met'}")
 
 
+def run_child(path: Path, hz: float, rtext: str, secs: float, src: str | None) -> dict:
+    """One run in a fresh process (``src``: another checkout's package); its result with
+    the load average at its start, or ``{"failed": the end of its stderr}``."""
+    env = dict(os.environ)
+    env.pop("BENCH_PACKAGE_SRC", None)
+    if src:
+        env["BENCH_PACKAGE_SRC"] = src
+    load = os.getloadavg()[0]
+    p = subprocess.run([sys.executable, __file__, "--child", str(path), str(hz), rtext,
+                        str(secs)], capture_output=True, text=True, env=env)
+    if p.returncode:
+        return {"failed": p.stderr[-400:]}
+    return {**json.loads(p.stdout.strip().splitlines()[-1]), "load": load}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--recordings", nargs="+", default=["room", "flood"], choices=list(SEEDS))
@@ -178,6 +216,8 @@ def main(argv=None) -> int:
     ap.add_argument("--minutes", type=float, default=0.0,
                     help="replay at rate 1 loops the recording this long (0: one pass)")
     ap.add_argument("--dir", default=None)
+    ap.add_argument("--base-src", default=None,
+                    help="a checkout of another commit: each run alternates it and this one")
     ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:
@@ -192,20 +232,33 @@ def main(argv=None) -> int:
     out = [f"bench_frames {stamp} UTC; CPU {cpu_model()}; load average "
            f"{os.getloadavg()[0]:.1f}; argv {' '.join(sys.argv[1:])}"]
     print(out[0], flush=True)
+    versions = [("base", os.path.abspath(a.base_src)), ("new", None)] if a.base_src else \
+        [("", None)]
+    per_frame = []
     for name in a.recordings:
         path = recording(name, a.seconds, d)
         for hz in a.frame_rates:
             for rtext in a.rates:
                 rate = None if rtext == "max" else float(rtext)
                 secs = a.minutes * 60 if (rate is not None and a.minutes) else 0.0
-                p = subprocess.run([sys.executable, __file__, "--child", str(path), str(hz),
-                                    rtext, str(secs)], capture_output=True, text=True)
-                if p.returncode:
-                    out.append(f"  {name} {hz:g} Hz rate {rtext}: FAILED {p.stderr[-400:]}")
-                else:
-                    r = json.loads(p.stdout.strip().splitlines()[-1])
-                    out.append(line(name, hz, rate, r, max(secs, a.seconds)))
-                print(out[-1], flush=True)
+                cpu = {}
+                for tag, src in versions:
+                    r = run_child(path, hz, rtext, secs, src)
+                    if "failed" in r:
+                        out.append(f"  {tag:4s} {name} {hz:g} Hz rate {rtext}: FAILED "
+                                   f"{r['failed']}")
+                    else:
+                        out.append(f"{tag:4s}" + line(name, hz, rate, r, max(secs, a.seconds))
+                                   + f"; load {r['load']:.1f}")
+                        cpu[tag] = r["cpu"] / max(r["written"], 1)
+                    print(out[-1], flush=True)
+                if len(cpu) == 2:
+                    per_frame.append(f"  {name:5s} {hz:4g} Hz rate {rtext:>3s}: "
+                                     f"{cpu['base']:.3f} -> {cpu['new']:.3f} CPU s per frame "
+                                     f"({cpu['base'] / cpu['new']:.2f}x)")
+    if per_frame:
+        out += ["CPU s per frame written, base -> new (speed-up):"] + per_frame
+        print("\n".join(out[-len(per_frame) - 1:]))
     log.parent.mkdir(exist_ok=True)
     log.write_text("\n".join(out) + "\n")
     print(f"log: {log}")
