@@ -38,6 +38,7 @@ import numpy as np
 
 from mems_stereo.io.recording import Recording
 from mems_stereo.pipeline.frames import Frame, FrameProcessor
+from mems_stereo.util.memory import release_freed_memory
 
 #: seconds the consumer waits on an empty queue before it looks at the stop flag
 POLL = 0.05
@@ -314,6 +315,9 @@ class LiveRun:
             return
         self.write(f)
         now = time.monotonic()
+        # the frame's temporaries are freed: hand them back to the OS (milliseconds), so
+        # the two threads' heaps do not creep up over a long run
+        release_freed_memory()
         self._take(f)
         due = self.source.due(f.end)
         with self.adm.cond:
