@@ -21,7 +21,7 @@ STAGES = ["consistency", "intervals", "settings", "angles", "shot_range", "histo
           "matched_boxes", "matched", "signal_store", "cloud", "detection_kernel", "detections",
           "sums", "peak_means", "window_background", "first_photon_correction", "peak_geometry",
           "fusion_inputs", "peak_estimates", "peak_accumulator", "background_entries", "fusion",
-          "goodness",
+          "goodness", "scan_dwell",
           "temporal", "block_fusion", "run", "dask_setup", "dask_plan", "dask_reduce",
           "dask_tasks", "dask_split", "distributed", "frames", "live_queue", "live_warmup",
           "timetags", "gate_check", "twoaxis_pileup", "twoaxis"]

@@ -6,9 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy.stats import binom, norm
+from scipy.stats import binom, chi2, norm
 
 from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.scan_dwell import Systematic
 from mems_stereo.pipeline.temporal import TemporalFusion
 
 W = 64
@@ -132,3 +133,57 @@ def test_frames_that_scatter_beyond_their_sigma_inflate_it_by_the_birge_ratio():
     np.testing.assert_allclose(out["range"], mean, rtol=1e-12)
     np.testing.assert_allclose(out["sigma_r"], np.sqrt(chi2 / 5 / w.sum()), rtol=1e-9)
     np.testing.assert_allclose(out["sigma_z"], out["sigma_r"], rtol=1e-9)  # σ_z = σ_r here
+
+
+def constant_systematic(sigma_sys):
+    """A ``systematic`` callable: every point's common σ is ``sigma_sys`` along z."""
+    def common(cloud):
+        n = len(cloud)
+        dx = np.zeros((n, 3))
+        dx[:, 2] = sigma_sys
+        return Systematic(np.full(n, sigma_sys), dx)
+    return common
+
+
+def test_the_common_part_of_the_error_does_not_average_down():
+    """Monte Carlo: each pixel's frames share one bias b ~ N(0, σ_sys²) and add their own
+    noise ε ~ N(0, σ_i²).  After 20 frames the fused range's error b + Σwε/Σw has the
+    variance σ_sys² + 1/Σw: its pulls against the fused σ_r are N(0, 1) (χ² band), while
+    the σ of the random part alone would give pulls of sqrt(1 + σ_sys²·Σw) ≈ 2.6."""
+    rng = np.random.default_rng(5)
+    n_pix, n_frames, s_sys = 2000, 20, 0.02
+    fus = TemporalFusion(1, n_pix, 0.997, systematic=constant_systematic(s_sys))
+    bias = s_sys * rng.standard_normal(n_pix)
+    sig = rng.uniform(0.03, 0.06, size=(n_frames, n_pix))
+    r = 4.0 + bias + sig * rng.standard_normal((n_frames, n_pix))
+    for i in range(n_frames):
+        out = fus.update(frame_cloud(r[i], sig[i], t=0.1 * i, pixels=np.arange(n_pix)))
+    live = out["age"] == n_frames  # (a few false restarts: those pixels start again)
+    assert live.mean() > 0.9
+    w = 1.0 / sig ** 2
+    mean = (w * r).sum(0) / w.sum(0)
+    birge = np.sqrt(np.maximum((w * (r - mean) ** 2).sum(0) / (n_frames - 1), 1.0))
+    s_rand = birge / np.sqrt(w.sum(0))
+    s_z = birge * np.sqrt((w ** 2 * sig ** 2).sum(0)) / w.sum(0)
+    np.testing.assert_allclose(out["range"][live], mean[live], rtol=1e-12)
+    np.testing.assert_allclose(out["sigma_r"][live], np.hypot(s_rand, s_sys)[live], rtol=1e-9)
+    np.testing.assert_allclose(out["sigma_z"][live], np.hypot(s_z, s_sys)[live], rtol=1e-9)
+    np.testing.assert_allclose(out["sigma_x"][live], (0.1 * s_z)[live], rtol=1e-9)
+    pulls = (out["range"] - 4.0)[live] / out["sigma_r"][live]
+    lo, hi = chi2.ppf([norm.cdf(-5), norm.cdf(5)], live.sum()) / live.sum()
+    assert lo <= np.mean(pulls ** 2) <= hi, np.mean(pulls ** 2)
+    naive = (out["range"] - 4.0)[live] / s_rand[live]
+    assert np.mean(naive ** 2) > 4.0  # without the floor the σ would be 2.6 times too small
+
+
+def test_the_agreement_test_sees_only_the_random_part():
+    """A common part (σ_sys 1 m) leaves the bound k·sqrt(σ_r² + σ̄_rand²) as it is: a jump
+    of 9 cm on σ 2 cm restarts, 5 cm does not (as without a common part)."""
+    fus = TemporalFusion(1, W, 0.997, systematic=constant_systematic(1.0))
+    for i in range(4):
+        fus.update(frame_cloud(np.full(W, 3.0), 0.02, t=i))
+    step = np.where(np.arange(W) < W // 2, 0.05, 0.09)
+    out = fus.update(frame_cloud(3.0 + step, 0.02, t=4))
+    small = np.arange(W) < W // 2
+    assert np.all(out["age"][small] == 5) and np.all(out["age"][~small] == 1)
+    np.testing.assert_allclose(out["sigma_r"][~small], np.hypot(0.02, 1.0))

@@ -13,14 +13,26 @@ its last restart.  A new point of the pixel *agrees* with that history when
   k = Φ⁻¹((1 + confidence)/2) (2.97 at the default 0.997).
 
 An agreeing point is added (weights w = 1/σ_r²: the fused range and position are the
-w-weighted means, σ_r = (Σw)^−½, the other σ propagated through the fixed weights,
+w-weighted means, the other σ propagated through the fixed weights,
 ``sqrt(Σ w² σ²)/Σw``, each σ times the history's Birge ratio where its frames scatter
 more than their σ say, as the pipeline scales a peak's σ by its detections' reduced χ²);
 one that does not agree restarts the pixel's history with itself.
-Nothing is forgotten otherwise: a static surface sharpens as 1/√age, a moving one
-restarts as soon as it has moved by about kσ.  Under the Gaussian errors the bound
-assumes, a static pixel's first false restart comes with probability 1 − confidence per
-frame; a restart starts from the outlier that failed, so more follow (measured:
+
+**σ model.**  A frame point's error is a random part (photon counts, timing, pixel
+extent: the pipeline's σ_r, independent from frame to frame) plus a part common to every
+frame of the pixel, σ_sys (``systematic(cloud)``, by default the scan's dwell skew of
+:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`).  Only the random part averages:
+
+    σ_r,fused² = B²/Σw + (Σ w·σ_sys / Σw)²         (B the Birge ratio)
+
+(the common parts are fully correlated, so they add linearly through the weights), and
+σ_x, σ_y, σ_z likewise with the common displacement's components.  The agreement test
+compares a frame with its own history: the common part cancels in ``r − r̄``, so the
+test uses the random σ alone.  A fused point of age 1 carries its frame's σ_r and σ_sys.
+Nothing is forgotten otherwise: a static surface sharpens as 1/√age down to its σ_sys, a
+moving one restarts as soon as it has moved by about kσ.  Under the Gaussian errors the
+bound assumes, a static pixel's first false restart comes with probability 1 − confidence
+per frame; a restart starts from the outlier that failed, so more follow (measured:
 docs/frames.md).
 """
 
@@ -30,6 +42,7 @@ import numpy as np
 
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import k_from_confidence
+from mems_stereo.pipeline.scan_dwell import DwellSkew
 
 #: the attributes the fusion replaces by their fused values (besides points)
 FUSED_SIGMAS = ("sigma_x", "sigma_y", "sigma_z", "sigma_phi")
@@ -46,10 +59,20 @@ class TemporalFusion:
     mean) replaced, ``age`` (int32, frames fused) added; the other attributes stay the
     frame's.  ``tests`` and ``restarts`` count the points that met a history and those
     of them that did not agree with it.
+
+    ``system`` : the :class:`~mems_stereo.model.system.System` (a line scanner: the
+    default ``systematic`` is its :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`);
+    ``systematic`` : a callable ``cloud -> Systematic`` (σ_sys (N,) m and the common
+    displacement (N, 3) m of each point), or None for none (random errors only).
     """
 
-    def __init__(self, height: int, width: int, confidence: float = 0.997):
+    def __init__(self, height: int, width: int, confidence: float = 0.997, system=None,
+                 systematic=None):
         self.k = k_from_confidence(confidence)
+        line = system is not None and getattr(system.scanner, "axis2", None) is None
+        if systematic is None and line:
+            systematic = DwellSkew(system).systematic
+        self.systematic = systematic
         self.width = int(width)
         P = int(height) * self.width
         self.age = np.zeros(P, np.int32)
@@ -58,6 +81,8 @@ class TemporalFusion:
         self.wr = np.zeros(P)
         self.wr2 = np.zeros(P)
         self.w2s = np.zeros((P, len(FUSED_SIGMAS)))
+        self.wsys = np.zeros(P)
+        self.wdx = np.zeros((P, 3))
         self.csum = np.zeros(P)
         self.ct = np.zeros(P)
         self.band = np.zeros((P, 2), np.int64)
@@ -99,6 +124,10 @@ class TemporalFusion:
         sig = np.stack([np.asarray(a.get(k, np.zeros(n)), np.float64) for k in FUSED_SIGMAS],
                        axis=1)
         self.w2s[p] += (w[:, None] * sig[sel]) ** 2
+        if self.systematic is not None:
+            common = self.systematic(cloud.select(sel))
+            self.wsys[p] += w * common.sigma_r
+            self.wdx[p] += w[:, None] * common.dx
         c = np.asarray(a["counts"], np.float64)[sel]
         self.csum[p] += c
         self.ct[p] += c * np.asarray(a["t"], np.float64)[sel]
@@ -116,7 +145,7 @@ class TemporalFusion:
 
     def _reset(self, pix: np.ndarray) -> None:
         for arr in (self.age, self.wsum, self.wx, self.wr, self.wr2, self.w2s, self.csum,
-                    self.ct):
+                    self.ct, self.wsys, self.wdx):
             arr[pix] = 0
 
     def _fused(self, cloud: PointCloud, pix: np.ndarray, ok: np.ndarray) -> PointCloud:
@@ -128,7 +157,8 @@ class TemporalFusion:
         ws = self.wsum[p]
         birge = self.scatter_ratio(p)
         pts[ok] = self.wx[p] / ws[:, None]
-        for name, vals in (("range", self.wr[p] / ws), ("sigma_r", birge / np.sqrt(ws)),
+        s_r = np.hypot(birge / np.sqrt(ws), self.wsys[p] / ws)
+        for name, vals in (("range", self.wr[p] / ws), ("sigma_r", s_r),
                            ("t", self.ct[p] / np.maximum(self.csum[p], 1e-300))):
             v = np.array(a[name], np.float64)
             v[ok] = vals
@@ -137,6 +167,8 @@ class TemporalFusion:
             if name in a:
                 v = np.array(a[name], np.float64)
                 v[ok] = birge * np.sqrt(self.w2s[p, j]) / ws
+                if j < 3:  # sigma_x, y, z: the common displacement's component
+                    v[ok] = np.hypot(v[ok], self.wdx[p, j] / ws)
                 a[name] = v
         counts = np.array(a["counts"])
         counts[ok] = np.rint(self.csum[p]).astype(counts.dtype)

@@ -108,7 +108,8 @@ def frame_scores(cloud, scene, lit) -> dict:
     as benchmarks/bench_scenarios.py), ``sigma`` (σ_r), ``object`` (the true surface's
     object, −1 none), ``false`` (bool: farther than max(3σ_r, :data:`FALSE_MIN`) from
     every surface), and ``coverage`` (lit pixels with a point that is not false / lit
-    pixels), ``lit`` (their number).
+    pixels), ``lit`` (their number), ``covered`` ((H, W) bool: the pixels with a point
+    that is not false).
     """
     t = cloud["t"] if len(cloud) else np.zeros(0)
     hits = true_hits_at(scene, cloud.points, t)
@@ -124,4 +125,4 @@ def frame_scores(cloud, scene, lit) -> dict:
     n_lit = int(np.sum(lit))
     return {"error": err, "sigma": sig, "object": hits.object, "false": false,
             "coverage": float(np.sum(good & lit) / n_lit) if n_lit else float("nan"),
-            "lit": n_lit}
+            "lit": n_lit, "covered": good}
