@@ -29,7 +29,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mems_stereo.geometry.uncertainty import spreads_for, stereo_point_est
-from mems_stereo.model.scanner import scan_angle_from_phase, scan_direction
+from mems_stereo.model.scanner import (
+    scan_angle_from_phase,
+    scan_direction,
+    scan_direction_derivative,
+)
 
 #: phase samples over one mechanical period (uniform in time, as the shots)
 PHASE_SAMPLES = 1 << 20
@@ -38,7 +42,9 @@ DENSITY_BINS = 1 << 15
 #: the footprint's Gaussian is summed over ± this many σ
 FOOTPRINT_SIGMAS = 4.0
 #: scan-angle grid over which a point's angle is found (then refined by a parabola)
-ANGLE_GRID = 4097
+ANGLE_GRID = 257
+#: Newton steps refining a point's angle from the grid
+NEWTON_STEPS = 3
 #: rad: central-difference steps of the stereo in θ and (px) in u
 D_THETA, D_U = 1e-6, 1e-3
 
@@ -80,17 +86,24 @@ class DwellSkew:
         self.grid_dir = scan_direction(self.grid, sc)
 
     def angle_of(self, points: np.ndarray) -> np.ndarray:
-        """(N,) rad: the scan angle whose beam passes closest to each point (N, 3) m."""
-        b = np.asarray(points, np.float64) - np.asarray(self.system.scanner.position)
+        """(N,) rad: the scan angle whose beam passes closest to each point (N, 3) m: the
+        nearest of a coarse grid, then Newton steps on ∂(d(θ)·b)/∂θ = 0 (b the unit
+        direction from the scanner to the point)."""
+        sc = self.system.scanner
+        b = np.asarray(points, np.float64) - np.asarray(sc.position)
         b = b / np.linalg.norm(b, axis=1, keepdims=True)
-        dots = b @ self.grid_dir.T
-        i = np.clip(np.argmax(dots, axis=1), 1, self.grid.size - 2)
-        rows = np.arange(i.size)
-        y0, y1, y2 = dots[rows, i - 1], dots[rows, i], dots[rows, i + 1]
-        den = y0 - 2.0 * y1 + y2
-        with np.errstate(invalid="ignore", divide="ignore"):
-            off = np.where(den < 0, 0.5 * (y0 - y2) / den, 0.0)
-        return self.grid[i] + np.clip(off, -1.0, 1.0) * (self.grid[1] - self.grid[0])
+        th = self.grid[np.argmax(b @ self.grid_dir.T, axis=1)]
+        h = 0.5 * (self.grid[1] - self.grid[0])
+        for _ in range(NEWTON_STEPS):
+            g = np.sum(scan_direction_derivative(th, sc) * b, axis=1)
+            g2 = (np.sum((scan_direction_derivative(th + D_THETA, sc)
+                          - scan_direction_derivative(th - D_THETA, sc)) * b, axis=1)
+                  / (2 * D_THETA))
+            with np.errstate(invalid="ignore", divide="ignore"):
+                step = np.where(g2 < 0, -g / g2, 0.0)
+            th = th + np.clip(step, -h, h)
+            h = max(h * 1e-2, 1e-9)
+        return th
 
     def mean_shift(self, theta_c: np.ndarray, s_theta: np.ndarray) -> np.ndarray:
         """(N,) rad: the mean of the shots' angles weighted by a Gaussian footprint
@@ -126,13 +139,14 @@ class DwellSkew:
              else np.zeros(n))
         th = self.angle_of(pts)
         s = self.system
-        z = np.zeros(n)
-        x_tp = stereo_point_est(s, u, v, z, th + D_THETA)
-        x_tm = stereo_point_est(s, u, v, z, th - D_THETA)
-        dx_dth = (x_tp - x_tm) / (2.0 * D_THETA)
-        dr_dth = (np.linalg.norm(x_tp, axis=1) - np.linalg.norm(x_tm, axis=1)) / (2 * D_THETA)
-        dr_du = (np.linalg.norm(stereo_point_est(s, u + D_U, v, z, th), axis=1)
-                 - np.linalg.norm(stereo_point_est(s, u - D_U, v, z, th), axis=1)) / (2 * D_U)
+        # one call for the four central differences: θ ± D_THETA, u ± D_U
+        x4 = stereo_point_est(s, np.concatenate([u, u, u + D_U, u - D_U]), np.tile(v, 4),
+                              np.zeros(4 * n), np.concatenate([th + D_THETA, th - D_THETA,
+                                                               th, th])).reshape(4, n, 3)
+        r4 = np.linalg.norm(x4, axis=2)
+        dx_dth = (x4[0] - x4[1]) / (2.0 * D_THETA)
+        dr_dth = (r4[0] - r4[1]) / (2.0 * D_THETA)
+        dr_du = (r4[2] - r4[3]) / (2.0 * D_U)
         with np.errstate(invalid="ignore", divide="ignore"):
             s_th = self.sigma_u * np.abs(dr_du / dr_dth)
         shift = self.mean_shift(th, np.nan_to_num(s_th, nan=0.0, posinf=0.0))
