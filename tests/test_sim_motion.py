@@ -89,6 +89,7 @@ def test_frame_scores_against_the_scene_at_the_points_time():
     np.testing.assert_allclose(s["error"], [0.0, 0.02, -1.5, 0.0], atol=1e-5)
     assert s["false"].tolist() == [False, False, True, False]
     assert s["coverage"] == pytest.approx(3 / 5) and s["lit"] == 5
+    assert s["covered"].tolist() == [[True, True, False, True, False]]  # pixel 2's is false
     assert true_hits_at(sc, cloud.points, t).object.tolist() == [0, 0, 0, 0]
 
 

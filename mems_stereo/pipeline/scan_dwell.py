@@ -41,7 +41,7 @@ PHASE_SAMPLES = 1 << 20
 DENSITY_BINS = 1 << 15
 #: the footprint's Gaussian is summed over ± this many σ
 FOOTPRINT_SIGMAS = 4.0
-#: scan-angle grid over which a point's angle is found (then refined by a parabola)
+#: scan-angle grid from which a point's angle is refined (:meth:`DwellSkew.angle_of`)
 ANGLE_GRID = 257
 #: Newton steps refining a point's angle from the grid
 NEWTON_STEPS = 3
