@@ -1,11 +1,13 @@
 """The per-frame fast paths give the same bits as their reference forms: the compiled
-moving sum (:func:`mems_stereo.physics.background.moving_sum`) and the spot-share
-functions evaluated only where the share is not 0
-(:mod:`mems_stereo.physics.first_photon`)."""
+moving sum and background-rate sums (:mod:`mems_stereo.physics.background`), the
+spot-share functions evaluated only where the share is not 0
+(:mod:`mems_stereo.physics.first_photon`), the matched filter's box sums and count grids
+and the acceptance counts of the peak search."""
 
 import numpy as np
 import pytest
 
+from mems_stereo.errors import FormatError
 from mems_stereo.physics import background as bg
 from mems_stereo.physics import first_photon as fp
 
@@ -97,3 +99,65 @@ def test_box_grid_counts_add_entries_in_order():
             if j0 <= a < j1 and k0 <= b < k1:
                 ref[(a - j0) // fs, (b - k0) // fc] += c
         assert np.array_equal(_bits(D), _bits(ref))
+
+
+def test_acceptance_counts_kernel_equals_difference_array(monkeypatch):
+    pytest.importorskip("numba")
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.pipeline import peaks as pk
+    from mems_stereo.pipeline.intervals import interval_table
+
+    system = burkard2022()
+    table = interval_table(system, 0.997)
+    rng = np.random.default_rng(4)
+    n_per_step = np.zeros(table.n_steps, np.int64)
+    steps = rng.choice(np.arange(table.n_steps // 3, table.n_steps // 2), 40, replace=False)
+    n_per_step[steps] = rng.integers(1, 8, steps.size)
+    for pixels in (None, np.array([5, 0, 191, 77])):
+        fast = pk.acceptance_counts(system, None, None, 0.997, table=table,
+                                    n_per_step=n_per_step, pixels=pixels)
+        with monkeypatch.context() as m:
+            m.setattr(pk, "compiled_if_loaded", lambda f: None)
+            ref = pk.acceptance_counts(system, None, None, 0.997, table=table,
+                                       n_per_step=n_per_step, pixels=pixels)
+        assert fast.dtype == np.int64 and np.array_equal(fast, ref)
+        # independent: code by code, the valid shots of the steps accepting it
+        p = 77 if pixels is None else 191
+        i = p if pixels is None else 2
+        lo, hi = table.lo[steps, p].astype(int), table.hi[steps, p].astype(int)
+        codes = np.arange(1, system.tdc.n_bins + 1)
+        want = ((codes[:, None] >= lo) & (codes[:, None] <= hi)) @ n_per_step[steps]
+        assert np.array_equal(fast[i], want)
+
+
+def test_pairwise_plan_covers_the_values_once():
+    for n in (1, 7, 128, 129, 300, 4096, 4101):
+        plan = bg.pairwise_plan(n)
+        blocks = plan[plan[:, 0] == 0]
+        assert blocks[:, 2].sum() == n and np.all(blocks[:, 2] <= 128)
+        assert np.array_equal(blocks[:, 1], np.cumsum(blocks[:, 2]) - blocks[:, 2])
+        assert np.count_nonzero(plan[:, 0] == 1) == len(blocks) - 1  # joins: a binary tree
+
+
+@pytest.mark.parametrize("n_bins", [5, 129, 300, 4096, 4101])
+def test_background_rate_from_noise_kernel_equals_reference(monkeypatch, n_bins):
+    pytest.importorskip("numba")
+    import sys
+
+    rng = np.random.default_rng(n_bins)
+    raw = rng.poisson(0.3, (30, n_bins))
+    noise = rng.binomial(raw, 0.8)
+    n_valid, bw = 2 * n_bins + 50, 65e-12  # the sum of the trials is not an integer: its
+    # rounding depends on the order of the additions (NumPy's pairwise order)
+    acc = rng.integers(0, n_valid // 2, raw.shape)
+    fast = bg.background_rate_from_noise(noise, raw, acc, n_valid, bw)
+    with monkeypatch.context() as m:
+        m.delitem(sys.modules, "numba")  # the NumPy reference
+        ref = bg.background_rate_from_noise(noise, raw, acc, n_valid, bw)
+    assert np.array_equal(_bits(fast), _bits(ref))
+    # independent: the ML estimate of one pixel from its sums
+    armed = n_valid - (np.cumsum(raw[4]) - raw[4])
+    p = noise[4].sum() / np.sum(armed * (1 - acc[4] / n_valid))
+    assert fast[4] == pytest.approx(-np.log1p(-p) / bw, rel=1e-11)
+    with pytest.raises(FormatError):  # refused as the reference refuses it
+        bg.background_rate_from_noise(noise, raw * 0 + n_valid, acc, n_valid, bw)

@@ -4,11 +4,14 @@ TDC bin, per code window and per scan-angle step (Poisson thresholds).
 
 from __future__ import annotations
 
+import functools
+import sys
+
 import numpy as np
 from scipy.special import pdtrc
 
 from mems_stereo.errors import FormatError
-from mems_stereo.util.lazy_numba import compiled_if_loaded
+from mems_stereo.util.lazy_numba import compiled_if_loaded, compiled_kernel
 
 #: entries from which :func:`moving_sum` runs its compiled kernel where numba is loaded
 COMPILED_SUM_ENTRIES = 4096
@@ -199,8 +202,111 @@ def background_rate_from_noise(noise, raw, acceptance, n_valid: int,
 
 
     n_valid = max(int(n_valid), 1)
-    return background_rate_mle(noise, n_valid, bin_width, raw=raw,
-                               trials_factor=1.0 - np.asarray(acceptance) / n_valid)
+    sums = _noise_trial_sums(noise, raw, acceptance, n_valid) if bin_width > 0 else None
+    if sums is None:  # (and where the input is refused: the reference names why)
+        return background_rate_mle(noise, n_valid, bin_width, raw=raw,
+                                   trials_factor=1.0 - np.asarray(acceptance) / n_valid)
+    k, n = sums
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(n > 0, k / n, np.nan)
+        return -np.log1p(-p) / bin_width
+
+
+def _noise_trial_sums(noise, raw, acceptance, n_valid: int):
+    """``(Σ N_j, Σ n_j (1 − A_j/n_valid))`` per pixel, (P,) float64 each, by the compiled
+    kernel (:func:`_noise_trials_py`: :func:`background_rate_mle`'s numbers, its sums
+    added in NumPy's pairwise order) where numba is loaded and the histograms are
+    (P, n_bins) and valid; else None."""
+    h, r, a = np.asarray(noise), np.asarray(raw), np.asarray(acceptance)
+    kernel = None
+    if h.size >= COMPILED_SUM_ENTRIES and "numba" in sys.modules:  # (as compiled_if_loaded)
+        kernel = compiled_kernel(_noise_trials_py, {"_pairwise_py": _pairwise_py})
+    if kernel is None or h.ndim != 2 or not h.shape == r.shape == a.shape or not h.shape[1]:
+        return None
+    k, n, ok = kernel(np.ascontiguousarray(h), np.ascontiguousarray(r),
+                      np.ascontiguousarray(a), n_valid, pairwise_plan(h.shape[1]))
+    return (k, n) if ok else None
+
+
+@functools.lru_cache(maxsize=16)
+def pairwise_plan(n: int) -> np.ndarray:
+    """NumPy's pairwise summation of n float64 values (a contiguous reduction) as a
+    program for :func:`_pairwise_py`: rows ``(0, first, count)`` push the sum of a block
+    of at most 128 values (8 accumulators), rows ``(1, 0, 0)`` replace the top two sums by
+    their sum (the left one first); the blocks and joins of its recursion, which splits
+    n > 128 values at n/2 rounded down to a multiple of 8."""
+    out = []
+
+    def split(lo: int, m: int) -> None:
+        if m <= 128:
+            out.append((0, lo, m))
+            return
+        m2 = m // 2
+        m2 -= m2 % 8
+        split(lo, m2)
+        split(lo + m2, m - m2)
+        out.append((1, 0, 0))
+
+    split(0, int(n))
+    return np.array(out, np.int64)
+
+
+def _pairwise_py(a, plan):  # pragma: no cover - compiled by numba
+    """``a.sum()`` of a float64 vector as NumPy adds it (``plan`` of :func:`pairwise_plan`)."""
+    stack = np.empty(plan.shape[0])
+    top = 0
+    for row in range(plan.shape[0]):
+        if plan[row, 0] == 1:
+            top -= 1
+            stack[top - 1] = stack[top - 1] + stack[top]
+            continue
+        lo, m = plan[row, 1], plan[row, 2]
+        if m < 8:
+            res = -0.0
+            for i in range(m):
+                res += a[lo + i]
+        else:
+            r = np.empty(8)
+            for i in range(8):
+                r[i] = a[lo + i]
+            i = 8
+            while i < m - m % 8:
+                for t in range(8):
+                    r[t] += a[lo + i + t]
+                i += 8
+            res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+            while i < m:
+                res += a[lo + i]
+                i += 1
+        stack[top] = res
+        top += 1
+    return 0.0 + stack[0]
+
+
+def _noise_trials_py(h, r, a, n_valid, plan):  # pragma: no cover - compiled by numba
+    """Per row of (P, n_bins) ``h`` (noise), ``r`` (raw), ``a`` (acceptance): Σ h and
+    Σ n_j (1 − a_j/n_valid), n_j the shots armed at bin j (:func:`armed_shots`: n_valid
+    less the running sum of r before j), each element as :func:`background_rate_mle`
+    computes it; ``ok`` False for a negative count or more detections than shots."""
+    P, B = h.shape
+    k, n = np.empty(P), np.empty(P)
+    hf, tr = np.empty(B), np.empty(B)
+    nv = np.float64(n_valid)
+    for p in range(P):
+        c = 0.0
+        for j in range(B):
+            hj, rj = np.float64(h[p, j]), np.float64(r[p, j])
+            if hj < 0 or rj < 0:
+                return k, n, False
+            c = rj if j == 0 else c + rj  # np.cumsum's running sum
+            nj = nv - (c - rj)
+            if nj - rj < -1e-9:
+                return k, n, False
+            hf[j] = hj
+            tr[j] = nj * (1.0 - a[p, j] / nv)
+        k[p] = _pairwise_py(hf, plan)
+        n[p] = _pairwise_py(tr, plan)
+    return k, n, True
 
 
 def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.ndarray:

@@ -42,6 +42,7 @@ from mems_stereo.pipeline.peak_support import (
 )
 from mems_stereo.pipeline.peak_table import Candidates, Peaks, window_rows
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 
 def acceptance_counts(system: System, theta, valid, confidence: float,
@@ -63,7 +64,13 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
     n_row = n_per_row[used]
     table.ensure(used)
     n_bins = system.tdc.n_bins
-    sel = used if pixels is None else np.ix_(used, np.asarray(pixels, np.int64))
+    pix = (np.arange(table.lo.shape[1]) if pixels is None
+           else np.asarray(pixels, np.int64))
+    kernel = compiled_if_loaded(_acceptance_py)
+    if kernel is not None:  # integer sums: the same numbers in any order
+        return kernel(table.lo, table.hi, used.astype(np.int64), pix,
+                      n_row.astype(np.int64), n_bins)
+    sel = used if pixels is None else np.ix_(used, pix)
     lo = table.lo[sel].astype(np.int64)  # (U, P)
     hi = table.hi[sel].astype(np.int64)
     ok = lo <= hi
@@ -75,6 +82,30 @@ def acceptance_counts(system: System, theta, valid, confidence: float,
             - np.bincount(at + hi[ok] + 1, w, P * (n_bins + 2)))
     diff = np.rint(diff).astype(np.int64).reshape(P, n_bins + 2)
     return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
+
+
+def _acceptance_py(lo, hi, used, pix, n_row, n_bins):  # pragma: no cover - numba
+    """:func:`acceptance_counts` loop by loop (the numba kernel): ``lo``, ``hi`` (S, P')
+    the interval table's accepted codes, ``used`` (U,) the steps with shots, ``pix`` (P,)
+    the pixels, ``n_row`` (U,) int64 each used step's valid shots; returns (P, n_bins)
+    int64, per pixel the difference array over codes summed (integers: exact)."""
+    U, P = used.shape[0], pix.shape[0]
+    diff = np.zeros(n_bins + 2, np.int64)  # one pixel's, in cache
+    out = np.empty((P, n_bins), np.int64)
+    for p in range(P):
+        diff[:] = 0
+        q = pix[p]
+        for u in range(U):
+            a = np.int64(lo[used[u], q])
+            b = np.int64(hi[used[u], q])
+            if a <= b:
+                diff[a] += n_row[u]
+                diff[b + 1] -= n_row[u]
+        acc = diff[0]
+        for c in range(1, n_bins + 1):
+            acc += diff[c]
+            out[p, c - 1] = acc
+    return out
 
 
 
