@@ -29,7 +29,7 @@ follow the load, printed with each run).
 
 Run:  nice .venv/bin/python benchmarks/bench_frames.py [--recordings room flood]
       [--frame-rates 10 20 50] [--rates 1 max] [--seconds 2] [--minutes 0] [--dir /tmp/bf]
-      [--base-src DIR]
+      [--base-src DIR] [--no-temporal]
 The log goes to benchmarks/results/bench_frames_<UTC time>.log.
 """
 
@@ -120,7 +120,7 @@ def use_package(src: str) -> None:
         raise SystemExit(f"--base-src: mems_stereo imported from {mems_stereo.__file__}")
 
 
-def child(path: str, hz: float, rate, seconds: float) -> dict:
+def child(path: str, hz: float, rate, seconds: float, fusion: bool = True) -> dict:
     if os.environ.get("BENCH_PACKAGE_SRC"):
         use_package(os.environ["BENCH_PACKAGE_SRC"])
     from mems_stereo.viz.export_frames import FrameFolderSink
@@ -130,7 +130,7 @@ def child(path: str, hz: float, rate, seconds: float) -> dict:
     from mems_stereo.pipeline.live_warmup import warm_up
 
     src = looped_source(path, rate, seconds)
-    proc = FrameProcessor(src.system, frame_rate=hz)
+    proc = FrameProcessor(src.system, frame_rate=hz, fusion=fusion)
     warm = warm_up(proc)
     rss, done = [], threading.Event()
 
@@ -192,7 +192,8 @@ def line(name: str, hz: float, rate, r: dict, rec_seconds: float) -> str:
             f"{r['warm_up']:.1f} s; targets {'met' if ok else 'NOT met'}")
 
 
-def run_child(path: Path, hz: float, rtext: str, secs: float, src: str | None) -> dict:
+def run_child(path: Path, hz: float, rtext: str, secs: float, src: str | None,
+              fusion: bool = True) -> dict:
     """One run in a fresh process (``src``: another checkout's package); its result with
     the load average at its start, or ``{"failed": the end of its stderr}``."""
     env = dict(os.environ)
@@ -201,7 +202,8 @@ def run_child(path: Path, hz: float, rtext: str, secs: float, src: str | None) -
         env["BENCH_PACKAGE_SRC"] = src
     load = os.getloadavg()[0]
     p = subprocess.run([sys.executable, __file__, "--child", str(path), str(hz), rtext,
-                        str(secs)], capture_output=True, text=True, env=env)
+                        str(secs), "1" if fusion else "0"], capture_output=True, text=True,
+                       env=env)
     if p.returncode:
         return {"failed": p.stderr[-400:]}
     return {**json.loads(p.stdout.strip().splitlines()[-1]), "load": load}
@@ -218,12 +220,14 @@ def main(argv=None) -> int:
     ap.add_argument("--dir", default=None)
     ap.add_argument("--base-src", default=None,
                     help="a checkout of another commit: each run alternates it and this one")
-    ap.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--no-temporal", action="store_true",
+                    help="frames without the temporal fusion (the frame stages alone)")
+    ap.add_argument("--child", nargs=5, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.child:
-        path, hz, rate, seconds = a.child
+        path, hz, rate, seconds, fusion = a.child
         print(json.dumps(child(path, float(hz), None if rate == "max" else float(rate),
-                               float(seconds))))
+                               float(seconds), fusion == "1")))
         return 0
     d = Path(a.dir or tempfile.mkdtemp(prefix="bench_frames_"))
     d.mkdir(parents=True, exist_ok=True)
@@ -243,7 +247,7 @@ def main(argv=None) -> int:
                 secs = a.minutes * 60 if (rate is not None and a.minutes) else 0.0
                 cpu = {}
                 for tag, src in versions:
-                    r = run_child(path, hz, rtext, secs, src)
+                    r = run_child(path, hz, rtext, secs, src, not a.no_temporal)
                     if "failed" in r:
                         out.append(f"  {tag:4s} {name} {hz:g} Hz rate {rtext}: FAILED "
                                    f"{r['failed']}")
