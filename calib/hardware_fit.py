@@ -112,7 +112,7 @@ def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
     information-weighted mean removed (``tdc_offset`` holds it), and their joint
     score test (see the module)."""
     lay = prob.layout
-    _, walls = lay.unpack(x)
+    values, walls = lay.unpack(x)
     W, H = prob.system.receiver.width, prob.system.receiver.height
     g = np.zeros(W * H)
     info = np.zeros(W * H)
@@ -125,7 +125,7 @@ def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
         if prob.pixel_offsets is not None:
             pc[:, 0] += prob.pixel_offsets[pix]
         _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
-                          prob.pitch_ratio)
+                          prob.pitch_ratio, prob.pulse(values))
         d0 = np.where(ok[pos], d[:, 0], 0.0)
         g += np.bincount(pix, d0, W * H)
         info += np.bincount(pix, d0 * d0, W * H)
@@ -153,8 +153,8 @@ def with_pixel_offsets(system, offsets: PixelOffsets):
 
 
 def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
-    """``system`` with the σ of its fitted harmonics (amplitude, phase) and edge delay
-    (delta method from the (cos, sin) covariance)."""
+    """``system`` with the σ of its fitted harmonics (amplitude, phase; delta method
+    from the (cos, sin) covariance), edge delay and pulse tail (share, decay)."""
     sc = system.scanner
     hs = []
     for h in sc.harmonics:
@@ -171,7 +171,12 @@ def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
     mon = sc.monitor
     if mon is not None and "edge_rising_delay" in names:
         mon = replace(mon, rising_delay_std=float(std["edge_rising_delay"]))
-    return system.replace(scanner=replace(sc, harmonics=tuple(hs), monitor=mon))
+    laser = system.laser
+    if laser.pulse_shape is not None and "pulse_tail_fraction" in names:
+        laser = replace(laser, pulse_shape=replace(
+            laser.pulse_shape, tail_fraction_std=float(std["pulse_tail_fraction"]),
+            tail_decay_std=float(std.get("pulse_tail_decay", math.nan))))
+    return system.replace(scanner=replace(sc, harmonics=tuple(hs), monitor=mon), laser=laser)
 
 
 def is_hardware(name: str) -> bool:
