@@ -67,6 +67,9 @@ class WallData:
     shot_time : (K,) s, zero_crossings : (Z,) s, rising : (Z,) bool — the monitor's
     record, kept so that the phase follows a fitted trajectory or edge delay
     (None: the phase is fixed).
+    code_centres : (n_bins,) s, each code's centre from the TDC's code widths
+    (:func:`mems_stereo.model.tdc.code_centres`; index code − 1), or None: the
+    ideal ``(N − ½)·bin_width``.
     """
 
     phase: np.ndarray
@@ -77,6 +80,7 @@ class WallData:
     shot_time: np.ndarray | None = None
     zero_crossings: np.ndarray | None = None
     rising: np.ndarray | None = None
+    code_centres: np.ndarray | None = None
 
     @property
     def n_shots(self) -> int:
