@@ -4,7 +4,9 @@
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
 delay (from the ideal fit's solution), drops a term the walls do not determine
-(saying what to record), then adds the per-pixel TDC offsets when their test fails.
+(saying what to record), then the pulse's ex-gaussian tail when its tests find one
+(:func:`_pulse_tail`: fitted in the time likelihood; refused when the walls do not
+determine it), then the per-pixel TDC offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
 """
 
@@ -90,20 +92,38 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     """``result`` with the pulse's ex-gaussian tail fitted in the time likelihood
     (``pulse_tail_fraction``, ``pulse_tail_decay`` free with the other terms; the TDC
     offset then refers to the core's peak, as the system's ``tdc.offset``) when the
-    low-pile-up returns' shape test finds a tail (:attr:`PulseFit.tail_significant`:
-    the model selection of :func:`add_hardware_terms`); ``result`` unchanged otherwise.
-    ``extra["pulse"]`` holds the shape fit (the report's)."""
+    score test of a tail (:func:`~mems_stereo.calib.hardware_fit.tail_score_test`, all
+    cells) or the low-pile-up returns' shape test (:attr:`PulseFit.tail_significant`)
+    finds one: the model selection of :func:`add_hardware_terms`; ``result`` unchanged
+    otherwise.  ``extra["pulse"]`` holds the shape fit (the report's) and
+    ``extra["tail_test"]`` the score test."""
     fit = _pulse(result)
-    if fit is None or not fit.tail_significant or "tdc_offset" not in result.names:
-        result.extra["pulse"] = fit
+    result.extra["pulse"] = fit
+    if "tdc_offset" not in result.names:
+        return result
+    test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
+    result.extra["tail_test"] = test
+    shaped = fit is not None and fit.tail_significant
+    if not (test.selected or shaped):
         return result
     if progress:
-        progress(f"hardware terms: pulse tail ({fit.summary()})")
-    start = {"pulse_tail_fraction": min(max(fit.tail_fraction, 0.02), 0.9),
-             "pulse_tail_decay": max(fit.tail_decay, 0.05 * result.extra["problem"].sigma),
-             "tdc_offset": result.values["tdc_offset"] + fit.shift}
+        progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e}"
+                 + (f"; {fit.summary()})" if fit is not None else ")"))
+    w, tau_d = ((fit.tail_fraction, fit.tail_decay) if shaped else (0.1, decay))
+    w = min(max(w, 0.02), 0.9)
+    tau_d = max(tau_d, 0.05 * result.extra["problem"].sigma)
+    start = {"pulse_tail_fraction": w, "pulse_tail_decay": tau_d,
+             "tdc_offset": result.values["tdc_offset"] - w * tau_d}
     out = _fit_terms(result, list(PULSE_PARAMS), fit_kwargs, start)
-    out.extra["pulse"] = fit
+    if out is result:  # needed but not determined: tdc_offset would carry the tail
+        from mems_stereo.calib.result import CalibrationFailure
+
+        return CalibrationFailure(
+            f"the returns' times show a pulse tail (score test p = {test.p_value:.1e}) that "
+            f"these walls do not determine, and tdc_offset would carry it: "
+            f"{RECORD_ADVICE['pulse']}", "input", {"tail_test": test},
+            result.warnings)
+    out.extra["pulse"], out.extra["tail_test"] = fit, test
     return out
 
 
@@ -113,7 +133,9 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     Returns a CalibrationResult whose ``extra["hardware_tests"]`` lists the
     :class:`~mems_stereo.calib.hardware_fit.TermTest` of every candidate and
     ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.hardware_fit.PixelOffsets`;
-    the ideal-model result when no term is selected or the extended fit fails.
+    the ideal-model result when no term is selected or the extended fit fails; a
+    CalibrationFailure (nothing written) when a pulse tail is found that the walls do
+    not determine.
     """
     blocks = hf.candidate_blocks(orders)
     out, tests = result, []
@@ -136,6 +158,8 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             break
         out = nxt
     out = _pulse_tail(out, progress, fit_kwargs)
+    if not out:
+        return out
     po = hf.pixel_offsets(out.extra["problem"], out.extra["x"])
     if po.test.selected:
         out.system = hf.with_pixel_offsets(out.system, po)
@@ -144,7 +168,8 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
                                 "left at 0 (record walls whose returns cover every pixel)")
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
-    out.extra["hardware_tests"] = tests + [po.test]
+    out.extra["hardware_tests"] = tests + [po.test] + (
+        [out.extra["tail_test"]] if "tail_test" in out.extra else [])
     out.extra["pixel_offsets"] = po
     out.system = out.system.replace(calibration=out.calibration_dict())
     return out

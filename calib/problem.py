@@ -355,13 +355,15 @@ class Problem:
         self.pulse_fixed = ((float(ps.tail_fraction), float(ps.tail_decay))
                             if ps is not None and ps.model == "ex-gaussian"
                             and ps.tail_fraction > 0 and ps.tail_decay > 0 else None)
+        #: s, the tail's decay where the layout frees only its share (the score test's)
+        self.tail_decay = 1e-9
 
     def pulse(self, values: dict):
         """The pulse of the time likelihood: None (Gaussian of σ :attr:`sigma`) or the
         ex-gaussian tail (w, τ_d) of ``values`` (the fit's ``pulse_tail_*``) or the system."""
         if not any(n in values for n in PULSE_PARAMS):
             return self.pulse_fixed
-        w0, t0 = self.pulse_fixed if self.pulse_fixed is not None else (0.0, 1e-9)
+        w0, t0 = self.pulse_fixed if self.pulse_fixed is not None else (0.0, self.tail_decay)
         return (values.get("pulse_tail_fraction", w0), values.get("pulse_tail_decay", t0))
 
     def phase(self, values: dict, j: int, shots=None) -> np.ndarray:
