@@ -4,9 +4,9 @@
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
 delay (from the ideal fit's solution), drops a term the walls do not determine
-(saying what to record), then the pulse's ex-gaussian tail when its tests find one
-(:func:`_pulse_tail`: fitted in the time likelihood; refused when the walls do not
-determine it), then the per-pixel TDC offsets when their test fails.
+(saying what to record), then the pulse's ex-gaussian tail when its score test finds
+one (:func:`_pulse_tail`: fitted in the time likelihood), then the per-pixel TDC
+offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
 """
 
@@ -92,37 +92,38 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     """``result`` with the pulse's ex-gaussian tail fitted in the time likelihood
     (``pulse_tail_fraction``, ``pulse_tail_decay`` free with the other terms; the TDC
     offset then refers to the core's peak, as the system's ``tdc.offset``) when the
-    score test of a tail (:func:`~mems_stereo.calib.hardware_fit.tail_score_test`, all
-    cells) or the low-pile-up returns' shape test (:attr:`PulseFit.tail_significant`)
-    finds one: the model selection of :func:`add_hardware_terms`; ``result`` unchanged
-    otherwise.  ``extra["pulse"]`` holds the shape fit (the report's) and
-    ``extra["tail_test"]`` the score test."""
+    score test of a tail over all cells finds one
+    (:func:`~mems_stereo.calib.hardware_fit.tail_score_test`: the model selection of
+    :func:`add_hardware_terms`; the low-pile-up shape fit of
+    :mod:`~mems_stereo.calib.pulse_shape` gives the start when it sees the tail too).
+    ``result`` unchanged when the test passes, or with a warning when the fit does not
+    separate the tail from ``tdc_offset`` (a tail short against the pulse σ is a
+    shift: the Gaussian's ``tdc_offset`` then holds its delay).  ``extra["pulse"]``
+    holds the shape fit (the report's) and ``extra["tail_test"]`` the score test."""
     fit = _pulse(result)
     result.extra["pulse"] = fit
     if "tdc_offset" not in result.names:
         return result
     test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
     result.extra["tail_test"] = test
-    shaped = fit is not None and fit.tail_significant
-    if not (test.selected or shaped):
+    if not test.selected:
         return result
     if progress:
-        progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e}"
-                 + (f"; {fit.summary()})" if fit is not None else ")"))
+        progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e})")
+    shaped = fit is not None and fit.tail_significant
     w, tau_d = ((fit.tail_fraction, fit.tail_decay) if shaped else (0.1, decay))
     w = min(max(w, 0.02), 0.9)
     tau_d = max(tau_d, 0.05 * result.extra["problem"].sigma)
     start = {"pulse_tail_fraction": w, "pulse_tail_decay": tau_d,
              "tdc_offset": result.values["tdc_offset"] - w * tau_d}
     out = _fit_terms(result, list(PULSE_PARAMS), fit_kwargs, start)
-    if out is result:  # needed but not determined: tdc_offset would carry the tail
-        from mems_stereo.calib.result import CalibrationFailure
-
-        return CalibrationFailure(
-            f"the returns' times show a pulse tail (score test p = {test.p_value:.1e}) that "
-            f"these walls do not determine, and tdc_offset would carry it: "
-            f"{RECORD_ADVICE['pulse']}", "input", {"tail_test": test},
-            result.warnings)
+    weak = [n for n in out.unobservable if n not in result.unobservable]
+    if out is not result and (weak or not set(PULSE_PARAMS) <= set(out.names)):
+        result.warnings.append(
+            f"a pulse tail (score test p = {test.p_value:.1e}) is not separated from "
+            f"tdc_offset by these walls ({', '.join(weak) or 'tail left out'}): the Gaussian "
+            f"pulse is kept and tdc_offset holds the tail's delay; {RECORD_ADVICE['pulse']}")
+        return result
     out.extra["pulse"], out.extra["tail_test"] = fit, test
     return out
 
@@ -133,9 +134,7 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     Returns a CalibrationResult whose ``extra["hardware_tests"]`` lists the
     :class:`~mems_stereo.calib.hardware_fit.TermTest` of every candidate and
     ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.hardware_fit.PixelOffsets`;
-    the ideal-model result when no term is selected or the extended fit fails; a
-    CalibrationFailure (nothing written) when a pulse tail is found that the walls do
-    not determine.
+    the ideal-model result when no term is selected or the extended fit fails.
     """
     blocks = hf.candidate_blocks(orders)
     out, tests = result, []
@@ -158,8 +157,6 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             break
         out = nxt
     out = _pulse_tail(out, progress, fit_kwargs)
-    if not out:
-        return out
     po = hf.pixel_offsets(out.extra["problem"], out.extra["x"])
     if po.test.selected:
         out.system = hf.with_pixel_offsets(out.system, po)
