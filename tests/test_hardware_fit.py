@@ -198,3 +198,20 @@ def test_pulse_tail_is_tested_and_fitted_with_honest_sigma():
     for name, t in truth.items():
         i = lay.names.index(name)
         assert abs(nr.x[i] - t) < 4 * sd[i], (name, nr.x[i], sd[i])
+
+
+def test_fitted_pulse_tail_is_written_with_its_sigma():
+    from mems_stereo.calib.hardware_fit import hardware_std
+
+    from mems_stereo.model.hardware import pulse_mean_delay
+    from mems_stereo.model.system import system_from_dict, system_to_dict
+
+    names = ["pulse_tail_fraction", "pulse_tail_decay"]
+    vals = {"pulse_tail_fraction": 0.2, "pulse_tail_decay": 3e-9}
+    s = hardware_std(burkard2022().with_params(**vals), vals,
+                     {"pulse_tail_fraction": 0.05, "pulse_tail_decay": 4e-10}, np.eye(2), names)
+    d = system_to_dict(s)["laser"]["pulse_shape"]
+    assert d == {"model": "ex-gaussian", "tail_fraction": 0.2, "tail_decay": 3e-9,
+                 "tail_fraction_std": 0.05, "tail_decay_std": 4e-10}
+    back = system_from_dict(system_to_dict(s))
+    assert pulse_mean_delay(back.laser) == pytest.approx(0.2 * 3e-9)
