@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from mems_stereo.calib import observability as obs
 from mems_stereo.calib.expected_info import consistency_information
-from mems_stereo.calib.model import plane_normal
+from mems_stereo.calib.model import PULSE_PARAMS, plane_normal
 from mems_stereo.calib.problem import (
     SPOT_MIN,
     cell_terms,
@@ -245,10 +245,18 @@ def check_walls(sol: Solution, cov: np.ndarray, walls, tracks, setup: FitSetup, 
         pred, ok, jac = prob.predictions(x, j, c.shots, steps=True)
         pos = np.searchsorted(c.shots, c.shot)
         pc = np.where(ok[pos, None], pred[pos], [0, -1e6, -1e6, 0])
-        _, d_c = cell_terms(c, pc, wall[3], wall[4], sigma, two_d, prob.pitch_ratio)
+        _, d_c = cell_terms(c, pc, wall[3], wall[4], sigma, two_d, prob.pitch_ratio,
+                            prob.pulse(values))
         _, S, _ = prob.wall_terms(x, j, grad=True)
         info = consistency_information(c, pc, ok[pos], jac[0][pos], wall, sigma, two_d,
-                                       prob.pitch_ratio, system.receiver.width)
+                                       prob.pitch_ratio, system.receiver.width,
+                                       prob.pulse(values))
+        # the pulse's tail moves no return across the sensor: not a nuisance of the test
+        keep = [i for i in range(S.shape[1])
+                if not (i < lay.n_sys and lay.names[i] in PULSE_PARAMS)]
+        S = S[:, keep]
+        info = info[np.ix_(list(range(8)) + [8 + i for i in keep],
+                           list(range(8)) + [8 + i for i in keep])]
         test = obs.consistency_scores(d_c[:, :2], S, c.col, width=system.receiver.width,
                                       info=info)
         sig = _signal_fit(c, pred[pos], ok[pos], wall, sigma)

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, spot_share
+from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, pulse_at, spot_share
 from scipy.special import ndtr
 
 _SQ2PI = math.sqrt(2.0 * math.pi)
@@ -37,15 +37,18 @@ CHUNK = 16384
 
 
 def cell_fisher(tau: np.ndarray, m: np.ndarray, lam: np.ndarray, t_max: float,
-                sigma: float) -> np.ndarray:
+                sigma: float, pulse=None) -> np.ndarray:
     """(N, 3) expected information [F_ττ, F_τm, F_mm] of each cell, SI (s⁻², s⁻¹, 1).
 
     tau : (N,) s, return centre; m : (N,) signal photons of the cell; lam : (N,)
-    Hz background; t_max : s, end of the analysed window; sigma : s, pulse σ.
+    Hz background; t_max : s, end of the analysed window; sigma : s, pulse σ;
+    pulse : None (Gaussian) or the ex-gaussian tail (w, τ_d) (:func:`shaped_fisher`).
     The signal part of the intensity is zero outside τ ± ``Z_SPAN``·σ, where
     ∂I/∂τ and ∂I/∂m vanish, so the integral runs over that span only
     (trapezoid rule on ``N_GRID`` points over that span clipped to [0, T]).
     """
+    if pulse is not None:
+        return shaped_fisher(tau, m, lam, t_max, sigma, pulse)
     tau = np.asarray(tau, dtype=np.float64)
     out = np.zeros((tau.size, 3))
     g01 = np.linspace(0.0, 1.0, N_GRID)
@@ -71,6 +74,36 @@ def cell_fisher(tau: np.ndarray, m: np.ndarray, lam: np.ndarray, t_max: float,
         out[sl, 0] = np.sum(w * dt_ * dt_, axis=1)
         out[sl, 1] = np.sum(w * dt_ * dm_, axis=1)
         out[sl, 2] = np.sum(w * dm_ * dm_, axis=1)
+    return out
+
+
+def shaped_fisher(tau, m, lam, t_max: float, sigma: float, pulse) -> np.ndarray:
+    """:func:`cell_fisher` with the ex-gaussian pulse (w, τ_d) of
+    :func:`mems_stereo.calib.problem.shaped_terms`: the span runs to
+    τ + ``Z_SPAN``·σ + 12 τ_d, on 2·``N_GRID`` points."""
+    w, tau_d = float(pulse[0]), float(pulse[1])
+    tau = np.asarray(tau, dtype=np.float64)
+    out = np.zeros((tau.size, 3))
+    n = 2 * N_GRID
+    g01 = np.linspace(0.0, 1.0, n)
+    w01 = np.full(n, 1.0 / (n - 1))
+    w01[[0, -1]] *= 0.5
+    for a in range(0, tau.size, CHUNK // 2):
+        sl = slice(a, a + CHUNK // 2)
+        tt, mm, ll = tau[sl, None], np.asarray(m)[sl, None], np.asarray(lam)[sl, None]
+        lo = np.clip(tt - Z_SPAN * sigma, 0.0, t_max)
+        hi = np.clip(tt + Z_SPAN * sigma + 12.0 * tau_d, 0.0, t_max)
+        width = np.maximum(hi - lo, 0.0)
+        t = lo + width * g01[None, :]
+        p = pulse_at(t - tt, sigma, w, tau_d)
+        f, slope = p.pdf, p.slope
+        surv = np.exp(-(ll * t + mm * (p.cdf - pulse_at(-tt, sigma, w, tau_d).cdf)))
+        inten = np.maximum(ll + mm * f, 1e-300)
+        dt_ = -mm * slope
+        wt = surv / inten * width * w01[None, :]
+        out[sl, 0] = np.sum(wt * dt_ * dt_, axis=1)
+        out[sl, 1] = np.sum(wt * dt_ * f, axis=1)
+        out[sl, 2] = np.sum(wt * f * f, axis=1)
     return out
 
 
@@ -134,7 +167,8 @@ def information(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def consistency_information(cells, pc: np.ndarray, ok: np.ndarray, Jc: np.ndarray,
                             wall: np.ndarray, sigma: float, two_d: bool,
-                            pitch_ratio: float = 1.0, width: int = 192) -> np.ndarray:
+                            pitch_ratio: float = 1.0, width: int = 192,
+                            pulse=None) -> np.ndarray:
     """(8 + G + 2, 8 + G + 2) expected information of one wall's cells for
     :func:`mems_stereo.calib.observability.consistency_scores`: a TDC-time shift
     per quarter of the sensor (4), a column shift per quarter (4), then the
@@ -144,11 +178,12 @@ def consistency_information(cells, pc: np.ndarray, ok: np.ndarray, Jc: np.ndarra
 
     pc : (N, 4) per-cell [τ, u, v, log g] (placeholder rows where not ``ok``);
     ok : (N,) bool; Jc : (N, 4, G) their Jacobian; wall : (5,) α, β, D, log μ,
-    log s; sigma : s, pulse σ; width : sensor columns.
+    log s; sigma : s, pulse σ; width : sensor columns; pulse : None or the
+    ex-gaussian tail (w, τ_d).
     """
     rows = wall_rows(cells, pc, ok, Jc, wall[3], wall[4], two_d, pitch_ratio)
     m, a, b, bu = rows.m, rows.a, rows.b, rows.bu
-    F = cell_fisher(pc[:, 0], m, cells.lam, cells.t_max, sigma)
+    F = cell_fisher(pc[:, 0], m, cells.lam, cells.t_max, sigma, pulse)
     q = np.clip((cells.col / width * 4).astype(np.int64), 0, 3)
     aE = np.zeros((m.size, 8))
     bE = np.zeros((m.size, 8))
@@ -164,7 +199,7 @@ def expected_information(prob, x) -> np.ndarray:
     cells, plus the measured distances' Gauss-Newton term): the counterpart of
     :meth:`~mems_stereo.calib.problem.Problem.score`'s outer product."""
     lay = prob.layout
-    _, walls = lay.unpack(x)
+    values, walls = lay.unpack(x)
     H = np.zeros((lay.size, lay.size))
     for j in range(lay.T):
         c = prob.cells[j]
@@ -177,6 +212,6 @@ def expected_information(prob, x) -> np.ndarray:
         ws = lay.wall_slice(j)
         idx = geo + [ws.start + lay.wall_names.index("logmu"),
                      ws.start + lay.wall_names.index("logspot")]
-        F = cell_fisher(pc[:, 0], m, c.lam, c.t_max, prob.sigma)
+        F = cell_fisher(pc[:, 0], m, c.lam, c.t_max, prob.sigma, prob.pulse(values))
         H[np.ix_(idx, idx)] += information(F, a, b)
     return H + prob.prior_terms(x)[2]

@@ -35,7 +35,7 @@ from mems_stereo.calib import observability as obs
 from mems_stereo.calib.checks import MIN_ON_TRACK, Checks, check_distances, check_walls
 from mems_stereo.calib.initialisation import FOUND_SPOT, fit_line, initialise, triangulate
 from mems_stereo.calib.missed import add_missed_walls, guide_values
-from mems_stereo.calib.model import DEFAULT_FREE, HARDWARE_PARAMS, SYSTEM_PARAMS
+from mems_stereo.calib.model import DEFAULT_FREE, HARDWARE_PARAMS, PULSE_PARAMS, SYSTEM_PARAMS
 from mems_stereo.calib.problem import SPOT_MIN, Layout, Problem, WallData
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult, format_report
 from mems_stereo.calib.solver import (
@@ -139,9 +139,10 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
     """
     free = list(DEFAULT_FREE if free is None else free)
     for n in list(free) + list(fix):
-        if n not in SYSTEM_PARAMS and n not in HARDWARE_PARAMS:
+        if n not in SYSTEM_PARAMS + HARDWARE_PARAMS + PULSE_PARAMS:
             raise ValueError(f"unknown calibration parameter {n!r}; known: {list(SYSTEM_PARAMS)}"
-                             " and the hardware model's harmonic{k}_cos/_sin, edge_rising_delay")
+                             " and the hardware model's harmonic{k}_cos/_sin, edge_rising_delay,"
+                             " pulse_tail_fraction, pulse_tail_decay")
     if on_unobservable not in ("raise", "warn"):
         raise ValueError(f"on_unobservable: expected 'raise' or 'warn', found {on_unobservable!r}")
     if initial is not None and not isinstance(initial, StartValues):
@@ -153,7 +154,8 @@ def fit_walls(walls, system: System, *, free=None, fix=(), priors=(), jitter: fl
 def _setup(system: System, opts: FitOptions) -> tuple[FitSetup, list]:
     """The fit's setup and the parameters unobservable by the sensor's kind."""
     two_d = system.receiver.height > 1
-    names = [n for n in SYSTEM_PARAMS + HARDWARE_PARAMS if n in opts.free and n not in opts.fix]
+    names = [n for n in SYSTEM_PARAMS + HARDWARE_PARAMS + PULSE_PARAMS
+             if n in opts.free and n not in opts.fix]
     unobservable = []
     if not two_d and "baseline_y" in names:
         names.remove("baseline_y")  # a line sensor's data do not depend on it

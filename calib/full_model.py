@@ -4,7 +4,9 @@
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
 delay (from the ideal fit's solution), drops a term the walls do not determine
-(saying what to record), then adds the per-pixel TDC offsets when their test fails.
+(saying what to record), then the pulse's ex-gaussian tail when its score test finds
+one (:func:`_pulse_tail`: fitted in the time likelihood), then the per-pixel TDC
+offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
 """
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.model import PULSE_PARAMS
 from mems_stereo.calib.solver import StartValues
 
 #: what to record when a hardware term is not observable
@@ -21,6 +24,8 @@ RECORD_ADVICE = {
                 "two or more distances) so that the scan phase is sampled end to end",
     "edge": "record walls at two or more distances so that both sweeps' returns are seen "
             "at different ranges",
+    "pulse": "record the walls with more shots at low pile-up (a fraction of a signal "
+             "photon per shot and pixel) so that the pulse's tail is sampled",
 }
 
 
@@ -29,24 +34,27 @@ MAX_STEPS = 4
 
 
 def _advice(name: str) -> str:
-    return RECORD_ADVICE["harmonic" if name.startswith("harmonic") else "edge"]
+    return RECORD_ADVICE[name.split("_")[0] if name.startswith(("pulse", "edge"))
+                         else "harmonic"]
 
 
-def _refit(result, names: list, fit_kwargs: dict):
+def _refit(result, names: list, fit_kwargs: dict, start_values=None):
     """Fit ``result``'s walls with the system parameters ``result.names`` + ``names``
-    free, from ``result``'s solution."""
+    free, from ``result``'s solution (``start_values``: dict name → SI value that
+    replaces it, e.g. the pulse's tail from :func:`_pulse`)."""
     prob, x = result.extra["problem"], result.extra["x"]
     values, walls = prob.layout.unpack(x)
-    start = StartValues({**values, **{n: prob.system.get_param(n) for n in names}}, walls)
+    start = StartValues({**values, **{n: prob.system.get_param(n) for n in names},
+                         **(start_values or {})}, walls)
     return fit_walls(prob.walls, prob.system, free=list(result.names) + list(names),
                      priors=prob.priors, initial=start, on_unobservable="warn", **fit_kwargs)
 
 
-def _fit_terms(result, chosen: list, fit_kwargs: dict):
+def _fit_terms(result, chosen: list, fit_kwargs: dict, start_values=None):
     """``result`` re-fitted with ``chosen`` free too; a term the walls do not determine
     is dropped (a warning says what to record); ``result`` itself when nothing is left
     or the fit fails (a warning says so)."""
-    r1 = _refit(result, chosen, fit_kwargs)
+    r1 = _refit(result, chosen, fit_kwargs, start_values)
     weak = [n for n in chosen if r1 and n in r1.unobservable]
     if weak:
         for n in weak:
@@ -55,7 +63,7 @@ def _fit_terms(result, chosen: list, fit_kwargs: dict):
         chosen = [n for n in chosen if n not in weak]
         if not chosen:
             return result
-        r1 = _refit(result, chosen, fit_kwargs)
+        r1 = _refit(result, chosen, fit_kwargs, start_values)
     if not r1:
         result.warnings.append(f"the fit with the hardware terms failed ({r1.reason}): "
                                "the model without them is kept")
@@ -64,10 +72,10 @@ def _fit_terms(result, chosen: list, fit_kwargs: dict):
     return r1
 
 
-def _pulse(result) -> None:
-    """``result.extra["pulse"]``: the pulse shape from the walls' low-pile-up returns
-    (:mod:`mems_stereo.calib.pulse_shape`; for the report, not written), when there
-    are enough of them."""
+def _pulse(result):
+    """The pulse shape from the walls' low-pile-up returns
+    (:mod:`mems_stereo.calib.pulse_shape`) at ``result``'s solution, or None when
+    there are too few of them."""
     from mems_stereo.calib.pulse_shape import fit_pulse_shape, wall_return_residuals
 
     from mems_stereo.errors import ShapeError
@@ -75,10 +83,49 @@ def _pulse(result) -> None:
     prob = result.extra["problem"]
     res, window = wall_return_residuals(prob, result.extra["x"])
     try:
-        result.extra["pulse"] = fit_pulse_shape(res, window=window,
-                                                quantum=prob.system.tdc.bin_width)
+        return fit_pulse_shape(res, window=window, quantum=prob.system.tdc.bin_width)
     except ShapeError:
-        pass
+        return None
+
+
+def _pulse_tail(result, progress, fit_kwargs: dict):
+    """``result`` with the pulse's ex-gaussian tail fitted in the time likelihood
+    (``pulse_tail_fraction``, ``pulse_tail_decay`` free with the other terms; the TDC
+    offset then refers to the core's peak, as the system's ``tdc.offset``) when the
+    score test of a tail over all cells finds one
+    (:func:`~mems_stereo.calib.hardware_fit.tail_score_test`: the model selection of
+    :func:`add_hardware_terms`; the low-pile-up shape fit of
+    :mod:`~mems_stereo.calib.pulse_shape` gives the start when it sees the tail too).
+    ``result`` unchanged when the test passes, or with a warning when the fit does not
+    separate the tail from ``tdc_offset`` (a tail short against the pulse σ is a
+    shift: the Gaussian's ``tdc_offset`` then holds its delay).  ``extra["pulse"]``
+    holds the shape fit (the report's) and ``extra["tail_test"]`` the score test."""
+    fit = _pulse(result)
+    result.extra["pulse"] = fit
+    if "tdc_offset" not in result.names:
+        return result
+    test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
+    result.extra["tail_test"] = test
+    if not test.selected:
+        return result
+    if progress:
+        progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e})")
+    shaped = fit is not None and fit.tail_significant
+    w, tau_d = ((fit.tail_fraction, fit.tail_decay) if shaped else (0.1, decay))
+    w = min(max(w, 0.02), 0.9)
+    tau_d = max(tau_d, 0.05 * result.extra["problem"].sigma)
+    start = {"pulse_tail_fraction": w, "pulse_tail_decay": tau_d,
+             "tdc_offset": result.values["tdc_offset"] - w * tau_d}
+    out = _fit_terms(result, list(PULSE_PARAMS), fit_kwargs, start)
+    weak = [n for n in out.unobservable if n not in result.unobservable]
+    if out is not result and (weak or not set(PULSE_PARAMS) <= set(out.names)):
+        result.warnings.append(
+            f"a pulse tail (score test p = {test.p_value:.1e}) is not separated from "
+            f"tdc_offset by these walls ({', '.join(weak) or 'tail left out'}): the Gaussian "
+            f"pulse is kept and tdc_offset holds the tail's delay; {RECORD_ADVICE['pulse']}")
+        return result
+    out.extra["pulse"], out.extra["tail_test"] = fit, test
+    return out
 
 
 def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kwargs):
@@ -109,6 +156,7 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
         if nxt is out:
             break
         out = nxt
+    out = _pulse_tail(out, progress, fit_kwargs)
     po = hf.pixel_offsets(out.extra["problem"], out.extra["x"])
     if po.test.selected:
         out.system = hf.with_pixel_offsets(out.system, po)
@@ -117,8 +165,8 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
                                 "left at 0 (record walls whose returns cover every pixel)")
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
-    out.extra["hardware_tests"] = tests + [po.test]
-    _pulse(out)
+    out.extra["hardware_tests"] = tests + [po.test] + (
+        [out.extra["tail_test"]] if "tail_test" in out.extra else [])
     out.extra["pixel_offsets"] = po
     out.system = out.system.replace(calibration=out.calibration_dict())
     return out

@@ -58,7 +58,7 @@ def _wall_residuals(prob: Problem, x, j: int) -> dict:
     if prob.pixel_offsets is not None:
         pc[:, 0] += prob.pixel_offsets[pix]
     _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
-                      prob.pitch_ratio)
+                      prob.pitch_ratio, prob.pulse(values))
     mu = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref)
     off = values.get("phase_offset", prob.system.get_param("phase_offset"))
     return {"time": d[:, 0] * prob.sigma, "column": d[:, 1], "phase": ph[pos] + off,

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from mems_stereo.calib.model import HARDWARE_PARAMS, harmonic_orders
+from mems_stereo.calib.model import HARDWARE_PARAMS, PULSE_PARAMS, harmonic_orders
 from mems_stereo.calib.problem import Layout, Problem, cell_terms
 from scipy import stats
 
@@ -57,9 +57,10 @@ def candidate_blocks(orders=DEFAULT_ORDERS) -> dict:
     return out
 
 
-def extended_problem(prob: Problem, x, extra) -> tuple:
+def extended_problem(prob: Problem, x, extra, tail_decay: float | None = None) -> tuple:
     """The problem ``prob`` with parameters ``extra`` (at their nominal values) added,
-    on the same cells: (problem, x)."""
+    on the same cells (``tail_decay``: s, the decay of a pulse tail whose share only
+    is added): (problem, x)."""
     lay = prob.layout
     values, walls = lay.unpack(x)
     names = list(lay.names) + [n for n in extra if n not in lay.names]
@@ -67,14 +68,17 @@ def extended_problem(prob: Problem, x, extra) -> tuple:
     p2 = Problem(prob.walls, prob.system, lay2, prob.sigma, prob.priors)
     p2.cells = list(prob.cells)
     p2.pixel_offsets = prob.pixel_offsets
+    p2.tail_decay = prob.tail_decay if tail_decay is None else float(tail_decay)
     vals = {n: values.get(n, prob.system.get_param(n)) for n in lay2.names}
     return p2, lay2.pack(vals, walls)
 
 
-def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT) -> list:
-    """One :class:`TermTest` per block, at the fitted ``x`` of ``prob``."""
+def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT,
+                tail_decay: float | None = None) -> list:
+    """One :class:`TermTest` per block, at the fitted ``x`` of ``prob``
+    (``tail_decay``: see :func:`extended_problem`)."""
     extra = [n for b in blocks.values() for n in b]
-    p2, x2 = extended_problem(prob, x, extra)
+    p2, x2 = extended_problem(prob, x, extra, tail_decay)
     _, g, H = p2.score(x2)
     sc = p2.layout.scales
     gs, Hs = g * sc, H * sc[:, None] * sc[None, :]
@@ -90,8 +94,31 @@ def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT) -> 
         gb = gs[idx]
         lm = float(gb @ Hi @ gb)
         p = float(stats.chi2.sf(lm, len(names)))
+        if names == ("pulse_tail_fraction",):  # one-sided: a share w ≥ 0 (a tail delays)
+            p = 0.5 * p if float((Hi @ gb)[-1]) > 0 else 1.0
         out.append(TermTest(name, tuple(names), lm, len(names), p, p < alpha))
     return out
+
+
+#: s, decays at which the pulse tail's share is tested (the decay is not defined at w = 0)
+TAIL_DECAYS = (1e-9, 3e-9, 8e-9)
+
+
+def tail_score_test(prob: Problem, x, alpha: float = ALPHA_SELECT) -> tuple:
+    """Score test of a pulse tail (share w at 0) at each decay of :data:`TAIL_DECAYS`;
+    Bonferroni over the decays.  Returns (:class:`TermTest` "pulse tail", the decay
+    of the most significant test, s); the test is not selected where the system
+    already has a pulse shape."""
+    best, decay = None, TAIL_DECAYS[0]
+    if prob.pulse_fixed is None:
+        for d in TAIL_DECAYS:
+            t = score_tests(prob, x, {"pulse tail": ("pulse_tail_fraction",)}, alpha, d)
+            if t and (best is None or t[0].p_value < best.p_value):
+                best, decay = t[0], d
+    if best is None:
+        return TermTest("pulse tail", ("pulse_tail_fraction",), 0.0, 1, 1.0, False), decay
+    p = min(1.0, best.p_value * len(TAIL_DECAYS))
+    return TermTest("pulse tail", PULSE_PARAMS, best.lm, 1, p, p < alpha), decay
 
 
 @dataclass(frozen=True)
@@ -112,7 +139,7 @@ def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
     information-weighted mean removed (``tdc_offset`` holds it), and their joint
     score test (see the module)."""
     lay = prob.layout
-    _, walls = lay.unpack(x)
+    values, walls = lay.unpack(x)
     W, H = prob.system.receiver.width, prob.system.receiver.height
     g = np.zeros(W * H)
     info = np.zeros(W * H)
@@ -125,7 +152,7 @@ def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
         if prob.pixel_offsets is not None:
             pc[:, 0] += prob.pixel_offsets[pix]
         _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
-                          prob.pitch_ratio)
+                          prob.pitch_ratio, prob.pulse(values))
         d0 = np.where(ok[pos], d[:, 0], 0.0)
         g += np.bincount(pix, d0, W * H)
         info += np.bincount(pix, d0 * d0, W * H)
@@ -153,8 +180,8 @@ def with_pixel_offsets(system, offsets: PixelOffsets):
 
 
 def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
-    """``system`` with the σ of its fitted harmonics (amplitude, phase) and edge delay
-    (delta method from the (cos, sin) covariance)."""
+    """``system`` with the σ of its fitted harmonics (amplitude, phase; delta method
+    from the (cos, sin) covariance), edge delay and pulse tail (share, decay)."""
     sc = system.scanner
     hs = []
     for h in sc.harmonics:
@@ -171,7 +198,12 @@ def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
     mon = sc.monitor
     if mon is not None and "edge_rising_delay" in names:
         mon = replace(mon, rising_delay_std=float(std["edge_rising_delay"]))
-    return system.replace(scanner=replace(sc, harmonics=tuple(hs), monitor=mon))
+    laser = system.laser
+    if laser.pulse_shape is not None and "pulse_tail_fraction" in names:
+        laser = replace(laser, pulse_shape=replace(
+            laser.pulse_shape, tail_fraction_std=float(std["pulse_tail_fraction"]),
+            tail_decay_std=float(std.get("pulse_tail_decay", math.nan))))
+    return system.replace(scanner=replace(sc, harmonics=tuple(hs), monitor=mon), laser=laser)
 
 
 def is_hardware(name: str) -> bool:

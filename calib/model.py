@@ -55,6 +55,11 @@ PARAM_UNIT = {"theta0": (1e3, "mrad"), "theta_mech_max": (1e3, "mrad"),
               "beta": (1e3, "mrad"), "dist": (1e3, "mm")}
 PARAM_UNIT.update({n: (1e2, "%") for n in HARDWARE_PARAMS[:-1]})
 PARAM_UNIT["edge_rising_delay"] = (1e9, "ns")
+#: the pulse's ex-gaussian tail (share w, decay τ, s; ``docs/hardware.md``): fitted in
+#: the time likelihood (:func:`mems_stereo.calib.problem.cell_terms`), not in the phase
+PULSE_PARAMS = ("pulse_tail_fraction", "pulse_tail_decay")
+PARAM_SCALE.update({"pulse_tail_fraction": 1e-2, "pulse_tail_decay": 1e-9})
+PARAM_UNIT.update({"pulse_tail_fraction": (1e2, "%"), "pulse_tail_decay": (1e9, "ns")})
 
 
 def harmonic_orders(orders=(2, 3, 4, 5)) -> list:

@@ -39,6 +39,7 @@ import numpy as np
 from mems_stereo.calib.model import (
     HARDWARE_PARAMS,
     PARAM_SCALE,
+    PULSE_PARAMS,
     SYSTEM_PARAMS,
     beam_hits,
     plane_normal,
@@ -46,6 +47,7 @@ from mems_stereo.calib.model import (
 from scipy.special import ndtr
 
 from mems_stereo.model.system import System
+from mems_stereo.physics.pulse import emg_pdf
 
 #: solver units of the wall parameters (PARAM_SCALE has the system's)
 WALL_SCALE = {"alpha": 1e-3, "beta": 1e-3, "dist": 1e-3, "logmu": 0.01, "logspot": 0.01}
@@ -65,6 +67,9 @@ class WallData:
     shot_time : (K,) s, zero_crossings : (Z,) s, rising : (Z,) bool — the monitor's
     record, kept so that the phase follows a fitted trajectory or edge delay
     (None: the phase is fixed).
+    code_centres : (n_bins,) s, each code's centre from the TDC's code widths
+    (:func:`mems_stereo.model.tdc.code_centres`; index code − 1), or None: the
+    ideal ``(N − ½)·bin_width``.
     """
 
     phase: np.ndarray
@@ -75,6 +80,7 @@ class WallData:
     shot_time: np.ndarray | None = None
     zero_crossings: np.ndarray | None = None
     rising: np.ndarray | None = None
+    code_centres: np.ndarray | None = None
 
     @property
     def n_shots(self) -> int:
@@ -88,7 +94,8 @@ class Layout:
 
     def __init__(self, names, n_walls: int, two_d: bool):
         self.names = ([n for n in SYSTEM_PARAMS if n in names]
-                      + [n for n in HARDWARE_PARAMS if n in names])
+                      + [n for n in HARDWARE_PARAMS if n in names]
+                      + [n for n in PULSE_PARAMS if n in names])
         self.T = int(n_walls)
         self.two_d = bool(two_d)
         self.wall_names = (["alpha", "beta", "dist", "logmu", "logspot"] if two_d
@@ -184,11 +191,14 @@ def spot_share(c, u, s):
 
 
 def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sigma: float,
-               two_d: bool, pitch_ratio: float = 1.0):
+               two_d: bool, pitch_ratio: float = 1.0, pulse=None):
     """Log-likelihood of each cell and its derivatives.
 
     pred : (N, 4) per-cell [τ, u, v, log g] (already indexed by ``cells.shot``).
-    Returns ``ll`` (N,) and ``d`` (N, 5): ∂ℓ/∂[τ, u, v, log μ_k, log s].
+    pulse : None (the Gaussian pulse of σ ``sigma``) or (w, τ_d): the ex-gaussian
+        pulse (1 − w)·N(0, σ) + w·EMG(σ, τ_d) (:func:`shaped_terms`).
+    Returns ``ll`` (N,) and ``d`` (N, 5): ∂ℓ/∂[τ, u, v, log μ_k, log s]; with
+    ``pulse`` (N, 7), columns 5, 6 ∂ℓ/∂w and ∂ℓ/∂τ_d.
     """
     tau, u, v, lg = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
     s = min(max(math.exp(logspot), SPOT_MIN), SPOT_MAX)
@@ -204,6 +214,12 @@ def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sig
         share = f
         dshare_u, dshare_v, dshare_s = fu, np.zeros_like(fu), fs
     m = mu * share
+    if pulse is not None:
+        st = shaped_terms(cells, tau, m, sigma, pulse)
+        d = np.empty((tau.size, 7))
+        d[:, 5:] = st.dpulse
+        return st.ll, _cell_derivatives(d, st.dtau, st.dm, mu, m,
+                                        (dshare_u, dshare_v, dshare_s), s)
     z0 = -tau / sigma
     fired = np.isfinite(cells.t)
     t_end = np.where(fired, cells.t, cells.t_max)
@@ -224,12 +240,88 @@ def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sig
     dll_dm = dll_dm + np.where(fired, (phz / sigma) / inten, 0.0)
     dll_dtau = dll_dtau + np.where(fired, m * z * phz / (sigma * sigma) / inten, 0.0)
     d = np.empty((tau.size, 5))
+    return ll, _cell_derivatives(d, dll_dtau, dll_dm, mu, m, (dshare_u, dshare_v, dshare_s), s)
+
+
+def _cell_derivatives(d, dll_dtau, dll_dm, mu, m, dshare, s):
+    """``d``'s first five columns ∂ℓ/∂[τ, u, v, log μ_k, log s] (in place; returned)."""
+    dshare_u, dshare_v, dshare_s = dshare
     d[:, 0] = dll_dtau
     d[:, 1] = dll_dm * mu * dshare_u
     d[:, 2] = dll_dm * mu * dshare_v
     d[:, 3] = dll_dm * m
     d[:, 4] = dll_dm * mu * dshare_s * (1.0 if SPOT_MIN < s < SPOT_MAX else 0.0)
-    return ll, d
+    return d
+
+
+@dataclass(frozen=True)
+class PulseAt:
+    """The ex-gaussian pulse at delays x (arrays like x): ``cdf``, ``pdf`` (1/s),
+    ``slope`` (the density's derivative, 1/s²), ``cdf_w`` and ``pdf_w`` (the CDF's
+    and the density's derivatives by the tail share w)."""
+
+    cdf: np.ndarray
+    pdf: np.ndarray
+    slope: np.ndarray
+    cdf_w: np.ndarray
+    pdf_w: np.ndarray
+
+
+def pulse_at(x, sigma: float, w: float, tau_d: float) -> PulseAt:
+    """The ex-gaussian pulse (1 − w)·N(0, σ) + w·EMG(σ, τ_d) at delays ``x`` (s)."""
+    phi = np.exp(-0.5 * (x / sigma) ** 2) / (sigma * _SQ2PI)
+    big = ndtr(x / sigma)
+    e_pdf = emg_pdf(x, sigma, tau_d)
+    e_cdf = big - tau_d * e_pdf
+    # EMG' = (φ_σ − EMG)/τ_d (the derivative of a convolution with the exponential)
+    return PulseAt((1.0 - w) * big + w * e_cdf, (1.0 - w) * phi + w * e_pdf,
+                   (1.0 - w) * (-x / (sigma * sigma)) * phi + w * (phi - e_pdf) / tau_d,
+                   e_cdf - big, e_pdf - phi)
+
+
+def _shaped_ll(cells: Cells, tau, m, sigma: float, w: float, tau_d: float):
+    """ℓ per cell with the ex-gaussian pulse, and the pieces of its derivatives:
+    (ℓ (N,), dict of (N,) arrays)."""
+    fired = np.isfinite(cells.t)
+    p1 = pulse_at(np.where(fired, cells.t, cells.t_max) - tau, sigma, w, tau_d)
+    p0 = pulse_at(-tau, sigma, w, tau_d)
+    inten = np.maximum(np.where(fired, cells.lam + m * p1.pdf, 1.0), 1e-300)
+    ll = -m * (p1.cdf - p0.cdf) + np.where(fired, np.log(inten), 0.0)
+    return ll, {"fired": fired, "inten": inten, "dF": p1.cdf - p0.cdf, "f1": p1.pdf,
+                "f0": p0.pdf, "slope": p1.slope, "dFw": p1.cdf_w - p0.cdf_w, "fw1": p1.pdf_w}
+
+
+@dataclass(frozen=True)
+class ShapedTerms:
+    """:func:`shaped_terms`' result: ``ll`` (N,), ``dm`` ∂ℓ/∂m (N,), ``dtau``
+    ∂ℓ/∂τ (N,) 1/s, ``dpulse`` (N, 2) ∂ℓ/∂[w, τ_d]."""
+
+    ll: np.ndarray
+    dm: np.ndarray
+    dtau: np.ndarray
+    dpulse: np.ndarray
+
+
+def shaped_terms(cells: Cells, tau, m, sigma: float, pulse) -> ShapedTerms:
+    """The first-photon likelihood of :func:`cell_terms` with the ex-gaussian pulse
+    ``pulse`` = (w, τ_d) (σ ``sigma`` of the core; delay 0 is the core's peak):
+    intensity ``λ + m·f(t − τ)``, ``f = (1 − w)·N(0, σ) + w·EMG(σ, τ_d)``
+    (:func:`mems_stereo.physics.pulse.emg_pdf`); ∂ℓ/∂τ_d by central differences.
+    ℓ is −∞ outside 0 ≤ w < 1, τ_d > 0 (the solver's steps stay inside)."""
+    w, tau_d = float(pulse[0]), float(pulse[1])
+    if not (0.0 <= w < 1.0 and tau_d > 0.0):
+        z = np.zeros_like(tau)
+        return ShapedTerms(np.full_like(tau, -np.inf), z, z, np.zeros((tau.size, 2)))
+    ll, q = _shaped_ll(cells, tau, m, sigma, w, tau_d)
+    fired, inten = q["fired"], q["inten"]
+    dll_dm = -q["dF"] + np.where(fired, q["f1"] / inten, 0.0)
+    dll_dtau = m * (q["f1"] - q["f0"]) - np.where(fired, m * q["slope"] / inten, 0.0)
+    dp = np.empty((tau.size, 2))
+    dp[:, 0] = -m * q["dFw"] + np.where(fired, m * q["fw1"] / inten, 0.0)
+    h = 1e-4 * tau_d
+    dp[:, 1] = (_shaped_ll(cells, tau, m, sigma, w, tau_d + h)[0]
+                - _shaped_ll(cells, tau, m, sigma, w, tau_d - h)[0]) / (2.0 * h)
+    return ShapedTerms(ll, dll_dm, dll_dtau, dp)
 
 
 class Problem:
@@ -258,6 +350,21 @@ class Problem:
         self.pixel_offsets = None if off is None else np.asarray(off, dtype=np.float64)
         self._hw_phase = any(n in HARDWARE_PARAMS for n in layout.names) or bool(
             system.scanner.harmonics or system.scanner.monitor is not None)
+        ps = system.laser.pulse_shape
+        #: the system's ex-gaussian tail (w, τ_d) used where the fit does not free it
+        self.pulse_fixed = ((float(ps.tail_fraction), float(ps.tail_decay))
+                            if ps is not None and ps.model == "ex-gaussian"
+                            and ps.tail_fraction > 0 and ps.tail_decay > 0 else None)
+        #: s, the tail's decay where the layout frees only its share (the score test's)
+        self.tail_decay = 1e-9
+
+    def pulse(self, values: dict):
+        """The pulse of the time likelihood: None (Gaussian of σ :attr:`sigma`) or the
+        ex-gaussian tail (w, τ_d) of ``values`` (the fit's ``pulse_tail_*``) or the system."""
+        if not any(n in values for n in PULSE_PARAMS):
+            return self.pulse_fixed
+        w0, t0 = self.pulse_fixed if self.pulse_fixed is not None else (0.0, self.tail_decay)
+        return (values.get("pulse_tail_fraction", w0), values.get("pulse_tail_decay", t0))
 
     def phase(self, values: dict, j: int, shots=None) -> np.ndarray:
         """Monitor phase of wall j's shots (all, or ``shots``): recorded, or from the
@@ -288,6 +395,8 @@ class Problem:
                                          if n in ("alpha", "beta", "dist")]
         J = np.zeros((ph.size, 4, len(geo)))
         for q, i in enumerate(geo):  # forward differences (the model is smooth)
+            if i < lay.n_sys and lay.names[i] in PULSE_PARAMS:
+                continue  # the pulse does not move the beam: its scores are the cells'
             h = 1e-3 * lay.scales[i]
             xp = x.copy()
             xp[i] += h
@@ -304,7 +413,7 @@ class Problem:
         parameter indices they belong to."""
         c = self.cells[j]
         lay = self.layout
-        _, walls = lay.unpack(x)
+        values, walls = lay.unpack(x)
         pred, ok, jac = self.predictions(x, j, c.shots, steps=grad)
         pos = np.searchsorted(c.shots, c.shot)
         pc = pred[pos]
@@ -314,7 +423,7 @@ class Problem:
             W = self.system.receiver.width
             pc[:, 0] += self.pixel_offsets[(c.row * W + c.col).astype(np.int64)]
         ll, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], self.sigma, lay.two_d,
-                           self.pitch_ratio)
+                           self.pitch_ratio, self.pulse(values))
         if not grad:
             return ll, None, None
         J, geo = jac
@@ -322,6 +431,9 @@ class Problem:
         d = np.where(good[:, None], d, 0.0)
         # τ, u, v and log g chain through the geometry; log μ and log s directly
         sc = np.einsum("nk,nkg->ng", d[:, [0, 1, 2, 3]], Jc)
+        for k, n in enumerate(PULSE_PARAMS):  # the pulse's own scores (geo[i] = i)
+            if n in lay.names:
+                sc[:, lay.names.index(n)] += d[:, 5 + k]
         ws = lay.wall_slice(j)
         idx = geo + [ws.start + lay.wall_names.index("logmu"),
                      ws.start + lay.wall_names.index("logspot")]

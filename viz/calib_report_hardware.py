@@ -130,7 +130,7 @@ def hardware_page(pdf, result) -> bool:
     _phase_panel(axs[0, 0], result)
     _pixel_panel(axs[0, 1], result)
     _tests_panel(axs[1, 0], result)
-    if "pulse" in extra:
+    if extra.get("pulse") is not None:
         pulse_panel(axs[1, 1], extra["pulse"])
     elif "code_widths" in extra:
         inl_panel(axs[1, 1], extra["code_widths"])
