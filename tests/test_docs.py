@@ -188,11 +188,11 @@ def _shared_prefixes() -> set[tuple]:
     return {k for k, n in seen.items() if n > 1}
 
 
-#: one pytest-xdist worker runs the examples, so that lines that several commands'
-#: examples start with (``mems-stereo samples``, ``process samples/room.h5 -o room.ply``)
-#: run once and the others start from a copy of the folder they left
+# one pytest-xdist worker runs the examples (tests/conftest.py: XDIST_GROUPS), so that
+# lines that several commands' examples start with (``mems-stereo samples``, ``process
+# samples/room.h5 -o room.ply``) run once and the others start from a copy of the folder
+# they left
 @pytest.mark.slow
-@pytest.mark.xdist_group("help_examples")
 @pytest.mark.parametrize("name", _help_example_names())
 def test_every_help_example_runs(name, tmp_path, tmp_path_factory):
     """One test per command (and plot figure).  Every distinct example line runs from the
