@@ -121,6 +121,7 @@ XDIST_GROUPS = {
     "bundled_calibrations": (
         "tests/test_cli_outputs.py", "tests/test_demo.py", "tests/test_demo_hardware.py",
         "tests/test_calib_walls.py",
+        "tests/test_viz_calib_report.py::test_report_for_the_bundled_walls",
         "tests/test_twoaxis_calib.py::test_cli_calibrates_the_sample_walls",
         "tests/test_calib_cli.py::test_recordings_that_are_not_flat_walls_fail_cleanly",
         "tests/test_calib_cli.py::test_failed_calibration_writes_the_pdf_report"),
