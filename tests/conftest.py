@@ -22,3 +22,134 @@ def system():
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+# ------------------------------------------------------------ shared heavy results
+#
+# The bundled samples' calibrations and the imperfect-hardware comparison are
+# deterministic and cost seconds each; several tests run them with the same arguments
+# (``mems-stereo demo``, tests/test_cli_outputs.py, tests/test_demo_hardware.py).  A
+# test that asks for ``shared_results`` gets them computed once per test process
+# (the tests that share are in one pytest-xdist group, pyproject's ``--dist loadgroup``)
+# through the real functions; the callers' own code around them still runs.
+
+_MEMO: dict = {}
+
+
+def _memo_key(value):
+    """A hashable, value-based stand-in for one argument of a memoised call."""
+    from pathlib import Path
+
+    from mems_stereo.model.system import System, system_to_dict
+
+    if isinstance(value, (str, Path)) and Path(value).is_file():
+        st = Path(value).stat()
+        return ("file", os.path.realpath(value), st.st_size, st.st_mtime_ns)
+    if isinstance(value, (str, Path)) and Path(value).is_dir():
+        return ("dir", os.path.realpath(value))
+    if isinstance(value, (list, tuple)):
+        return tuple(_memo_key(v) for v in value)
+    if isinstance(value, dict):
+        return tuple(sorted((k, _memo_key(v)) for k, v in value.items()))
+    if isinstance(value, System):
+        import json
+
+        return ("system", json.dumps(system_to_dict(value), sort_keys=True,
+                                     default=lambda o: o.tolist() if hasattr(o, "tolist")
+                                     else repr(o)))
+    if value is None or isinstance(value, (bool, int, float, str, Path)):
+        return value
+    raise TypeError(f"no memo key for {type(value).__name__}")
+
+
+def memoised(name: str, fn):
+    """``fn`` answering repeated calls with equal arguments (``progress`` aside) from
+    the process-wide memo; the first call with those arguments runs ``fn``."""
+    import inspect
+
+    sig = inspect.signature(fn)
+
+    def wrapper(*args, **kwargs):
+        bound = sig.bind(*args, **kwargs)
+        bound.apply_defaults()
+        try:
+            key = (name, tuple((k, _memo_key(v)) for k, v in bound.arguments.items()
+                               if k != "progress"))
+        except TypeError:  # an argument without a value-based key: not memoised
+            return fn(*args, **kwargs)
+        if key not in _MEMO:
+            _MEMO[key] = fn(*args, **kwargs)
+        return _MEMO[key]
+    return wrapper
+
+
+def share_heavy_results(mp) -> None:
+    """Patch (with MonkeyPatch ``mp``) the bundled samples' calibrations (one- and
+    two-axis) and the imperfect-hardware comparison to :func:`memoised` forms."""
+    import mems_stereo.calib.calibrate as calib_mod
+    import mems_stereo.calib.twoaxis as twoaxis_mod
+
+    import mems_stereo.cli.demo_hardware as hw_mod
+
+    for mod, name in ((calib_mod, "calibrate_system"), (twoaxis_mod, "calibrate_two_axis"),
+                      (hw_mod, "hardware_comparison")):
+        real = getattr(mod, name)
+        real = getattr(real, "__wrapped_real__", real)
+        m = memoised(f"{mod.__name__}.{name}", real)
+        m.__wrapped_real__ = real
+        mp.setattr(mod, name, m)
+
+
+@pytest.fixture
+def shared_results(monkeypatch):
+    """The heavy calls of :func:`share_heavy_results` memoised for this test."""
+    share_heavy_results(monkeypatch)
+
+
+# ------------------------------------------------------------ pytest-xdist groups
+#
+# Tests that share work (a module fixture, or ``shared_results`` across modules) run in
+# one worker process, so that the work is done once per run.  pytest-xdist's own
+# ``xdist_group`` mark does not group with pytest 9.2 (pytest-xdist issue #1386: the node
+# id it rewrites is no longer used), so ``--dist loadgroup`` (pyproject.toml) schedules by
+# this table: a group's tests are one unit of work, the larger units first.
+
+XDIST_GROUPS = {
+    # the bundled walls' calibrations (line sensor, Lissajous scanner), the failed fit of
+    # room.h5 + floodlight.h5 and the imperfect-hardware comparison (shared_results);
+    # test_cli_outputs' module fixture ctx
+    "bundled_calibrations": (
+        "tests/test_cli_outputs.py", "tests/test_demo.py", "tests/test_demo_hardware.py",
+        "tests/test_calib_walls.py",
+        "tests/test_viz_calib_report.py::test_report_for_the_bundled_walls",
+        "tests/test_twoaxis_calib.py::test_cli_calibrates_the_sample_walls",
+        "tests/test_calib_cli.py::test_recordings_that_are_not_flat_walls_fail_cleanly",
+        "tests/test_calib_cli.py::test_failed_calibration_writes_the_pdf_report"),
+    # lines that several commands' examples start with run once (tests/test_docs.py)
+    "help_examples": ("tests/test_docs.py::test_every_help_example_runs",),
+    "calib_fit": ("tests/test_calib_fit.py",),          # the good walls and their free fit
+    "dask_cluster": ("tests/test_distributed.py",),     # one LocalCluster
+}
+
+
+def xdist_group_of(nodeid: str) -> str | None:
+    """The group of XDIST_GROUPS whose entry names this test (its file, or its function
+    with any parameters), else None."""
+    for group, entries in XDIST_GROUPS.items():
+        for e in entries:
+            if nodeid == e or nodeid.startswith((e + "::", e + "[")):
+                return group
+    return None
+
+
+@pytest.hookimpl(optionalhook=True)  # a pytest-xdist hook: unknown without pytest-xdist
+def pytest_xdist_make_scheduler(config, log):
+    if config.getvalue("dist") != "loadgroup":
+        return None
+    from xdist.scheduler import LoadGroupScheduling
+
+    class TableGroupScheduling(LoadGroupScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return xdist_group_of(nodeid) or super()._split_scope(nodeid)
+
+    return TableGroupScheduling(config, log)

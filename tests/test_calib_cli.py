@@ -47,7 +47,10 @@ def test_distance_std_must_be_positive(tmp_path, capsys):
 SAMPLES = __import__("pathlib").Path(__file__).resolve().parents[1] / "samples"
 
 
-def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys):
+# the failed fit of room.h5 + floodlight.h5 runs once for the two tests that write its
+# report (tests/conftest.py: ``shared_results``; one pytest-xdist worker runs both:
+# XDIST_GROUPS)
+def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys, shared_results):
     """The room and floodlight recordings are no calibration walls: exit 1,
     one line saying why, no system file; the report says why too."""
     out, rep = tmp_path / "s.json", tmp_path / "r.json"
@@ -63,7 +66,7 @@ def test_recordings_that_are_not_flat_walls_fail_cleanly(tmp_path, capsys):
     assert doc["ok"] is False and doc["reason"] in err
 
 
-def test_failed_calibration_writes_the_pdf_report(tmp_path, capsys):
+def test_failed_calibration_writes_the_pdf_report(tmp_path, capsys, shared_results):
     """--report X.pdf on a failure: exit non-zero, no system file, a 2-page PDF saying why."""
     import re
 

@@ -24,6 +24,9 @@ def _case(walls, seed, offsets=OFFSETS):
     return Case(ws, dict(offsets), seed, [w.distance for w in ws])
 
 
+# one pytest-xdist worker runs this module: its module fixtures (the good walls and their
+# free fit) are computed once (tests/conftest.py: XDIST_GROUPS)
+
 GOOD = [(1.2, 8, 3, 1.0, 1500, 2e5), (2.5, -10, -2, 0.5, 1500, 2e5), (4.0, 5, 0, 0.8, 1500, 2e5)]
 
 
@@ -39,17 +42,23 @@ def good(nominal):
     return case, walls
 
 
+@pytest.fixture(scope="module")
+def free_fit(nominal, good):
+    """``fit_walls`` of the good walls without distance priors (two tests read it)."""
+    return fit_walls(good[1], nominal)
+
+
 def _check_within(res, true, k=4.0):
     for n in res.names:
         err = res.values[n] - true.get_param(n)
         assert abs(err) < k * res.std[n], (n, err, res.std[n])
 
 
-def test_recovers_system_far_from_nominal_within_4_sigma(nominal, good):
+def test_recovers_system_far_from_nominal_within_4_sigma(nominal, good, free_fit):
     """θ0 6 mrad, baseline 4 mm, offset 1.5 ns from the nominal system: the start
     is searched, not taken from the nominal values."""
     case, walls = good
-    res = fit_walls(walls, nominal)
+    res = free_fit
     assert res, getattr(res, "reason", "")
     true = case.true_system(nominal)
     _check_within(res, true)
@@ -60,9 +69,9 @@ def test_recovers_system_far_from_nominal_within_4_sigma(nominal, good):
     assert len(res.targets) == 3 and res.covariance.shape == (len(res.names),) * 2
 
 
-def test_measured_distances_sharpen_and_agree(nominal, good):
+def test_measured_distances_sharpen_and_agree(nominal, good, free_fit):
     case, walls = good
-    free = fit_walls(walls, nominal)
+    free = free_fit
     priors = [(j, "axis", d, 2e-3) for j, d in enumerate(case.measured)]
     res = fit_walls(walls, nominal, priors=priors)
     assert res
@@ -119,13 +128,28 @@ def test_walls_parallel_to_the_baseline_refused(nominal):
     assert "not observable" in res.reason
 
 
-def test_no_return_is_an_input_failure(nominal):
+def test_no_return_is_an_input_failure(nominal, monkeypatch):
+    """One fit: ``fit_walls(walls, nominal)`` as calibrate_scanner_camera →
+    calibrate_system calls it (recorded by a spy) fails as an input failure, and the
+    calib3d-shaped wrapper raises NotObservableError with its reason."""
+    import mems_stereo.calib.calibrate as calib_mod
+
     case = _case([(2.0, 5, 0, 0.001, 800, 3e6)], 5)
-    walls = [wall_data(r) for r in simulate_case(case, nominal)]
-    res = fit_walls(walls, nominal)
-    assert not res and res.kind == "input" and "usable wall return" in res.reason
-    with pytest.raises(NotObservableError):
+    seen = []
+
+    def spy(walls, system, **kw):
+        seen.append((walls, kw, fit_walls(walls, system, **kw)))
+        return seen[-1][2]
+
+    monkeypatch.setattr(calib_mod, "fit_walls", spy)
+    with pytest.raises(NotObservableError) as e:
         calibrate_scanner_camera(simulate_case(case, nominal), nominal)
+    ((walls, kw, res),) = seen
+    # the call as made directly: one wall, no priors, nothing fixed, the default free set
+    assert len(walls) == 1 and not kw.get("priors") and not kw.get("fix")
+    assert kw.get("free") is None
+    assert not res and res.kind == "input" and "usable wall return" in res.reason
+    assert res.reason in str(e.value)
 
 
 def test_calib3d_shaped_api(nominal):

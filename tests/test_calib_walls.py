@@ -37,12 +37,19 @@ def _wall(d):
     return n / np.linalg.norm(n), np.asarray(obj["center"], float)
 
 
+# one pytest-xdist worker runs this module with the other users of the bundled walls'
+# calibration (tests/conftest.py: ``share_heavy_results``, XDIST_GROUPS)
+
+
 @pytest.fixture(scope="module")
 def calibrated(tmp_path_factory):
-    """(system read back, CLI stdout, exit code) of one CLI calibration run."""
+    """(system read back, CLI stdout, exit code) of one CLI calibration run (its fit is
+    that of ``mems-stereo demo``'s and tests/test_cli_outputs.py's, computed once)."""
     import contextlib
     import io
     import os
+
+    from conftest import share_heavy_results
 
     work = tmp_path_factory.mktemp("elsewhere")
     out = work / "cal.json"
@@ -50,7 +57,8 @@ def calibrated(tmp_path_factory):
     cwd = os.getcwd()
     os.chdir(work)  # the command must not depend on the working directory
     try:
-        with contextlib.redirect_stdout(buf):
+        with contextlib.redirect_stdout(buf), pytest.MonkeyPatch.context() as mp:
+            share_heavy_results(mp)
             rc = main(["calibrate", *map(str, PATHS), "-o", "cal.json",
                        "--target-distances-file", str(DIST_FILE)])
     finally:

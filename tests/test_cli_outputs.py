@@ -45,6 +45,8 @@ SYSTEMS = {"line": "burkard2022", "two": str(S / "lissajous64_system.json")}
 #: (command, option, input kind) the command refuses before any work, by design
 REFUSED = {("process", "histograms", "two")}
 _PROCESS = run_mod.process_recording
+# one pytest-xdist worker: ``ctx`` once, and its calibrations shared with tests/test_demo.py
+# (tests/conftest.py: XDIST_GROUPS)
 
 
 # ----------------------------------------------------------------- fixtures
@@ -63,7 +65,10 @@ def ctx(tmp_path_factory):
             return got[key]
         return f
 
+    from conftest import share_heavy_results
+
     with pytest.MonkeyPatch.context() as mp:
+        share_heavy_results(mp)  # the calibrations are the demo's (tests/test_demo.py)
         mp.setattr(calib_mod, "calibrate_system", spy(calib_mod, "calibrate_system", "cal_line"))
         mp.setattr(twoaxis_mod, "calibrate_two_axis",
                    spy(twoaxis_mod, "calibrate_two_axis", "cal_two"))

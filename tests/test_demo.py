@@ -7,8 +7,14 @@ import json
 from mems_stereo.cli import main
 
 
-def test_demo_writes_every_output(tmp_path, capsys, monkeypatch):
-    """Runs ``mems-stereo demo --help``'s example as it stands, from an empty folder."""
+# one pytest-xdist worker runs the tests that share the bundled samples' calibrations and
+# the imperfect-hardware comparison (tests/conftest.py: ``shared_results``, XDIST_GROUPS)
+def test_demo_writes_every_output(tmp_path, capsys, monkeypatch, shared_results):
+    """Runs ``mems-stereo demo --help``'s example as it stands, from an empty folder.
+
+    Its calibrations of the bundled walls are those of tests/test_cli_outputs.py's
+    ``ctx`` and its imperfect-hardware step is tests/test_demo_hardware.py's
+    ``comparison`` (same calls, computed once: ``shared_results``)."""
     import shlex
 
     from mems_stereo.cli import demo

@@ -15,16 +15,28 @@ import numpy as np
 import pytest
 
 import mems_stereo as ms
-from mems_stereo.cli.demo_hardware import IMPERFECT_ROOM, IMPERFECT_WALLS, hardware_comparison
+from mems_stereo.cli.demo_hardware import IMPERFECT_ROOM, IMPERFECT_WALLS
 from mems_stereo.io.recording import read_recording
 from mems_stereo.model.system import load_system, system_to_dict
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 
+# one pytest-xdist worker runs this module with tests/test_demo.py (tests/conftest.py:
+# XDIST_GROUPS)
+
+
 @pytest.fixture(scope="module")
 def comparison():
-    return hardware_comparison(SAMPLES)
+    """The comparison, computed once with ``mems-stereo demo``'s step 7 (tests/test_demo.py;
+    tests/conftest.py: ``share_heavy_results``)."""
+    from conftest import share_heavy_results
+
+    import mems_stereo.cli.demo_hardware as hw_mod
+
+    with pytest.MonkeyPatch.context() as mp:
+        share_heavy_results(mp)
+        return hw_mod.hardware_comparison(SAMPLES)
 
 
 def _row(comp, system):

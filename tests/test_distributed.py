@@ -17,6 +17,8 @@ from mems_stereo.pipeline.pass2 import PeakCounts, encode_peak_keys
 from mems_stereo.pipeline.run import process_recording
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
+# one pytest-xdist worker runs this module: one LocalCluster (the ``client`` fixture;
+# tests/conftest.py: XDIST_GROUPS)
 #: the client's environment before any cluster (restored once the workers started)
 _ENV_KEYS = [*WORKER_MALLOC_ENV, "NUMBA_THREADING_LAYER"]
 _ENV_BEFORE = {k: os.environ.get(k) for k in _ENV_KEYS}

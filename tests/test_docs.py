@@ -18,8 +18,10 @@ A small Markdown collector finds the fenced blocks (```lang ... ```).  How each 
   it on its own), and the C++ reader of docs/interchange.md.
 
 The ``--help`` examples (each command module's ``EXAMPLE`` lines and ``plot``'s per-figure
-examples) run in order in a fresh folder per command; ``view`` opens a window, so its
-last line is only parsed; ``demo``'s example is the run of ``tests/test_demo.py``.
+examples) run in order in a fresh folder per command; lines that several commands'
+examples begin with run once, and the other commands continue from a copy of the folder
+they left (the same state); ``view`` opens a window, so its last line is only parsed;
+``demo``'s example is the run of ``tests/test_demo.py``.
 
 ``tests/test_wheel.py`` (slow) builds a wheel and processes a bundled sample with
 that non-editable install.
@@ -171,23 +173,57 @@ def _help_example_names() -> list[str]:
     return [name for name in help_examples() if name != "demo"]
 
 
+#: the folder after the first lines of a command's examples, where another command's
+#: examples begin with the same lines (in a fresh folder, so the same state): lines → copy
+_HELP_STATES: dict[tuple, Path] = {}
+
+
+def _shared_prefixes() -> set[tuple]:
+    """Leading runs of example lines that more than one command's examples start with."""
+    seen: dict[tuple, int] = {}
+    for name in _help_example_names():
+        lines = help_examples()[name]
+        for k in range(1, len(lines) + 1):
+            seen[tuple(lines[:k])] = seen.get(tuple(lines[:k]), 0) + 1
+    return {k for k, n in seen.items() if n > 1}
+
+
+# one pytest-xdist worker runs the examples (tests/conftest.py: XDIST_GROUPS), so that
+# lines that several commands' examples start with (``mems-stereo samples``, ``process
+# samples/room.h5 -o room.ply``) run once and the others start from a copy of the folder
+# they left
 @pytest.mark.slow
 @pytest.mark.parametrize("name", _help_example_names())
-def test_every_help_example_runs(name, tmp_path):
-    """One test per command (and plot figure), spread over the cores by pytest-xdist."""
+def test_every_help_example_runs(name, tmp_path, tmp_path_factory):
+    """One test per command (and plot figure).  Every distinct example line runs from the
+    state the lines before it leave: where another command's examples began with the same
+    lines, from a copy of the folder they left (the same state, its lines run once)."""
+    import shutil
+
     from mems_stereo.cli import build_parser
 
     cwd = _outside_repository(tmp_path / name.replace(" ", "_"))
-    cwd.mkdir()
-    for line in help_examples()[name]:
+    lines = help_examples()[name]
+    done = next((k for k in range(len(lines), 0, -1) if tuple(lines[:k]) in _HELP_STATES), 0)
+    if done:
+        shutil.copytree(_HELP_STATES[tuple(lines[:done])], cwd, symlinks=True)
+    else:
+        cwd.mkdir()
+    shared = _shared_prefixes()
+    for k, line in enumerate(lines[done:], done + 1):
         argv = shlex.split(line, comments=True)
         assert argv[0] == "mems-stereo", line
         if argv[1] == "view":  # opens a window: parse it, do not run it
             build_parser().parse_args(argv[1:])
-            continue
-        p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
-                           capture_output=True, text=True, timeout=600)
-        assert p.returncode == 0, f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+        else:
+            p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
+                               capture_output=True, text=True, timeout=600)
+            assert p.returncode == 0, \
+                f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+        if tuple(lines[:k]) in shared:
+            keep = tmp_path_factory.mktemp("help_state") / "d"
+            shutil.copytree(cwd, keep, symlinks=True)
+            _HELP_STATES[tuple(lines[:k])] = keep
 
 
 def test_enough_help_examples_run():

@@ -100,7 +100,9 @@ def test_one_wall_is_refused():
 
 
 @pytest.mark.slow
-def test_cli_calibrates_the_sample_walls(tmp_path):
+def test_cli_calibrates_the_sample_walls(tmp_path, shared_results):
+    """The fit is ``mems-stereo demo``'s two-axis step's (tests/test_demo.py; computed once:
+    tests/conftest.py's ``shared_results``)."""
     from mems_stereo.cli import main
     from mems_stereo.model.system import load_system
 

@@ -184,16 +184,25 @@ def test_report_path_must_be_pdf(tmp_path):
 
 
 @pytest.mark.slow
-def test_report_for_the_bundled_walls(tmp_path):
+def test_report_for_the_bundled_walls(tmp_path, shared_results):
+    """The calibration is made with the arguments ``mems-stereo calibrate`` gives for the
+    bundled walls and their distances file, so that it is computed once with
+    ``mems-stereo demo``'s and tests/test_cli_outputs.py's (tests/conftest.py:
+    ``shared_results``, XDIST_GROUPS)."""
     from pathlib import Path
 
-    from mems_stereo.calib.calibrate import calibrate_system, read_target_distances
+    import mems_stereo.calib.calibrate as calib_mod
+    from mems_stereo.calib.calibrate import read_target_distances
+    from mems_stereo.calib.model import DEFAULT_FREE
 
     root = Path(__file__).resolve().parents[1] / "samples"
     recs = [root / f"calib_{d}m.h5" for d in ("1.5", "2.5", "4.0")]
     dists, stds, kind = read_target_distances(root / "calib_distances.json", recs)
-    res = calibrate_system(recs, target_distances=dists, distance_std=stds,
-                           distance_kind=kind)
+    res = calib_mod.calibrate_system(recs, None, fix=[], free=list(DEFAULT_FREE),
+                                     target_distances=dists, distance_std=stds,
+                                     distance_kind=kind, on_unobservable="raise",
+                                     model="full", harmonics=(2, 3, 4, 5),
+                                     inflate_sigma=False)
     assert res
     p = write_calibration_report(res, tmp_path / "walls.pdf", recordings=recs)
     n, data = _pdf_pages(p)
