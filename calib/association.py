@@ -101,7 +101,11 @@ def cells_near_track(w: WallData, pred: np.ndarray, ok: np.ndarray, radius: int,
     inside = (cols >= 0) & (cols < W) & (rows >= 0) & (rows < H)
     sh, cols, rows = sh[inside], cols[inside].astype(np.int64), rows[inside].astype(np.int64)
     code = w.bins[sh, rows, cols]
-    t = (code.astype(np.float64) - 0.5) * w.bin_width
+    if w.code_centres is None:
+        t = (code.astype(np.float64) - 0.5) * w.bin_width
+    else:  # the TDC's measured code widths (DNL/INL): each code's centre
+        t = np.asarray(w.code_centres, dtype=np.float64)[np.maximum(code.astype(np.int64), 1)
+                                                          - 1]
     t = np.where((code > 0) & (t <= t_max), t, np.nan)
     return Cells(sh.astype(np.int64), cols.astype(np.float64), rows.astype(np.float64), t,
                  w.background[rows, cols], float(t_max), shots.astype(np.int64),

@@ -99,6 +99,10 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
             raise FormatError(f"expected image_size {nominal.receiver.image_size} like the "
                               f"nominal system, found {r.system.receiver.image_size}", r.source)
         walls.append(wall_data(r))
+        if nominal.tdc.code_widths is not None:  # measured code widths (code-density test)
+            from mems_stereo.model.tdc import code_centres
+
+            walls[-1].code_centres = code_centres(nominal.tdc)
     if progress:
         progress(f"read {len(walls)} recording(s), "
                  f"{sum(w.n_shots for w in walls)} shots with a known phase")

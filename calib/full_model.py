@@ -4,7 +4,9 @@
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
 delay (from the ideal fit's solution), drops a term the walls do not determine
-(saying what to record), then adds the per-pixel TDC offsets when their test fails.
+(saying what to record), then the pulse's ex-gaussian tail when its score test finds
+one (:func:`_pulse_tail`: fitted in the time likelihood), then the per-pixel TDC
+offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
 """
 
@@ -90,20 +92,39 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     """``result`` with the pulse's ex-gaussian tail fitted in the time likelihood
     (``pulse_tail_fraction``, ``pulse_tail_decay`` free with the other terms; the TDC
     offset then refers to the core's peak, as the system's ``tdc.offset``) when the
-    low-pile-up returns' shape test finds a tail (:attr:`PulseFit.tail_significant`:
-    the model selection of :func:`add_hardware_terms`); ``result`` unchanged otherwise.
-    ``extra["pulse"]`` holds the shape fit (the report's)."""
+    score test of a tail over all cells finds one
+    (:func:`~mems_stereo.calib.hardware_fit.tail_score_test`: the model selection of
+    :func:`add_hardware_terms`; the low-pile-up shape fit of
+    :mod:`~mems_stereo.calib.pulse_shape` gives the start when it sees the tail too).
+    ``result`` unchanged when the test passes, or with a warning when the fit does not
+    separate the tail from ``tdc_offset`` (a tail short against the pulse σ is a
+    shift: the Gaussian's ``tdc_offset`` then holds its delay).  ``extra["pulse"]``
+    holds the shape fit (the report's) and ``extra["tail_test"]`` the score test."""
     fit = _pulse(result)
-    if fit is None or not fit.tail_significant or "tdc_offset" not in result.names:
-        result.extra["pulse"] = fit
+    result.extra["pulse"] = fit
+    if "tdc_offset" not in result.names:
+        return result
+    test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
+    result.extra["tail_test"] = test
+    if not test.selected:
         return result
     if progress:
-        progress(f"hardware terms: pulse tail ({fit.summary()})")
-    start = {"pulse_tail_fraction": min(max(fit.tail_fraction, 0.02), 0.9),
-             "pulse_tail_decay": max(fit.tail_decay, 0.05 * result.extra["problem"].sigma),
-             "tdc_offset": result.values["tdc_offset"] + fit.shift}
+        progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e})")
+    shaped = fit is not None and fit.tail_significant
+    w, tau_d = ((fit.tail_fraction, fit.tail_decay) if shaped else (0.1, decay))
+    w = min(max(w, 0.02), 0.9)
+    tau_d = max(tau_d, 0.05 * result.extra["problem"].sigma)
+    start = {"pulse_tail_fraction": w, "pulse_tail_decay": tau_d,
+             "tdc_offset": result.values["tdc_offset"] - w * tau_d}
     out = _fit_terms(result, list(PULSE_PARAMS), fit_kwargs, start)
-    out.extra["pulse"] = fit
+    weak = [n for n in out.unobservable if n not in result.unobservable]
+    if out is not result and (weak or not set(PULSE_PARAMS) <= set(out.names)):
+        result.warnings.append(
+            f"a pulse tail (score test p = {test.p_value:.1e}) is not separated from "
+            f"tdc_offset by these walls ({', '.join(weak) or 'tail left out'}): the Gaussian "
+            f"pulse is kept and tdc_offset holds the tail's delay; {RECORD_ADVICE['pulse']}")
+        return result
+    out.extra["pulse"], out.extra["tail_test"] = fit, test
     return out
 
 
@@ -144,7 +165,8 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
                                 "left at 0 (record walls whose returns cover every pixel)")
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
-    out.extra["hardware_tests"] = tests + [po.test]
+    out.extra["hardware_tests"] = tests + [po.test] + (
+        [out.extra["tail_test"]] if "tail_test" in out.extra else [])
     out.extra["pixel_offsets"] = po
     out.system = out.system.replace(calibration=out.calibration_dict())
     return out

@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from mems_stereo.calib.model import HARDWARE_PARAMS, harmonic_orders
+from mems_stereo.calib.model import HARDWARE_PARAMS, PULSE_PARAMS, harmonic_orders
 from mems_stereo.calib.problem import Layout, Problem, cell_terms
 from scipy import stats
 
@@ -57,9 +57,10 @@ def candidate_blocks(orders=DEFAULT_ORDERS) -> dict:
     return out
 
 
-def extended_problem(prob: Problem, x, extra) -> tuple:
+def extended_problem(prob: Problem, x, extra, tail_decay: float | None = None) -> tuple:
     """The problem ``prob`` with parameters ``extra`` (at their nominal values) added,
-    on the same cells: (problem, x)."""
+    on the same cells (``tail_decay``: s, the decay of a pulse tail whose share only
+    is added): (problem, x)."""
     lay = prob.layout
     values, walls = lay.unpack(x)
     names = list(lay.names) + [n for n in extra if n not in lay.names]
@@ -67,14 +68,17 @@ def extended_problem(prob: Problem, x, extra) -> tuple:
     p2 = Problem(prob.walls, prob.system, lay2, prob.sigma, prob.priors)
     p2.cells = list(prob.cells)
     p2.pixel_offsets = prob.pixel_offsets
+    p2.tail_decay = prob.tail_decay if tail_decay is None else float(tail_decay)
     vals = {n: values.get(n, prob.system.get_param(n)) for n in lay2.names}
     return p2, lay2.pack(vals, walls)
 
 
-def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT) -> list:
-    """One :class:`TermTest` per block, at the fitted ``x`` of ``prob``."""
+def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT,
+                tail_decay: float | None = None) -> list:
+    """One :class:`TermTest` per block, at the fitted ``x`` of ``prob``
+    (``tail_decay``: see :func:`extended_problem`)."""
     extra = [n for b in blocks.values() for n in b]
-    p2, x2 = extended_problem(prob, x, extra)
+    p2, x2 = extended_problem(prob, x, extra, tail_decay)
     _, g, H = p2.score(x2)
     sc = p2.layout.scales
     gs, Hs = g * sc, H * sc[:, None] * sc[None, :]
@@ -90,8 +94,31 @@ def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT) -> 
         gb = gs[idx]
         lm = float(gb @ Hi @ gb)
         p = float(stats.chi2.sf(lm, len(names)))
+        if names == ("pulse_tail_fraction",):  # one-sided: a share w ≥ 0 (a tail delays)
+            p = 0.5 * p if float((Hi @ gb)[-1]) > 0 else 1.0
         out.append(TermTest(name, tuple(names), lm, len(names), p, p < alpha))
     return out
+
+
+#: s, decays at which the pulse tail's share is tested (the decay is not defined at w = 0)
+TAIL_DECAYS = (1e-9, 3e-9, 8e-9)
+
+
+def tail_score_test(prob: Problem, x, alpha: float = ALPHA_SELECT) -> tuple:
+    """Score test of a pulse tail (share w at 0) at each decay of :data:`TAIL_DECAYS`;
+    Bonferroni over the decays.  Returns (:class:`TermTest` "pulse tail", the decay
+    of the most significant test, s); the test is not selected where the system
+    already has a pulse shape."""
+    best, decay = None, TAIL_DECAYS[0]
+    if prob.pulse_fixed is None:
+        for d in TAIL_DECAYS:
+            t = score_tests(prob, x, {"pulse tail": ("pulse_tail_fraction",)}, alpha, d)
+            if t and (best is None or t[0].p_value < best.p_value):
+                best, decay = t[0], d
+    if best is None:
+        return TermTest("pulse tail", ("pulse_tail_fraction",), 0.0, 1, 1.0, False), decay
+    p = min(1.0, best.p_value * len(TAIL_DECAYS))
+    return TermTest("pulse tail", PULSE_PARAMS, best.lm, 1, p, p < alpha), decay
 
 
 @dataclass(frozen=True)

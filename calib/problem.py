@@ -67,6 +67,9 @@ class WallData:
     shot_time : (K,) s, zero_crossings : (Z,) s, rising : (Z,) bool — the monitor's
     record, kept so that the phase follows a fitted trajectory or edge delay
     (None: the phase is fixed).
+    code_centres : (n_bins,) s, each code's centre from the TDC's code widths
+    (:func:`mems_stereo.model.tdc.code_centres`; index code − 1), or None: the
+    ideal ``(N − ½)·bin_width``.
     """
 
     phase: np.ndarray
@@ -77,6 +80,7 @@ class WallData:
     shot_time: np.ndarray | None = None
     zero_crossings: np.ndarray | None = None
     rising: np.ndarray | None = None
+    code_centres: np.ndarray | None = None
 
     @property
     def n_shots(self) -> int:
@@ -351,13 +355,15 @@ class Problem:
         self.pulse_fixed = ((float(ps.tail_fraction), float(ps.tail_decay))
                             if ps is not None and ps.model == "ex-gaussian"
                             and ps.tail_fraction > 0 and ps.tail_decay > 0 else None)
+        #: s, the tail's decay where the layout frees only its share (the score test's)
+        self.tail_decay = 1e-9
 
     def pulse(self, values: dict):
         """The pulse of the time likelihood: None (Gaussian of σ :attr:`sigma`) or the
         ex-gaussian tail (w, τ_d) of ``values`` (the fit's ``pulse_tail_*``) or the system."""
         if not any(n in values for n in PULSE_PARAMS):
             return self.pulse_fixed
-        w0, t0 = self.pulse_fixed if self.pulse_fixed is not None else (0.0, 1e-9)
+        w0, t0 = self.pulse_fixed if self.pulse_fixed is not None else (0.0, self.tail_decay)
         return (values.get("pulse_tail_fraction", w0), values.get("pulse_tail_decay", t0))
 
     def phase(self, values: dict, j: int, shots=None) -> np.ndarray:

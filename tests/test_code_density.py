@@ -113,3 +113,30 @@ def test_bad_shapes_are_named():
         code_widths(np.full((4, 2), 20), 16)
     with pytest.raises(ShapeError, match="groups"):
         code_widths(np.zeros((4, 2), dtype=int), 16, groups=[0, 1, 2])
+
+
+def test_calibration_cells_use_the_measured_code_centres():
+    """With code widths the calibration's cells read each code's centre
+    (mems_stereo.model.tdc.code_centres), without them (N − ½)·bin_width."""
+    from mems_stereo.calib.association import cells_near_track
+    from mems_stereo.calib.problem import WallData
+
+    from mems_stereo.model.hardware import TDC
+    from mems_stereo.model.tdc import code_centres
+
+    rng = np.random.default_rng(3)
+    bins = rng.integers(0, 64, (20, 1, 8)).astype(np.uint16)
+    w = WallData(np.zeros(20), bins, np.full((1, 8), 1e5), 1e-9)
+    pred = np.tile([10e-9, 3.0, 0.0, 0.0], (20, 1))
+    ok = np.ones(20, bool)
+    c0 = cells_near_track(w, pred, ok, 2, 1.0, 0.0, False)
+    code = bins[c0.shot, 0, c0.col.astype(int)].astype(np.int64)
+    fired = code > 0
+    np.testing.assert_allclose(c0.t[fired], (code[fired] - 0.5) * 1e-9)
+    widths = 1.0 + 0.3 * np.sin(np.arange(64) * 2 * np.pi / 16)
+    tdc = TDC(1e-9, 64, code_widths=widths)
+    w.code_centres = code_centres(tdc)
+    c1 = cells_near_track(w, pred, ok, 2, 1.0, 0.0, False)
+    expect = 1e-9 * (np.concatenate([[0.0], np.cumsum(widths)])[code - 1] + widths[code - 1] / 2)
+    np.testing.assert_allclose(c1.t[fired], expect[fired])
+    assert np.isnan(c1.t[~fired]).all()

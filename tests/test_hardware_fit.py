@@ -72,8 +72,9 @@ def test_phase_follows_the_edge_delay_and_harmonics():
     assert prob0.phase({"theta0": 0.7}, 0) is w.phase
 
 
-def _synthetic_problem(rng, offsets=None):
-    """A problem whose cells' first photons are drawn from the model itself."""
+def _synthetic_problem(rng, offsets=None, tail=None):
+    """A problem whose cells' first photons are drawn from the model itself (``tail``:
+    (w, τ_d) of an ex-gaussian pulse)."""
     sys0 = burkard2022()
     w = _wall(rng, 6000)
     lay = Layout(["theta0", "tdc_offset"], 1, False)
@@ -88,7 +89,13 @@ def _synthetic_problem(rng, offsets=None):
     tau = pred[sh, 0] + (0.0 if offsets is None else offsets[cols.astype(int)])
     share = np.exp(-0.5 * ((cols - pred[sh, 1]) / 0.6) ** 2) * 0.3 / (0.6 * np.sqrt(2 * np.pi))
     n = rng.poisson(share)
-    t = np.where(n > 0, tau + rng.normal(0.0, 1e-9, sh.size), np.nan)
+    if tail is None:
+        t = np.where(n > 0, tau + rng.normal(0.0, 1e-9, sh.size), np.nan)
+    else:  # the first of the n photons, each N(0, σ) + (share w) Exp(τ_d)
+        a = rng.normal(0.0, 1e-9, (sh.size, 4)) + np.where(
+            rng.random((sh.size, 4)) < tail[0], rng.exponential(tail[1], (sh.size, 4)), 0.0)
+        a[np.arange(4)[None, :] >= n[:, None]] = np.inf
+        t = np.where(n > 0, tau + a.min(axis=1), np.nan)
     lg = float(np.median(pred[shots, 3]))
     prob.cells[0] = Cells(sh, cols, np.zeros_like(cols), t, np.full(sh.size, 1e3), 60e-9,
                           shots, lg)
@@ -160,3 +167,34 @@ def test_calibration_goodness_refuses_naming_the_effect():
     failed = judge(result(off - off.mean()))
     assert not failed and failed.kind == "estimate"
     assert "per-pixel TDC offsets" in failed.reason and "--inflate-sigma" in failed.reason
+
+
+def test_pulse_tail_is_tested_and_fitted_with_honest_sigma():
+    """No tail in the data: the tail's score test selects nothing; a 30 % tail of 2 ns
+    (σ 1 ns): selected, and the joint fit finds share, decay and the core's offset
+    within 4σ (the σ from the fit's information)."""
+    from mems_stereo.calib import observability as obs
+    from mems_stereo.calib.hardware_fit import tail_score_test
+    from mems_stereo.calib.solver import FitState, newton
+
+    for tail, want in ((None, False), ((0.3, 2e-9), True)):
+        prob, x = _synthetic_problem(np.random.default_rng(4), tail=tail)
+        x = newton(prob, x, FitState()).x  # the ideal model's fit first
+        test, decay = tail_score_test(prob, x)
+        assert test.selected is want, test
+    lay = Layout(["theta0", "tdc_offset", "pulse_tail_fraction", "pulse_tail_decay"], 1, False)
+    p2 = Problem(prob.walls, prob.system, lay, prob.sigma)
+    p2.cells = prob.cells
+    v, walls = prob.layout.unpack(x)
+    x2 = lay.pack({**v, "pulse_tail_fraction": 0.1, "pulse_tail_decay": decay}, walls)
+    st = FitState()
+    nr = newton(p2, x2, st)
+    assert st.converged
+    cov, _, _ = obs.covariance(nr.info, lay.scales)
+    sd = np.sqrt(np.diag(cov))
+    truth = {"tdc_offset": 0.0, "pulse_tail_fraction": 0.3, "pulse_tail_decay": 2e-9}
+    # informative σ (6000 shots at σ 1 ns): share to 0.1, decay to 0.5 ns, offset to 0.5 ns
+    assert np.all(sd[1:4] < [0.5e-9, 0.1, 0.5e-9]), sd
+    for name, t in truth.items():
+        i = lay.names.index(name)
+        assert abs(nr.x[i] - t) < 4 * sd[i], (name, nr.x[i], sd[i])
