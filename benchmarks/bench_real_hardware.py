@@ -22,8 +22,10 @@ case's true system) and by the imperfect one.  Per trial:
 
 * ideal hardware: walls calibrated ``--model ideal`` (goodness-of-fit refusals on
   ideal hardware) and ``--model full`` (the baseline: its system processes the room);
-* imperfect hardware: ``--model ideal`` (refused? does the reason name the effect?)
-  and ``--model full`` (pulls against the truth; its system processes the room);
+* imperfect hardware: its code widths from the code-density test on a dark recording
+  (``--dark-per-code``; the nominal system then carries them, as a user passes the
+  test's estimate), ``--model ideal`` (refused? does the reason name the effect?) and
+  ``--model full`` (pulls against the truth; its system processes the room);
 * the imperfect room processed with the true system and with the true geometry under
   the ideal hardware model: the **movement** M of the trial is the median over
   matched points (same pixel, ranges within 0.5 m) of |Δrange|/σ_r; a trial "moves
@@ -63,6 +65,7 @@ import sys
 import time
 import warnings
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import replace
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # one BLAS thread per worker process
@@ -91,6 +94,8 @@ from mems_stereo.sim.scene import load_scene  # noqa: E402
 from mems_stereo.sim.score import true_ranges  # noqa: E402
 
 ROOM = ROOT / "samples" / "room_scene.json"
+#: LSB: the narrowest code width a trial's dark recording is made long enough for
+DARK_MIN_WIDTH = 0.6
 #: what a goodness-of-fit refusal says, one phrase per effect it names
 EFFECT_WORDS = {k: v[0].split("{")[0].strip() for k, v in ADVICE.items()}
 GOODNESS = "the model does not fit"
@@ -249,6 +254,11 @@ def calibrate_both(walls, nominal, case, times: dict, hw: str) -> tuple:
 
     priors = [(j, "axis", float(d), 2e-3) for j, d in enumerate(case.measured)]
     wd = [wall_data(r) for r in walls]
+    if nominal.tdc.code_widths is not None:  # measured code widths, as calibrate_system
+        from mems_stereo.model.tdc import code_centres
+
+        for w in wd:
+            w.code_centres = code_centres(nominal.tdc)
     fit = timed(times, f"fit walls ({hw})", lambda: fit_walls(wd, nominal, priors=priors))
     ideal = timed(times, f"goodness ({hw})", lambda: judge(fit)) if fit else fit
     v_ideal = verdict(ideal)
@@ -297,7 +307,15 @@ def run_trial(task) -> dict:
     w0 = timed(T, "simulate", lambda: simulate_walls(case, nom, true0, sc))
     w1 = timed(T, "simulate", lambda: simulate_walls(case, nom, true1, sc))
     v0, c0 = calibrate_both(w0, nom, case, T, "ideal hw")
-    v1, c1 = calibrate_both(w1, nom, case, T, "imperfect")
+    nom1 = nom
+    if opt.get("dark", 0) > 0:  # the user's code-density test on a dark recording
+        est, _ = timed(T, "dark recording", lambda: dark_code_widths(
+            nom, true1, seed, opt["dark"], DARK_MIN_WIDTH))
+        nom1 = nom.replace(tdc=replace(nom.tdc, code_widths=est.width[0],
+                                       code_widths_std=est.width_sigma[0]))
+        out["dark_inl_rms"] = float(np.sqrt(np.mean((np.cumsum(est.width[0]) - np.cumsum(
+            true1.tdc.code_widths / np.mean(true1.tdc.code_widths))) ** 2)))
+    v1, c1 = calibrate_both(w1, nom1, case, T, "imperfect")
     out["cal"] = {"ideal hw ideal": v0, "ideal hw full": verdict(c0),
                   "imperfect ideal": v1, "imperfect full": verdict(c1)}
     out["pulls0"] = pulls_of(c0, true0) if c0 else {}
@@ -381,35 +399,41 @@ def pulse_trial(task) -> dict:
     return out
 
 
-def code_density_trial(task) -> dict:
-    """The code-density test on a dark recording (no return: a small target behind the
-    receiver) of a TDC with the family's DNL, long enough that the least-exposed code
-    of the one pixel group (all pixels) gets at least ``per_code`` background
-    detections (its expectation λ in the narrowest code has λ − 4√λ = ``per_code``).
-    The background rate 1/window maximises the last code's counts of first photons."""
+def dark_code_widths(nominal, true, seed, per_code: int, min_width: float):
+    """The code-density test (:func:`mems_stereo.calib.code_density.code_widths`, one
+    group: all pixels) on a dark recording (no return: a small target behind the
+    receiver) by ``true``, long enough that a code of ``min_width`` LSB at the end of
+    the window gets at least ``per_code`` background detections (expectation λ with
+    λ − 4√λ = ``per_code``) at the background rate 1/window that maximises the last
+    code's first photons.  Returns (CodeWidths, shots)."""
     from mems_stereo.calib.code_density import code_widths
     from mems_stereo.calib.family import AnalyticWall
 
+    tdc = nominal.tdc
+    bg = 1.0 / (tdc.n_bins * tdc.bin_width)
+    n_pix = nominal.receiver.width * nominal.receiver.height
+    last = n_pix * bg * tdc.bin_width * math.exp(-1.0)  # detections per shot, last code
+    lam = (2.0 + math.sqrt(4.0 + per_code)) ** 2
+    shots = int(math.ceil(lam / (last * min_width)))
+    dark = AnalyticWall([0.0, 0.0, -10.0], [0.0, 0.0, 1.0], (0.1, 0.1), 0.5)
+    rec = simulate(nominal, dark, shots, rng=np.random.default_rng([seed, 42]), background_hz=bg,
+                   true_system=true)
+    return code_widths(rec.bins, tdc.n_bins), shots
+
+
+def code_density_trial(task) -> dict:
+    """The code-density check: :func:`dark_code_widths` of a TDC with the family's DNL
+    (``default_rng([s, 40])``), ``per_code`` detections in its narrowest code."""
     seed, per_code = task
     warnings.simplefilter("ignore")
     nom = burkard2022()
     imp = draw_imperfections(np.random.default_rng([seed, 40]))
     true = Imperfections(dnl_periodic=imp.dnl_periodic, dnl_random=imp.dnl_random).apply(
         nom, np.random.default_rng([seed, 41]))
-    tdc = nom.tdc
-    window = tdc.n_bins * tdc.bin_width
-    bg = 1.0 / window
-    n_pix = nom.receiver.width * nom.receiver.height
-    last = n_pix * bg * tdc.bin_width * math.exp(-1.0)  # detections per shot, last code
-    lam = (2.0 + math.sqrt(4.0 + per_code)) ** 2  # λ − 4√λ = per_code: the fewest ≥ it
     w_true = np.asarray(true.tdc.code_widths, float)
     w_true = w_true / w_true.mean()
-    shots = int(math.ceil(lam / (last * w_true.min())))  # the narrowest code too
-    dark = AnalyticWall([0.0, 0.0, -10.0], [0.0, 0.0, 1.0], (0.1, 0.1), 0.5)
     t0 = time.process_time()
-    rec = simulate(nom, dark, shots, rng=np.random.default_rng([seed, 42]), background_hz=bg,
-                   true_system=true)
-    est = code_widths(rec.bins, tdc.n_bins)
+    est, shots = dark_code_widths(nom, true, seed, per_code, float(w_true.min()))
     err = est.width[0] - w_true
     return {"seed": seed, "target": per_code, "shots": shots, "min_counts": est.min_counts,
             "median_counts": float(np.median(est.counts)),
@@ -429,6 +453,10 @@ def main(argv=None) -> int:
                     help="divide each wall's shot count by this (default 8, as "
                          "bench_calibrate_mc.py --fast; the family: 1)")
     ap.add_argument("--room-shots", type=int, default=800)
+    ap.add_argument("--dark-per-code", type=int, default=1000,
+                    help="per trial, the imperfect hardware's code widths from a dark "
+                         "recording with this many background detections in a code of "
+                         f"{DARK_MIN_WIDTH} LSB (0: the calibration assumes equal widths)")
     ap.add_argument("--cd-trials", type=int, default=4,
                     help="code-density TDCs per counts target (0: skip)")
     ap.add_argument("--cd-targets", default="100,2500",
@@ -459,7 +487,8 @@ def main(argv=None) -> int:
     log(f"bench_real_hardware: {args.trials} trials from seed {args.seed}, wall shots / "
         f"{args.shot_scale:g}, room {args.room_shots} shots, {args.jobs} job(s), CPU "
         f"{cpu_model()}")
-    tasks = [(s, {"shot_scale": args.shot_scale, "room_shots": args.room_shots})
+    tasks = [(s, {"shot_scale": args.shot_scale, "room_shots": args.room_shots,
+                  "dark": args.dark_per_code})
              for s in range(args.seed, args.seed + args.trials)]
     targets = [int(x) for x in args.cd_targets.split(",") if x.strip()]
     cd_tasks = [(args.seed + i, t) for t in targets for i in range(args.cd_trials)]
