@@ -194,7 +194,8 @@ def equivalent_truth(true, name: str, cal) -> float:
 
 def pulls_of(cal, true) -> dict:
     """name → pull of a written calibration (pixel offsets: a list over covered pixels)."""
-    out = {n: (cal.values[n] - equivalent_truth(true, n, cal)) / cal.std[n] for n in cal.names}
+    out = {n: (cal.values[n] - equivalent_truth(true, n, cal)) / cal.std[n] for n in cal.names
+           if not (n == "pulse_tail_decay" and true.laser.pulse_shape is None)}  # undefined
     po = cal.extra.get("pixel_offsets")
     tdc = cal.system.tdc
     if po is not None and tdc.pixel_offsets is not None and tdc.pixel_offsets_std is not None:

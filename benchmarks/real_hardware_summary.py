@@ -147,6 +147,8 @@ def summarise_calibration(results, log) -> dict:
         log(f"  {k:16s} written {sum(x['ok'] for x in c):3d}/{len(c)}  goodness {gof:3d}  "
             f"other {len(other):3d}" + (f" ({top})" if top else ""))
     for key, what in (("fitted0", "ideal"), ("fitted", "imperfect")):
+        if not any(key in r for r in results):
+            continue
         sel: dict = {}
         for r in results:
             for n in r.get(key, []):
