@@ -469,6 +469,7 @@ def main(argv=None) -> int:
     ap.add_argument("--summarise", default=None, metavar="RECORDS",
                     help="print the summary of a records file and exit")
     ap.add_argument("--log", default=str(ROOT / "benchmarks" / "results" / "real_hardware.log"))
+    ap.add_argument("--note", default="", help="a line for the log's head (e.g. the commit)")
     args = ap.parse_args(argv)
     lines: list[str] = []
 
@@ -483,11 +484,15 @@ def main(argv=None) -> int:
         cds = [r for r in recs if "target" in r]
         pts = [r for r in recs if "tail" in r]
         log(f"bench_real_hardware: summary of {len(results)} trial records of {args.summarise}")
+        if args.note:
+            log(args.note)
         report(results, cds, pts, args, log, math.nan)
         return 0
     log(f"bench_real_hardware: {args.trials} trials from seed {args.seed}, wall shots / "
         f"{args.shot_scale:g}, room {args.room_shots} shots, {args.jobs} job(s), CPU "
         f"{cpu_model()}")
+    if args.note:
+        log(args.note)
     tasks = [(s, {"shot_scale": args.shot_scale, "room_shots": args.room_shots,
                   "dark": args.dark_per_code})
              for s in range(args.seed, args.seed + args.trials)]
