@@ -487,7 +487,7 @@ def main(argv=None) -> int:
         if args.note:
             log(args.note)
         report(results, cds, pts, args, log, math.nan)
-        return 0
+        return _write(args.log, lines)
     log(f"bench_real_hardware: {args.trials} trials from seed {args.seed}, wall shots / "
         f"{args.shot_scale:g}, room {args.room_shots} shots, {args.jobs} job(s), CPU "
         f"{cpu_model()}")
@@ -520,9 +520,13 @@ def main(argv=None) -> int:
         for w in work:
             keep(_call(w))
     report(results, cds, pts, args, log, time.perf_counter() - t0)
-    Path(args.log).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.log).write_text("\n".join(lines) + "\n")
-    print(f"wrote {args.log}")
+    return _write(args.log, lines)
+
+
+def _write(path: str, lines: list) -> int:
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text("\n".join(lines) + "\n")
+    print(f"wrote {path}")
     return 0
 
 
