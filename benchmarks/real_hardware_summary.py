@@ -174,29 +174,43 @@ def summarise_calibration(results, log) -> dict:
     return v
 
 
+#: the movement that defines "imperfections move points by more than 2σ" (records'
+#: keys: the 90th percentile, the median and the RMS of |Δrange|/σ_r over matched points)
+MOVEMENT = ("movement_p90", "90th percentile")
+OTHER_MOVEMENTS = (("movement", "median"), ("movement_rms", "RMS"))
+
+
 def summarise_refusals(results, log) -> dict:
     """``--model ideal``'s goodness-of-fit refusals against the trial's movement M."""
     v = {}
-    moved = [r for r in results if r["movement"] > 2]
+    key, word = MOVEMENT
+    m = [r.get(key, math.nan) for r in results]
+    moved = [r for r, x in zip(results, m) if x > 2]
     ref = [r for r in moved if r["cal"]["imperfect ideal"]["goodness"]
            and r["cal"]["imperfect ideal"]["named"]]
     any_ref = [r for r in moved if not r["cal"]["imperfect ideal"]["ok"]]
     frac = len(ref) / len(moved) if moved else math.nan
-    log(f"movement M (median |Δrange|/σ_r, true full system vs true geometry under the ideal "
-        f"model): {q([r['movement'] for r in results], (10, 25, 50, 75, 90))}; M > 2 in "
+    log(f"movement M ({word} of |Δrange|/σ_r over the room's points, true full system vs "
+        f"true geometry under the ideal model): {q(m, (10, 25, 50, 75, 90))}; M > 2 in "
         f"{len(moved)}/{len(results)} trials")
-    for lo, hi in ((0, 0.5), (0.5, 1), (1, 2), (2, 5), (5, math.inf)):
-        s = [r for r in results if lo <= r["movement"] < hi]
+    for lo, hi in ((0, 1), (1, 2), (2, 3), (3, 5), (5, math.inf)):
+        s = [r for r, x in zip(results, m) if lo <= x < hi]
         n_g = sum(r["cal"]["imperfect ideal"]["goodness"] for r in s)
         n_a = sum(not r["cal"]["imperfect ideal"]["ok"] for r in s)
         log(f"  M {lo:g}–{hi:g}: {len(s):3d} trials, --model ideal refused by the goodness test "
             f"{n_g}, refused in all {n_a}")
-    for k in ("movement_rms", "movement_p90"):
+    for k, w in OTHER_MOVEMENTS:
         s = [r for r in results if r.get(k, math.nan) > 2]
         n_g = sum(r["cal"]["imperfect ideal"]["goodness"] and bool(r["cal"]["imperfect ideal"][
             "named"]) for r in s)
-        log(f"  other definitions: {k.replace('movement_', '')} of |Δrange|/σ_r > 2 in "
-            f"{len(s)} trials, refused naming the effect {n_g}")
+        log(f"  other definitions: {w} of |Δrange|/σ_r > 2 in {len(s)} trials "
+            f"({q([r.get(k, math.nan) for r in results], (50, 90))}), refused naming the "
+            f"effect {n_g}")
+    for r in moved:
+        if r not in ref:
+            c = r["cal"]["imperfect ideal"]
+            log(f"  not refused naming an effect: seed {r['seed']} (M {r[key]:.2f}): "
+                + ("written" if c["ok"] else c["reason"][:110]))
     named: dict = {}
     for r in results:
         for e in r["cal"]["imperfect ideal"]["named"]:
