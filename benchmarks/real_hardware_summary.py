@@ -52,7 +52,8 @@ def trial_line(r) -> str:
             f"{im['edges'][0] * 1e9:.0f}/{im['edges'][1] * 1e9:.0f} ns tail "
             f"{im['tail'][0] * 100:.0f}%/{im['tail'][1] * 1e9:.1f}ns pix "
             f"{im['pixels'] * 1e12:.0f}ps DNL {im['dnl'][0]:.2f}/{im['dnl'][1]:.3f} | M "
-            f"{r['movement']:.2f} | {cal} | median cm {med}")
+            f"{r.get('movement_p90', math.nan):.2f} (median {r['movement']:.2f}) | {cal} | "
+            f"median cm {med}")
 
 
 def summarise_flows(results, log) -> dict:
