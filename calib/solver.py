@@ -17,7 +17,7 @@ from mems_stereo.calib import observability as obs
 from mems_stereo.calib.association import cells_near_track
 from mems_stereo.calib.problem import Layout, Problem, distance_model
 
-from mems_stereo.errors import NotObservableError
+from mems_stereo.errors import GeometryError, NotObservableError
 from mems_stereo.model.system import System
 
 N_ROUNDS = 2
@@ -144,7 +144,10 @@ def newton(prob: Problem, x, state: FitState, max_iter: int = MAX_ITER,
                 lam *= 10
                 continue
             xn = x + step * sc
-            lln = prob.loglik(xn)
+            try:
+                lln = prob.loglik(xn)
+            except GeometryError:  # a trial step outside the model (e.g. a harmonic so
+                lln = -math.inf    # strong the mirror turns back): damp and retry
             if np.isfinite(lln) and lln >= ll - 1e-9:
                 improved = True
                 break
