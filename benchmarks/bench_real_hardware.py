@@ -502,7 +502,13 @@ def main(argv=None) -> int:
     cd_tasks = [(args.seed + i, t) for t in targets for i in range(args.cd_trials)]
     results, cds, pts = [], [], []
 
+    crashes: list = []
+
     def keep(r) -> None:
+        if "crash" in r:  # a trial the package raised on: a bug, listed, not scored
+            crashes.append(r)
+            log(f"trial seed {r['seed']} RAISED {r['crash']}")
+            return
         (results if "flows" in r else cds if "target" in r else pts).append(r)
         if args.records:
             with open(args.records, "a", encoding="utf-8") as f:
@@ -522,6 +528,8 @@ def main(argv=None) -> int:
         for w in work:
             keep(_call(w))
     report(results, cds, pts, args, log, time.perf_counter() - t0)
+    log(f"trials that raised an exception: {len(crashes)}"
+        + (f" (seeds {[r['seed'] for r in crashes]})" if crashes else ""))
     return _write(args.log, lines)
 
 
@@ -534,7 +542,12 @@ def _write(path: str, lines: list) -> int:
 
 def _call(work):
     fn, task = work
-    return fn(task)
+    try:
+        return fn(task)
+    except Exception as e:  # noqa: BLE001 - recorded with its trial, the run goes on
+        if fn is not run_trial:
+            raise
+        return {"seed": task[0], "crash": f"{type(e).__name__}: {e}"[:300]}
 
 
 if __name__ == "__main__":
