@@ -39,6 +39,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _machine import cpu_model  # noqa: E402
+
 import mems_stereo as ms  # noqa: E402
 from mems_stereo.pipeline.frames import iter_frames  # noqa: E402
 from mems_stereo.pipeline.run import process_recording  # noqa: E402
@@ -243,16 +245,6 @@ def main() -> int:
     args.log.write_text(buf.getvalue())
     print(f"log: {args.log}")
     return 0
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 if __name__ == "__main__":

@@ -6,23 +6,12 @@ from __future__ import annotations
 
 import math
 import os
-import platform
-from pathlib import Path
 
 import numpy as np
+from _machine import cpu_model  # noqa: F401 - bench_real_hardware imports it from here
 
 BANDS = ((0.0, 2.0), (2.0, 4.0), (4.0, math.inf))
 PULL_LIMIT = 4.0
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def q(x, ps=(10, 50, 90)) -> str:
