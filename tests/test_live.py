@@ -189,7 +189,7 @@ class _Source(LiveSource):
 class _Processor:
     """Frames of 0.1 s from the shots pushed (a stand-in that counts them, no processing)."""
 
-    frame_rate, frame_shots = 10.0, None
+    frame_rate, frame_shots, in_flight = 10.0, None, 0
 
     def __init__(self):
         self.t, self.i = [], 0
@@ -209,6 +209,9 @@ class _Processor:
 
     def flush(self):
         return self._frames(max(self.t) + 1e-3)
+
+    def ready(self):
+        return []
 
 
 @pytest.mark.parametrize("can_wait", [False, True])

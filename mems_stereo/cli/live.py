@@ -22,7 +22,8 @@ HELP = ("frames of a live source (a recording replayed at its own pace, a record
 EXAMPLE = ["mems-stereo samples -o samples",
            "mems-stereo live --replay samples/room.h5 --rate max --frame-rate 50 -o frames/    "
            "# frames/room_000000.ply, ... as process --frame-rate (docs/live.md)",
-           "mems-stereo live --replay samples/room.h5 --rate 1 --frame-rate 100 -o room.mcap"]
+           "mems-stereo live --replay samples/room.h5 --rate 1 --frame-rate 100 --workers 2 "
+           "-o room.mcap    # two frame worker processes"]
 
 #: ZeroMQ transports a SOURCE may name
 ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")
@@ -69,6 +70,11 @@ def add_arguments(p):
                         "file: its mapping's)")
     p.add_argument("--map", default=None, metavar="MAP.json",
                    help="channel mapping of a PTU source (format mems-stereo/tttr-map)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes for the frame stages: consecutive frames processed "
+                        "in parallel, written in order, the same frames (default: one per "
+                        "available core, at most 4, where a clock runs; 1 for --rate max; "
+                        "1: all in this process; docs/live.md)")
     p.add_argument("--queue-frames", type=int, default=3,
                    help="frames waiting for processing at most; when full, the oldest waiting "
                         "frame is dropped for the newest, and counted (default 3)")
@@ -101,6 +107,9 @@ def _check(args) -> None:
     if not 0 <= args.view_port <= 65535:
         raise OptionError(f"expected a TCP port 0-65535, found {args.view_port}",
                           field="--view-port")
+    if args.workers is not None and args.workers < 1:
+        raise OptionError(f"expected a positive number of processes, found {args.workers}",
+                          field="--workers")
     if args.replay is None and args.rate != "1":
         raise OptionError("--rate paces a --replay only", field="--rate")
     is_ptu = args.source is not None and Path(args.source).suffix.lower() == ".ptu"
@@ -229,7 +238,7 @@ def _output_kind(args) -> str:
 
 
 def run(args) -> int:
-    from mems_stereo.pipeline.frames import FrameProcessor
+    from mems_stereo.pipeline.frame_workers import frame_processor
     from mems_stereo.pipeline.live_warmup import warm_up
     from mems_stereo.pipeline.settings import Settings
 
@@ -239,11 +248,14 @@ def run(args) -> int:
     system = resolve_system(args.system) if args.system else source.system
     settings = Settings(confidence=args.confidence, min_range=args.min_range,
                         false_alarm=args.false_alarm)
-    proc = FrameProcessor(system, frame_rate=args.frame_rate, frame_shots=args.frame_shots,
-                          settings=settings, fusion=not args.no_temporal)
-    if not source.can_wait:  # a clock runs: compiled kernels and tables ready before it starts
-        warm_up(proc)
+    workers = args.workers or (1 if source.can_wait else None)  # None: one per core
+    proc = frame_processor(system, workers=workers, frame_rate=args.frame_rate,
+                           frame_shots=args.frame_shots, settings=settings,
+                           fusion=not args.no_temporal)
+    if not source.can_wait and not proc.workers:  # a clock runs: kernels and tables ready
+        warm_up(proc)                             # before it starts (workers warm up alone)
     with contextlib.ExitStack() as keep:
+        keep.enter_context(proc)
         viewer = _open_viewer(args, rep)
         if viewer is not None:
             keep.enter_context(viewer)

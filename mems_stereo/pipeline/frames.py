@@ -105,7 +105,10 @@ class FrameProcessor:
     :meth:`push` a :class:`Recording` chunk (shot times increasing across chunks, its
     zero crossings those known up to its last shot; repeats are merged) and get the
     frames it completes; :meth:`flush` at the end of the stream for the rest.  The
-    buffer holds about one frame of shots.
+    buffer holds about one frame of shots.  :meth:`ready` returns the frames finished
+    between calls (none here; the worker processes of
+    :class:`~mems_stereo.pipeline.frame_workers.ParallelFrameProcessor` finish frames
+    meanwhile), :meth:`close` (or a ``with`` block) frees what the processor holds.
     """
 
     def __init__(self, system: System, *, frame_rate=None, frame_shots=None,
@@ -132,6 +135,31 @@ class FrameProcessor:
         self._rising = np.zeros(0, np.uint8)
         self._source = "<chunks>"
         self._last_time: float | None = None
+        self._done: list[Frame] = []  # finished frames not yet returned
+
+    #: worker processes the frame stages run in (0: this process)
+    workers = 0
+
+    @property
+    def in_flight(self) -> int:
+        """Frames being processed elsewhere (a worker process); 0 here: a frame is
+        processed when its shots are complete."""
+        return 0
+
+    def ready(self) -> list[Frame]:
+        """The frames finished since the last call (oldest first) without waiting; here
+        always those :meth:`push` or :meth:`flush` returned already (none)."""
+        out, self._done = self._done, []
+        return out
+
+    def close(self) -> None:
+        """Free what the processor holds besides its buffer (nothing here)."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
     @property
     def pending_shots(self) -> int:
@@ -187,7 +215,6 @@ class FrameProcessor:
         return start, start + self.frame_shots / float(self.system.laser.f_rep)
 
     def _finished(self, final: bool) -> list[Frame]:
-        out = []
         while self._t0 is not None:
             if not self._times.size and (final or self.frame_shots is not None):
                 break
@@ -201,8 +228,8 @@ class FrameProcessor:
                                   and self._last_time >= edge + self.margin
                                   and (self.frame_rate is not None or k == self.frame_shots)):
                 break
-            out.append(self._frame(start, end, self._take(k, start, end)))
-        return out
+            self._start(start, end, self._take(k, start, end))
+        return self.ready()
 
     def _take(self, k: int, start: float, end: float) -> FrameShots:
         """The first ``k`` buffered shots as a frame's, removed from the buffer."""
@@ -220,11 +247,18 @@ class FrameProcessor:
         self._shot0 += k
         return shots
 
-    def _frame(self, start: float, end: float, shots: FrameShots) -> Frame:
+    def _start(self, start: float, end: float, shots: FrameShots) -> None:
+        """Process the next frame's shots; here at once, into the finished frames."""
         index = self.frames_done
         self.frames_done += 1
         cloud, counts = frame_cloud(self.system, shots, self.settings, self.table,
                                     f"{self._source} frame {index}")
+        self._done.append(self._assemble(index, start, end, cloud, counts))
+
+    def _assemble(self, index: int, start: float, end: float, cloud: PointCloud,
+                  counts: Counts) -> Frame:
+        """Frame ``index`` from its frame stages' cloud: fused with each pixel's history
+        (in frame order: the fusion is sequential)."""
         if self.fusion is not None and len(cloud):  # an empty window has no pixel to fuse
             cloud = self.fusion.update(cloud)
         else:

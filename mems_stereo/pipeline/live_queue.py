@@ -13,7 +13,10 @@ whole (none of its shots reach the processor): the newest data is processed firs
 latency stays within about ``max_queued`` + 1 processing times, and every drop is
 counted and listed by index, never silent, never a growing backlog.  A source whose data waits
 without loss (a replay at ``--rate max``: ``source.can_wait``) makes the reader wait
-instead, so nothing is dropped.
+instead, so nothing is dropped.  With a
+:class:`~mems_stereo.pipeline.frame_workers.ParallelFrameProcessor` up to one frame per
+worker is in flight besides the queue (processing waits for the oldest when all are
+busy), and finished frames are written in order as the workers return them.
 
 :meth:`LiveRun.stop` (a signal handler may call it) ends the run cleanly: the source
 stops, the shots already queued are processed, and every frame whose shots were
@@ -42,6 +45,8 @@ from mems_stereo.util.memory import release_freed_memory
 
 #: seconds the consumer waits on an empty queue before it looks at the stop flag
 POLL = 0.05
+#: the same while frames are in a worker process (how soon a finished one is written)
+POLL_IN_FLIGHT = 0.004
 
 
 @dataclass
@@ -261,8 +266,10 @@ class LiveRun:
     def _consume(self) -> None:
         while True:
             try:
-                piece = self.q.get(timeout=POLL)
+                piece = self.q.get(timeout=POLL_IN_FLIGHT if self.proc.in_flight else POLL)
             except queue.Empty:
+                for f in self.proc.ready():  # frames from worker processes
+                    self._emit(f)
                 continue
             if piece.chunk is None:
                 break

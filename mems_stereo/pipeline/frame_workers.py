@@ -1,0 +1,247 @@
+"""Frames on several cores: the frame stages of consecutive frames in worker processes.
+
+A frame's stages (:func:`~mems_stereo.pipeline.frames.frame_cloud`: pass 1, the peak
+search, the matched filter, the fusion of its peaks) depend on its own shots only; the
+temporal fusion (:class:`~mems_stereo.pipeline.temporal.TemporalFusion`) depends on every
+frame before it.  :class:`ParallelFrameProcessor` therefore sends frame i's shots to
+worker ``i mod n`` (a process of its own: the stages are NumPy and numba code holding
+the GIL for much of their time) and applies the temporal fusion in the calling process,
+in frame order, as the workers' clouds come back.  The frames are the same, bit for bit,
+as :class:`~mems_stereo.pipeline.frames.FrameProcessor`'s (the same code on the same
+inputs); n frames are processed at once, so the throughput is up to n times one
+process's, while a frame's latency stays its own processing time.
+
+At most ``n`` frames are in flight: :meth:`~ParallelFrameProcessor.push` waits for the
+oldest when a frame completes while every worker is busy (so a live run's bounded
+queue, :mod:`mems_stereo.pipeline.live_queue`, fills and drops as with one process:
+never an unbounded backlog).  Each worker fills the interval table and processes a
+synthetic frame (:func:`~mems_stereo.pipeline.live_warmup.synthetic_shots`) before the
+processor returns, so the compiled kernels are loaded before the first real frame (a
+few seconds).  The workers run in a session of their own and ignore SIGINT: a Ctrl-C
+reaches the caller only, which stops the run, and the frames in flight finish and are
+returned by :meth:`~ParallelFrameProcessor.flush`.  A worker ends when the caller closes
+the processor or ends.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from multiprocessing.connection import Connection
+
+from mems_stereo.errors import MemsStereoError, OptionError
+from mems_stereo.model.system import System
+from mems_stereo.pipeline.frames import Frame, FrameProcessor, FrameShots, frame_cloud
+from mems_stereo.pipeline.live_warmup import synthetic_shots
+from mems_stereo.pipeline.run import run_table
+from mems_stereo.util.memory import release_freed_memory
+
+#: the most worker processes the default (:func:`default_workers`) starts
+MAX_DEFAULT_WORKERS = 4
+#: seconds a worker may take to start (imports, interval table, warm-up frame)
+START_TIMEOUT = 300.0
+
+
+class WorkerError(MemsStereoError, RuntimeError):
+    """A frame worker process ended or failed without its frame (or the processor was
+    closed)."""
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (``os.sched_getaffinity``; ``os.cpu_count``
+    where the platform has no affinity)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - macOS, Windows
+        return os.cpu_count() or 1
+
+
+def default_workers() -> int:
+    """Worker processes by default: one per available core, at most
+    :data:`MAX_DEFAULT_WORKERS`; 1 (no worker: the frames in the calling process) on a
+    single core."""
+    return max(1, min(available_cores(), MAX_DEFAULT_WORKERS))
+
+
+def frame_processor(system: System, *, workers: int | None = None, **kw) -> FrameProcessor:
+    """A :class:`FrameProcessor` (``workers`` 1, or None on one core) or a
+    :class:`ParallelFrameProcessor` with ``workers`` processes (None:
+    :func:`default_workers`); ``kw`` as :class:`FrameProcessor`'s.  Close it when done
+    (``with`` block or :meth:`~FrameProcessor.close`)."""
+    n = default_workers() if workers is None else int(workers)
+    if n < 1:
+        raise OptionError(f"workers: expected a positive integer, found {workers!r}")
+    if n == 1:
+        return FrameProcessor(system, **kw)
+    return ParallelFrameProcessor(system, workers=n, **kw)
+
+
+def start_worker() -> tuple[subprocess.Popen, Connection]:
+    """A worker process (``python -m mems_stereo.pipeline.frame_workers FD``: the calling
+    interpreter with its ``sys.path``, no re-import of the caller's main script; a session
+    of its own: a Ctrl-C on the terminal reaches the caller only) and the
+    :class:`~multiprocessing.connection.Connection` to it (a socket pair)."""
+    mine, theirs = socket.socketpair()
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in sys.path if p))
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", __name__, str(theirs.fileno())],
+                                pass_fds=(theirs.fileno(),), env=env,
+                                stdin=subprocess.DEVNULL, start_new_session=True)
+    finally:
+        theirs.close()
+    return proc, Connection(mine.detach())
+
+
+def worker_main(fd: int) -> None:
+    """A worker process on the connection ``fd``: ``(system, settings)``, then the table
+    and a warm-up frame (answered ``("ready", -1, s)``), then ``(index, FrameShots,
+    source)`` jobs answered with ``("ok", index, cloud, counts, cpu s)`` (or ``("error",
+    index, exception)``) until None or the end of the connection."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    conn = Connection(fd)
+    try:
+        system, settings = conn.recv()
+        table = run_table(system, settings).fill_all()
+        t0 = time.perf_counter()
+        frame_cloud(system, synthetic_shots(system), settings, table, "warm-up")
+        conn.send(("ready", -1, time.perf_counter() - t0))
+    except BaseException as e:  # noqa: BLE001 - handed to the parent
+        conn.send(("error", -1, e))
+        return
+    while True:
+        try:
+            job = conn.recv()
+        except EOFError:  # the parent ended
+            return
+        if job is None:
+            return
+        index, shots, source = job
+        c0 = time.process_time()
+        try:
+            cloud, counts = frame_cloud(system, shots, settings, table, source)
+        except BaseException as e:  # noqa: BLE001 - handed to the parent
+            conn.send(("error", index, e))
+            continue
+        conn.send(("ok", index, cloud, counts, time.process_time() - c0))
+        del cloud, counts, shots
+        release_freed_memory()  # the frame's temporaries back to the OS: a flat heap
+
+
+class ParallelFrameProcessor(FrameProcessor):
+    """A :class:`FrameProcessor` whose frame stages run in ``workers`` processes (see the
+    module doc); the same frames.  ``warm_up`` : seconds the slowest worker took for its
+    synthetic frame; ``worker_cpu`` : CPU s the workers spent on real frames."""
+
+    def __init__(self, system: System, *, workers: int = 2, **kw):
+        super().__init__(system, **kw)
+        self.worker_cpu = 0.0
+        self._conns, self._procs = [], []
+        self._pending: collections.deque = collections.deque()  # (index, start, end, conn)
+        try:
+            for _ in range(int(workers)):
+                p, conn = start_worker()
+                self._procs.append(p)
+                self._conns.append(conn)
+                conn.send((system, self.settings))
+            self.warm_up = max(self._receive(c, -1, START_TIMEOUT)[0] for c in self._conns)
+        except BaseException:
+            self.close()
+            raise
+
+    @property
+    def workers(self) -> int:
+        """Worker processes running."""
+        return len(self._conns)
+
+    @property
+    def worker_pids(self) -> list[int]:
+        """Process ids of the workers."""
+        return [p.pid for p in self._procs]
+
+    @property
+    def in_flight(self) -> int:
+        """Frames sent to a worker and not yet returned."""
+        return len(self._pending)
+
+    def _receive(self, conn, index: int, timeout: float | None = None):
+        """The answer of ``conn`` for job ``index``: ``(seconds,)`` or ``(cloud, counts,
+        cpu)``; raises the worker's exception or :class:`WorkerError`."""
+        try:
+            if timeout is not None and not conn.poll(timeout):
+                raise WorkerError(f"a frame worker did not start within {timeout:.0f} s")
+            msg = conn.recv()
+        except (EOFError, OSError) as e:
+            raise WorkerError(f"a frame worker process ended before frame {index} "
+                              f"({type(e).__name__})") from None
+        if msg[0] == "error":
+            raise msg[2]
+        if msg[1] != index:  # pragma: no cover - the protocol keeps order per worker
+            raise WorkerError(f"frame worker answered frame {msg[1]}, expected {index}")
+        return msg[2:]
+
+    def _start(self, start: float, end: float, shots: FrameShots) -> None:
+        """Send the next frame to its worker, after the oldest frame in flight came back
+        where every worker is busy."""
+        if not self._conns:
+            raise WorkerError("the frame processor is closed")
+        while len(self._pending) >= len(self._conns):
+            self._collect_head()
+        index = self.frames_done
+        self.frames_done += 1
+        conn = self._conns[index % len(self._conns)]
+        try:
+            conn.send((index, shots, f"{self._source} frame {index}"))
+        except OSError:
+            raise WorkerError(f"a frame worker process ended before frame {index}") from None
+        self._pending.append((index, start, end, conn))
+
+    def _collect_head(self) -> None:
+        index, start, end, conn = self._pending.popleft()
+        cloud, counts, cpu = self._receive(conn, index)
+        self.worker_cpu += cpu
+        self._done.append(self._assemble(index, start, end, cloud, counts))
+
+    def ready(self) -> list[Frame]:
+        """The frames finished since the last call, oldest first, without waiting (a
+        frame whose predecessor is still in flight waits for it)."""
+        while self._pending and self._pending[0][3].poll():
+            self._collect_head()
+        return super().ready()
+
+    def flush(self) -> list[Frame]:
+        """The frames left at the end of the stream, every frame in flight included."""
+        out = super().flush()
+        while self._pending:
+            self._collect_head()
+        return out + super().ready()
+
+    def close(self) -> None:
+        """Stop the workers (frames in flight are lost: :meth:`flush` first)."""
+        for c in self._conns:
+            try:
+                c.send(None)
+            except OSError:
+                pass
+        for p in self._procs:
+            try:
+                p.wait(timeout=5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+        for c in self._conns:
+            c.close()
+        self._conns, self._procs = [], []
+        self._pending.clear()
+
+    def __del__(self):  # a processor dropped without close: no orphan workers
+        if getattr(self, "_procs", None):
+            self.close()
+
+
+if __name__ == "__main__":
+    worker_main(int(sys.argv[1]))
