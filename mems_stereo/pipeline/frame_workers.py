@@ -113,23 +113,20 @@ def worker_main(fd: int) -> None:
     except BaseException as e:  # noqa: BLE001 - handed to the parent
         conn.send(("error", -1, e))
         return
-    while True:
-        try:
-            job = conn.recv()
-        except EOFError:  # the parent ended
-            return
-        if job is None:
-            return
-        index, shots, source = job
-        c0 = time.process_time()
-        try:
-            cloud, counts = frame_cloud(system, shots, settings, table, source)
-        except BaseException as e:  # noqa: BLE001 - handed to the parent
-            conn.send(("error", index, e))
-            continue
-        conn.send(("ok", index, cloud, counts, time.process_time() - c0))
-        del cloud, counts, shots
-        release_freed_memory()  # the frame's temporaries back to the OS: a flat heap
+    try:
+        while (job := conn.recv()) is not None:
+            index, shots, source = job
+            c0 = time.process_time()
+            try:
+                cloud, counts = frame_cloud(system, shots, settings, table, source)
+            except Exception as e:  # noqa: BLE001 - handed to the parent
+                conn.send(("error", index, e))
+                continue
+            conn.send(("ok", index, cloud, counts, time.process_time() - c0))
+            del cloud, counts, shots
+            release_freed_memory()  # the frame's temporaries back to the OS: a flat heap
+    except (EOFError, OSError):  # the parent ended
+        return
 
 
 class ParallelFrameProcessor(FrameProcessor):
@@ -240,7 +237,10 @@ class ParallelFrameProcessor(FrameProcessor):
 
     def __del__(self):  # a processor dropped without close: no orphan workers
         if getattr(self, "_procs", None):
-            self.close()
+            try:
+                self.close()
+            except Exception:  # noqa: BLE001 - interpreter shutdown: the workers see EOF
+                pass
 
 
 if __name__ == "__main__":
