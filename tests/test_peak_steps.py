@@ -100,14 +100,17 @@ def test_visited_excess_band_equals_the_dense_band(monkeypatch, numba_loaded):
 
 
 def test_visited_window_rows_equal_the_dense_rows():
+    """The background rows stored at the visited steps alone are window_rows' matrix."""
     rng = np.random.default_rng(7)
     S = 80
     steps, _, back, _, db = _visited(rng, S, 30, 6, 1.0)
     q, lo, hi = np.array([3, 0, 5, 5]), np.array([10, 0, 79, 4]), np.array([40, 79, 79, 3])
     a, b = sw.visited_window_rows(back, steps, S, q, lo, hi), window_rows(db, q, lo, hi)
-    assert a.shape == b.shape
-    for f in ("indptr", "indices", "data"):
-        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    assert a.shape == b.shape and np.array_equal(_bits(a.toarray()), _bits(b.toarray()))
+    # stored: the visited steps of each row's columns (independently counted)
+    want = [np.count_nonzero((steps >= lo[i]) & (steps <= hi[i])) for i in range(q.size)]
+    assert np.array_equal(np.diff(a.indptr), want)
+    assert set(a.indices.tolist()) <= set(steps.tolist())
 
 
 @pytest.mark.parametrize("numba_loaded", [True, False])
@@ -215,3 +218,9 @@ def test_peak_search_compiled_equals_numpy_on_a_recording(monkeypatch):
         for f in ("indptr", "indices", "data"):
             assert np.array_equal(getattr(a.background_by_step, f),
                                   getattr(b.background_by_step, f)), f
+    # the rows hold the expected background over the peak's steps, zero elsewhere
+    dense = fast.background_by_step.toarray()
+    for i in range(len(fast)):
+        out = np.ones(dense.shape[1], bool)
+        out[fast.step_lo[i]:fast.step_hi[i] + 1] = False
+        assert not dense[i, out].any() and dense[i, ~out].sum() > 0

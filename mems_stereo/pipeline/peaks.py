@@ -157,19 +157,31 @@ def footprint_steps(system: System, table) -> int:
 
     Numerically, at the working distance where the transmitter axis meets
     the optical axis (or 2.5 m when they do not meet): the beam's image moves
-    by |d column / d θ| pixels per radian of mirror angle.
+    by |d column / d θ| pixels per radian of mirror angle.  Kept per (system,
+    table step) for the next frames (systems are frozen).
     """
+    key = (id(system), float(table.step))
+    hit = _FOOTPRINTS.get(key)
+    if hit is not None and hit[0] is system:
+        return hit[1]
     from mems_stereo.model.acquisition import shot_pixels
 
     sc = system.scanner
     d = 1e-4
     cols = shot_pixels(system, np.array([sc.theta0 - d, sc.theta0 + d]), 2.5)
     px_per_rad = abs(cols[1] - cols[0]) / (2 * d) if np.all(np.isfinite(cols)) else np.nan
-    if not np.isfinite(px_per_rad) or px_per_rad <= 0:
-        return 3
-    n = int(round(1.0 / px_per_rad / table.step))
-    return max(3, n + 1 - n % 2)
+    width = 3
+    if np.isfinite(px_per_rad) and px_per_rad > 0:
+        n = int(round(1.0 / px_per_rad / table.step))
+        width = max(3, n + 1 - n % 2)
+    if len(_FOOTPRINTS) >= 8:
+        _FOOTPRINTS.clear()
+    _FOOTPRINTS[key] = (system, width)
+    return width
 
+
+#: :func:`footprint_steps` by (id of the system, table step): (system, steps)
+_FOOTPRINTS: dict = {}
 
 
 def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
@@ -229,10 +241,11 @@ class PeakScores:
     support); thr_frame : the per-frame threshold
     (:func:`~mems_stereo.pipeline.peak_support.frame_threshold`); log_range : (Pb, 3) log stereo
     range at ``j``, its resolution and slope allowance
-    (:func:`~mems_stereo.pipeline.peak_support.support_ranges`). Every value of a pixel is its
-    own, so blocks of pixels give the whole's values (the Dask runner scores blocks on its
-    workers; :func:`~mems_stereo.pipeline.peak_support.supported` then needs the
-    :meth:`support_inputs` of all).
+    (:func:`~mems_stereo.pipeline.peak_support.support_ranges`) — these two of the pixels
+    with ``keep`` alone (inf, NaN elsewhere: the support reads no other). Every value of a
+    pixel is its own, so blocks of pixels give the whole's values (the Dask runner scores
+    blocks on its workers; :func:`~mems_stereo.pipeline.peak_support.supported` then needs
+    the :meth:`support_inputs` of all).
     """
 
     pixels: np.ndarray
@@ -282,9 +295,14 @@ def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
     Hs = np.asarray(signal_angle)[:, used].astype(np.float64)
     wm = strongest_windows(Hs, B, used, table.n_steps, width)
     ws = window_scores_of(wm, width, settings)
+    # the neighbour support reads the threshold and ranges of pixels with a peak alone
+    k = np.flatnonzero(ws.keep)
+    thr_frame = np.full(pixels.size, np.inf)
+    thr_frame[k] = frame_threshold(ws.n_windows[k], ws.mu[k], P_all)
+    log_range = np.full((pixels.size, 3), np.nan)
+    log_range[k] = support_ranges(system, table, pixels[k], ws.j[k], width)
     return PeakScores(pixels, S, used, Hs, B, rate, ws.j, ws.cnt, ws.mu, ws.keep,
-                      ws.n_windows, frame_threshold(ws.n_windows, ws.mu, P_all),
-                      support_ranges(system, table, pixels, ws.j, width))
+                      ws.n_windows, thr_frame, log_range)
 
 
 def _table_index(steps, pixels):

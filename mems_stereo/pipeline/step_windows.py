@@ -210,24 +210,23 @@ def _band_py(H, B, steps, S, half, rows, jr, level, lo_out, hi_out):  # pragma: 
 
 
 def visited_window_rows(B, steps, n_steps: int, q, lo, hi):
-    """:func:`~mems_stereo.pipeline.peak_table.window_rows` of the (P, ``n_steps``) rows
-    whose values at the visited ``steps`` (U,) are ``B`` (P, U) and zero elsewhere: the
-    same ``scipy.sparse.csr_array``, zeros stored as the dense rows' are."""
+    """(Q, ``n_steps``) ``scipy.sparse.csr_array`` float64: the rows ``q`` (Q,) of the
+    rows whose values at the visited ``steps`` (U,) are ``B`` (P, U) (zero elsewhere),
+    over the columns ``lo[i]..hi[i]`` of each: as
+    :func:`~mems_stereo.pipeline.peak_table.window_rows` of the dense rows, the same
+    matrix, with the values at the visited steps stored (the others are zero)."""
     from scipy.sparse import csr_array
 
     q, lo, hi = (np.asarray(x, np.int64).ravel() for x in (q, lo, hi))
-    n = np.maximum(hi - lo + 1, 0)
+    steps = np.asarray(steps, np.int64)
+    a = np.searchsorted(steps, lo, side="left")
+    n = np.maximum(np.searchsorted(steps, hi, side="right") - a, 0)
     indptr = np.zeros(q.size + 1, np.int64)
     np.cumsum(n, out=indptr[1:])
     row = np.repeat(np.arange(q.size), n)
-    col = np.arange(indptr[-1]) - indptr[:-1][row] + lo[row]
-    slot = np.full(int(n_steps), -1, np.int64)
-    slot[np.asarray(steps, np.int64)] = np.arange(len(steps))
-    at = slot[col]
-    hit = at >= 0
-    data = np.zeros(col.size)
-    data[hit] = np.asarray(B)[q[row[hit]], at[hit]]
-    return csr_array((data, col, indptr), shape=(q.size, int(n_steps)))
+    at = np.arange(indptr[-1]) - indptr[:-1][row] + a[row]  # the visited steps' index
+    return csr_array((np.asarray(B)[q[row], at], steps[at], indptr),
+                     shape=(q.size, int(n_steps)))
 
 
 def step_span(background, steps):
