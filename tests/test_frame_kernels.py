@@ -104,7 +104,7 @@ def test_box_grid_counts_add_entries_in_order():
 def test_acceptance_counts_kernel_equals_difference_array(monkeypatch):
     pytest.importorskip("numba")
     from mems_stereo.model.system import burkard2022
-    from mems_stereo.pipeline import peaks as pk
+    from mems_stereo.pipeline import acceptance as pk
     from mems_stereo.pipeline.intervals import interval_table
 
     system = burkard2022()

@@ -220,7 +220,7 @@ def _noise_trial_sums(noise, raw, acceptance, n_valid: int):
     h, r, a = np.asarray(noise), np.asarray(raw), np.asarray(acceptance)
     kernel = None
     if h.size >= COMPILED_SUM_ENTRIES and "numba" in sys.modules:  # (as compiled_if_loaded)
-        kernel = compiled_kernel(_noise_trials_py, {"_pairwise_py": _pairwise_py})
+        kernel = compiled_kernel(_noise_trials_py, _PAIRWISE)
     if kernel is None or h.ndim != 2 or not h.shape == r.shape == a.shape or not h.shape[1]:
         return None
     k, n, ok = kernel(np.ascontiguousarray(h), np.ascontiguousarray(r),
@@ -266,21 +266,27 @@ def _pairwise_py(a, plan):  # pragma: no cover - compiled by numba
             for i in range(m):
                 res += a[lo + i]
         else:
-            r = np.empty(8)
-            for i in range(8):
-                r[i] = a[lo + i]
+            # NumPy's 8 accumulators (scalars: no array per block)
+            r0, r1, r2, r3 = a[lo], a[lo + 1], a[lo + 2], a[lo + 3]
+            r4, r5, r6, r7 = a[lo + 4], a[lo + 5], a[lo + 6], a[lo + 7]
             i = 8
             while i < m - m % 8:
-                for t in range(8):
-                    r[t] += a[lo + i + t]
+                b = lo + i
+                r0, r1, r2, r3 = r0 + a[b], r1 + a[b + 1], r2 + a[b + 2], r3 + a[b + 3]
+                r4, r5, r6, r7 = r4 + a[b + 4], r5 + a[b + 5], r6 + a[b + 6], r7 + a[b + 7]
                 i += 8
-            res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+            res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
             while i < m:
                 res += a[lo + i]
                 i += 1
         stack[top] = res
         top += 1
     return 0.0 + stack[0]
+
+
+#: :func:`_pairwise_py` itself, for the kernels that call it (:func:`compiled_kernel`
+#: rebinds the global name to its compiled form)
+_PAIRWISE = {"_pairwise_py": _pairwise_py}
 
 
 def _noise_trials_py(h, r, a, n_valid, plan):  # pragma: no cover - compiled by numba
@@ -309,6 +315,74 @@ def _noise_trials_py(h, r, a, n_valid, plan):  # pragma: no cover - compiled by 
     return k, n, True
 
 
+def background_rate_at_steps(noise, signal, lo, hi, shots, n_valid: int,
+                             bin_width: float):
+    """:func:`background_rate_from_noise` of the noise histogram N and the raw one
+    S + N (``noise``, ``signal`` (P, n_bins) int64), the acceptance counts A taken from
+    the accepted codes ``lo``, ``hi`` (U, P) of U angle steps with ``shots`` (U,) int64
+    valid shots each (A[p, c − 1]: the shots of the steps whose [lo, hi] holds code c),
+    in one compiled pass per pixel without the (P, n_bins) A and S + N: (P,) float64
+    Hz, the same numbers.  None where that pass does not apply (numba not loaded, input
+    small or refused): then ``background_rate_from_noise`` with A."""
+    h, s = np.asarray(noise), np.asarray(signal)
+    if (h.size < COMPILED_SUM_ENTRIES or "numba" not in sys.modules or h.ndim != 2
+            or h.shape != s.shape or not h.shape[1] or not bin_width > 0
+            or h.dtype != np.int64 or s.dtype != np.int64):
+        return None
+    kernel = compiled_kernel(_rates_at_steps_py, _PAIRWISE)
+    if kernel is None:  # pragma: no cover - numba is a declared dependency
+        return None
+    n_valid = max(int(n_valid), 1)
+    k, n, ok = kernel(np.ascontiguousarray(h), np.ascontiguousarray(s),
+                      np.ascontiguousarray(lo), np.ascontiguousarray(hi),
+                      np.asarray(shots, np.int64), n_valid, pairwise_plan(h.shape[1]))
+    if not ok:
+        return None
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = np.where(n > 0, k / n, np.nan)
+        return -np.log1p(-p) / bin_width
+
+
+def _rates_at_steps_py(h, s, lo, hi, shots, n_valid, plan):  # pragma: no cover - numba
+    """:func:`background_rate_at_steps`'s sums: per pixel the acceptance counts as a
+    difference array over codes, then :func:`_noise_trials_py`'s numbers with raw =
+    s + h.  Its counts, armed shots and their sums are integers below 2**53, exact as
+    float64 in any order: they are added as integers (``Σ N_j`` too), and the trials
+    ``n_j·(1 − A_j/n_valid)`` — the one sum whose rounding depends on the order — are
+    added in NumPy's pairwise order, ``1 − A_j/n_valid`` computed where A changes."""
+    P, B = h.shape
+    U = lo.shape[0]
+    k, n = np.empty(P), np.empty(P)
+    tr = np.empty(B)
+    diff = np.zeros(B + 2, np.int64)
+    nv = np.float64(n_valid)
+    for p in range(P):
+        diff[:] = 0
+        for u in range(U):
+            a, b = np.int64(lo[u, p]), np.int64(hi[u, p])
+            if a <= b:
+                diff[a] += shots[u]
+                diff[b + 1] -= shots[u]
+        acc = diff[0]
+        share = 1.0 - acc / nv
+        armed = np.int64(n_valid)  # n_j: the shots not fired before bin j
+        total = np.int64(0)
+        for j in range(B):
+            if diff[j + 1] != 0:
+                acc += diff[j + 1]  # the acceptance count of code j + 1
+                share = 1.0 - acc / nv
+            hj = np.int64(h[p, j])
+            rj = np.int64(s[p, j]) + hj
+            if hj < 0 or rj < 0 or armed - rj < 0:
+                return k, n, False
+            tr[j] = np.float64(armed) * share
+            total += hj
+            armed -= rj
+        k[p] = np.float64(total)
+        n[p] = _pairwise_py(tr, plan)
+    return k, n, True
+
+
 def expected_background_in_signal(acceptance, rate_hz, bin_width: float) -> np.ndarray:
     """Expected background counts per (pixel, bin) that pass the classifier.
 
@@ -329,7 +403,8 @@ def expected_background_by_angle(table, n_per_step, rate_hz, pixels=None) -> np.
     (geometric first-photon law, q = 1 − exp(−λ·Δt)); times the number of
     valid shots at that step.  Returns (P, S) float64.  ``pixels`` : (P,) the
     flat pixels of ``rate_hz`` (default: all of the table's, in order); each
-    pixel's row is the same whichever others are computed with it.
+    pixel's row is the same whichever others are computed with it.  The steps with
+    valid shots alone: :func:`expected_background_at_steps`.
     """
     P = table.lo.shape[1] if pixels is None else len(pixels)
     out = np.zeros((P, table.n_steps))
@@ -339,13 +414,21 @@ def expected_background_by_angle(table, n_per_step, rate_hz, pixels=None) -> np.
     table.ensure(used)
     lo = table.lo[used] if pixels is None else table.lo[np.ix_(used, pixels)]
     hi = table.hi[used] if pixels is None else table.hi[np.ix_(used, pixels)]
-    lo = lo.astype(np.float64)
-    hi = hi.astype(np.float64)
-    dt = table.system.tdc.bin_width
-    a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * dt), 1 - 1e-15))[None, :]
-    pacc = np.where(lo <= hi, np.exp((lo - 1.0) * a) - np.exp(hi * a), 0.0)
-    out[:, used] = (pacc * n_per_step[used][:, None]).T
+    out[:, used] = expected_background_at_steps(lo, hi, n_per_step[used], rate_hz,
+                                                table.system.tdc.bin_width)
     return out
+
+
+def expected_background_at_steps(lo, hi, shots, rate_hz, bin_width: float) -> np.ndarray:
+    """:func:`expected_background_by_angle` at U angle steps: ``lo``, ``hi`` (U, P) the
+    accepted codes of the steps (integer, the interval table's rows), ``shots`` (U,)
+    their valid shots, ``rate_hz`` (P,) Hz; returns (P, U) float64 (a transposed view)."""
+    lo = np.asarray(lo).astype(np.float64)
+    hi = np.asarray(hi).astype(np.float64)
+    a = np.log1p(-np.minimum(-np.expm1(-np.nan_to_num(rate_hz) * bin_width),
+                             1 - 1e-15))[None, :]
+    pacc = np.where(lo <= hi, np.exp((lo - 1.0) * a) - np.exp(hi * a), 0.0)
+    return (pacc * np.asarray(shots)[:, None]).T
 
 
 # --------------------------------------------------------------------------- filter, threshold

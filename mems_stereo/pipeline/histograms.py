@@ -160,3 +160,40 @@ def moving_average(hist, width: int) -> np.ndarray:
     n_bins = np.asarray(hist).shape[-1]
     norm = moving_sum(np.ones(n_bins), width)
     return s / norm
+
+
+def moving_average_argmax(hist, width: int) -> np.ndarray:
+    """``np.argmax(moving_average(hist, width), axis=1)`` of (R, n_bins) integer rows:
+    (R,) int64, the first bin of each row's largest moving average.  Where numba is
+    loaded a compiled pass slides the window sums along the row (integers: exact, the
+    same numbers as the running sums' differences) and divides each by its bin count,
+    without the (R, n_bins) averages."""
+    from mems_stereo.util.lazy_numba import compiled_if_loaded
+
+    h = np.asarray(hist)
+    kernel = compiled_if_loaded(_average_argmax_py)
+    if (kernel is None or h.ndim != 2 or h.shape[1] == 0 or h.dtype != np.int64
+            or int(width) < 1 or int(width) % 2 == 0):
+        return np.argmax(moving_average(h, width), axis=-1)
+    out = np.zeros(h.shape[0], np.int64)
+    kernel(np.ascontiguousarray(h), int(width) // 2, out)
+    return out
+
+
+def _average_argmax_py(h, half, out):  # pragma: no cover - compiled by numba
+    """:func:`moving_average_argmax` row by row (the numba kernel)."""
+    R, n = h.shape
+    for r in range(R):
+        s = np.int64(0)
+        for i in range(min(half, n)):
+            s += h[r, i]
+        best, bv = 0, -1.0
+        for i in range(n):
+            if i + half < n:
+                s += h[r, i + half]
+            if i - half - 1 >= 0:
+                s -= h[r, i - half - 1]
+            v = np.float64(s) / np.float64(min(i + half + 1, n) - max(i - half, 0))
+            if i == 0 or v > bv:
+                best, bv = i, v
+        out[r] = best

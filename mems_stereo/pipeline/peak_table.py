@@ -34,7 +34,8 @@ class Peaks:
     expected background; rate_hz : (Q,) float64, the pixel's ML background
     rate; background_by_step : (Q, S) ``scipy.sparse.csr_array`` float64,
     the expected background detections per angle step over each peak's
-    counted steps ``step_lo..step_hi`` (zero elsewhere; :func:`window_rows`;
+    counted steps ``step_lo..step_hi`` (zero elsewhere; stored at those of the
+    steps with valid shots, or all of them, :func:`window_rows`;
     None in a light copy, :meth:`light`); candidates : the matched filter's
     :class:`Candidates` found with the first stage's peaks (None otherwise).
     """

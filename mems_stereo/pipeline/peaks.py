@@ -26,13 +26,14 @@ import numpy as np
 
 from mems_stereo.model.system import System
 from mems_stereo.physics.background import (
+    background_rate_at_steps,
     background_rate_from_noise,
-    expected_background_by_angle,
     moving_sum,
     poisson_isf,
 )
 from mems_stereo.physics.pulse import effective_fwhm
-from mems_stereo.pipeline.histograms import moving_average
+from mems_stereo.pipeline.acceptance import acceptance_counts
+from mems_stereo.pipeline.histograms import moving_average, moving_average_argmax
 from mems_stereo.pipeline.intervals import interval_table
 from mems_stereo.pipeline.peak_support import (
     SupportInputs,
@@ -40,73 +41,17 @@ from mems_stereo.pipeline.peak_support import (
     support_ranges,
     supported,
 )
-from mems_stereo.pipeline.peak_table import Candidates, Peaks, window_rows
+from mems_stereo.pipeline.peak_table import Candidates, Peaks
 from mems_stereo.pipeline.settings import Settings
-from mems_stereo.util.lazy_numba import compiled_if_loaded
-
-
-def acceptance_counts(system: System, theta, valid, confidence: float,
-                      min_range: float | None = None, table=None,
-                      n_per_step=None, pixels=None) -> np.ndarray:
-    """A[p, j]: valid shots in which code j+1 of pixel p was accepted as signal.
-
-    (P, n_bins) int64, from the interval table and the shots' angle steps (a
-    difference array over codes: O(steps × pixels), not O(shots × pixels)).
-    ``table`` : the run's interval table (default: a new one); ``n_per_step``
-    : (S,) valid shots per step (default: counted from ``theta``, ``valid``);
-    ``pixels`` : (P,) flat pixels (default: all, in order).
-    """
-    if table is None:
-        table = interval_table(system, confidence, min_range=min_range)
-    n_per_row = (table.shots_per_step(theta, valid) if n_per_step is None
-                 else np.asarray(n_per_step))
-    used = np.flatnonzero(n_per_row)
-    n_row = n_per_row[used]
-    table.ensure(used)
-    n_bins = system.tdc.n_bins
-    pix = (np.arange(table.lo.shape[1]) if pixels is None
-           else np.asarray(pixels, np.int64))
-    kernel = compiled_if_loaded(_acceptance_py)
-    if kernel is not None:  # integer sums: the same numbers in any order
-        return kernel(table.lo, table.hi, used.astype(np.int64), pix,
-                      n_row.astype(np.int64), n_bins)
-    sel = used if pixels is None else np.ix_(used, pix)
-    lo = table.lo[sel].astype(np.int64)  # (U, P)
-    hi = table.hi[sel].astype(np.int64)
-    ok = lo <= hi
-    P = lo.shape[1]
-    w = np.broadcast_to(n_row[:, None], lo.shape)[ok].astype(np.float64)
-    at = np.broadcast_to(np.arange(P)[None, :] * (n_bins + 2), lo.shape)[ok]
-    # the difference array by bincount (float sums of integers below 2**53: exact)
-    diff = (np.bincount(at + lo[ok], w, P * (n_bins + 2))
-            - np.bincount(at + hi[ok] + 1, w, P * (n_bins + 2)))
-    diff = np.rint(diff).astype(np.int64).reshape(P, n_bins + 2)
-    return np.cumsum(diff, axis=1)[:, 1:n_bins + 1]
-
-
-def _acceptance_py(lo, hi, used, pix, n_row, n_bins):  # pragma: no cover - numba
-    """:func:`acceptance_counts` loop by loop (the numba kernel): ``lo``, ``hi`` (S, P')
-    the interval table's accepted codes, ``used`` (U,) the steps with shots, ``pix`` (P,)
-    the pixels, ``n_row`` (U,) int64 each used step's valid shots; returns (P, n_bins)
-    int64, per pixel the difference array over codes summed (integers: exact)."""
-    U, P = used.shape[0], pix.shape[0]
-    diff = np.zeros(n_bins + 2, np.int64)  # one pixel's, in cache
-    out = np.empty((P, n_bins), np.int64)
-    for p in range(P):
-        diff[:] = 0
-        q = pix[p]
-        for u in range(U):
-            a = np.int64(lo[used[u], q])
-            b = np.int64(hi[used[u], q])
-            if a <= b:
-                diff[a] += n_row[u]
-                diff[b + 1] -= n_row[u]
-        acc = diff[0]
-        for c in range(1, n_bins + 1):
-            acc += diff[c]
-            out[p, c - 1] = acc
-    return out
-
+from mems_stereo.pipeline.step_windows import (
+    WindowMax,
+    background_at_steps,
+    dense_rows,
+    step_span,
+    strongest_windows,
+    visited_excess_band,
+    visited_window_rows,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -174,11 +119,17 @@ def window_scores(counts, background, width: int, support, settings: Settings) -
     B_w = moving_sum(background, width)
     j = np.argmax(S_w - B_w, axis=1)
     rows = np.arange(counts.shape[0])
-    cnt, mu = S_w[rows, j], B_w[rows, j]
-    n_windows = np.maximum(1.0, np.count_nonzero(support, axis=1) / width)
-    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(mu, 1e-12))
-    keep = (cnt > thr) & (cnt >= settings.min_counts)
-    return WindowScores(j, cnt, mu, keep, n_windows)
+    return window_scores_of(WindowMax(j, S_w[rows, j], B_w[rows, j],
+                                      np.count_nonzero(support, axis=1)), width, settings)
+
+
+def window_scores_of(wm: WindowMax, width: int, settings: Settings) -> WindowScores:
+    """:class:`WindowScores` of the strongest windows ``wm`` (``n_positive``: each row's
+    steps where background can occur)."""
+    n_windows = np.maximum(1.0, wm.n_positive / width)
+    thr = poisson_isf(settings.false_alarm / n_windows, np.maximum(wm.mu, 1e-12))
+    keep = (wm.cnt > thr) & (wm.cnt >= settings.min_counts)
+    return WindowScores(wm.j, wm.cnt, wm.mu, keep, n_windows)
 
 
 def excess_band(counts, background, width: int, j, level: float = 0.5):
@@ -206,19 +157,31 @@ def footprint_steps(system: System, table) -> int:
 
     Numerically, at the working distance where the transmitter axis meets
     the optical axis (or 2.5 m when they do not meet): the beam's image moves
-    by |d column / d θ| pixels per radian of mirror angle.
+    by |d column / d θ| pixels per radian of mirror angle.  Kept per (system,
+    table step) for the next frames (systems are frozen).
     """
+    key = (id(system), float(table.step))
+    hit = _FOOTPRINTS.get(key)
+    if hit is not None and hit[0] is system:
+        return hit[1]
     from mems_stereo.model.acquisition import shot_pixels
 
     sc = system.scanner
     d = 1e-4
     cols = shot_pixels(system, np.array([sc.theta0 - d, sc.theta0 + d]), 2.5)
     px_per_rad = abs(cols[1] - cols[0]) / (2 * d) if np.all(np.isfinite(cols)) else np.nan
-    if not np.isfinite(px_per_rad) or px_per_rad <= 0:
-        return 3
-    n = int(round(1.0 / px_per_rad / table.step))
-    return max(3, n + 1 - n % 2)
+    width = 3
+    if np.isfinite(px_per_rad) and px_per_rad > 0:
+        n = int(round(1.0 / px_per_rad / table.step))
+        width = max(3, n + 1 - n % 2)
+    if len(_FOOTPRINTS) >= 8:
+        _FOOTPRINTS.clear()
+    _FOOTPRINTS[key] = (system, width)
+    return width
 
+
+#: :func:`footprint_steps` by (id of the system, table step): (system, steps)
+_FOOTPRINTS: dict = {}
 
 
 def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
@@ -270,20 +233,24 @@ class PeakScores:
     """The first, per-pixel stage of :func:`find_peaks` for a block of pixels (Pb).
 
     pixels : (Pb,) int64 flat pixels ``row·width + col``; signal : (Pb, n_bins) the
-    signal histogram; angle : (Pb, S) float64 signal detections per angle step;
-    background : (Pb, S) float64 their expected background; rate : (Pb,) Hz, the ML
-    background rate; j, cnt, mu, keep, n_windows : the strongest window (:func:`window_scores`;
-    ``keep`` before the neighbour support); thr_frame : the per-frame threshold
+    signal histogram; steps : (U,) int64 the angle steps with valid shots (increasing;
+    every other step has no detection and no background); angle : (Pb, U) float64
+    signal detections at those steps; background : (Pb, U) float64 their expected
+    background; rate : (Pb,) Hz, the ML background rate; j, cnt, mu, keep, n_windows :
+    the strongest window (:func:`window_scores`; ``keep`` before the neighbour
+    support); thr_frame : the per-frame threshold
     (:func:`~mems_stereo.pipeline.peak_support.frame_threshold`); log_range : (Pb, 3) log stereo
     range at ``j``, its resolution and slope allowance
-    (:func:`~mems_stereo.pipeline.peak_support.support_ranges`). Every value of a pixel is its
-    own, so blocks of pixels give the whole's values (the Dask runner scores blocks on its
-    workers; :func:`~mems_stereo.pipeline.peak_support.supported` then needs the
-    :meth:`support_inputs` of all).
+    (:func:`~mems_stereo.pipeline.peak_support.support_ranges`) — these two of the pixels
+    with ``keep`` alone (inf, NaN elsewhere: the support reads no other). Every value of a
+    pixel is its own, so blocks of pixels give the whole's values (the Dask runner scores
+    blocks on its workers; :func:`~mems_stereo.pipeline.peak_support.supported` then needs
+    the :meth:`support_inputs` of all).
     """
 
     pixels: np.ndarray
     signal: np.ndarray
+    steps: np.ndarray
     angle: np.ndarray
     background: np.ndarray
     rate: np.ndarray
@@ -306,23 +273,46 @@ def peak_scores(system: System, signal, noise, signal_angle, n_per_step, table,
                 settings: Settings, pixels) -> PeakScores:
     """:class:`PeakScores` of the flat ``pixels`` (Pb,) from their rows ``signal``,
     ``noise`` (Pb, n_bins) int and ``signal_angle`` (Pb, S) of pass 1; ``n_per_step``
-    (S,) valid shots per step; ``table`` the run's interval table."""
+    (S,) valid shots per step; ``table`` the run's interval table.  Its cost follows
+    the steps with valid shots (:mod:`~mems_stereo.pipeline.step_windows`), not all S."""
     pixels = np.asarray(pixels, np.int64)
     P_all = system.receiver.width * system.receiver.height
     bw = system.tdc.bin_width
     S = np.asarray(signal)
     N = np.asarray(noise)
-    n_valid = int(n_per_step.sum())
-    A = acceptance_counts(system, None, None, settings.confidence, settings.min_range,
-                          table=table, n_per_step=n_per_step, pixels=pixels)
-    rate = background_rate_from_noise(N, S + N, A, n_valid, bw)
+    n_per_step = np.asarray(n_per_step)
+    used = np.flatnonzero(n_per_step)
+    table.ensure(used)
+    at = _table_index(used, pixels)
+    lo, hi = table.lo[at], table.hi[at]  # (U, Pb) the accepted codes at the visited steps
+    rate = background_rate_at_steps(N, S, lo, hi, n_per_step[used], int(n_per_step.sum()), bw)
+    if rate is None:
+        A = acceptance_counts(system, None, None, settings.confidence, settings.min_range,
+                              table=table, n_per_step=n_per_step, pixels=pixels)
+        rate = background_rate_from_noise(N, S + N, A, int(n_per_step.sum()), bw)
     width = footprint_steps(system, table)
-    B = expected_background_by_angle(table, n_per_step, rate, pixels)
-    Hs = np.asarray(signal_angle, dtype=np.float64)
-    ws = window_scores(Hs, B, width, B > 0, settings)
-    return PeakScores(pixels, S, Hs, B, rate, ws.j, ws.cnt, ws.mu, ws.keep, ws.n_windows,
-                      frame_threshold(ws.n_windows, ws.mu, P_all),
-                      support_ranges(system, table, pixels, ws.j, width))
+    B = background_at_steps(lo, hi, n_per_step[used], rate, bw)
+    Hs = np.asarray(signal_angle)[:, used].astype(np.float64)
+    wm = strongest_windows(Hs, B, used, table.n_steps, width)
+    ws = window_scores_of(wm, width, settings)
+    # the neighbour support reads the threshold and ranges of pixels with a peak alone
+    k = np.flatnonzero(ws.keep)
+    thr_frame = np.full(pixels.size, np.inf)
+    thr_frame[k] = frame_threshold(ws.n_windows[k], ws.mu[k], P_all)
+    log_range = np.full((pixels.size, 3), np.nan)
+    log_range[k] = support_ranges(system, table, pixels[k], ws.j[k], width)
+    return PeakScores(pixels, S, used, Hs, B, rate, ws.j, ws.cnt, ws.mu, ws.keep,
+                      ws.n_windows, thr_frame, log_range)
+
+
+def _table_index(steps, pixels):
+    """The index of the interval table's (U, Pb) rows ``steps``, columns ``pixels``:
+    ``np.ix_``, or a row gather and a slice where the pixels are consecutive (a block,
+    or all; faster than a gather of single elements)."""
+    if pixels.size and pixels[-1] - pixels[0] == pixels.size - 1 and bool(
+            np.all(np.diff(pixels) == 1)):
+        return steps, slice(int(pixels[0]), int(pixels[-1]) + 1)
+    return np.ix_(steps, pixels)
 
 
 def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
@@ -348,8 +338,9 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
     W = system.receiver.width
     n_bins = system.tdc.n_bins
     bw = system.tdc.bin_width
-    S, Hs, B, rate = sc.signal, sc.angle, sc.background, sc.rate
+    S, rate = sc.signal, sc.rate
     j, cnt, mu = sc.j, sc.cnt, sc.mu
+    n_steps = table.n_steps
     keep = keep_first & np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
     # inside it) sees only part of its surface: its stereo mean is biased
@@ -360,7 +351,11 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
     # the band: where the excess stays above half its peak (a strong return fires
     # the pixel while the spot's tails are still on it: a plateau much wider than
     # the footprint, whose first maximum j need not be its centre), plus ``half``
-    b_lo, b_hi = excess_band(Hs[q], B[q], width, j[q])
+    band = visited_excess_band(sc.angle, sc.background, sc.steps, n_steps, width, q, j[q])
+    if band is None:  # (the NumPy form: the rows laid out over all steps)
+        band = excess_band(dense_rows(sc.angle, sc.steps, n_steps, q),
+                           dense_rows(sc.background, sc.steps, n_steps, q), width, j[q])
+    b_lo, b_hi = band
     if scanned.size:
         # the same for the band itself (the half maximum of the footprint-smoothed
         # excess: the returns' own extent for a full crossing, half a footprint
@@ -370,8 +365,9 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
         inside = (b_lo >= scanned[0] - width // 4) & (b_hi <= scanned[-1] + width // 4)
         q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
     # the peak code: the strongest code of the signal histogram in the band's codes
-    S_codes = moving_average(S[q], max(1, int(round(effective_fwhm(system.laser) / bw))) | 1)
-    code = np.argmax(S_codes, axis=1) + 1 if q.size else np.zeros(0, np.int64)
+    fwhm_bins = max(1, int(round(effective_fwhm(system.laser) / bw))) | 1
+    code = (moving_average_argmax(S[q], fwhm_bins) + 1 if q.size
+            else np.zeros(0, np.int64))
     step_lo = np.maximum(0, b_lo - half).astype(np.int64)
     step_hi = np.minimum(table.n_steps - 1, b_hi + half).astype(np.int64)
     pq = sc.pixels[q]
@@ -381,7 +377,9 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
         step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
-        rate_hz=rate.reshape(-1)[q], background_by_step=window_rows(B, q, step_lo, step_hi))
+        rate_hz=rate.reshape(-1)[q],
+        background_by_step=visited_window_rows(sc.background, sc.steps, n_steps, q, step_lo,
+                                               step_hi))
 
 
 def _candidates(system: System, sc: PeakScores, keep_first, scanned, width: int, table,
@@ -394,7 +392,7 @@ def _candidates(system: System, sc: PeakScores, keep_first, scanned, width: int,
 
     W = system.receiver.width
     n_bins = system.tdc.n_bins
-    B, rate = sc.background, sc.rate
+    rate = sc.rate
     j, cnt, mu, n_windows = sc.j, sc.cnt, sc.mu, sc.n_windows
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
     ok = np.isfinite(rate.reshape(-1)) & (cnt >= settings.min_counts)
@@ -412,12 +410,10 @@ def _candidates(system: System, sc: PeakScores, keep_first, scanned, width: int,
         # window, which sums every accepted code, is where the background happened to
         # bunch when the accepted interval is much wider than the pulse: the return can
         # lie thousands of steps from it, or the pixel be no near miss at all)
-        has = B[qc] > 0
-        some = has.any(axis=1)  # (a pixel without an accepted code has nothing to count)
-        qc, near, local_lo, local_hi, has = (x[some] for x in (qc, near, local_lo,
-                                                                 local_hi, has))
-        c_lo = np.argmax(has, axis=1).astype(np.int64)
-        c_hi = (B.shape[1] - 1 - np.argmax(has[:, ::-1], axis=1)).astype(np.int64)
+        some, c_lo, c_hi = step_span(sc.background[qc], sc.steps)
+        # (a pixel without an accepted code has nothing to count)
+        qc, near, local_lo, local_hi, c_lo, c_hi = (x[some] for x in (qc, near, local_lo,
+                                                                      local_hi, c_lo, c_hi))
         c_lo = np.where(near, np.minimum(c_lo, local_lo), c_lo)
         c_hi = np.where(near, np.maximum(c_hi, local_hi), c_hi)
     else:
@@ -431,7 +427,9 @@ def _candidates(system: System, sc: PeakScores, keep_first, scanned, width: int,
         code=np.zeros(qc.size, np.int64), code_lo=np.ones(qc.size, np.int64),
         code_hi=np.full(qc.size, n_bins, np.int64), step_lo=c_lo, step_hi=c_hi,
         counts=np.rint(cnt[qc]).astype(np.int64), background=mu[qc],
-        rate_hz=rate.reshape(-1)[qc], background_by_step=window_rows(B, qc, b_lo, b_hi),
+        rate_hz=rate.reshape(-1)[qc],
+        background_by_step=visited_window_rows(sc.background, sc.steps, table.n_steps, qc,
+                                               b_lo, b_hi),
         n_windows=n_windows[qc], local_lo=local_lo, local_hi=local_hi, width=width)
 
 

@@ -165,19 +165,62 @@ class RangeMode:
         np.add.at(self.cover, (peak, hi + 1), -m)
 
     def finish(self):
-        """(centre (Q,) m, NaN without detections; halfwidth (Q,) m)."""
+        """(centre (Q,) m, NaN without detections; halfwidth (Q,) m).  Where numba is
+        loaded a compiled pass per peak (:func:`_mode_band_py`) gives the band's
+        ends without the (Q, n_grid) temporaries: the same numbers."""
         Q = self.cover.shape[0]
-        density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
-        j = np.argmax(density, axis=1)
-        top = density[np.arange(Q), j]
-        below = density < 0.5 * top[:, None]
-        idx = np.arange(self.n_grid)[None, :]
-        lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
-        hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
+        kernel = compiled_if_loaded(_mode_band_py) if Q else None
+        if kernel is not None:
+            lo, hi = np.zeros(Q, np.int64), np.zeros(Q, np.int64)
+            top = np.zeros(Q)
+            kernel(np.ascontiguousarray(self.cover), self.n_grid, lo, hi, top)
+        else:
+            density = np.cumsum(self.cover, axis=1)[:, :self.n_grid]
+            j = np.argmax(density, axis=1)
+            top = density[np.arange(Q), j]
+            below = density < 0.5 * top[:, None]
+            idx = np.arange(self.n_grid)[None, :]
+            lo = np.where(below & (idx < j[:, None]), idx, -1).max(axis=1) + 1
+            hi = np.where(below & (idx > j[:, None]), idx, self.n_grid).min(axis=1) - 1
         r_lo = np.exp(self.log_min + lo * self.dlog)
         r_hi = np.exp(self.log_min + (hi + 1) * self.dlog)
         ok = top > 0
         return np.where(ok, 0.5 * (r_lo + r_hi), np.nan), np.where(ok, 0.5 * (r_hi - r_lo), 0.0)
+
+
+def _mode_band_py(cover, n_grid, lo, hi, top):  # pragma: no cover - compiled by numba
+    """:meth:`RangeMode.finish`'s band row by row (the numba kernel): the coverage
+    density (``np.cumsum``'s running sum of the row's first ``n_grid`` entries), its
+    first maximum (the first NaN, as ``np.argmax``) ``top``, and the last grid point
+    before it and the first after it where the density is below half of it: writes
+    ``lo`` (one after that, 0 if none), ``hi`` (one before, n_grid − 1 if none), ``top``."""
+    d = np.empty(n_grid)
+    for q in range(cover.shape[0]):
+        acc = cover[q, 0]
+        d[0] = acc
+        for k in range(1, n_grid):
+            acc = acc + cover[q, k]
+            d[k] = acc
+        j, v = 0, d[0]
+        if v == v:
+            for k in range(1, n_grid):
+                if d[k] != d[k]:
+                    j = k
+                    break
+                if d[k] > v:
+                    j, v = k, d[k]
+        top[q] = d[j]
+        thr = 0.5 * d[j]
+        lo[q] = 0
+        for k in range(j - 1, -1, -1):
+            if d[k] < thr:
+                lo[q] = k + 1
+                break
+        hi[q] = n_grid - 1
+        for k in range(j + 1, n_grid):
+            if d[k] < thr:
+                hi[q] = k - 1
+                break
 
 
 @dataclass
