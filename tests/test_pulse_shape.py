@@ -1,5 +1,6 @@
-"""The pulse shape from return residuals (calib/pulse_shape.py): ex-Gaussian tail against
-the Gaussian, on residuals drawn from the model of mems_stereo.model.hardware.PulseModel."""
+"""The pulse shape from return residuals (calib/pulse_shape.py) and from wall returns by
+the first-photon law (calib/pulse_returns.py): ex-Gaussian tail against the Gaussian, on
+residuals drawn from the model of mems_stereo.model.hardware.PulseModel."""
 
 from __future__ import annotations
 
@@ -67,7 +68,7 @@ def _first_photons(rng, n, w, tau, m_range, shift=0.1e-9, rate=1e6):
     """Cells of the first-photon law drawn photon by photon: Poisson(m) pulse photons
     ((1 − w)·N + w·EMG around ``shift``) and background at ``rate`` from the window's
     start; the first detection inside [lo, hi] per cell (lo = WINDOW[0])."""
-    from mems_stereo.calib.pulse_shape import ReturnSamples
+    from mems_stereo.calib.pulse_returns import ReturnSamples
 
     lo = WINDOW[0]
     m = rng.uniform(*m_range, n)
@@ -88,9 +89,11 @@ def test_first_photon_fit_undoes_pile_up():
     suppressed: the first-photon law recovers the mean delay w·τ within its σ (a
     profile-likelihood interval); the plain residual fit of the same times is off by
     many of its own σ."""
+    from mems_stereo.calib import pulse_returns
+
     rng = np.random.default_rng(12)
     data = _first_photons(rng, 3000, 0.3, 2e-9, (0.2, 2.0))
-    fit = fit_pulse_shape(data)
+    fit = pulse_returns.fit_pulse_shape(data)
     lo, hi = fit.mean_delay_interval
     assert lo < fit.mean_delay < hi and fit.std["mean_delay"] == pytest.approx(0.5 * (hi - lo))
     assert abs(fit.mean_delay - 0.6e-9) < 3 * fit.std["mean_delay"]
