@@ -4,6 +4,8 @@ residuals drawn from the model of mems_stereo.model.hardware.PulseModel."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from mems_stereo.calib.pulse_shape import fit_pulse_shape
@@ -92,8 +94,9 @@ def test_first_photon_fit_undoes_pile_up():
     from mems_stereo.calib import pulse_returns
 
     rng = np.random.default_rng(12)
-    data = _first_photons(rng, 3000, 0.3, 2e-9, (0.2, 2.0))
-    fit = pulse_returns.fit_pulse_shape(data)
+    data = replace(_first_photons(rng, 3000, 0.3, 2e-9, (0.2, 2.0)), core=CORE)  # as the
+    fit = pulse_returns.fit_pulse_shape(data)                  # calibration's: core held
+    assert fit.sigma == pytest.approx(CORE) and fit.std["sigma"] == 0.0
     lo, hi = fit.mean_delay_interval
     assert lo < fit.mean_delay < hi and fit.std["mean_delay"] == pytest.approx(0.5 * (hi - lo))
     assert abs(fit.mean_delay - 0.6e-9) < 3 * fit.std["mean_delay"]
