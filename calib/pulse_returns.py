@@ -5,8 +5,8 @@ that fired: each detection's time less the predicted return time, with the cell'
 expected signal photons m, background rate β and window [lo, hi] (cells end at
 their ``t_max``).  :func:`fit_return_shape` fits the ex-Gaussian pulse of
 :mod:`mems_stereo.calib.pulse_shape` to them by the exact law of a cell's first
-detection (pile-up, background before the return and each window included), the
-core σ held at the system's; the mean delay's σ from its profile likelihood.
+detection (pile-up, background before the return and each window included); the
+mean delay's σ from its profile likelihood.
 :func:`fit_pulse_shape` takes either these samples or plain residuals.
 """
 
@@ -60,6 +60,9 @@ class ReturnSamples:
     core: float | None = None
 
 
+#: signal scale κ beyond which (or below its inverse) the first-photon law does not
+#: describe the returns: the mean delay's interval is then widened to reach 0
+MISFIT_SCALE = 2.0
 #: grid steps per pulse scale (the residuals' half 16–84 % range) of the first-photon
 #: fit's table of the pulse (fixed in time; at most :data:`FP_GRID` points)
 FP_STEPS = 40
@@ -196,7 +199,10 @@ def fit_return_shape(data: ReturnSamples, quantum: float = 0.0) -> PulseFit:
     σ of the mean delay ``w·τ`` from its profile likelihood
     (``std["mean_delay"]`` half the 68 % interval, :attr:`PulseFit.mean_delay_interval`):
     the tail of a pulse much wider than its decay is close to a shift, and the
-    local curvature understates how far the data allow it to go.
+    local curvature understates how far the data allow it to go.  A fitted κ
+    beyond :data:`MISFIT_SCALE` (or below its inverse) says the law does not
+    describe the returns (on simulated walls κ comes out 3.7–5, the core
+    narrower than the pulse's and a long weak tail); the interval then reaches 0.
     """
     x = np.asarray(data.residual, dtype=np.float64)
     if x.size < MIN_SAMPLES:
@@ -228,6 +234,8 @@ def fit_return_shape(data: ReturnSamples, quantum: float = 0.0) -> PulseFit:
                                        "signal_scale"), np.diag(cov))}
     g = np.array([0.0, 0.0, p[3], p[2], 0.0])
     lo, hi = _profile_interval(data, scale, p, nll, _root(float(g @ cov @ g)))
+    if not 1.0 / MISFIT_SCALE <= p[4] <= MISFIT_SCALE:  # the cells' signal does not
+        lo = min(lo, 0.0)                                # describe their returns
     sd["mean_delay"] = 0.5 * (hi - lo)
     s2 = np.maximum(data.signal * p[4] * signal_pdf(x, *p[:4]), 1e-300)
     bshare = float(np.mean(data.background / (s2 + data.background)))
@@ -259,9 +267,10 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
     spot's share on the pixel) are at most ``max_signal`` and that fired inside its
     window: its time less the predicted return time τ, with m, its background rate
     and its window's end.  Returns (:class:`ReturnSamples`, window (lo, hi)), the
-    window −6σ … +8σ of the pulse (σ: the calibration's, also the core σ held),
-    each cell's end at most its ``t_max``; :func:`fit_pulse_shape` fits them by
-    the first-photon law.
+    window −6σ … +8σ of the pulse (σ: the calibration's), each cell's end at most
+    its ``t_max``; :func:`fit_pulse_shape` fits them by the first-photon law, the
+    core σ free (held at the system's, κ and the tail run to their bounds on
+    simulated walls).
     """
     from mems_stereo.calib.problem import spot_share
 
@@ -285,4 +294,4 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
                & (r >= lo) & (r <= up) & (up > lo + prob.sigma))
         parts.append((r[sel], m[sel], c.lam[sel], up[sel]))
     cat = [np.concatenate([q[i] for q in parts]) if parts else np.zeros(0) for i in range(4)]
-    return ReturnSamples(*cat, lower=lo, core=float(prob.sigma)), (lo, hi)
+    return ReturnSamples(*cat, lower=lo), (lo, hi)
