@@ -47,7 +47,8 @@ class ReturnSamples:
     background : (N,) Hz, the cell's background rate.
     upper : (N,) s, the window's upper end for that cell (residual scale: codes
         after the cells' ``t_max`` are not recorded).
-    lower : s, the window's lower end (the pixel is armed there).
+    lower : s, or (N,) s per cell, the window's lower end (the pixel is armed
+        there: no earlier than the TDC's start).
     core : s or None, the Gaussian core's σ held fixed (the system's pulse σ with
         jitter: the ex-gaussian model's core is ``pulse_fwhm``), None: fitted.
     """
@@ -56,7 +57,7 @@ class ReturnSamples:
     signal: np.ndarray
     background: np.ndarray
     upper: np.ndarray
-    lower: float
+    lower: float | np.ndarray
     core: float | None = None
 
 
@@ -76,12 +77,14 @@ class _Tabulated:
     def __init__(self, data: ReturnSamples, scale: float):
         self.data = data
         top = float(np.max(data.upper))
-        n = int(min(FP_GRID, max(200, FP_STEPS * (top - data.lower) / scale)))
-        self.grid = np.linspace(data.lower, top, n)
+        low = np.broadcast_to(np.asarray(data.lower, dtype=np.float64), data.residual.shape)
+        start = float(np.min(low)) if low.size else float(np.min(data.lower))
+        n = int(min(FP_GRID, max(200, FP_STEPS * (top - start) / scale)))
+        self.grid = np.linspace(start, top, n)
         h = self.grid[1] - self.grid[0]
-        self.at = [self._weights(v, h) for v in (data.residual, data.upper)]
-        self.bx = data.background * (data.residual - data.lower)
-        self.bh = data.background * (data.upper - data.lower)
+        self.at = [self._weights(v, h) for v in (data.residual, data.upper, low)]
+        self.bx = data.background * (data.residual - low)
+        self.bh = data.background * (data.upper - low)
 
     def _weights(self, v, h):
         u = np.clip((v - self.grid[0]) / h, 0.0, self.grid.size - 1.000001)
@@ -107,8 +110,8 @@ def _fp_negloglik(p, tab: _Tabulated) -> float:
     if w > 0 and tau > 0:
         ep, ec = emg_pdf(grid - mu, s, tau), emg_cdf(grid - mu, s, tau)
         Fg, fg = (1.0 - w) * Fg + w * ec, (1.0 - w) * fg + w * ep
-    Fg = Fg - Fg[0]
-    F, FH, f = tab.lookup(Fg, 0), tab.lookup(Fg, 1), tab.lookup(fg, 0)
+    FL = tab.lookup(Fg, 2)
+    F, FH, f = tab.lookup(Fg, 0) - FL, tab.lookup(Fg, 1) - FL, tab.lookup(fg, 0)
     with np.errstate(divide="ignore"):
         ll = (np.log(np.maximum(m * f + b, 1e-300)) - m * F - tab.bx
               - np.log(np.maximum(-np.expm1(-m * FH - tab.bh), 1e-300)))
@@ -119,7 +122,7 @@ def _fp_negloglik(p, tab: _Tabulated) -> float:
 def _fp_fit(data: ReturnSamples, scale: float, starts, mode):
     """Best of several starts of the first-photon fit; ``mode`` "gauss" (w = 0),
     "tail", or a fixed mean delay d (s, w = d/τ).  Returns natural p, −log L, z."""
-    width = (float(np.max(data.upper)) - data.lower) / scale
+    width = (float(np.max(data.upper)) - float(np.min(data.lower))) / scale
     tab = _Tabulated(data, scale)
 
     def nat(z):
@@ -201,8 +204,8 @@ def fit_return_shape(data: ReturnSamples, quantum: float = 0.0) -> PulseFit:
     the tail of a pulse much wider than its decay is close to a shift, and the
     local curvature understates how far the data allow it to go.  A fitted κ
     beyond :data:`MISFIT_SCALE` (or below its inverse) says the law does not
-    describe the returns (on simulated walls κ comes out 3.7–5, the core
-    narrower than the pulse's and a long weak tail); the interval then reaches 0.
+    describe the returns (as with windows that start before the TDC does: κ
+    3.7–5, a core narrower than the pulse's); the interval then reaches 0.
     """
     x = np.asarray(data.residual, dtype=np.float64)
     if x.size < MIN_SAMPLES:
@@ -267,10 +270,10 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
     spot's share on the pixel) are at most ``max_signal`` and that fired inside its
     window: its time less the predicted return time τ, with m, its background rate
     and its window's end.  Returns (:class:`ReturnSamples`, window (lo, hi)), the
-    window −6σ … +8σ of the pulse (σ: the calibration's), each cell's end at most
-    its ``t_max``; :func:`fit_pulse_shape` fits them by the first-photon law, the
-    core σ free (held at the system's, κ and the tail run to their bounds on
-    simulated walls).
+    window −6σ … +8σ of the pulse (σ: the calibration's), each cell's start no
+    earlier than the TDC's (a near wall's early photons are not recorded) and its
+    end at most its ``t_max``; :func:`fit_pulse_shape` fits them by the
+    first-photon law, the core σ free.
     """
     from mems_stereo.calib.problem import spot_share
 
@@ -290,8 +293,9 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
         m = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref) * spot_share(c.col, pc[:, 1], s)[0]
         r = c.t - pc[:, 0]
         up = np.minimum(hi, c.t_max - pc[:, 0])
+        low = np.maximum(lo, -pc[:, 0])  # the pixel is armed from the TDC's start
         sel = (ok[pos] & np.isfinite(r) & (m <= max_signal) & (m > 0.01 * max_signal)
-               & (r >= lo) & (r <= up) & (up > lo + prob.sigma))
-        parts.append((r[sel], m[sel], c.lam[sel], up[sel]))
-    cat = [np.concatenate([q[i] for q in parts]) if parts else np.zeros(0) for i in range(4)]
-    return ReturnSamples(*cat, lower=lo), (lo, hi)
+               & (r >= low) & (r <= up) & (up > low + prob.sigma))
+        parts.append((r[sel], m[sel], c.lam[sel], up[sel], low[sel]))
+    cat = [np.concatenate([q[i] for q in parts]) if parts else np.zeros(0) for i in range(5)]
+    return ReturnSamples(*cat[:4], lower=cat[4]), (lo, hi)
