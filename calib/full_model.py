@@ -76,7 +76,7 @@ def _pulse(result):
     """The pulse shape from the walls' low-pile-up returns
     (:mod:`mems_stereo.calib.pulse_shape`) at ``result``'s solution, or None when
     there are too few of them."""
-    from mems_stereo.calib.pulse_shape import fit_pulse_shape, wall_return_residuals
+    from mems_stereo.calib.pulse_returns import fit_pulse_shape, wall_return_residuals
 
     from mems_stereo.errors import ShapeError
 

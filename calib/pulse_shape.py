@@ -55,6 +55,13 @@ class PulseFit:
     loglik, loglik_gaussian : maximum log-likelihoods with and without the tail.
     gaussian_sigma : s, the core σ the Gaussian-only fit finds.
     n : residuals used.  quantum : s, the TDC bin width folded into the core.
+    mean_delay_interval : (lo, hi) s, the mean delay's 68 % profile-likelihood
+        interval (:func:`mems_stereo.calib.pulse_returns.fit_return_shape`; None
+        for plain residuals).
+    signal_scale : κ, the fitted factor on the cells' expected signal (1: plain).
+    From wall returns (:mod:`~mems_stereo.calib.pulse_returns`) the fifth
+    parameter of ``cov`` is κ, not the background share (``background`` then is
+    the share of the used detections the background explains).
     """
 
     shift: float
@@ -70,6 +77,8 @@ class PulseFit:
     gaussian_sigma: float
     n: int
     quantum: float
+    mean_delay_interval: tuple | None = None
+    signal_scale: float = 1.0
 
     @property
     def tail_significant(self) -> bool:
@@ -83,7 +92,7 @@ class PulseFit:
         if gaussian:
             sg = math.hypot(self.gaussian_sigma, self.quantum / math.sqrt(12.0))
             return stats.norm.pdf(np.asarray(x), self.shift, sg)
-        return _signal_pdf(np.asarray(x, dtype=np.float64), self.shift, s,
+        return signal_pdf(np.asarray(x, dtype=np.float64), self.shift, s,
                            self.tail_fraction, self.tail_decay)
 
     def to_pulse_model(self) -> PulseModel:
@@ -100,7 +109,17 @@ class PulseFit:
                 f"{self.tail_decay * 1e9:.2f} ± {sd['tail_decay'] * 1e9:.2f} ns, mean delay "
                 f"{self.mean_delay * 1e12:.0f} ± {sd['mean_delay'] * 1e12:.0f} ps "
                 f"(2·Δlog L {2 * (self.loglik - self.loglik_gaussian):.1f}: {verdict}; "
-                f"{self.n} returns)")
+                f"{self.n} returns{self._need()})")
+
+    def returns_for(self, sigma: float = 50e-12) -> float:
+        """Low-pile-up returns the mean delay needs for σ = ``sigma`` (s) at this
+        shape: ``n·(σ_now/σ)²`` (inf when the fit gives no finite σ)."""
+        sd = self.std.get("mean_delay", math.inf)
+        return self.n * (sd / sigma) ** 2 if math.isfinite(sd) and sd > 0 else math.inf
+
+    def _need(self) -> str:
+        n = self.returns_for()
+        return f"; σ 50 ps needs ≈ {n:.1e} such returns" if math.isfinite(n) and n > self.n else ""
 
 
 def _emg(x, mu, s, tau):
@@ -117,7 +136,8 @@ def _emg(x, mu, s, tau):
     return pdf, special.ndtr(z) - tau * pdf
 
 
-def _signal_pdf(x, mu, s, w, tau):
+def signal_pdf(x, mu, s, w, tau):
+    """Density (1/s) of (1 − w)·N(μ, s) + w·EMG(μ, s, τ) at x (s)."""
     core = np.exp(-0.5 * ((x - mu) / s) ** 2) / (s * math.sqrt(2.0 * math.pi))
     if w <= 0.0 or tau <= 0.0:
         return core
@@ -166,7 +186,7 @@ def _fit(hist, scale, starts, tail: bool):
     return _to_natural(best[0], scale, tail), best[1]
 
 
-def _hessian(f, p, steps):
+def numerical_hessian(f, p, steps):
     """Central-difference Hessian of f at p with per-parameter steps."""
     n = p.size
     H = np.zeros((n, n))
@@ -186,7 +206,9 @@ def fit_pulse_shape(residuals, *, window=None, quantum: float = 0.0) -> PulseFit
     Parameters
     ----------
     residuals : (N,) float64 s, measured first-photon time minus the predicted
-        return time, of signal cells at low pile-up (see module docstring).
+        return time, of signal cells at low pile-up (see module docstring); wall
+        returns with their signal and window are fitted by the first-photon law
+        (:mod:`mems_stereo.calib.pulse_returns`).
     window : (lo, hi) s analysed (default the residuals' range); residuals
         outside are dropped; background is uniform over it.
     quantum : s, the TDC bin width (its uniform spread is folded into the core).
@@ -216,7 +238,7 @@ def fit_pulse_shape(residuals, *, window=None, quantum: float = 0.0) -> PulseFit
     steps = np.array([1e-3 * p[1], 1e-3 * p[1], 1e-3 * max(p[2], 1e-3),
                       1e-3 * max(p[3], 1e-2 * p[1]), 1e-3 * max(p[4], 1e-4)])
     steps[2] = min(steps[2], 0.5 * p[2]) if p[2] > 0 else steps[2]
-    H = _hessian(lambda pp: _negloglik(pp, hist), p, steps)
+    H = numerical_hessian(lambda pp: _negloglik(pp, hist), p, steps)
     try:
         cov = np.linalg.inv(H)
     except np.linalg.LinAlgError:
@@ -233,34 +255,3 @@ def fit_pulse_shape(residuals, *, window=None, quantum: float = 0.0) -> PulseFit
     return PulseFit(float(p[0]), core, float(p[2]), float(p[3]), float(p[2] * p[3]),
                     float(p[4]), sd, cov, -float(nll), -float(nllg), gcore, int(x.size),
                     float(quantum))
-
-
-def wall_return_residuals(prob, x, max_signal: float = 0.3):
-    """Return-time residuals of a fitted wall calibration at low pile-up, s.
-
-    ``prob`` : :class:`~mems_stereo.calib.problem.Problem` with its cells; ``x`` its
-    fitted parameters.  For every cell that fired and whose expected signal photons
-    ``m`` (the spot's share on the pixel) are at most ``max_signal`` (the first photon
-    is then the return's, not the earliest of several): its time less the predicted
-    return time τ.  Returns (residuals (N,), window (lo, hi)) with the window
-    −5σ … +10σ of the pulse; background detections in it are the fit's uniform share.
-    """
-    from mems_stereo.calib.problem import spot_share
-
-    lay = prob.layout
-    _, walls = lay.unpack(x)
-    out = []
-    for j in range(lay.T):
-        c = prob.cells[j]
-        pred, ok, _ = prob.predictions(x, j, c.shots)
-        pos = np.searchsorted(c.shots, c.shot)
-        pc = pred[pos]
-        if prob.pixel_offsets is not None:
-            W = prob.system.receiver.width
-            pc[:, 0] += prob.pixel_offsets[(c.row * W + c.col).astype(np.int64)]
-        s = min(max(math.exp(walls[j, 4]), 0.12), 6.0)
-        m = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref) * spot_share(c.col, pc[:, 1], s)[0]
-        sel = ok[pos] & np.isfinite(c.t) & (m <= max_signal) & (m > 0.01 * max_signal)
-        out.append(c.t[sel] - pc[sel, 0])
-    r = np.concatenate(out) if out else np.zeros(0)
-    return r, (-5.0 * prob.sigma, 10.0 * prob.sigma)

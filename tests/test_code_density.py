@@ -5,7 +5,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from mems_stereo.calib.code_density import code_edges, code_widths, first_photon_tables
+from mems_stereo.calib.code_density import (
+    code_edges,
+    code_widths,
+    first_photon_tables,
+    widths_from_tables,
+)
 
 from mems_stereo.errors import ShapeError
 
@@ -70,8 +75,11 @@ def test_widths_recovered_within_their_sigma_despite_signal():
     est = code_widths(codes, m, window=(centre - 4, centre + 4))
     pull = (est.width[0] - w) / est.width_sigma[0]
     assert 0.8 < pull.std() < 1.2 and np.abs(pull).max() < 4.5
-    # σ is Poisson: w/√n
-    np.testing.assert_allclose(est.width_sigma[0], est.width[0] / np.sqrt(est.counts[0]))
+    # the plain estimator's σ is Poisson: w/√n
+    plain = code_widths(codes, m, window=(centre - 4, centre + 4), structured=False)
+    np.testing.assert_allclose(plain.width_sigma[0], plain.width[0] / np.sqrt(plain.counts[0]))
+    pull = (plain.width[0] - w) / plain.width_sigma[0]
+    assert 0.8 < pull.std() < 1.2 and np.abs(pull).max() < 4.5
     # the pixels' rates per mean-width code, from independent draws
     np.testing.assert_allclose(est.rate, rate, rtol=0.05)
     # INL is the running sum of the DNL and closes at 0 (widths have mean 1)
@@ -86,12 +94,16 @@ def test_equal_widths_give_dnl_and_inl_within_sigma():
     rng = np.random.default_rng(2)
     m = 64
     codes = _first_photons(rng, np.ones(m), np.full(8, 0.01), 8000)
-    est = code_widths(codes.reshape(8000, 2, 4), m)  # (K, H, W) accepted
+    est = code_widths(codes.reshape(8000, 2, 4), m, structured=False)  # (K, H, W) accepted
     assert np.abs(est.dnl / est.width_sigma).max() < 4.5
     inner = est.inl_sigma[0] > 0
     assert np.abs(est.inl[0][inner] / est.inl_sigma[0][inner]).max() < 4.5
     # 2 % RMS needs ≈ 2500 detections per code: σ follows 1/√n
     assert est.width_sigma.mean() == pytest.approx(1 / np.sqrt(est.counts.mean()), rel=0.05)
+    # the structured estimator sees no pattern and no random part: widths near 1
+    st = code_widths(codes, m)
+    assert np.abs(st.dnl / st.width_sigma).max() < 4.5
+    assert np.sqrt(np.mean(st.dnl ** 2)) < 0.5 * np.sqrt(np.mean(est.dnl ** 2))
 
 
 def test_pixel_groups_have_their_own_widths():
@@ -140,3 +152,56 @@ def test_calibration_cells_use_the_measured_code_centres():
     expect = 1e-9 * (np.concatenate([[0.0], np.cumsum(widths)])[code - 1] + widths[code - 1] / 2)
     np.testing.assert_allclose(c1.t[fired], expect[fired])
     assert np.isnan(c1.t[~fired]).all()
+
+
+def _multinomial_tables(rng, widths, rate, shots):
+    """First-photon tables of equal-rate pixels drawn from their exact law: each
+    pixel's codes are multinomial (code edges e: exp(−r·e_{N−1}) − exp(−r·e_N))."""
+    surv = np.exp(-rate * code_edges(widths, 1.0))
+    p = np.append(surv[:-1] - surv[1:], surv[-1])
+    ev = np.zeros((4, widths.size + 1), dtype=np.int64)
+    for i in range(4):
+        ev[i, 1:] = rng.multinomial(shots, p)[:-1]
+    ar = np.zeros_like(ev)
+    ar[:, 1:] = shots - np.cumsum(ev[:, :-1], axis=1)[:, : widths.size]
+    return ev, ar
+
+
+@pytest.mark.parametrize("random", [0.02, 0.05])
+def test_structured_widths_reach_the_bayes_bound(random):
+    """Periodic DNL + a random part: the structured estimator's error is the Bayes
+    bound τσ/√(τ² + σ²) of the random part (σ Poisson), its pulls have std ≈ 1, and
+    the plain estimator's error is σ."""
+    rng = np.random.default_rng(21)
+    m = 1024
+    w = _widths(rng, m, periodic=0.25, random=random, period=32)
+    ev, ar = _multinomial_tables(rng, w, 1.0 / m, 200000)   # ≈ 500 per code
+    est = widths_from_tables(ev, ar)
+    plain = widths_from_tables(ev, ar, structured=False)
+    sig = np.sqrt(np.mean(plain.width_sigma[0] ** 2))
+    tau = np.std(w - (1.0 + 0.25 * np.sin(2 * np.pi * np.arange(m) / 32)) / w.mean() * 1.0)
+    bound = tau * sig / np.hypot(tau, sig)
+    rms = np.sqrt(np.mean((est.width[0] - w) ** 2))
+    assert rms == pytest.approx(bound, rel=0.15)
+    assert np.sqrt(np.mean((plain.width[0] - w) ** 2)) == pytest.approx(sig, rel=0.1)
+    assert 0.85 < np.std((est.width[0] - w) / est.width_sigma[0]) < 1.15
+    assert est.random_rms[0] == pytest.approx(tau, rel=0.25)
+    # the periodic model is the sine: one Fourier component
+    np.testing.assert_allclose(est.periodic[0], 1.0 + 0.25 * np.sin(2 * np.pi * np.arange(m) / 32)
+                               / w.mean(), atol=4 * sig * np.sqrt(3.0 / m))
+
+
+def test_structured_widths_keep_a_defect_code_plain():
+    """A code far off the periodic pattern (a defect, not the Gaussian random part)
+    keeps its plain estimate and Poisson σ."""
+    rng = np.random.default_rng(5)
+    m = 512
+    w = _widths(rng, m, periodic=0.2, random=0.01, period=16)
+    w[100] *= 2.0
+    w = w / w.mean()
+    ev, ar = _multinomial_tables(rng, w, 1.0 / m, 100000)
+    est = widths_from_tables(ev, ar)
+    plain = widths_from_tables(ev, ar, structured=False)
+    assert est.width[0, 100] == pytest.approx(plain.width[0, 100], rel=0.01)  # mean-1 scale
+    assert est.width_sigma[0, 100] == pytest.approx(plain.width_sigma[0, 100], rel=0.05)
+    assert abs(est.width[0, 100] - w[100]) < 4 * est.width_sigma[0, 100]

@@ -1,7 +1,10 @@
-"""The pulse shape from return residuals (calib/pulse_shape.py): ex-Gaussian tail against
-the Gaussian, on residuals drawn from the model of mems_stereo.model.hardware.PulseModel."""
+"""The pulse shape from return residuals (calib/pulse_shape.py) and from wall returns by
+the first-photon law (calib/pulse_returns.py): ex-Gaussian tail against the Gaussian, on
+residuals drawn from the model of mems_stereo.model.hardware.PulseModel."""
 
 from __future__ import annotations
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -61,3 +64,43 @@ def test_quantisation_is_removed_from_the_core():
 def test_too_few_residuals_named():
     with pytest.raises(ShapeError, match="at least"):
         fit_pulse_shape(np.zeros(10))
+
+
+def _first_photons(rng, n, w, tau, m_range, shift=0.1e-9, rate=1e6):
+    """Cells of the first-photon law drawn photon by photon: Poisson(m) pulse photons
+    ((1 − w)·N + w·EMG around ``shift``) and background at ``rate`` from the window's
+    start; the first detection inside [lo, hi] per cell (lo = WINDOW[0])."""
+    from mems_stereo.calib.pulse_returns import ReturnSamples
+
+    lo = WINDOW[0]
+    m = rng.uniform(*m_range, n)
+    hi = rng.uniform(6e-9, WINDOW[1], n)
+    k = rng.poisson(m)
+    first = lo + rng.exponential(1.0 / rate, n)
+    for j in range(1, k.max() + 1):
+        sel = k >= j
+        t = rng.normal(shift, CORE, sel.sum())
+        t += np.where(rng.random(sel.sum()) < w, rng.exponential(tau, sel.sum()), 0.0)
+        first[sel] = np.minimum(first[sel], np.where(t >= lo, t, np.inf))
+    keep = first <= hi
+    return ReturnSamples(first[keep], m[keep], np.full(keep.sum(), rate), hi[keep], lo)
+
+
+def test_first_photon_fit_undoes_pile_up():
+    """At up to 2 signal photons per cell the first photon is early and the tail is
+    suppressed: the first-photon law recovers the mean delay w·τ within its σ (a
+    profile-likelihood interval); the plain residual fit of the same times is off by
+    many of its own σ."""
+    from mems_stereo.calib import pulse_returns
+
+    rng = np.random.default_rng(12)
+    data = replace(_first_photons(rng, 3000, 0.3, 2e-9, (0.2, 2.0)), core=CORE)  # as the
+    fit = pulse_returns.fit_pulse_shape(data)                  # calibration's: core held
+    assert fit.sigma == pytest.approx(CORE) and fit.std["sigma"] == 0.0
+    lo, hi = fit.mean_delay_interval
+    assert lo < fit.mean_delay < hi and fit.std["mean_delay"] == pytest.approx(0.5 * (hi - lo))
+    assert abs(fit.mean_delay - 0.6e-9) < 3 * fit.std["mean_delay"]
+    assert abs(fit.shift - 0.1e-9) < 3 * fit.std["shift"]
+    assert fit.signal_scale == pytest.approx(1.0, abs=4 * fit.std["signal_scale"])
+    plain = fit_pulse_shape(data.residual, window=WINDOW)
+    assert abs(plain.mean_delay - 0.6e-9) > 5 * plain.std["mean_delay"]  # off, σ too small
