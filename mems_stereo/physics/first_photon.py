@@ -229,6 +229,20 @@ def log_miss_probability(f):
     return per_share(lambda g: np.log1p(-_firing(g)), f)
 
 
+def band_log_miss(n_band, f_band):
+    """(Q, J) ``Σ_b n_b·ln(1 − P(inlier))`` of the (Q, B) valid shots ``n_band`` at spot
+    shares ``f_band``: ``np.einsum("qb,qbj->qj", n_band, log_miss_probability(f_band))``,
+    the same numbers — that sum runs over b in order from 0, and a step without shots
+    adds a zero, so only the steps with shots are evaluated and added in that order."""
+    n_band = np.asarray(n_band, np.float64)
+    qi, bi = np.nonzero(n_band)
+    out = np.zeros((n_band.shape[0], MU_GRID.size))
+    if qi.size:
+        f = np.asarray(f_band, np.float64)[qi, bi]
+        np.add.at(out, qi, n_band[qi, bi][:, None] * log_miss_probability(f))
+    return out
+
+
 def _firing(f):
     e = OUTLIER_PROBABILITY
     pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])

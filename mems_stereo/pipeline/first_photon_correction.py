@@ -23,8 +23,8 @@ from mems_stereo.model.hardware import pulse_mean_delay
 from mems_stereo.physics.first_photon import (
     MU_MAX,
     ShapeExcess,
+    band_log_miss,
     first_photon_delay,
-    log_miss_probability,
 )
 from mems_stereo.physics.pulse import pulse_shape_of
 from mems_stereo.physics.spot import spot_fraction
@@ -224,8 +224,7 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
         q = idx[a:b]
         band = band_steps(acc, q, full=True)
         steps, n_band, f_band, f_full = band.steps, band.shots, band.spot, band.spot_full
-        ll = acc.sums.loglik[q] + np.einsum(
-            "qb,qbj->qj", n_band, log_miss_probability(f_band))
+        ll = acc.sums.loglik[q] + band_log_miss(n_band, f_band)
         d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
