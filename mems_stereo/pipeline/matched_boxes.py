@@ -266,34 +266,37 @@ def box_sums(A, h: int, w: int) -> np.ndarray:
 def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
     """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel): the
     running sums of A padded with zeros, along the steps (``col``, one row at a time) and
-    then along the cells (``c``), each the same addition as in two whole passes."""
+    then along the cells (``c``), each the same addition as in two whole passes.  Only
+    A's own rows and cells are summed: the running sums are +0.0 before them (zeros
+    added to +0.0; a running sum from +0.0 is never −0.0, so the zeros added after
+    them change no bit) and repeat their last value after them; ``c`` holds them
+    with a leading row and column of zeros, read through the clamped indices ``ri``,
+    ``ci`` of the padded array's rows and cells."""
     k, n, m = A.shape
-    c = np.empty((n + h, m + w))
-    col = np.empty(m + w)
-    out = np.empty((k, n, m))
     i0, j0 = h // 2 + 1, w // 2 + 1  # where A starts in the padded array
+    c = np.zeros((n + 1, m + 1))
+    col = np.empty(m)
+    out = np.empty((k, n, m))
+    ri = np.empty(n + h, np.int64)
+    for i in range(n + h):
+        ri[i] = 0 if i < i0 else min(i - i0, n - 1) + 1
+    ci = np.empty(m + w, np.int64)
+    for j in range(m + w):
+        ci[j] = 0 if j < j0 else min(j - j0, m - 1) + 1
     for q in range(k):
-        col[:] = 0.0  # the padded array's first row (zeros)
-        c[0, :] = 0.0
-        for i in range(1, n + h):
-            if i0 <= i < i0 + n:  # running sum along the steps (+ 0.0 over the padding)
-                for j in range(j0):
-                    col[j] = col[j] + 0.0
-                for j in range(m):
-                    col[j0 + j] = col[j0 + j] + A[q, i - i0, j]
-                for j in range(j0 + m, m + w):
-                    col[j] = col[j] + 0.0
-            else:
-                for j in range(m + w):
-                    col[j] = col[j] + 0.0
-            acc = col[0]
-            c[i, 0] = acc
-            for j in range(1, m + w):  # then along the cells
-                acc = acc + col[j]
-                c[i, j] = acc
+        for j in range(m):
+            col[j] = 0.0
         for i in range(n):
+            acc = 0.0
             for j in range(m):
-                out[q, i, j] = c[i + h, j + w] - c[i, j + w] - c[i + h, j] + c[i, j]
+                col[j] = col[j] + A[q, i, j]
+                acc = acc + col[j]
+                c[i + 1, j + 1] = acc
+        for i in range(n):
+            a, b = ri[i], ri[i + h]
+            for j in range(m):
+                x, y = ci[j], ci[j + w]
+                out[q, i, j] = c[b, y] - c[a, y] - c[b, x] + c[a, x]
     return out
 
 
