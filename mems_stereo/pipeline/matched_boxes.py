@@ -72,8 +72,12 @@ class BoxGrid:
     def counts(self, j0, j1, k0, k1, fs=1, fc=1):
         """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
         k0..k1−1, summed in blocks of fs steps × fc cells."""
-        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
         shape = (-(-(j1 - j0) // fs), -(-(k1 - k0) // fc))
+        kernel = compiled_if_loaded(_counts_py)
+        if kernel is not None and self.ds.dtype == self.dc.dtype == np.int64:
+            return kernel(self.ds, self.dc, np.asarray(self.cnt, np.float64), j0, j1, k0, k1,
+                          fs, fc, shape[0], shape[1])
+        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
         # the entries added in their order from 0 (np.add.at's additions: the same numbers)
         flat = ((self.ds[m] - j0) // fs) * shape[1] + (self.dc[m] - k0) // fc
         return np.bincount(flat, weights=self.cnt[m],
@@ -320,6 +324,19 @@ def _box_scan_py(A, h, w, min_counts, cut_lo, cut_hi):  # pragma: no cover - num
                     flat[k] = i * m + j
                     k += 1
     return out, flat[:k]
+
+
+def _counts_py(ds, dc, cnt, j0, j1, k0, k1, fs, fc, n0, n1):  # pragma: no cover - numba
+    """:meth:`BoxGrid.counts` loop by loop (the numba kernel): each entry inside steps
+    j0..j1−1 × cells k0..k1−1 added to its block, in entry order (``np.bincount``'s
+    additions: the same numbers); returns (n0, n1) float64."""
+    out = np.zeros((n0, n1))
+    for e in range(ds.shape[0]):
+        j, k = ds[e], dc[e]
+        if j >= j0 and j < j1 and k >= k0 and k < k1:
+            a, b = (j - j0) // fs, (k - k0) // fc
+            out[a, b] += cnt[e]
+    return out
 
 
 def _background_py(lo, hi, nps, e_lo, e_hi, table, k0):  # pragma: no cover - numba
