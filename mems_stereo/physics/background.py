@@ -283,10 +283,6 @@ def _pairwise_py(a, plan):  # pragma: no cover - compiled by numba
     return 0.0 + stack[0]
 
 
-#: :func:`_pairwise_py` by a public name, for the kernels of other modules (their helper)
-pairwise_sum_py = _pairwise_py
-
-
 def _noise_trials_py(h, r, a, n_valid, plan):  # pragma: no cover - compiled by numba
     """Per row of (P, n_bins) ``h`` (noise), ``r`` (raw), ``a`` (acceptance): Σ h and
     Σ n_j (1 − a_j/n_valid), n_j the shots armed at bin j (:func:`armed_shots`: n_valid

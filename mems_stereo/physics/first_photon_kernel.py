@@ -69,8 +69,7 @@ def _band_moments_py(f_band, n_band, ex, lm, a, ex0, lm0, mean_t, var_t, grid, n
     row = np.empty((2, B))
     pos = np.empty(B, np.int64)
     kpos = np.empty(B, np.int64)
-    stack = np.empty(plan.shape[0])
-    r = np.empty(8)
+    work = np.empty(8 + plan.shape[0])  # the pairwise sums' lanes and stack
     k = 0  # the next nonzero share
     for q in range(Q):
         fa = min(max((a[q] - grid[0]) / grid[1], 0.0), grid[2])
@@ -93,7 +92,7 @@ def _band_moments_py(f_band, n_band, ex, lm, a, ex0, lm0, mean_t, var_t, grid, n
                     w[j, t] = nb * ex[kpos[t], j]
                     d[j, t], v[j, t] = _lookup(wa, i, lm[kpos[t], j], grid, n_mu, mean_t,
                                                var_t)
-            ok = _peak_sums(w, d, v, row, pos, npos, plan, stack, r, out, q)
+            ok = _peak_sums(w, d, v, row, pos, npos, plan, work, out, q)
         if not ok:  # every step
             d0, v0 = _lookup(wa, i, lm0, grid, n_mu, mean_t, var_t)
             kk = k_q
@@ -112,18 +111,18 @@ def _band_moments_py(f_band, n_band, ex, lm, a, ex0, lm0, mean_t, var_t, grid, n
                         v[j, b] = v0
             for t in range(B):
                 pos[t] = t
-            _peak_sums(w, d, v, row, pos, B, plan, stack, r, out, q)
+            _peak_sums(w, d, v, row, pos, B, plan, work, out, q)
     return out[0], out[1]
 
 
-def _peak_sums(w, d, v, row, pos, npos, plan, stack, r, out, q):  # pragma: no cover
+def _peak_sums(w, d, v, row, pos, npos, plan, work, out, q):  # pragma: no cover
     """One peak's ``dj``, ``vj`` into ``out[:, q]`` from its terms at the steps
     ``pos[:npos]`` (the others 0); False (nothing written) where a sum would hold no
     nonzero term and ``npos`` is not every step."""
     J = w.shape[0]
     every = npos == w.shape[1] and pos[npos - 1] == npos - 1
     for j in range(J):
-        s, nz = _sparse_pairwise(w[j], pos, npos, plan, stack, r)
+        s, nz = _sparse_pairwise(w[j], pos, npos, plan, work)
         if not (nz or every):
             return False
         den = s if (s >= 1e-300 or s != s) else 1e-300
@@ -131,8 +130,8 @@ def _peak_sums(w, d, v, row, pos, npos, plan, stack, r, out, q):  # pragma: no c
             w[j, t] = w[j, t] / den
             row[0, t] = w[j, t] * d[j, t]
             row[1, t] = w[j, t] * (v[j, t] + d[j, t] * d[j, t])
-        m, nz1 = _sparse_pairwise(row[0], pos, npos, plan, stack, r)
-        m2, nz2 = _sparse_pairwise(row[1], pos, npos, plan, stack, r)
+        m, nz1 = _sparse_pairwise(row[0], pos, npos, plan, work)
+        m2, nz2 = _sparse_pairwise(row[1], pos, npos, plan, work)
         if not ((nz1 and nz2) or every):
             return False
         out[0, q, j] = m
@@ -140,13 +139,14 @@ def _peak_sums(w, d, v, row, pos, npos, plan, stack, r, out, q):  # pragma: no c
     return True
 
 
-def _sparse_pairwise(vals, pos, npos, plan, stack, r):  # pragma: no cover - numba
+def _sparse_pairwise(vals, pos, npos, plan, work):  # pragma: no cover - numba
     """``(Σ a, any nonzero)``: the sum of a vector ``a`` that is ``vals[t]`` at ``pos[t]``
     (t < npos, increasing) and 0 elsewhere, in NumPy's pairwise order (``plan`` of
-    :func:`~mems_stereo.physics.background.pairwise_plan`, as
-    :func:`~mems_stereo.physics.background.pairwise_sum_py`), adding the terms at
+    :func:`~mems_stereo.physics.background.pairwise_plan`, as the moving sums' kernels
+    add), adding the terms at
     ``pos`` alone: a zero added to a sum that holds a nonzero term changes no bit (nor
     does its sign), so with a nonzero term this is the whole vector's sum."""
+    r, stack = work[:8], work[8:]  # the lanes of a block, the stack of block sums
     top = 0
     t = 0
     nz = False
