@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import ndtr
 
+from mems_stereo.physics.first_photon_kernel import band_kernel, band_moments
 from mems_stereo.physics.pulse import FWHM_PER_SIGMA, PulseShape
 
 # --------------------------------------------------------------------------
@@ -228,6 +229,20 @@ def log_miss_probability(f):
     return per_share(lambda g: np.log1p(-_firing(g)), f)
 
 
+def band_log_miss(n_band, f_band):
+    """(Q, J) ``Σ_b n_b·ln(1 − P(inlier))`` of the (Q, B) valid shots ``n_band`` at spot
+    shares ``f_band``: ``np.einsum("qb,qbj->qj", n_band, log_miss_probability(f_band))``,
+    the same numbers — that sum runs over b in order from 0, and a step without shots
+    adds a zero, so only the steps with shots are evaluated and added in that order."""
+    n_band = np.asarray(n_band, np.float64)
+    qi, bi = np.nonzero(n_band)
+    out = np.zeros((n_band.shape[0], MU_GRID.size))
+    if qi.size:
+        f = np.asarray(f_band, np.float64)[qi, bi]
+        np.add.at(out, qi, n_band[qi, bi][:, None] * log_miss_probability(f))
+    return out
+
+
 def _firing(f):
     e = OUTLIER_PROBABILITY
     pf = -np.expm1(-MU_GRID * np.asarray(f, dtype=np.float64)[..., None])
@@ -282,6 +297,30 @@ def _band_lookup(a, lm, f_band):
     return d, v
 
 
+def _band_sums(f_band, n_band, a):
+    """``(dj, vj)`` (Q, J): the band's mean delay for each μ0 of the grid and its
+    mixture variance, in pulse σ and σ² (``f_band``, ``n_band`` (Q, B), ``a`` (Q,),
+    see :func:`first_photon_delay`); by the compiled kernel where numba is loaded
+    (:func:`~mems_stereo.physics.first_photon_kernel.band_moments`: the same numbers)."""
+    kernel = band_kernel() if f_band.ndim == 2 and f_band.shape[0] else None
+    zero = np.zeros(1)
+    if kernel is not None and np.shape(n_band) == f_band.shape:
+        qi, bi = np.nonzero(f_band)  # (the transcendental functions only where μ0·f ≠ 0)
+        mu_nz = f_band[qi, bi][:, None] * MU_GRID[None, :]
+        return band_moments(kernel, f_band, n_band, -np.expm1(-mu_nz),
+                            np.log(np.clip(mu_nz, 1e-4, MU_MAX)), a,
+                            (-np.expm1(-zero)[0], np.log(np.clip(zero, 1e-4, MU_MAX))[0]),
+                            first_photon_table())
+    mu_s = MU_GRID[None, :, None] * f_band[:, None, :]  # (Q, J, B)
+    nonzero = f_band != 0  # (the transcendental functions only where μ0·f is not 0)
+    w = n_band[:, None, :] * _at_shares(lambda m: -np.expm1(-m), mu_s, nonzero)
+    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)  # expected detections per step
+    lm = _at_shares(lambda m: np.log(np.clip(m, 1e-4, MU_MAX)), mu_s, nonzero)
+    d, v = _band_lookup(a, lm, f_band)
+    dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0
+    return dj, np.sum(w * (v + d * d), axis=2) - dj * dj  # and the mixture variance
+
+
 def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma, mu_factor=None):
     """Posterior first-photon delay of peaks from their spot-profile likelihood.
 
@@ -317,15 +356,8 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma, mu_factor=No
     ll = np.asarray(log_likelihood, dtype=np.float64)
     post = np.exp(ll - ll.max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)  # (Q, J)
-    mu_s = MU_GRID[None, :, None] * f_band[:, None, :]  # (Q, J, B)
-    nonzero = f_band != 0  # (the transcendental functions only where μ0·f is not 0)
-    w = n_band[:, None, :] * _at_shares(lambda m: -np.expm1(-m), mu_s, nonzero)
-    w = w / np.maximum(w.sum(axis=2, keepdims=True), 1e-300)  # expected detections per step
-    lm = _at_shares(lambda m: np.log(np.clip(m, 1e-4, MU_MAX)), mu_s, nonzero)
     a = -np.asarray(tau0, dtype=np.float64) / sigma
-    d, v = _band_lookup(a, lm, f_band)
-    dj = np.sum(w * d, axis=2)  # (Q, J) mean delay of the band for each μ0
-    vj = np.sum(w * (v + d * d), axis=2) - dj * dj  # mixture variance
+    dj, vj = _band_sums(np.asarray(f_band, np.float64), n_band, a)
     dm = np.sum(post * dj, axis=1)
     sd = np.sqrt(np.maximum(np.sum(post * dj * dj, axis=1) - dm * dm, 0.0))
     mu = post @ MU_GRID

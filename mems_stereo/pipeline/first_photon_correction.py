@@ -23,8 +23,8 @@ from mems_stereo.model.hardware import pulse_mean_delay
 from mems_stereo.physics.first_photon import (
     MU_MAX,
     ShapeExcess,
+    band_log_miss,
     first_photon_delay,
-    log_miss_probability,
 )
 from mems_stereo.physics.pulse import pulse_shape_of
 from mems_stereo.physics.spot import spot_fraction
@@ -115,19 +115,27 @@ def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False) -> BandSt
     B = int(min(max_steps, max(1, (b - a + 1).max())))
     steps = a[:, None] + np.arange(B)[None, :]
     S = acc.shots_per_step.size
-    inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S)
+    shots = acc.shots_per_step[np.clip(steps, 0, S - 1)]
+    # steps that count: in the band, on the table, with valid shots (a frame's shots
+    # visit a share of the scan's steps: the others count none, whatever the code)
+    inside = (steps <= b[:, None]) & (steps >= 0) & (steps < S) & (shots > 0)
     if acc.step_window is not None:  # only where pass 2 counted detections
         inside &= ((steps >= acc.step_window[0][q, None])
                    & (steps <= acc.step_window[1][q, None]))
     if acc.accept is not None:  # only where the classifier accepts the return's code
-        inside &= acc.accept(np.clip(steps, 0, S - 1), centre, q)
-    n = np.where(inside, acc.shots_per_step[np.clip(steps, 0, S - 1)], 0)
+        qi, bi = np.nonzero(inside)
+        inside[qi, bi] = acc.accept(steps[qi, bi][:, None], centre[qi], q[qi])[:, 0]
+    n = np.where(inside, shots, 0)
+    in_band = (steps >= a[:, None]) & (steps <= b[:, None])
+    # the spot's share where it is read (each entry its own: the same numbers)
+    qi, bi = np.nonzero(in_band if full else n > 0)
     t0, dt = acc.step_grid
-    f = spot_fraction(acc.system, acc.rows[q, None], acc.cols[q, None], t0 + steps * dt,
-                      centre[:, None], acc.spot_sigma)
+    f = np.zeros(steps.shape)
+    f[qi, bi] = spot_fraction(acc.system, acc.rows[q[qi]], acc.cols[q[qi]],
+                              t0 + steps[qi, bi] * dt, centre[qi], acc.spot_sigma)
     if full:
-        return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0), np.where(
-            (steps >= a[:, None]) & (steps <= b[:, None]), f, 0.0))
+        return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0),
+                         np.where(in_band, f, 0.0))
     return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0))
 
 
@@ -216,8 +224,7 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
         q = idx[a:b]
         band = band_steps(acc, q, full=True)
         steps, n_band, f_band, f_full = band.steps, band.shots, band.spot, band.spot_full
-        ll = acc.sums.loglik[q] + np.einsum(
-            "qb,qbj->qj", n_band, log_miss_probability(f_band))
+        ll = acc.sums.loglik[q] + band_log_miss(n_band, f_band)
         d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
             ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
         ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])

@@ -6,12 +6,13 @@ p-value over them (:class:`BoxGrid`), coarse to fine where the grid is large.
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import pdtrc
 
-from mems_stereo.util.lazy_numba import compiled_if_loaded
+from mems_stereo.util.lazy_numba import compiled_if_loaded, compiled_kernel
 
 #: the most (step × cell) positions a candidate's grid is searched at in full; beyond
 #: (a whole scan's band of steps: candidates search it all, see
@@ -71,8 +72,12 @@ class BoxGrid:
     def counts(self, j0, j1, k0, k1, fs=1, fc=1):
         """(ceil((j1−j0)/fs), ceil((k1−k0)/fc)) counts of steps j0..j1−1 × cells
         k0..k1−1, summed in blocks of fs steps × fc cells."""
-        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
         shape = (-(-(j1 - j0) // fs), -(-(k1 - k0) // fc))
+        kernel = compiled_if_loaded(_counts_py)
+        if kernel is not None and self.ds.dtype == self.dc.dtype == np.int64:
+            return kernel(self.ds, self.dc, np.asarray(self.cnt, np.float64), j0, j1, k0, k1,
+                          fs, fc, shape[0], shape[1])
+        m = (self.ds >= j0) & (self.ds < j1) & (self.dc >= k0) & (self.dc < k1)
         # the entries added in their order from 0 (np.add.at's additions: the same numbers)
         flat = ((self.ds[m] - j0) // fs) * shape[1] + (self.dc[m] - k0) // fc
         return np.bincount(flat, weights=self.cnt[m],
@@ -163,7 +168,49 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
     over the first / last column (else they are whole there too); ``prefilter`` : the
     tail only at boxes whose Poisson deviance is within :data:`DEVIANCE_MARGIN` of the
     largest (the smallest p lies among them: ln p ≈ −deviance up to slowly varying
-    terms)."""
+    terms).  The valid boxes are found by :func:`valid_boxes` and the rest works on
+    them alone (the same numbers as over the whole grid)."""
+    N_box, B_box, flat = valid_boxes(D, B, box_s, box_c, min_counts, cut)
+    if flat.size == 0:
+        return None
+    n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
+    if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        order = flat[np.argsort(-dev, kind="stable")[:top]]
+        return [divmod(int(k), D.shape[1]) for k in order]
+    if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
+        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
+        keep = dev >= dev.max() - DEVIANCE_MARGIN
+        flat, n_v, b_v = flat[keep], n_v[keep], b_v[keep]
+    tail = _contenders(n_v, b_v)  # the tail at those boxes only (pdtrc is the cost)
+    flat = flat[tail]
+    with np.errstate(invalid="ignore"):
+        pt = pdtrc(np.maximum(n_v[tail] - 1, 0), b_v[tail])
+    if pt.size and not np.isnan(pt).any() and pt.min() < 1.0:
+        i = int(np.argmin(pt))  # the first smallest, as over the grid (1 elsewhere)
+        k, p_k = int(flat[i]), pt[i]
+    else:  # over the whole grid: 1 where not evaluated
+        p = np.ones(N_box.size)
+        p[flat] = pt
+        k = int(np.argmin(p))
+        p_k = p[k]
+    jj, ci = divmod(k, D.shape[1])
+    return BestBox(p_k, jj, ci, N_box[jj, ci], B_box[jj, ci])
+
+
+def valid_boxes(D, B, box_s: int, box_c: int, min_counts: int, cut=(True, True)):
+    """``(N_box, B_box, flat)``: the box sums of counts ``D`` and background ``B``
+    (n, m) (:func:`box_sums`) and the flat indices (row-major, int64) of the boxes that
+    :func:`smallest_p` evaluates: whole in the first axis (and at the columns ``cut``
+    forbids), holding at least ``min_counts`` and more than their background.
+    Compiled (:func:`_box_scan_py`) where numba is loaded."""
+    kernel = None
+    if "numba" in sys.modules:  # (as compiled_if_loaded, with the box sums inlined)
+        kernel = compiled_kernel(_box_scan_py, {"_box_sums_inline": _box_sums_py})
+    if kernel is not None:
+        sums, flat = kernel(np.ascontiguousarray(np.stack([D, B]), np.float64), int(box_s),
+                            int(box_c), float(min_counts), bool(cut[0]), bool(cut[1]))
+        return sums[0], sums[1], flat
     N_box, B_box = box_sums(np.stack([D, B]), box_s, box_c)
     half = box_s // 2
     valid = np.zeros(N_box.shape, bool)
@@ -175,29 +222,12 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
     if not cut[1]:
         valid[:, max(0, D.shape[1] - hc):] = False
     valid &= (N_box >= min_counts) & (N_box > B_box)
-    if not np.any(valid):
-        return None
-    if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
-        flat = np.flatnonzero(valid)
-        n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
-        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
-        order = flat[np.argsort(-dev, kind="stable")[:top]]
-        return [divmod(int(k), D.shape[1]) for k in order]
-    if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
-        n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
-        dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
-        valid[valid] = dev >= dev.max() - DEVIANCE_MARGIN
-    p = np.ones(N_box.shape)  # the tail at the valid boxes only (pdtrc is the cost)
-    tail = _contenders(N_box, B_box, valid)
-    with np.errstate(invalid="ignore"):
-        p[tail] = pdtrc(np.maximum(N_box[tail] - 1, 0), np.maximum(B_box[tail], 1e-12))
-    k = int(np.argmin(p))
-    jj, ci = divmod(k, D.shape[1])
-    return BestBox(p[jj, ci], jj, ci, N_box[jj, ci], B_box[jj, ci])
+    return N_box, B_box, np.flatnonzero(valid)
 
 
-def _contenders(N_box, B_box, valid) -> np.ndarray:
-    """``valid`` less the boxes whose Poisson tail surely exceeds the smallest.
+def _contenders(n_v, b_v) -> np.ndarray:
+    """Which of the valid boxes (counts ``n_v``, background ``b_v`` floored at 1e-12)
+    may hold the smallest Poisson tail: (len,) bool.
 
     The tail ``P(X >= N | B)`` is at least ``P(X = N | B)``, whose logarithm is, by
     Stirling's bounds on ln N!, at least ``−dev − ln(2πN)/2 − 1/(12N)`` (dev the
@@ -205,20 +235,18 @@ def _contenders(N_box, B_box, valid) -> np.ndarray:
     the tail of the box of largest deviance (by a margin far above the rounding of
     these sums) can neither hold the minimum nor tie with it: the tail is evaluated at
     the rest only, and the minimum is the same box with the same value as over all."""
-    n_v, b_v = N_box[valid], np.maximum(B_box[valid], 1e-12)
+    every = np.ones(n_v.size, bool)
     if n_v.size < PRUNE_MIN_BOXES:
-        return valid
+        return every
     dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
     i = int(np.argmax(dev))
     with np.errstate(invalid="ignore"):
         p_ref = float(pdtrc(max(n_v[i] - 1, 0), b_v[i]))
     if not (p_ref > PRUNE_MIN_TAIL and np.isfinite(dev[i])) or n_v.min() < 1:
-        return valid  # near underflow, NaN, a fractional count: every valid box
+        return every  # near underflow, NaN, a fractional count: every valid box
     log_point = -dev - 0.5 * np.log(2 * math.pi * n_v) - 1.0 / (12.0 * n_v)
     margin = 1e-8 * (np.abs(dev) + n_v + b_v) + 1e-9
-    out = valid.copy()
-    out[valid] = ~(log_point > math.log(p_ref) + margin)
-    return out
+    return ~(log_point > math.log(p_ref) + margin)
 
 
 def box_sums(A, h: int, w: int) -> np.ndarray:
@@ -242,34 +270,72 @@ def box_sums(A, h: int, w: int) -> np.ndarray:
 def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
     """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel): the
     running sums of A padded with zeros, along the steps (``col``, one row at a time) and
-    then along the cells (``c``), each the same addition as in two whole passes."""
+    then along the cells (``c``), each the same addition as in two whole passes.  Only
+    A's own rows and cells are summed: the running sums are +0.0 before them (zeros
+    added to +0.0; a running sum from +0.0 is never −0.0, so the zeros added after
+    them change no bit) and repeat their last value after them; ``c`` holds them
+    with a leading row and column of zeros, read through the clamped indices ``ri``,
+    ``ci`` of the padded array's rows and cells."""
     k, n, m = A.shape
-    c = np.empty((n + h, m + w))
-    col = np.empty(m + w)
-    out = np.empty((k, n, m))
     i0, j0 = h // 2 + 1, w // 2 + 1  # where A starts in the padded array
+    c = np.zeros((n + 1, m + 1))
+    col = np.empty(m)
+    out = np.empty((k, n, m))
+    ri = np.empty(n + h, np.int64)
+    for i in range(n + h):
+        ri[i] = 0 if i < i0 else min(i - i0, n - 1) + 1
+    ci = np.empty(m + w, np.int64)
+    for j in range(m + w):
+        ci[j] = 0 if j < j0 else min(j - j0, m - 1) + 1
     for q in range(k):
-        col[:] = 0.0  # the padded array's first row (zeros)
-        c[0, :] = 0.0
-        for i in range(1, n + h):
-            if i0 <= i < i0 + n:  # running sum along the steps (+ 0.0 over the padding)
-                for j in range(j0):
-                    col[j] = col[j] + 0.0
-                for j in range(m):
-                    col[j0 + j] = col[j0 + j] + A[q, i - i0, j]
-                for j in range(j0 + m, m + w):
-                    col[j] = col[j] + 0.0
-            else:
-                for j in range(m + w):
-                    col[j] = col[j] + 0.0
-            acc = col[0]
-            c[i, 0] = acc
-            for j in range(1, m + w):  # then along the cells
-                acc = acc + col[j]
-                c[i, j] = acc
+        for j in range(m):
+            col[j] = 0.0
         for i in range(n):
+            acc = 0.0
             for j in range(m):
-                out[q, i, j] = c[i + h, j + w] - c[i, j + w] - c[i + h, j] + c[i, j]
+                col[j] = col[j] + A[q, i, j]
+                acc = acc + col[j]
+                c[i + 1, j + 1] = acc
+        for i in range(n):
+            a, b = ri[i], ri[i + h]
+            for j in range(m):
+                x, y = ci[j], ci[j + w]
+                out[q, i, j] = c[b, y] - c[a, y] - c[b, x] + c[a, x]
+    return out
+
+
+def _box_scan_py(A, h, w, min_counts, cut_lo, cut_hi):  # pragma: no cover - numba
+    """:func:`valid_boxes` of ``A`` = (D, B) stacked (2, n, m), loop by loop (the numba
+    kernel): the box sums (:func:`_box_sums_py`) and the flat indices of the boxes whole
+    in the first axis, within the columns the cut allows, with D ≥ ``min_counts`` and
+    D > B."""
+    out = _box_sums_inline(A, h, w)
+    n, m = A.shape[1], A.shape[2]
+    half, hc = h // 2, w // 2
+    flat = np.empty(n * m, np.int64)
+    k = 0
+    if n > 2 * half:
+        c0 = 0 if cut_lo else hc
+        c1 = m if cut_hi else max(0, m - hc)
+        for i in range(half, n - half):
+            for j in range(c0, c1):
+                N = out[0, i, j]
+                if N >= min_counts and N > out[1, i, j]:
+                    flat[k] = i * m + j
+                    k += 1
+    return out, flat[:k]
+
+
+def _counts_py(ds, dc, cnt, j0, j1, k0, k1, fs, fc, n0, n1):  # pragma: no cover - numba
+    """:meth:`BoxGrid.counts` loop by loop (the numba kernel): each entry inside steps
+    j0..j1−1 × cells k0..k1−1 added to its block, in entry order (``np.bincount``'s
+    additions: the same numbers); returns (n0, n1) float64."""
+    out = np.zeros((n0, n1))
+    for e in range(ds.shape[0]):
+        j, k = ds[e], dc[e]
+        if j >= j0 and j < j1 and k >= k0 and k < k1:
+            a, b = (j - j0) // fs, (k - k0) // fc
+            out[a, b] += cnt[e]
     return out
 
 
@@ -288,6 +354,10 @@ def _background_py(lo, hi, nps, e_lo, e_hi, table, k0):  # pragma: no cover - nu
             else:
                 out[j, k] = nps[j] * 0.0
     return out
+
+
+#: the kernel :func:`_box_scan_py` calls (bound to its inlined compiled form)
+_box_sums_inline = _box_sums_py
 
 
 def _powers(k, log_base) -> np.ndarray:
