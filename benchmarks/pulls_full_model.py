@@ -10,7 +10,8 @@ goodness test), no room.  ``--cache`` keeps each seed's ideal-model fit (pickled
 that a change of the hardware-term steps is measured again in seconds.  Prints per
 seed the pulls (estimate − truth)/σ in the conventions of
 ``bench_real_hardware.equivalent_truth``, then per parameter the pull std and max
-|pull| over the seeds, and the written results beyond 4σ.  Log:
+|pull| over the seeds, and the written results beyond 4σ (``--before``: first those of
+a ``bench_real_hardware.py --records`` file for the same seeds).  Log:
 ``benchmarks/results/pulls_full_model.log`` (``--log``).
 """
 
@@ -135,6 +136,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", default=None, help="folder for the ideal-model fits")
     ap.add_argument("--jobs", type=int, default=1)
     ap.add_argument("--records", default=None, help="append each seed as a JSON line")
+    ap.add_argument("--before", default=None, metavar="RECORDS",
+                    help="a bench_real_hardware records file: print its pulls of the same "
+                         "seeds first")
     ap.add_argument("--log", default=str(ROOT / "benchmarks" / "results" / "pulls_full_model.log"))
     args = ap.parse_args(argv)
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
@@ -172,6 +176,13 @@ def main(argv=None) -> int:
         for t in tasks:
             keep(run_seed(t))
     recs.sort(key=lambda r: r["seed"])
+    if args.before:  # the same seeds' pulls in a bench_real_hardware records file
+        old = [json.loads(x) for x in Path(args.before).read_text().splitlines() if x.strip()]
+        old = [{"seed": r["seed"], "pulls": r["pulls1"]} for r in old
+               if r.get("seed") in seeds and r.get("pulls1") and "flows" in r]
+        log(f"before ({args.before}, pulls1 of {len(old)} of these seeds):")
+        summarise(sorted(old, key=lambda r: r["seed"]), log)
+        log("after (this run):")
     summarise(recs, log)
     Path(args.log).parent.mkdir(parents=True, exist_ok=True)
     Path(args.log).write_text("\n".join(lines) + "\n")

@@ -132,8 +132,7 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
             f"tdc_offset by these walls ({why}): the Gaussian pulse is kept and tdc_offset "
             f"holds the tail's delay; {RECORD_ADVICE['pulse']}")
         prof = profile_tail(result.extra["problem"], result.extra["x"])
-        out = (add_held_tail(result, prof.decay, prof.share, prof.share_std) if prof
-               else add_held_tail(result, tau_d))
+        out = add_held_tail(result, prof) if prof else result
     out.extra["pulse"], out.extra["tail_test"] = fit, test
     return out
 
@@ -148,7 +147,7 @@ def _weak_tail(result):
     prof = profile_tail(result.extra["problem"], result.extra["x"])
     if prof is None or prof.share < 2.0 * prof.share_std:
         return result
-    return add_held_tail(result, prof.decay, prof.share, prof.share_std)
+    return add_held_tail(result, prof)
 
 
 def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kwargs):

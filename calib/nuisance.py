@@ -107,12 +107,15 @@ def add_held_edges(result, std: float = EDGE_DIFFERENCE_STD):
 @dataclass(frozen=True)
 class TailProfile:
     """A pulse tail's share fitted at a held decay (:func:`profile_tail`): ``decay``
-    s, ``share`` and its σ ``share_std``, the fit's ``loglik``."""
+    s, ``share`` and its σ ``share_std``, the fit's ``loglik``, and ``move`` (P,) SI:
+    the Gaussian fit's parameters (its layout, walls too) less this fit's, its
+    ``tdc_offset`` taken at the pulse's mean delay (core + share·decay)."""
 
     decay: float
     share: float
     share_std: float
     loglik: float
+    move: np.ndarray
 
 
 def profile_tail(prob, x, decays=TAIL_DECAYS) -> TailProfile | None:
@@ -121,38 +124,49 @@ def profile_tail(prob, x, decays=TAIL_DECAYS) -> TailProfile | None:
     delay at the start): the one of the largest likelihood among those that converge
     with a share in (0, 1) known to better than ±0.5, or None."""
     best = None
+    lay = prob.layout
     for d in decays:
         p2, x2 = extended_problem(prob, x, ["pulse_tail_fraction"], d)
         i = p2.layout.names.index("pulse_tail_fraction")
+        idx = ([p2.layout.names.index(n) for n in lay.names]
+               + list(range(p2.layout.n_sys, p2.layout.size)))
         x2[i] = 0.1
-        if "tdc_offset" in p2.layout.names:
-            x2[p2.layout.names.index("tdc_offset")] -= 0.1 * d
+        k = p2.layout.names.index("tdc_offset") if "tdc_offset" in lay.names else None
+        if k is not None:
+            x2[k] -= 0.1 * d
         st = FitState()
         nr = newton(p2, x2, st, max_iter=30)
         cov, _, _ = obs.covariance(nr.info, p2.layout.scales)
         w, sw = float(nr.x[i]), float(math.sqrt(max(cov[i, i], 0.0)))
         if st.converged and 0.0 < w < 1.0 and sw < 0.5 and (
                 best is None or nr.loglik > best.loglik):
-            best = TailProfile(d, w, sw, float(nr.loglik))
+            xp = nr.x.copy()
+            if k is not None:
+                xp[k] += w * d
+            best = TailProfile(d, w, sw, float(nr.loglik), np.asarray(x) - xp[idx])
     return best
 
 
-def add_held_tail(result, decay: float, share: float | None = None, share_std: float = 0.0):
-    """``result`` (a Gaussian-pulse fit whose walls show a pulse tail that the fit
-    could not separate from ``tdc_offset``) with the tail's share in its covariance:
-    the direction adds a tail of decay ``decay`` s and keeps ``tdc_offset`` at the
-    pulse's mean delay (the Gaussian fit's convention); its spread ``√(w² + σ_w²)``
-    with w the tail's ``share`` (σ ``share_std``) of :func:`profile_tail`, else the
-    one-step estimate from the score and its σ (see :func:`add_held`)."""
+def add_held_tail(result, profile: TailProfile):
+    """``result`` (a Gaussian-pulse fit whose walls show a pulse tail) with the tail's
+    share in its covariance: ``(1 + (σ_w/w)²)·δ δᵀ``, δ the ``profile``'s move (the
+    Gaussian fit less the fit with the tail at its held decay, ``tdc_offset`` at the
+    pulse's mean delay: the Gaussian fit's convention), w its share (see
+    :func:`add_held`)."""
+    w, sw = profile.share, profile.share_std
+    held = Held(profile.move, _covariance(result), w, sw)
+    return add_held(result, held, math.sqrt(1.0 + (sw / w) ** 2), "held_tail",
+                    f"a pulse tail (share ≈ {w * 100:.0f} ± {sw * 100:.0f} % at "
+                    f"{profile.decay * 1e9:.0f} ns) is left out of the Gaussian pulse: σ "
+                    "include the move it makes", "record the walls with more shots at low "
+                    "pile-up to fit the tail")
+
+
+def _covariance(result) -> np.ndarray:
+    """The covariance of all of ``result``'s fitted parameters (SI): that of its
+    information."""
     prob = result.extra["problem"]
-    held = held_sensitivity(prob, result.extra["x"],
-                            {"pulse_tail_fraction": 1.0, "tdc_offset": -decay}, decay)
-    w, sw = (held.value, held.std) if share is None else (float(share), float(share_std))
-    spread = math.hypot(w, sw) if math.isfinite(sw) else abs(w)
-    return add_held(result, held, spread, "held_tail",
-                    f"a pulse tail (share ≈ {w * 100:.0f} % at {decay * 1e9:.1f} ns) is left "
-                    "out of the Gaussian pulse: σ include it",
-                    "record the walls with more shots at low pile-up to fit the tail")
+    return obs.covariance(result.extra["information"], prob.layout.scales)[0]
 
 
 def add_held(result, held: Held, spread: float, key: str, what: str, advice: str):

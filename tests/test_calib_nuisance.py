@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from mems_stereo.calib.nuisance import edge_direction, held_sensitivity
+from mems_stereo.calib.nuisance import edge_direction, held_sensitivity, profile_tail
 from mems_stereo.calib.problem import Cells, Layout, Problem, WallData
 from mems_stereo.calib.solver import FitState, newton
 
@@ -28,9 +28,10 @@ def _edges(system, difference: float):
     return system.replace(scanner=replace(system.scanner, monitor=mon))
 
 
-def _problem(rng, difference: float = 0.0, n_shots: int = 10000):
+def _problem(rng, difference: float = 0.0, n_shots: int = 10000, tail=None, names=NAMES):
     """One wall at 1.5 m: cells drawn from the model of a system with an edge-delay
-    difference ``difference`` s; the returned problem holds it at 0."""
+    difference ``difference`` s (and a pulse tail ``tail`` = (share, decay s) on the
+    1 ns Gaussian); the returned problem, free ``names``, holds them at 0."""
     f = 1570.0
     zc = np.arange(0, 0.2, 0.5 / f) + 1e-4
     rising = (np.arange(zc.size) % 2).astype(bool)
@@ -46,12 +47,17 @@ def _problem(rng, difference: float = 0.0, n_shots: int = 10000):
     cols = (u[:, None] + np.arange(-2, 3)[None, :]).ravel()
     sh = np.repeat(shots, 5)
     share = np.exp(-0.5 * ((cols - pred[sh, 1]) / 0.6) ** 2) * 1.0 / (0.6 * np.sqrt(2 * np.pi))
-    fired = rng.poisson(share) > 0
-    times = np.where(fired, pred[sh, 0] + rng.normal(0.0, 1e-9, sh.size), np.nan)
+    n = np.minimum(rng.poisson(share), 4)
+    a = rng.normal(0.0, 1e-9, (sh.size, 4))  # the first of the n photons
+    if tail is not None:
+        a += np.where(rng.random((sh.size, 4)) < tail[0], rng.exponential(tail[1], a.shape), 0)
+    a[np.arange(4)[None, :] >= n[:, None]] = np.inf
+    times = np.where(n > 0, pred[sh, 0] + a.min(axis=1), np.nan)
+    lay = Layout(names, 1, False)
     prob = Problem([w], sys0, lay, 1e-9)
     prob.cells[0] = Cells(sh, cols, np.zeros_like(cols), times, np.full(sh.size, 1e3), 60e-9,
                           shots, float(np.median(pred[shots, 3])))
-    return prob, x
+    return prob, lay.pack({n: sys0.get_param(n) for n in names}, WALL)
 
 
 def test_held_edge_sensitivity_matches_a_refit_with_the_edges_moved():
@@ -86,3 +92,18 @@ def test_held_edge_estimate_recovers_the_difference_in_the_data():
     held = held_sensitivity(prob, x0, edge_direction(prob.system))
     assert 0 < held.std < 400e-9
     assert abs(held.value - 400e-9) < 3 * held.std, (held.value, held.std)
+
+
+def test_profile_tail_finds_the_share_at_the_right_decay():
+    """A 30 % tail of 3 ns on the 1 ns pulse: the share fitted at the held decays is
+    the truth's within 3σ at the decay of the data."""
+    prob, x = _problem(np.random.default_rng(7), tail=(0.3, 3e-9),
+                       names=["theta0", "tdc_offset"])
+    x0 = newton(prob, x, FitState()).x
+    prof = profile_tail(prob, x0)
+    assert prof is not None and prof.decay == 3e-9
+    assert abs(prof.share - 0.3) < 3 * prof.share_std, prof
+    # the Gaussian fit's TDC offset misses the pulse's mean delay 0.9 ns; the profile
+    # fit's (its offset less the move) holds it
+    bias = x0[1] - 0.9e-9
+    assert abs(x0[1] - prof.move[1] - 0.9e-9) < 0.5 * abs(bias)
