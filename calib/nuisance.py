@@ -19,6 +19,13 @@ does not select it), while the phase offset holds the mean of the two delays.  T
 direction is symmetric — rising + δ/2, falling − δ/2, the mean kept — which in the
 fit's parameters (falling held) is ``edge_rising_delay`` + δ, ``phase_offset``
 − π·f_mech·δ.
+
+The other is a **pulse tail** the Gaussian fit leaves out (not separable from
+``tdc_offset``, or missed by the score test at share 0): the local sensitivity at
+share 0 is far off for a tail of tens of %, so its share is fitted at a few held
+decays (:func:`profile_tail`) and the measured move δ (the Gaussian fit less that
+fit, ``tdc_offset`` compared at the pulse's mean delay) enters as
+``(1 + (σ_w/w)²)·δ δᵀ`` (:func:`add_held_tail`).
 """
 
 from __future__ import annotations
