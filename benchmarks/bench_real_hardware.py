@@ -37,7 +37,8 @@ Scores of a processed room (true range on the ray through the point): point erro
 |range − true|, d/σ = (range − true)/σ_r, false points (farther than max(3σ_r, 10 cm)
 from the true surface; left out of d/σ).  Pulls (estimate − truth)/σ per fitted
 parameter in the fit's conventions (edge delay as rising − falling, the phase offset
-with the falling delay's share, the TDC offset with the pulse's mean delay; pixel
+with the falling delay's share, or the mean of the two delays where the fit holds them
+equal, the TDC offset with the pulse's mean delay; pixel
 offsets against the true offsets less their information-weighted mean).  The
 code-density check simulates its own dark recordings (``--cd-trials``).
 
@@ -189,8 +190,10 @@ def equivalent_truth(true, name: str, cal) -> float:
     if name == "tdc_offset":  # a Gaussian-pulse fit puts the pulse's mean delay there
         return true.tdc.offset + (pulse_mean_delay(true.laser)
                                   if cal.system.laser.pulse_shape is None else 0.0)
-    if name == "phase_offset" and mon is not None:
-        return true.scanner.phase_offset + 2 * np.pi * true.scanner.f_mech * mon.falling_delay
+    if name == "phase_offset" and mon is not None:  # a fit that holds the two edges equal
+        share = (mon.falling_delay if "edge_rising_delay" in cal.names  # puts their mean there
+                 else 0.5 * (mon.rising_delay + mon.falling_delay))
+        return true.scanner.phase_offset + 2 * np.pi * true.scanner.f_mech * share
     return true.get_param(name)
 
 

@@ -16,6 +16,7 @@ import numpy as np
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib.fit import fit_walls
 from mems_stereo.calib.model import PULSE_PARAMS
+from mems_stereo.calib.nuisance import add_held_edges, add_held_tail, holds_edges, profile_tail
 from mems_stereo.calib.solver import StartValues
 
 #: what to record when a hardware term is not observable
@@ -98,16 +99,19 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     :mod:`~mems_stereo.calib.pulse_shape` gives the start when it sees the tail too).
     ``result`` unchanged when the test passes, or with a warning when the fit does not
     separate the tail from ``tdc_offset`` (a tail short against the pulse σ is a
-    shift: the Gaussian's ``tdc_offset`` then holds its delay).  ``extra["pulse"]``
-    holds the shape fit (the report's) and ``extra["tail_test"]`` the score test."""
+    shift: the Gaussian's ``tdc_offset`` then holds its delay) and the held tail's
+    share in its σ (:func:`~mems_stereo.calib.nuisance.add_held_tail`, the share fitted
+    at the best of a few held decays, :func:`~mems_stereo.calib.nuisance.profile_tail`).
+    ``extra["pulse"]`` holds the shape fit (the report's) and ``extra["tail_test"]`` the
+    score test."""
     fit = _pulse(result)
     result.extra["pulse"] = fit
     if "tdc_offset" not in result.names:
         return result
     test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
     result.extra["tail_test"] = test
-    if not test.selected:
-        return result
+    if not test.selected:  # on hardware the other terms found imperfect, a tail the
+        return _weak_tail(result)  # local test misses can still move tdc_offset
     if progress:
         progress(f"hardware terms: pulse tail (score test p = {test.p_value:.1e})")
     shaped = fit is not None and fit.tail_significant
@@ -116,16 +120,34 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     tau_d = max(tau_d, 0.05 * result.extra["problem"].sigma)
     start = {"pulse_tail_fraction": w, "pulse_tail_decay": tau_d,
              "tdc_offset": result.values["tdc_offset"] - w * tau_d}
-    out = _fit_terms(result, list(PULSE_PARAMS), fit_kwargs, start)
-    weak = [n for n in out.unobservable if n not in result.unobservable]
-    if out is not result and (weak or not set(PULSE_PARAMS) <= set(out.names)):
+    r1 = _refit(result, list(PULSE_PARAMS), fit_kwargs, start)
+    weak = [n for n in r1.unobservable if n not in result.unobservable] if r1 else []
+    if r1 and not weak:
+        r1.warnings[:0] = [w for w in result.warnings if w not in r1.warnings]
+        out = r1
+    else:  # the tail held out (the Gaussian kept): its share in the σ
+        why = ", ".join(weak) if r1 else f"the fit failed: {r1.reason[:80]}"
         result.warnings.append(
             f"a pulse tail (score test p = {test.p_value:.1e}) is not separated from "
-            f"tdc_offset by these walls ({', '.join(weak) or 'tail left out'}): the Gaussian "
-            f"pulse is kept and tdc_offset holds the tail's delay; {RECORD_ADVICE['pulse']}")
-        return result
+            f"tdc_offset by these walls ({why}): the Gaussian pulse is kept and tdc_offset "
+            f"holds the tail's delay; {RECORD_ADVICE['pulse']}")
+        prof = profile_tail(result.extra["problem"], result.extra["x"])
+        out = add_held_tail(result, prof) if prof else result
     out.extra["pulse"], out.extra["tail_test"] = fit, test
     return out
+
+
+def _weak_tail(result):
+    """``result`` with a pulse tail's share in its σ when the result fits harmonics or
+    an edge delay (imperfect hardware) and :func:`~mems_stereo.calib.nuisance.
+    profile_tail` finds a share more than 2σ from 0 that the score test at share 0
+    did not select; else ``result`` unchanged (ideal hardware: nothing is selected)."""
+    if not any(n.startswith(("harmonic", "edge")) for n in result.names):
+        return result
+    prof = profile_tail(result.extra["problem"], result.extra["x"])
+    if prof is None or prof.share < 2.0 * prof.share_std:
+        return result
+    return add_held_tail(result, prof)
 
 
 def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kwargs):
@@ -164,6 +186,8 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
         if n_left:
             out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
                                 "left at 0 (record walls whose returns cover every pixel)")
+    if holds_edges(out):  # the edge-delay difference held: its share in the σ
+        out = add_held_edges(out)
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
     out.extra["hardware_tests"] = tests + [po.test] + (
         [out.extra["tail_test"]] if "tail_test" in out.extra else [])
