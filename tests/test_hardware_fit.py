@@ -224,12 +224,14 @@ def test_a_failure_by_another_check_names_the_effect(monkeypatch):
     residuals, or a failure without fitted values, leave it unchanged."""
     from mems_stereo.calib import goodness
     from mems_stereo.calib.result import CalibrationFailure
+    from mems_stereo.calib.solver import FitState, newton
 
     off = np.zeros(192)
     off[::2] = 1.5e-9
     why = "not observable from these data: baseline_z σ = 30 mm > 20 mm"
     for offsets, named in ((None, False), (off - off.mean(), True)):
         prob, x = _synthetic_problem(np.random.default_rng(2), offsets)
+        x = newton(prob, x, FitState()).x  # a fitted point, as failed_problem gives
         monkeypatch.setattr(goodness, "failed_problem", lambda *a, p=prob, x=x: (p, x))
         fail = CalibrationFailure(why, "input", {"values": {}, "walls": []}, ["w"], 1.0)
         out = goodness.name_failure(fail, prob.walls, prob.system)
