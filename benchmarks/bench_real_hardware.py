@@ -244,8 +244,10 @@ def verdict(cal) -> dict:
 def calibrate_both(walls, nominal, case, times: dict, hw: str) -> tuple:
     """``calibrate_system(model="ideal")`` and ``(model="full")`` of the walls, sharing
     their first step: the steps of :func:`mems_stereo.calib.calibrate_system` (one
-    ideal-model :func:`fit_walls`; "ideal" judges it; "full" rescues a failed fit or
-    adds the hardware terms, then judges), with the measured distances (σ 2 mm).
+    ideal-model :func:`fit_walls`; "ideal" judges it, or names the effect in a refused
+    fit's residuals (:func:`~mems_stereo.calib.goodness.name_failure`); "full" rescues a
+    failed fit or adds the hardware terms, then judges), with the measured distances
+    (σ 2 mm).
 
     Returns (ideal, full): CalibrationResult or CalibrationFailure each, and the
     ideal-model system (``ideal.system`` before "full" extends the shared result).
