@@ -225,8 +225,11 @@ def name_failure(failure, walls, nominal, priors=(), jitter: float = 50e-12):
     got = failed_problem(failure, walls, nominal, priors, jitter)
     if got is None:
         return failure
-    reps = calibration_goodness(*got)
-    words = [f.message for rep in reps for f in rep.failed] or _score_test_words(*got)
+    try:  # a fit that failed may leave too few cells for a test: then no verdict
+        reps = calibration_goodness(*got)
+        words = [f.message for rep in reps for f in rep.failed] or _score_test_words(*got)
+    except (MemsStereoError, ValueError, np.linalg.LinAlgError):
+        return failure
     if not words:
         return failure
     words = "; ".join(dict.fromkeys(words))
