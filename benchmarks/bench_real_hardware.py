@@ -247,8 +247,10 @@ def verdict(cal) -> dict:
 def calibrate_both(walls, nominal, case, times: dict, hw: str) -> tuple:
     """``calibrate_system(model="ideal")`` and ``(model="full")`` of the walls, sharing
     their first step: the steps of :func:`mems_stereo.calib.calibrate_system` (one
-    ideal-model :func:`fit_walls`; "ideal" judges it; "full" rescues a failed fit or
-    adds the hardware terms, then judges), with the measured distances (σ 2 mm).
+    ideal-model :func:`fit_walls`; "ideal" judges it, or names the effect in a refused
+    fit's residuals (:func:`~mems_stereo.calib.goodness.name_failure`); "full" rescues a
+    failed fit or adds the hardware terms, then judges), with the measured distances
+    (σ 2 mm).
 
     Returns (ideal, full): CalibrationResult or CalibrationFailure each, and the
     ideal-model system (``ideal.system`` before "full" extends the shared result).
@@ -256,7 +258,7 @@ def calibrate_both(walls, nominal, case, times: dict, hw: str) -> tuple:
     from mems_stereo.calib.association import wall_data
     from mems_stereo.calib.fit import fit_walls
     from mems_stereo.calib.full_model import add_hardware_terms, rescue
-    from mems_stereo.calib.goodness import judge
+    from mems_stereo.calib.goodness import judge, name_failure
 
     priors = [(j, "axis", float(d), 2e-3) for j, d in enumerate(case.measured)]
     wd = [wall_data(r) for r in walls]
@@ -266,7 +268,8 @@ def calibrate_both(walls, nominal, case, times: dict, hw: str) -> tuple:
         for w in wd:
             w.code_centres = code_centres(nominal.tdc)
     fit = timed(times, f"fit walls ({hw})", lambda: fit_walls(wd, nominal, priors=priors))
-    ideal = timed(times, f"goodness ({hw})", lambda: judge(fit)) if fit else fit
+    ideal = timed(times, f"goodness ({hw})", lambda: judge(fit) if fit else name_failure(
+        fit, wd, nominal, priors))
     v_ideal = verdict(ideal)
     if fit:
         names = list(fit.names)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 from mems_stereo.calib.association import wall_data
 from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.goodness import judge, name_failure
 from mems_stereo.calib.result import CalibrationFailure, CalibrationResult
 
 from mems_stereo.errors import FormatError, MemsStereoError, NotObservableError, OptionError
@@ -112,6 +113,8 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
         raise OptionError(f"expected 'ideal' or 'full', found {model!r}", field="model")
     out = fit_walls(walls, nominal, free=free, fix=fix, priors=priors,
                     on_unobservable=on_unobservable, progress=progress, **fit_kwargs)
+    if not out and model == "ideal":  # refused by another check: name a misfit too
+        out = name_failure(out, walls, nominal, priors, fit_kwargs.get("jitter", 50e-12))
     if model == "full":
         from mems_stereo.calib.full_model import add_hardware_terms, rescue
 
@@ -120,8 +123,6 @@ def calibrate_system(recordings, system: System | str | os.PathLike | None = Non
         if out:
             out = add_hardware_terms(out, tuple(harmonics), progress, **fit_kwargs)
     if out:
-        from mems_stereo.calib.goodness import judge
-
         out = judge(out, inflate_sigma)
     out.elapsed = time.perf_counter() - t0
     if out:

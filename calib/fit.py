@@ -192,7 +192,8 @@ def _fit(walls, system: System, priors, opts: FitOptions, initial: StartValues |
     ws, sol, state = fitted.walls, fitted.solution, fitted.state
     lay = sol.problem.layout
     values, wall_p = lay.unpack(sol.x)
-    partial = {"values": values, "walls": wall_p.tolist(), "iterations": state.iterations}
+    partial = {"values": values, "walls": wall_p.tolist(), "iterations": state.iterations,
+               "sources": [w.source for w in ws.walls]}
     if not state.converged:
         return fail(f"the fit did not converge ({state.message})", **partial)
 

@@ -7,12 +7,25 @@ second report, by the beam's image column u).  Under the model every cell's scor
 has mean zero whatever the pile-up, the background or whether the pixel fired, so
 structure in the scores against scan phase, sweep direction, pixel, the return's
 TDC code or its signal level is structure the model does not explain; the tests
-are :func:`mems_stereo.pipeline.goodness.structure_tests` on the scores scaled to
-unit RMS (cells with an expected signal of at least :data:`MIN_SIGNAL` photons).
+are :func:`mems_stereo.pipeline.goodness.structure_tests` (cells with an expected
+signal of at least :data:`MIN_SIGNAL` photons).
+
+The scores' variance differs from cell to cell by orders of magnitude (a return cut
+by the TDC start, pile-up, the spot's edge): each score is divided by its expected
+RMS under the model, √F of the cell's expected information
+(:func:`~mems_stereo.calib.expected_info.cell_fisher`), and the tests weight the
+cells by F (weighted least squares: a structure is measured as the information-
+weighted shift it implies).  Scores scaled by one common RMS instead let the groups
+of high-variance cells (early codes, central pixels) look like structure on ideal
+hardware.  The seven tests (five on the time scores, two on the column scores) share
+the false-alarm probability :data:`ALPHA_FAMILY` (Bonferroni).
 
 :func:`judge` turns a failed test into a refusal naming the effect (exit 1 from the
 CLI) or, when asked, into σ inflated by the square root of the largest failed F
 statistic (the scale factor of inconsistent data, PDG Review §5.2) and a warning.
+:func:`name_failure` runs the same tests on the residuals of a fit that another check
+refused first (not converged, not observable, implausible), so that such a refusal
+names the effect too, its own reason kept.
 """
 
 from __future__ import annotations
@@ -21,27 +34,51 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from mems_stereo.calib.problem import Problem, cell_terms
+from mems_stereo.calib import hardware_fit as hf
+from mems_stereo.calib.expected_info import cell_fisher
+from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, Layout, Problem, cell_terms, spot_share
 from mems_stereo.calib.result import CalibrationFailure
+from mems_stereo.calib.solver import FitState, build_cells, newton
 
-from mems_stereo.pipeline.goodness import GoodnessReport, structure_tests
+from mems_stereo.errors import MemsStereoError
+from mems_stereo.physics.pulse import pulse_sigma
+from mems_stereo.pipeline.goodness import ADVICE, GoodnessReport, structure_tests
 
 #: cells with fewer expected signal photons than this are left out of the tests
 MIN_SIGNAL = 0.02
 
 
+#: cells whose scores' expected square (σ² F_ττ, or the column score's) is below this
+#: carry no information for the tests and are left out
+MIN_INFO = 1e-6
+#: false-alarm probability of the whole goodness-of-fit verdict on clean residuals
+ALPHA_FAMILY = 1e-3
+#: tests it runs (time scores: phase, direction, pixel, code, signal; column: two)
+N_TESTS = 7
+#: Newton steps that re-centre a failed fit on fresh cells (:func:`failed_problem`)
+REFIT_ITER = 10
+
+
 @dataclass(frozen=True)
 class CellResiduals:
-    """Score residuals of the analysed cells (N,): ``time`` and ``column`` (unit RMS),
+    """Score residuals of the analysed cells (N,): ``time`` and ``column`` (each score
+    over its expected RMS under the model: unit variance), ``time_info`` and
+    ``column_info`` (their information, relative: mean 1; the tests' weights),
     ``phase`` (rad, monitor phase + phase offset), ``pixel`` (flat index), ``code``
-    (the return's predicted TDC code), ``signal`` (expected photons per shot)."""
+    (the return's predicted TDC code), ``signal`` (expected photons per shot);
+    ``time_scale`` (pulse σ) and ``column_scale`` (px): the shift of the return's
+    time and column that one unit of the weighted tests' structure means."""
 
     time: np.ndarray
     column: np.ndarray
+    time_info: np.ndarray
+    column_info: np.ndarray
     phase: np.ndarray
     pixel: np.ndarray
     code: np.ndarray
     signal: np.ndarray
+    time_scale: float = 1.0
+    column_scale: float = 1.0
 
 
 def _wall_residuals(prob: Problem, x, j: int) -> dict:
@@ -57,14 +94,35 @@ def _wall_residuals(prob: Problem, x, j: int) -> dict:
     pix = (c.row * W + c.col).astype(np.int64)
     if prob.pixel_offsets is not None:
         pc[:, 0] += prob.pixel_offsets[pix]
+    pulse = prob.pulse(values)
     _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
-                      prob.pitch_ratio, prob.pulse(values))
+                      prob.pitch_ratio, pulse)
     mu = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref)
+    info = _score_information(c, pc, good, walls[j], prob, pulse)
     off = values.get("phase_offset", prob.system.get_param("phase_offset"))
-    return {"time": d[:, 0] * prob.sigma, "column": d[:, 1], "phase": ph[pos] + off,
-            "pixel": pix,
+    keep = good & (mu >= MIN_SIGNAL) & (info[:, 0] > MIN_INFO) & (info[:, 1] > MIN_INFO)
+    info = np.where(keep[:, None], info, 1.0)
+    return {"time": d[:, 0] * prob.sigma / np.sqrt(info[:, 0]),
+            "column": d[:, 1] / np.sqrt(info[:, 1]), "time_info": info[:, 0],
+            "column_info": info[:, 1], "phase": ph[pos] + off, "pixel": pix,
             "code": np.floor(pc[:, 0] / prob.walls[j].bin_width).astype(np.int64) + 1,
-            "signal": mu, "keep": good & (mu >= MIN_SIGNAL)}
+            "signal": mu, "keep": keep}
+
+
+def _score_information(c, pc, good, wall, prob: Problem, pulse) -> np.ndarray:
+    """(N, 2) expected square of each cell's time score ∂ℓ/∂τ (times σ², so 1 for
+    a return far above the background seen whole) and column score ∂ℓ/∂u under the
+    model (:func:`~mems_stereo.calib.expected_info.cell_fisher`): F_ττ σ² and
+    F_mm (μ ∂share/∂u)²."""
+    s = min(max(math.exp(wall[4]), SPOT_MIN), SPOT_MAX)
+    mu = np.exp(wall[3] + pc[:, 3] - c.log_gref)
+    share, dsu, _ = spot_share(c.col, pc[:, 1], s)
+    if prob.layout.two_d:
+        fr, _, _ = spot_share(c.row, pc[:, 2], s * prob.pitch_ratio)
+        share, dsu = share * fr, dsu * fr
+    m = np.where(good, mu * share, 0.0)
+    F = cell_fisher(pc[:, 0], m, c.lam, c.t_max, prob.sigma, pulse)
+    return np.column_stack([F[:, 0] * prob.sigma ** 2, F[:, 2] * (mu * dsu) ** 2])
 
 
 def cell_residuals(prob: Problem, x) -> CellResiduals:
@@ -73,10 +131,13 @@ def cell_residuals(prob: Problem, x) -> CellResiduals:
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     keep = cat.pop("keep")
     cat = {k: v[keep] for k, v in cat.items()}
-    for k in ("time", "column"):
-        rms = math.sqrt(float(np.mean(cat[k] ** 2))) if cat[k].size else 1.0
-        cat[k] = cat[k] / (rms or 1.0)
-    return CellResiduals(**cat)
+    scale = {}
+    for k in ("time_info", "column_info"):  # relative information, mean 1
+        mean = float(np.mean(cat[k])) if cat[k].size else 1.0
+        cat[k] = cat[k] / mean
+        scale[k] = 1.0 / math.sqrt(mean)
+    return CellResiduals(**cat, time_scale=scale["time_info"],
+                         column_scale=scale["column_info"])
 
 
 def calibration_goodness(prob: Problem, x) -> tuple:
@@ -84,8 +145,11 @@ def calibration_goodness(prob: Problem, x) -> tuple:
     of the time scores (phase, direction, pixel, code, signal level) and of the column
     scores (phase, direction)."""
     r = cell_residuals(prob, x)
-    t = structure_tests(r.time, phase=r.phase, pixel=r.pixel, code=r.code, signal=r.signal)
-    u = structure_tests(r.column, phase=r.phase)
+    t = structure_tests(r.time, phase=r.phase, pixel=r.pixel, code=r.code, signal=r.signal,
+                        weights=r.time_info, alpha=ALPHA_FAMILY / N_TESTS,
+                        units=(r.time_scale, "σ"))
+    u = structure_tests(r.column, phase=r.phase, weights=r.column_info,
+                        alpha=ALPHA_FAMILY / N_TESTS, units=(r.column_scale, "px"))
     return t, u
 
 
@@ -112,6 +176,94 @@ def judge(result, inflate_sigma: bool = False):
             result.elapsed)
     k = math.sqrt(max(f.statistic for f in failed))
     return inflate(result, k, words)
+
+
+def failed_problem(failure, walls, nominal, priors=(), jitter: float = 50e-12):
+    """The ideal problem at a failed fit's values (``failure.details``: ``values``,
+    ``walls`` and, where the fit left walls out, ``sources`` or ``targets`` naming its
+    walls by source, else its "left out: <source>: …" warnings), on fresh cells within
+    2 px of the fitted beam: (problem, x), or None where the failure has no fitted
+    values (no wall found) or its walls cannot be matched.
+
+    ``walls``: the :class:`~mems_stereo.calib.problem.WallData` given to the fit;
+    ``priors``: [(index among them, kind, distance m, σ m)]; ``jitter``: s.
+    """
+    d = failure.details or {}
+    if "values" not in d or "walls" not in d or not d["values"]:
+        return None
+    used = list(range(len(walls)))
+    if len(d["walls"]) != len(walls):  # walls left out: the fitted ones by source
+        names = [w.source for w in walls]
+        out = {m.split(": ")[1] for m in failure.warnings if m.startswith("left out: ")}
+        src = (d.get("sources") or [t.get("source") for t in d.get("targets", ())]
+               or [n for n in names if n not in out])
+        if len(src) != len(d["walls"]) or any(s not in names for s in src):
+            return None
+        used = [names.index(s) for s in src]
+    fitted = [walls[j] for j in used]
+    pri = [(used.index(j), kind, dist, sd) for j, kind, dist, sd in priors if j in used]
+    lay = Layout(list(d["values"]), len(fitted), nominal.receiver.height > 1)
+    prob = Problem(fitted, nominal, lay, pulse_sigma(nominal.laser.pulse_fwhm, jitter), pri)
+    try:
+        x = lay.pack(d["values"], np.asarray(d["walls"], dtype=np.float64))
+        x = build_cells(prob, x, radius=2)
+        # the fit's log μ refer to the cells it last built (at the start of its last
+        # round): a few Newton steps from its values bring the fresh cells' optimum
+        return prob, newton(prob, x, FitState(), max_iter=REFIT_ITER).x
+    except (MemsStereoError, ValueError, KeyError, np.linalg.LinAlgError):
+        return None
+
+
+def name_failure(failure, walls, nominal, priors=(), jitter: float = 50e-12):
+    """A refused fit (:class:`~mems_stereo.calib.result.CalibrationFailure` of
+    :func:`~mems_stereo.calib.fit.fit_walls`) whose residuals show structure the model
+    does not explain: the failure with a reason that names the effect first and keeps
+    its own ("the model does not fit these walls: <effect>: <what to do>; refused
+    besides: <reason>"), the same ``kind`` (exit code), the reports in
+    ``details["goodness"]``.  ``failure`` unchanged where the tests pass or cannot run
+    (see :func:`failed_problem`; arguments as there)."""
+    got = failed_problem(failure, walls, nominal, priors, jitter)
+    if got is None:
+        return failure
+    try:  # a fit that failed may leave too few cells for a test: then no verdict
+        reps = calibration_goodness(*got)
+        words = [f.message for rep in reps for f in rep.failed] or _score_test_words(*got)
+    except (MemsStereoError, ValueError, np.linalg.LinAlgError):
+        return failure
+    if not words:
+        return failure
+    words = "; ".join(dict.fromkeys(words))
+    details = dict(failure.details or {}, goodness=[rep.to_dict() for rep in reps])
+    return CalibrationFailure(f"the model does not fit these walls: {words}; refused "
+                              f"besides: {failure.reason}", failure.kind, details,
+                              list(failure.warnings), failure.elapsed)
+
+
+_ORDINAL = {2: "second", 3: "third", 4: "fourth", 5: "fifth"}
+
+
+def _score_test_words(prob: Problem, x) -> list:
+    """Messages of the hardware terms' score tests
+    (:func:`~mems_stereo.calib.hardware_fit.score_tests`: each mirror harmonic 2–5 and
+    the edge delay, Rao's test with the fit's geometry free, Bonferroni over the
+    blocks at :data:`ALPHA_FAMILY`) that fail, most significant first: a failed fit
+    can absorb a harmonic into a wrong pose, where the residuals' structure left is
+    below the structure tests' smallest effect but the score along the term is not."""
+    blocks = hf.candidate_blocks()
+    tests = sorted(hf.score_tests(prob, x, blocks, ALPHA_FAMILY / len(blocks)),
+                   key=lambda t: t.p_value)
+    out = []
+    for t in (t for t in tests if t.selected):
+        size = f"score test χ² = {t.lm:.1f} with {t.dof} dof"
+        if t.name.startswith("harmonic"):
+            k = int(t.name.split()[1])
+            what, todo = ADVICE["scan phase"]
+            detail = f"{_ORDINAL.get(k, f'order {k}')} harmonic of the mirror ({size})"
+        else:
+            what, todo = ADVICE["scan direction"]
+            detail = f"more than the model allows ({size})"
+        out.append(f"{what.format(detail=detail)}: {todo} (p = {t.p_value:.1e})")
+    return out
 
 
 def inflate(result, k: float, why: str):

@@ -101,19 +101,10 @@ class BeamHits:
     ok: np.ndarray
 
 
-def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
-    """Forward model of beam → plane → receiver for shots with monitor ``phase``.
-
-    Parameters
-    ----------
-    system : provides the fixed parts (normal basis, laser direction, fy, cy,
-        distortion).
-    values : the scalar parameters (names of :data:`SYSTEM_PARAMS`) in SI
-        units; missing names are taken from ``system``.
-    phase : (N,) rad, monitor phase of each shot.
-    normals : (N, 3) or (3,) unit plane normals; dists : (N,) or scalar, m,
-        plane offsets D.
-    """
+def beam_rays(system: System, values: dict, phase) -> tuple[np.ndarray, np.ndarray]:
+    """The beam of each shot (monitor ``phase`` (N,) rad; ``values`` as
+    :func:`beam_hits`): (origin (3,) m, the mirror's centre in the camera frame;
+    directions (N, 3) unit vectors, camera frame)."""
     def v(name):
         return values[name] if name in values else system.get_param(name)
 
@@ -131,7 +122,26 @@ def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
     c, s_ = np.cos(th)[:, None], np.sin(th)[:, None]
     nm = c * e1 + s_ * e2
     d = dl - 2.0 * (nm @ dl)[:, None] * nm
-    p = np.array([v("baseline_x"), v("baseline_y"), v("baseline_z")])
+    return np.array([v("baseline_x"), v("baseline_y"), v("baseline_z")]), d
+
+
+def beam_hits(system: System, values: dict, phase, normals, dists) -> BeamHits:
+    """Forward model of beam → plane → receiver for shots with monitor ``phase``.
+
+    Parameters
+    ----------
+    system : provides the fixed parts (normal basis, laser direction, fy, cy,
+        distortion).
+    values : the scalar parameters (names of :data:`SYSTEM_PARAMS`) in SI
+        units; missing names are taken from ``system``.
+    phase : (N,) rad, monitor phase of each shot.
+    normals : (N, 3) or (3,) unit plane normals; dists : (N,) or scalar, m,
+        plane offsets D.
+    """
+    def v(name):
+        return values[name] if name in values else system.get_param(name)
+
+    p, d = beam_rays(system, values, phase)
     normals = np.asarray(normals, dtype=np.float64)
     nd = d @ normals if normals.ndim == 1 else np.sum(normals * d, axis=1)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -28,9 +28,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from mems_stereo.calib.model import beam_hits, plane_normal
+from mems_stereo.calib.model import beam_rays, plane_normal
 from mems_stereo.calib.problem import WallData
 from scipy.special import ndtri
+
+from mems_stereo.model.camera import project_points
 
 #: phase bins over the monitor's period (the image moves ≤ ~0.6 px per bin)
 N_PHASE = 1024
@@ -89,6 +91,7 @@ class PooledRecording:
         hist = np.bincount(idx, minlength=N_PHASE * W * self.ntb).astype(np.int32)
         self.C = np.cumsum(hist.reshape(N_PHASE, W, self.ntb), axis=2, dtype=np.int32)
         self.lam = w.background.sum(axis=0)
+        self._before = self._inside = None  # per (column, DT step) tables of counts()
 
     def counts(self, u, tau, sigma):
         """Observed and expected background counts of the gates (N_PHASE, M):
@@ -100,12 +103,56 @@ class PooledRecording:
         lo = np.clip(np.floor((tau - GATE * sigma) / DT), 0, self.ntb - 1).astype(np.int64)
         hi = np.clip(np.ceil((tau + GATE * sigma) / DT), 0, self.ntb - 1).astype(np.int64)
         ok &= hi > lo
-        b = np.broadcast_to(np.arange(N_PHASE)[:, None], u.shape)
-        n = np.where(ok, self.C[b, ui, hi] - self.C[b, ui, lo], 0)
-        lu = self.lam[ui]
-        e = np.where(ok, self.n_shots[:, None] * np.exp(-lu * lo * DT)
-                     * -np.expm1(-lu * (hi - lo) * DT), 0.0)
+        row = (np.arange(N_PHASE)[:, None] * self.W + ui) * self.ntb
+        flat = self.C.reshape(-1)
+        n = np.where(ok, flat[row + hi] - flat[row + lo], 0)
+        # exp(−λ lo DT)·(1 − exp(−λ (hi − lo) DT)) per column from tables: the same
+        # products as evaluating them per gate, a gather instead of two transcendentals
+        if self._before is None:
+            steps = np.arange(self.ntb)
+            self._before = np.exp(-self.lam[:, None] * steps * DT).reshape(-1)
+            self._inside = (-np.expm1(-self.lam[:, None] * steps * DT)).reshape(-1)
+        col = ui * self.ntb
+        e = np.where(ok, self.n_shots[:, None] * self._before[col + lo]
+                     * self._inside[col + (hi - lo)], 0.0)
         return n, e, ok
+
+
+class PoseGrid:
+    """The beam of each phase bin, once per search; :meth:`hits` its image column and
+    path for every (phase bin, plane offset) of one tilt: the arithmetic of
+    :func:`~mems_stereo.calib.model.beam_hits` on an outer grid, without repeating the
+    per-phase trajectory N_D times."""
+
+    def __init__(self, system, values: dict, phase):
+        self.p, d = beam_rays(system, values, phase)
+        self.d = [np.ascontiguousarray(d[:, k:k + 1]) for k in range(3)]
+        self.dirs = d
+        K = np.array(system.receiver.camera_matrix, dtype=np.float64)
+        K[0, 0] = values.get("fx", system.get_param("fx"))
+        K[0, 2] = values.get("cx", system.get_param("cx"))
+        self.K = K
+        self.dist_coeffs = np.asarray(system.receiver.dist_coeffs, dtype=np.float64)
+
+    def hits(self, alpha: float, dists):
+        """(column u, path s + |P| m), each (N_PHASE, len(dists)); u NaN where the
+        beam misses the plane or P is behind the camera."""
+        nrm = plane_normal(alpha)
+        p, (dx, dy, dz), K = self.p, self.d, self.K
+        nd = self.dirs @ nrm
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (dists[None, :] - nrm @ p) / nd[:, None]
+        px, py, pz = p[0] + s * dx, p[1] + s * dy, p[2] + s * dz
+        ok = np.isfinite(s) & (s > 0) & (pz > 0)
+        path = s + np.sqrt(px * px + py * py + pz * pz)
+        if not np.any(self.dist_coeffs):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u = K[0, 0] * (px / pz) + K[0, 1] * (py / pz) + K[0, 2]
+        else:
+            P = np.stack([px, py, pz], axis=-1).reshape(-1, 3)
+            P = np.where(ok.reshape(-1, 1), P, [0.0, 0.0, 1.0])
+            u = project_points(P, K, self.dist_coeffs)[:, 0].reshape(s.shape)
+        return np.where(ok, u, np.nan), path
 
 
 @dataclass(frozen=True, slots=True)
@@ -158,30 +205,24 @@ def search_pose(w: WallData, system, values: dict, sigma: float, *, distance=Non
     if dists.size == 0:
         return None
     pr = pooled if pooled is not None and pooled.ntb * DT >= t_max else PooledRecording(w, t_max)
-    n_d = dists.size
-    ph_rep = np.repeat(pr.phase, n_d)
-    d_rep = np.tile(dists, N_PHASE)
+    grid = PoseGrid(system, values, pr.phase)
     best = None
     n_poses = 0
     for a in ALPHAS:
-        if distance is not None:
-            keep = np.abs(d_rep - distance * math.cos(a)) <= distance_tol
-            if not keep.any():
-                continue
-        else:
-            keep = np.ones(d_rep.size, dtype=bool)
-        h = beam_hits(system, values, ph_rep, plane_normal(a), d_rep)
-        u = np.where(h.ok & keep, h.pixel[:, 0], np.nan).reshape(N_PHASE, n_d)
-        tau = (h.path / c_light + off).reshape(N_PHASE, n_d)
-        n, e, ok = pr.counts(u, tau, sigma)
+        cols = (np.abs(dists - distance * math.cos(a)) <= distance_tol if distance is not None
+                else np.ones(dists.size, dtype=bool))
+        if not cols.any():
+            continue
+        sel = np.flatnonzero(cols)
+        u, path = grid.hits(a, dists[sel])
+        n, e, ok = pr.counts(u, path / c_light + off, sigma)
         ns, es = n.sum(axis=0), e.sum(axis=0)
-        cols = keep.reshape(N_PHASE, n_d)[0]
-        n_poses += int(cols.sum())
-        z = np.where(cols & (es > 0), poisson_z(ns, es), -np.inf)
+        n_poses += sel.size
+        z = np.where(es > 0, poisson_z(ns, es), -np.inf)
         i = int(np.argmax(z))
         if best is None or z[i] > best["z"]:
             n_on = max(float(pr.n_shots[ok[:, i]].sum()), 1.0)
-            best = {"alpha": float(a), "dist": float(dists[i]), "z": float(z[i]),
+            best = {"alpha": float(a), "dist": float(dists[sel[i]]), "z": float(z[i]),
                     "excess": float(ns[i] - es[i]), "frac": float((ns[i] - es[i]) / n_on)}
     if best is None or not np.isfinite(best["z"]):
         return None

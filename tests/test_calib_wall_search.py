@@ -75,3 +75,43 @@ def test_a_faint_near_wall_is_found_with_the_nominal_system(nominal):
     f = search_pose(w, nominal, vals, sigma)
     assert f.z > f.z_needed, f
     assert abs(f.alpha - math.radians(5)) < 0.2 and abs(f.dist - 0.7) < 0.2, f
+
+
+def test_pose_grid_and_gate_counts_match_the_per_pose_model(nominal):
+    """The search's outer grid (beam per phase once, every plane offset of a tilt) gives
+    exactly what :func:`beam_hits` gives shot by shot, with harmonics in the mirror's
+    motion too, and the gates' background expectation from the per-column tables is
+    the closed form ``n·exp(−λ lo DT)·(1 − exp(−λ (hi − lo) DT))`` of each gate."""
+    from mems_stereo.calib.model import beam_hits, plane_normal
+    from mems_stereo.calib.wall_search import DT, GATE, N_PHASE, PooledRecording, PoseGrid
+
+    rng = np.random.default_rng(3)
+    w = _background_only(rng, nominal, 3000, 1e6)
+    sigma = pulse_sigma(nominal.laser.pulse_fwhm, 50e-12)
+    vals = {"theta0": nominal.get_param("theta0") + 3e-3, "tdc_offset": 1e-9,
+            "harmonic3_cos": 4e-3, "harmonic2_sin": -2e-3}
+    pr = PooledRecording(w, 120e-9)
+    dists = np.array([0.5, 1.3, 4.0, 14.0])
+    grid = PoseGrid(nominal, vals, pr.phase)
+    for a in (-0.6, 0.7, 0.1):
+        u, path = grid.hits(a, dists)
+        h = beam_hits(nominal, vals, np.repeat(pr.phase, dists.size), plane_normal(a),
+                      np.tile(dists, N_PHASE))
+        ref_u = np.where(h.ok, h.pixel[:, 0], np.nan).reshape(N_PHASE, dists.size)
+        np.testing.assert_allclose(u, ref_u, rtol=0, atol=1e-9)
+        ok = np.isfinite(ref_u)
+        np.testing.assert_allclose(path[ok], h.path.reshape(u.shape)[ok], rtol=1e-14)
+    u, path = grid.hits(0.1, dists)
+    tau = path / nominal.speed_of_light + 1e-9
+    n, e, ok = pr.counts(u, tau, sigma)
+    assert ok.any() and n[ok].sum() > 0
+    ui = np.rint(u[ok]).astype(int)
+    lo = np.clip(np.floor((tau[ok] - GATE * sigma) / DT), 0, pr.ntb - 1)
+    hi = np.clip(np.ceil((tau[ok] + GATE * sigma) / DT), 0, pr.ntb - 1)
+    lam = pr.lam[ui]
+    ns = np.broadcast_to(pr.n_shots[:, None], u.shape)[ok]
+    want = ns * np.exp(-lam * lo * DT) * -np.expm1(-lam * (hi - lo) * DT)
+    np.testing.assert_allclose(e[ok], want, rtol=1e-13)
+    b = np.broadcast_to(np.arange(N_PHASE)[:, None], u.shape)[ok]
+    want_n = pr.C[b, ui, hi.astype(int)] - pr.C[b, ui, lo.astype(int)]
+    np.testing.assert_array_equal(n[ok], want_n)

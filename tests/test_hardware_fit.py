@@ -215,3 +215,35 @@ def test_fitted_pulse_tail_is_written_with_its_sigma():
                  "tail_fraction_std": 0.05, "tail_decay_std": 4e-10}
     back = system_from_dict(system_to_dict(s))
     assert pulse_mean_delay(back.laser) == pytest.approx(0.2 * 3e-9)
+
+
+def test_a_failure_by_another_check_names_the_effect(monkeypatch):
+    """``name_failure``: a fit refused by a plausibility or observability check whose
+    residuals show structure gets a reason naming the effect first and its own reason
+    after it, with the same kind (exit code) and the reports in its details; clean
+    residuals, or a failure without fitted values, leave it unchanged."""
+    from mems_stereo.calib import goodness
+    from mems_stereo.calib.result import CalibrationFailure
+    from mems_stereo.calib.solver import FitState, newton
+
+    off = np.zeros(192)
+    off[::2] = 1.5e-9
+    why = "not observable from these data: baseline_z σ = 30 mm > 20 mm"
+    for offsets, named in ((None, False), (off - off.mean(), True)):
+        prob, x = _synthetic_problem(np.random.default_rng(2), offsets)
+        x = newton(prob, x, FitState()).x  # a fitted point, as failed_problem gives
+        monkeypatch.setattr(goodness, "failed_problem", lambda *a, p=prob, x=x: (p, x))
+        fail = CalibrationFailure(why, "input", {"values": {}, "walls": []}, ["w"], 1.0)
+        out = goodness.name_failure(fail, prob.walls, prob.system)
+        assert not out and out.kind == "input" and out.warnings == ["w"]
+        if not named:
+            assert out is fail
+            continue
+        assert out.reason.startswith("the model does not fit these walls: residuals differ "
+                                     "from pixel to pixel")
+        assert "per-pixel TDC offsets" in out.reason
+        assert out.reason.endswith("; refused besides: " + why)
+        assert out.details["goodness"][0]["passed"] is False
+    monkeypatch.undo()
+    bare = CalibrationFailure("no recording shows a usable wall return", "input")
+    assert goodness.name_failure(bare, prob.walls, prob.system) is bare

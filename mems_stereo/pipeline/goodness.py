@@ -135,13 +135,15 @@ class _Blocks:
     """The additive model: dense blocks (name → columns) and group blocks (name →
     (group index, groups)); :meth:`fit` by backfitting with any blocks left out."""
 
-    def __init__(self, n):
+    def __init__(self, n, sw=None):
         self.n = n
+        self.sw = np.ones(n) if sw is None else sw  # √weight of each residual
+        self.w = self.sw * self.sw
         self.dense_blocks = {}
         self.group_blocks = {}
 
     def dense(self, name, cols):
-        self.dense_blocks[name] = np.column_stack(cols)
+        self.dense_blocks[name] = np.column_stack(cols) * self.sw[:, None]
 
     def group(self, name, key, min_group):
         g, G = _groups(key, min_group)
@@ -175,8 +177,9 @@ class _Blocks:
             for k, (g, G) in groups.items():
                 res += parts[k]
                 m = g >= 0
-                s = np.bincount(g[m], res[m], G) / np.maximum(np.bincount(g[m], None, G), 1)
-                parts[k] = np.where(m, s[np.maximum(g, 0)], 0.0)
+                s = np.bincount(g[m], (self.sw * res)[m], G) / np.maximum(
+                    np.bincount(g[m], self.w[m], G), 1e-300)
+                parts[k] = np.where(m, self.sw * s[np.maximum(g, 0)], 0.0)
                 res -= parts[k]
         out, i = {}, 0
         for k in names:
@@ -203,7 +206,7 @@ def _details(name: str, coef, effect: float, groups: int, scale: float, unit: st
 
 def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=None,
                     signal=None, alpha: float = ALPHA, min_effect: float = MIN_EFFECT,
-                    harmonics: int = HARMONICS, units=(1.0, "σ")) -> GoodnessReport:
+                    units=(1.0, "σ"), weights=None) -> GoodnessReport:
     """Test residuals for structure the model does not explain (see the module).
 
     Parameters
@@ -216,8 +219,11 @@ def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=N
     pixel, code : (N,) int, the residual's pixel and TDC code.
     signal : (N,) float > 0, the signal level (photons per shot, counts).
     alpha : per-test false-alarm probability; min_effect : σ units.
-    harmonics : highest harmonic order tested.
     units : (scale, unit), the physical size of one σ for the messages (e.g. (0.6, "ns")).
+    weights : optional (N,) float > 0, each residual's information (weighted least
+        squares: ``residuals`` are then r_i = y_i·√w_i of working responses y_i of
+        variance 1/w_i, and every block's columns are scaled by √w_i; a group's
+        structure is its information-weighted mean).  Default: equal weights.
 
     Returns
     -------
@@ -228,15 +234,16 @@ def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=N
     keep = np.isfinite(r)
     cov = {k: None if v is None else np.asarray(v).ravel()[keep]
            for k, v in (("phase", phase), ("direction", direction), ("pixel", pixel),
-                        ("code", code), ("signal", signal))}
+                        ("code", code), ("signal", signal), ("weights", weights))}
     r = r[keep]
     n = r.size
-    B = _Blocks(n)
+    sw = cov.pop("weights")
+    B = _Blocks(n, None if sw is None else np.sqrt(np.asarray(sw, dtype=np.float64)))
     base = [np.ones(n)]
     ph = cov["phase"]
     if ph is not None:
         base += [np.cos(ph), np.sin(ph)]
-        B.dense("scan phase", [f(k * ph) for k in range(2, harmonics + 1)
+        B.dense("scan phase", [f(k * ph) for k in range(2, HARMONICS + 1)
                                for f in (np.cos, np.sin)])
         d = cov["direction"] if cov["direction"] is not None else -np.sign(np.sin(ph))
         B.dense("scan direction", [d, d * np.cos(ph)])
