@@ -60,6 +60,7 @@ def test_workers_give_the_frames_of_one_process_in_order(room, reference):
     got, flight = [], []
     with frame_processor(room.system, workers=2, frame_rate=HZ) as proc:
         assert isinstance(proc, ParallelFrameProcessor) and proc.workers == 2
+        assert proc.compiled  # the workers run the compiled kernels, as one process does
         for chunk in recording_chunks(room, 60):
             got += proc.push(chunk)
             flight.append(proc.in_flight)

@@ -36,7 +36,8 @@ from multiprocessing.connection import Connection
 
 from mems_stereo.errors import MemsStereoError, OptionError
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.frames import Frame, FrameProcessor, FrameShots, frame_cloud
+from mems_stereo.pipeline.frames import (Frame, FrameProcessor, FrameShots, frame_cloud,
+                                         load_kernels)
 from mems_stereo.pipeline.live_warmup import synthetic_shots
 from mems_stereo.pipeline.run import run_table
 from mems_stereo.util.memory import release_freed_memory
@@ -99,17 +100,19 @@ def start_worker() -> tuple[subprocess.Popen, Connection]:
 
 def worker_main(fd: int) -> None:
     """A worker process on the connection ``fd``: ``(system, settings)``, then the table
-    and a warm-up frame (answered ``("ready", -1, s)``), then ``(index, FrameShots,
+    and a warm-up frame (answered ``("ready", -1, s, compiled)``: seconds, whether the
+    compiled kernels are loaded), then ``(index, FrameShots,
     source)`` jobs answered with ``("ok", index, cloud, counts, cpu s)`` (or ``("error",
     index, exception)``) until None or the end of the connection."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     conn = Connection(fd)
+    load_kernels()  # the stages' compiled kernels run only where numba is imported
     try:
         system, settings = conn.recv()
         table = run_table(system, settings).fill_all()
         t0 = time.perf_counter()
         frame_cloud(system, synthetic_shots(system), settings, table, "warm-up")
-        conn.send(("ready", -1, time.perf_counter() - t0))
+        conn.send(("ready", -1, time.perf_counter() - t0, "numba" in sys.modules))
     except BaseException as e:  # noqa: BLE001 - handed to the parent
         conn.send(("error", -1, e))
         return
@@ -131,7 +134,8 @@ def worker_main(fd: int) -> None:
 
 class ParallelFrameProcessor(FrameProcessor):
     """A :class:`FrameProcessor` whose frame stages run in ``workers`` processes (see the
-    module doc); the same frames.  ``warm_up`` : seconds the slowest worker took for its
+    module doc); the same frames.  ``compiled`` : every worker runs the stages' compiled
+    kernels.  ``warm_up`` : seconds the slowest worker took for its
     synthetic frame; ``worker_cpu`` : CPU s the workers spent on real frames."""
 
     def __init__(self, system: System, *, workers: int = 2, **kw):
@@ -145,7 +149,9 @@ class ParallelFrameProcessor(FrameProcessor):
                 self._procs.append(p)
                 self._conns.append(conn)
                 conn.send((system, self.settings))
-            self.warm_up = max(self._receive(c, -1, START_TIMEOUT)[0] for c in self._conns)
+            answers = [self._receive(c, -1, START_TIMEOUT) for c in self._conns]
+            self.warm_up = max(a[0] for a in answers)
+            self.compiled = all(a[1] for a in answers)
         except BaseException:
             self.close()
             raise
