@@ -17,6 +17,7 @@ import numpy as np
 from scipy.special import ndtr, pdtrc
 
 from mems_stereo.geometry.uncertainty import polar_from_cartesian
+from mems_stereo.pipeline.calibration_sigma import calibration_point_covariance
 from mems_stereo.pipeline.cloud import PointCloud
 
 #: systematic uncertainty, in pixels, of the stereo of a peak at a depth edge of the cloud
@@ -170,6 +171,12 @@ class PeakMeans:
             with np.errstate(invalid="ignore", divide="ignore"):
                 u = xf / np.linalg.norm(xf, axis=1, keepdims=True)
             Cf = Cf + np.nan_to_num((mixed ** 2)[:, None, None] * u[:, :, None] * u[:, None, :])
+        # the calibration's parameter errors, shared by all the peak's detections: once
+        c_cal = calibration_point_covariance(self.system, np.where(keep[:, None], xf, np.nan),
+                                             self.rows, self.cols, w_mean,
+                                             self.detections)
+        if c_cal is not None:
+            Cf = Cf + c_cal
         pol = polar_from_cartesian(xf, Cf)
         r, sr, sphi = pol.r, pol.sigma_r, pol.sigma_phi
         pol = polar_from_cartesian(*mean["stereo"])
