@@ -160,9 +160,9 @@ XDIST_GROUPS = {
         # (tests/test_docs.py), and calibrate's example is the demo's calibration (a copy
         # of the same walls: shared_results keys files by content)
         "tests/test_docs.py::test_every_help_example_runs"),
-
     "calib_fit": ("tests/test_calib_fit.py",),          # the good walls and their free fit
     "dask_cluster": ("tests/test_distributed.py",),     # one LocalCluster
+    "code_metrics": ("tests/test_code_metrics.py",),    # one pass of the checker
 }
 
 
