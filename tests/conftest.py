@@ -56,7 +56,8 @@ if _CPU_LOG:
 #
 # The bundled samples' calibrations and the imperfect-hardware comparison are
 # deterministic and cost seconds each; several tests run them with the same arguments
-# (``mems-stereo demo``, tests/test_cli_outputs.py, tests/test_demo_hardware.py).  A
+# (``mems-stereo demo``, tests/test_cli_outputs.py, tests/test_demo_hardware.py, the
+# ``calibrate --help`` example on a copy of the walls: files are keyed by content).  A
 # test that asks for ``shared_results`` gets them computed once per test process
 # (the tests that share are in one pytest-xdist group, pyproject's ``--dist loadgroup``)
 # through the real functions; the callers' own code around them still runs.
