@@ -18,7 +18,9 @@ A small Markdown collector finds the fenced blocks (```lang ... ```).  How each 
   it on its own), and the C++ reader of docs/interchange.md.
 
 The ``--help`` examples (each command module's ``EXAMPLE`` lines and ``plot``'s per-figure
-examples) run in order in a fresh folder per command; lines that several commands'
+examples) run in order in a fresh folder per command, in this process through the CLI's
+``main`` (each line as a process of its own paid the package's import again; the
+``mems-stereo`` executable runs in the README's blocks and tests/test_wheel.py); lines that several commands'
 examples begin with run once, and the other commands continue from a copy of the folder
 they left (the same state); ``view`` opens a window, so its last line is only parsed;
 ``demo``'s example is the run of ``tests/test_demo.py``.
@@ -188,19 +190,44 @@ def _shared_prefixes() -> set[tuple]:
     return {k for k, n in seen.items() if n > 1}
 
 
+def run_example_line(line: str, cwd: Path) -> None:
+    """One ``mems-stereo ...`` example line, run in this process by the CLI's ``main`` from
+    ``cwd`` (the entry point itself, a separate process, is run by the README's blocks in
+    :func:`test_every_code_block_of_the_docs_runs` and by tests/test_wheel.py); fails with
+    the line and its output unless it exits 0.  ``view`` opens a window: parsed only."""
+    import contextlib
+    import io
+
+    from mems_stereo.cli import build_parser, main
+
+    argv = shlex.split(line, comments=True)
+    assert argv[0] == "mems-stereo", line
+    if argv[1] == "view":  # opens a window: parse it, do not run it
+        build_parser().parse_args(argv[1:])
+        return
+    out, err, here = io.StringIO(), io.StringIO(), os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = main(argv[1:])
+    except SystemExit as e:  # usage errors (argparse)
+        rc = e.code
+    finally:
+        os.chdir(here)
+    assert rc == 0, f"{line}: exit {rc}\n{out.getvalue()[-2000:]}\n{err.getvalue()[-2000:]}"
+
+
 # one pytest-xdist worker runs the examples (tests/conftest.py: XDIST_GROUPS), so that
 # lines that several commands' examples start with (``mems-stereo samples``, ``process
 # samples/room.h5 -o room.ply``) run once and the others start from a copy of the folder
-# they left
+# they left; ``calibrate``'s fit of the bundled walls is the demo's (``shared_results``)
 @pytest.mark.slow
 @pytest.mark.parametrize("name", _help_example_names())
-def test_every_help_example_runs(name, tmp_path, tmp_path_factory):
+def test_every_help_example_runs(name, tmp_path, tmp_path_factory, shared_results):
     """One test per command (and plot figure).  Every distinct example line runs from the
     state the lines before it leave: where another command's examples began with the same
     lines, from a copy of the folder they left (the same state, its lines run once)."""
     import shutil
-
-    from mems_stereo.cli import build_parser
 
     cwd = _outside_repository(tmp_path / name.replace(" ", "_"))
     lines = help_examples()[name]
@@ -211,15 +238,7 @@ def test_every_help_example_runs(name, tmp_path, tmp_path_factory):
         cwd.mkdir()
     shared = _shared_prefixes()
     for k, line in enumerate(lines[done:], done + 1):
-        argv = shlex.split(line, comments=True)
-        assert argv[0] == "mems-stereo", line
-        if argv[1] == "view":  # opens a window: parse it, do not run it
-            build_parser().parse_args(argv[1:])
-        else:
-            p = subprocess.run(["bash", "-e", "-c", line], cwd=cwd, env=_env(sys.executable),
-                               capture_output=True, text=True, timeout=600)
-            assert p.returncode == 0, \
-                f"{name}: {line}\n{p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+        run_example_line(line, cwd)
         if tuple(lines[:k]) in shared:
             keep = tmp_path_factory.mktemp("help_state") / "d"
             shutil.copytree(cwd, keep, symlinks=True)

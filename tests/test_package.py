@@ -12,18 +12,15 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def test_core_imports_without_open3d_or_matplotlib():
+def test_core_and_process_to_ply_load_no_heavy_module(tmp_path):
+    """``import mems_stereo, mems_stereo.cli`` loads neither Open3D nor matplotlib, and
+    ``mems-stereo process samples/room.h5 -o x.ply`` (the start-up path) then loads
+    neither Open3D, matplotlib, Dask nor numba (small recordings run in NumPy), nor the
+    simulator; the PLY is written by NumPy.  One interpreter checks both moments."""
     code = ("import sys, mems_stereo, mems_stereo.cli; "
             "bad = [m for m in ('open3d', 'matplotlib') if m in sys.modules]; "
-            "assert not bad, bad")
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT)
-
-
-def test_process_to_ply_loads_no_heavy_module(tmp_path):
-    """``mems-stereo process samples/room.h5 -o x.ply`` (the start-up path)
-    loads neither Open3D, matplotlib, Dask nor numba (small recordings run in NumPy),
-    nor the simulator; the PLY is written by NumPy."""
-    code = ("import sys; from mems_stereo.cli import main; "
+            "assert not bad, ('on import', bad); "
+            "from mems_stereo.cli import main; "
             f"rc = main(['-q', 'process', {str(ROOT / 'samples' / 'room.h5')!r}, '-o', "
             f"{str(tmp_path / 'x.ply')!r}]); "
             "bad = [m for m in ('open3d', 'matplotlib', 'dask', 'numba', 'mems_stereo.sim') "
