@@ -13,6 +13,8 @@ from mems_stereo.io.recording import read_recording
 from mems_stereo.model.system import load_system
 from mems_stereo.pipeline.calibration_sigma import calibration_point_covariance
 from mems_stereo.pipeline.run import process_recording
+from mems_stereo.pipeline.scan_dwell import DwellSkew
+from mems_stereo.pipeline.temporal import TemporalFusion
 
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 #: a rank-1 covariance Σ = s sᵀ over two parameters (correlation −1: the cross term counts)
@@ -87,3 +89,31 @@ def test_phase_offset_moves_the_two_sweeps_oppositely(base):
     var_n4 = calibration_point_covariance(sysc, *args, np.full(len(c0), 4.0))
     assert np.all(np.trace(var_n1, axis1=1, axis2=2) > 0)
     np.testing.assert_allclose(var_n4, var_n1 / 4, rtol=1e-6, atol=1e-18)
+
+
+def test_frames_do_not_average_the_calibration_share_down(base):
+    """Temporal fusion of 16 frames holding the same cloud: the calibration's share of
+    σ_r is common to every frame, so the fused σ_r stays at or above it (with the dwell
+    skew alone as the common part it falls below it at some points)."""
+    rec, system, _ = base
+    cal = _with_cov(system, NAMES, np.outer(S, S))
+    cloud = process_recording(rec, system=cal).cloud
+    cloud.attributes["step_lo"] = np.zeros(len(cloud), np.int64)
+    cloud.attributes["step_hi"] = np.ones(len(cloud), np.int64)
+    cloud.attributes["t"] = np.zeros(len(cloud))
+    C = calibration_point_covariance(cal, cloud.points, cloud["row"], cloud["pixel"],
+                                     cloud["weight_stereo"], cloud["counts"])
+    u = cloud.points / np.linalg.norm(cloud.points, axis=1, keepdims=True)
+    s_cal = np.sqrt(np.einsum("qi,qij,qj->q", u, C, u))
+    assert np.median(s_cal / cloud["sigma_r"]) > 0.3  # the share matters here
+    h, w = system.receiver.height, system.receiver.width
+    fused = {}
+    for name, fusion in (("shared", TemporalFusion(h, w, system=cal)),
+                         ("dwell", TemporalFusion(h, w, system=cal,
+                                                  systematic=DwellSkew(cal).systematic))):
+        for _ in range(16):
+            out = fusion.update(cloud)
+        assert out["age"].min() == 16
+        fused[name] = out["sigma_r"]
+    assert np.all(fused["shared"] >= s_cal * (1 - 1e-9))
+    assert np.mean(fused["dwell"] < 0.9 * s_cal) > 0.5

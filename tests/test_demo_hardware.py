@@ -49,9 +49,12 @@ def test_full_model_beats_nominal_and_ideal(comparison):
     full = _row(comparison, "calibrated, full model")
     assert full["calibration"] == "accepted"
     assert full["median_error"] < ideal["median_error"] < nominal["median_error"]
-    # the full model's σ describe its errors; the ideal model's do not
-    assert 0.6 < full["rms_pull"] < 1.5 < ideal["rms_pull"]
-    assert full["false_points"] < ideal["false_points"]
+    # the full model's σ describe its errors; the refused ideal fit's σ, inflated to cover
+    # its misfit, reach the points through the calibration covariance and cover its larger
+    # errors; the nominal system's σ know nothing of its errors
+    assert 0.6 < full["rms_pull"] < 1.5 and 0.6 < ideal["rms_pull"] < 1.5
+    assert nominal["rms_pull"] > 3.0
+    assert full["false_points"] <= ideal["false_points"] < nominal["false_points"]
     assert full["coverage"] >= ideal["coverage"] - 0.02
 
 

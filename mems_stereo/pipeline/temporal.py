@@ -20,8 +20,9 @@ one that does not agree restarts the pixel's history with itself.
 
 **σ model.**  A frame point's error is a random part (photon counts, timing, pixel
 extent: the pipeline's σ_r, independent from frame to frame) plus a part common to every
-frame of the pixel, σ_sys (``systematic(cloud)``, by default the scan's dwell skew of
-:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`).  Only the random part averages:
+frame of the pixel, σ_sys (``systematic(cloud)``, by default :func:`shared_errors`: the
+scan's dwell skew of :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew` and a calibrated
+system's parameter errors).  Only the random part averages:
 
     σ_r,fused² = B²/Σw + (Σ w·σ_sys / Σw)²         (B the Birge ratio)
 
@@ -42,7 +43,11 @@ import numpy as np
 
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import k_from_confidence
-from mems_stereo.pipeline.scan_dwell import DwellSkew
+from mems_stereo.pipeline.calibration_sigma import (
+    calibration_covariance,
+    calibration_point_covariance,
+)
+from mems_stereo.pipeline.scan_dwell import DwellSkew, Systematic
 
 #: the attributes the fusion replaces by their fused values (besides points)
 FUSED_SIGMAS = ("sigma_x", "sigma_y", "sigma_z", "sigma_phi")
@@ -61,7 +66,7 @@ class TemporalFusion:
     of them that did not agree with it.
 
     ``system`` : the :class:`~mems_stereo.model.system.System` (a line scanner: the
-    default ``systematic`` is its :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`);
+    default ``systematic`` is :func:`shared_errors`: its dwell skew and its calibration's share);
     ``systematic`` : a callable ``cloud -> Systematic`` (σ_sys (N,) m and the common
     displacement (N, 3) m of each point), or None for none (random errors only).
     """
@@ -71,7 +76,7 @@ class TemporalFusion:
         self.k = k_from_confidence(confidence)
         line = system is not None and getattr(system.scanner, "axis2", None) is None
         if systematic is None and line:
-            systematic = DwellSkew(system).systematic
+            systematic = shared_errors(system)
         self.systematic = systematic
         self.width = int(width)
         P = int(height) * self.width
@@ -177,6 +182,38 @@ class TemporalFusion:
         age[ok] = self.age[p]
         a["age"] = age
         return PointCloud(pts, a)
+
+
+def shared_errors(system):
+    """``cloud -> Systematic``: the errors every frame of a pixel shares on a line
+    scanner, the scan's dwell skew (:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`)
+    and, for a system that carries its calibration's covariance, the calibration's share
+    of each point (:func:`~mems_stereo.pipeline.calibration_sigma.calibration_point_covariance`:
+    a parameter error moves every frame's point alike, so it must not average down with
+    the frames); the two are independent and add in quadrature."""
+    dwell = DwellSkew(system).systematic
+    if calibration_covariance(system) is None:
+        return dwell
+
+    def systematic(cloud: PointCloud) -> Systematic:
+        common = dwell(cloud)
+        n = len(cloud)
+        if n == 0:
+            return common
+        a = cloud.attributes
+        x = np.asarray(cloud.points, np.float64)
+        rows = np.asarray(a["row"]) if "row" in a else np.zeros(n, np.int64)
+        w = (np.nan_to_num(np.asarray(a["weight_stereo"], np.float64), nan=1.0)
+             if "weight_stereo" in a else np.ones(n))
+        cov = calibration_point_covariance(system, x, rows, np.asarray(a["pixel"]), w,
+                                           np.asarray(a["counts"], np.float64))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = np.nan_to_num(x / np.linalg.norm(x, axis=1, keepdims=True))
+        var_r = np.maximum(np.einsum("qi,qij,qj->q", u, cov, u), 0.0)
+        sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
+        return Systematic(np.hypot(common.sigma_r, np.sqrt(var_r)), np.hypot(common.dx, sd))
+
+    return systematic
 
 
 def pixel_index(cloud: PointCloud, width: int) -> np.ndarray:
