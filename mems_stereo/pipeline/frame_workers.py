@@ -36,8 +36,7 @@ from multiprocessing.connection import Connection
 
 from mems_stereo.errors import MemsStereoError, OptionError
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.frames import (Frame, FrameProcessor, FrameShots, frame_cloud,
-                                         load_kernels)
+from mems_stereo.pipeline.frames import Frame, FrameProcessor, FrameShots, frame_cloud, load_kernels
 from mems_stereo.pipeline.live_warmup import synthetic_shots
 from mems_stereo.pipeline.run import run_table
 from mems_stereo.util.memory import release_freed_memory

@@ -41,12 +41,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.consistency import k_from_confidence
 from mems_stereo.pipeline.calibration_sigma import (
     calibration_covariance,
     calibration_point_covariance,
 )
+from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.consistency import k_from_confidence
 from mems_stereo.pipeline.scan_dwell import DwellSkew, Systematic
 
 #: the attributes the fusion replaces by their fused values (besides points)
