@@ -201,7 +201,8 @@ def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sig
     ``pulse`` (N, 7), columns 5, 6 ∂ℓ/∂w and ∂ℓ/∂τ_d.
     """
     tau, u, v, lg = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
-    s = min(max(math.exp(logspot), SPOT_MIN), SPOT_MAX)
+    # a Newton trial step may ask for any spot size: clipped, never an overflow
+    s = min(max(math.exp(min(logspot, 700.0)), SPOT_MIN), SPOT_MAX)
     mu = np.exp(logmu + lg - cells.log_gref)
     f, fu, fs = spot_share(cells.col, u, s)
     if two_d:

@@ -91,3 +91,13 @@ def test_shaped_fisher_tends_to_the_gaussian_and_matches_the_scores():
     F = cell_fisher(np.array([15e-9]), np.array([1.0]), np.array([1e-3]), 45e-9, SIG,
                     pulse=(w, dec))
     assert np.mean(d[:, 0] ** 2) == pytest.approx(F[0, 0], rel=0.05)
+
+
+def test_a_huge_spot_trial_is_the_largest_spot_not_an_overflow():
+    """A Newton trial step may put log s anywhere: beyond exp's range it is the largest
+    spot (SPOT_MAX), as a large finite one is, instead of an OverflowError."""
+    from mems_stereo.calib.problem import SPOT_MAX
+    c, pred = _random_cells()
+    ll_big, _ = cell_terms(c, pred, 0.1, 1000.0, SIG, False)
+    ll_max, _ = cell_terms(c, pred, 0.1, float(np.log(SPOT_MAX)) + 1.0, SIG, False)
+    np.testing.assert_array_equal(ll_big, ll_max)
