@@ -34,6 +34,18 @@ def rng():
 _CPU_LOG = os.environ.get("MEMS_STEREO_TEST_CPU_LOG")
 
 
+def assert_same_frames(got, ref) -> None:
+    """Two lists of frames (:class:`mems_stereo.pipeline.frames.Frame`) are equal: indices,
+    windows, counts, points and every attribute, bit for bit."""
+    assert [f.index for f in got] == [f.index for f in ref]
+    for a, b in zip(got, ref):
+        assert (a.start, a.end, a.counts) == (b.start, b.end, b.counts)
+        assert np.array_equal(a.cloud.points, b.cloud.points)
+        assert a.cloud.attributes.keys() == b.cloud.attributes.keys()
+        for k in b.cloud.attributes:
+            assert np.array_equal(a.cloud.attributes[k], b.cloud.attributes[k]), k
+
+
 def _cpu_now() -> float:
     import resource
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import os
 import signal
 
-import numpy as np
 import pytest
+from conftest import assert_same_frames
 
 from mems_stereo import data
 from mems_stereo.cli import main
@@ -43,16 +43,6 @@ def reference():
     return list(iter_frames(ROOM, frame_rate=HZ))
 
 
-def _same_frames(got, ref) -> None:
-    assert [f.index for f in got] == [f.index for f in ref]
-    for a, b in zip(got, ref):
-        assert (a.start, a.end, a.counts) == (b.start, b.end, b.counts)
-        assert np.array_equal(a.cloud.points, b.cloud.points)
-        assert a.cloud.attributes.keys() == b.cloud.attributes.keys()
-        for k in b.cloud.attributes:
-            assert np.array_equal(a.cloud.attributes[k], b.cloud.attributes[k]), k
-
-
 def test_workers_give_the_frames_of_one_process_in_order(room, reference):
     """Chunks of 60 shots pushed into two workers: the frames come back in order, at most
     two in flight, equal to the one-process frames (the fusion, sequential, included)."""
@@ -68,19 +58,19 @@ def test_workers_give_the_frames_of_one_process_in_order(room, reference):
         got += proc.flush()
         assert proc.in_flight == 0 and proc.worker_cpu > 0
     assert max(flight) == 2
-    _same_frames(got, reference)
+    assert_same_frames(got, reference)
     assert any(f.cloud["age"].max() > 1 for f in got)  # fused over frames
     assert proc.workers == 0  # closed
 
 
-def test_live_run_through_workers_writes_the_same_frames(room, reference):
+def test_live_run_through_workers_writes_theassert_same_frames(room, reference):
     """A replay at max speed through two workers: every frame written, in order, as one
     process makes it; the latencies are those of the written frames."""
     written = []
     with frame_processor(room.system, workers=2, frame_rate=HZ) as proc:
         st = LiveRun(ReplaySource(ROOM, None, chunk_shots=50), proc, written.append).run()
     assert st.dropped == [] and st.frames_written == 8 == len(st.latency)
-    _same_frames(written, reference)
+    assert_same_frames(written, reference)
 
 
 def test_a_dead_worker_is_reported(room):

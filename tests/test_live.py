@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import assert_same_frames
 
 from mems_stereo import data
 from mems_stereo.cli import main
@@ -41,16 +42,6 @@ def room():
 def reference():
     """The frames of room.h5 at 50 Hz as iter_frames makes them from the file."""
     return list(iter_frames(ROOM, frame_rate=50))
-
-
-def _same_frames(got, ref) -> None:
-    assert [f.index for f in got] == [f.index for f in ref]
-    for a, b in zip(got, ref):
-        assert (a.start, a.end, a.counts) == (b.start, b.end, b.counts)
-        assert np.array_equal(a.cloud.points, b.cloud.points)
-        assert a.cloud.attributes.keys() == b.cloud.attributes.keys()
-        for k in b.cloud.attributes:
-            assert np.array_equal(a.cloud.attributes[k], b.cloud.attributes[k]), k
 
 
 def _feed(rec, step: int, send) -> None:
@@ -111,7 +102,7 @@ def test_growing_h5_file_swmr(room, reference, tmp_path):
     th.join()
     assert src.ended == "finished" and len(chunks) > 2
     assert sum(c.n_shots for c in chunks) == room.n_shots
-    _same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
+    assert_same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
     # the finished file reads as an ordinary recording
     assert np.array_equal(read_recording(path).bins, room.bins)
 
@@ -152,7 +143,7 @@ def test_zmq_socket_on_loopback(room, reference):
     chunks = list(src)
     th.join()
     assert src.ended == "finished"
-    _same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
+    assert_same_frames(list(iter_frames(iter(chunks), frame_rate=50)), reference)
     # a message whose parts do not match its header is refused, not read
     th = threading.Thread(target=lambda: (send_system(push, room.system), push.send_multipart(
         [b'{"format": "mems-stereo/live", "version": 1, "type": "shots", "n_shots": 2}',
