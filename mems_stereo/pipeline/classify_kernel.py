@@ -10,6 +10,9 @@ them instead of reading the shots again.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -201,6 +204,27 @@ def _kernel_numpy(bins, rows, lo, hi, labels, hist_raw, hist_signal, hist_angle)
 
 #: blocks of fewer pixel-slots than this are classified with NumPy (no numba load)
 COMPILE_SLOTS = 1 << 21
+#: within :func:`compiled_blocks`: blocks of any size run the compiled kernels
+_ANY_SIZE = contextvars.ContextVar("compiled_any_size", default=False)
+
+
+@contextlib.contextmanager
+def compiled_blocks():
+    """Context in which :func:`compiles` is true for blocks of any size where numba is
+    imported already: the frames of a live run, whose processor loads the kernels once
+    and whose few thousand shots a frame then cost one compiled pass instead of NumPy's
+    (K, P) temporaries.  The compiled and NumPy forms count the same integers."""
+    token = _ANY_SIZE.set("numba" in sys.modules)
+    try:
+        yield
+    finally:
+        _ANY_SIZE.reset(token)
+
+
+def compiles(slots: int, threshold: int = COMPILE_SLOTS) -> bool:
+    """Whether a block of ``slots`` pixel-slots runs the compiled kernels: from
+    ``threshold`` on, or any block inside :func:`compiled_blocks`."""
+    return slots >= threshold or _ANY_SIZE.get()
 
 def _compiled():
     """The numba kernels ``(labels, no labels, signal keys)``, compiled (or loaded from

@@ -29,6 +29,7 @@ import numpy as np
 from mems_stereo.errors import FormatError, OptionError
 from mems_stereo.io.recording import Recording, iter_shot_chunks, read_header
 from mems_stereo.model.system import System
+from mems_stereo.pipeline.classify_kernel import compiled_blocks
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.pass1 import Counts
 from mems_stereo.pipeline.run import process_recording, run_table
@@ -292,7 +293,8 @@ def frame_cloud(system: System, shots: FrameShots, settings: Settings, table, so
         return _empty_cloud(k, k)
     truth = {} if shots.labels is None else {"label": shots.labels}
     rec = Recording(system, shots.times, shots.bins, shots.zc, shots.rising, truth, source)
-    res = process_recording(rec, system, settings, table=table)
+    with compiled_blocks():  # a frame's passes by the kernels the processor loaded
+        res = process_recording(rec, system, settings, table=table)
     cloud = res.cloud
     band = peak_of_points(res.peaks, cloud, system.receiver.width)
     steps = table.rows(res.theta, res.valid)

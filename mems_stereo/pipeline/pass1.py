@@ -20,6 +20,7 @@ from mems_stereo.pipeline.classify_kernel import (
     KernelOptions,
     Pass1Histograms,
     classify_and_accumulate,
+    compiles,
 )
 from mems_stereo.pipeline.consistency import DEFAULT_CONFIDENCE, truth_suffix
 from mems_stereo.pipeline.intervals import IntervalTable
@@ -126,7 +127,7 @@ def accumulate_range(path, system: System, shots: ShotRange, settings: Settings,
     if table is None:
         table = IntervalTable.for_settings(system, settings)
     K_range = max(0, shots.n_shots)
-    compiled = K_range * P >= COMPILE_SLOTS  # small recordings need no compiled code
+    compiled = compiles(K_range * P, COMPILE_SLOTS)  # small recordings: NumPy (not in frames)
     # the reader checks codes against the file's n_bins: enough when it is ours too;
     # otherwise each chunk is checked below (naming the file), not again in the kernel call
     file_bins = read_system(path).tdc.n_bins

@@ -9,7 +9,7 @@ import numpy as np
 
 from mems_stereo.io.recording import iter_shot_chunks
 from mems_stereo.model.system import System
-from mems_stereo.pipeline.classify_kernel import COMPILE_SLOTS
+from mems_stereo.pipeline.classify_kernel import COMPILE_SLOTS, compiles
 from mems_stereo.pipeline.intervals import IntervalTable
 from mems_stereo.pipeline.peak_table import Peaks
 from mems_stereo.pipeline.settings import Settings
@@ -305,7 +305,8 @@ def peak_counts_range(path, system: System, shots: ShotRange, settings: Settings
     pc = PeakCounts()
     if windows.pixel.size == 0:
         return pc
-    compiled = shots.n_shots * system.receiver.width * system.receiver.height >= COMPILE_SLOTS
+    compiled = compiles(shots.n_shots * system.receiver.width * system.receiver.height,
+                        COMPILE_SLOTS)
     for s0, _t, bins in iter_shot_chunks(path, settings.chunk_shots, shots.start, shots.stop):
         s1 = s0 + bins.shape[0]
         theta, valid = shots.angles(s0, s1)
