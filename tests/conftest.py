@@ -101,6 +101,11 @@ def _memo_key(value):
         return ("system", json.dumps(system_to_dict(value), sort_keys=True,
                                      default=lambda o: o.tolist() if hasattr(o, "tolist")
                                      else repr(o)))
+    if isinstance(value, np.ndarray):
+        import hashlib
+
+        return ("ndarray", value.dtype.str, value.shape,
+                hashlib.sha1(np.ascontiguousarray(value).tobytes()).hexdigest())
     if value is None or isinstance(value, (bool, int, float, str, Path)):
         return value
     raise TypeError(f"no memo key for {type(value).__name__}")
@@ -129,17 +134,20 @@ def memoised(name: str, fn):
 
 def share_heavy_results(mp) -> None:
     """Patch (with MonkeyPatch ``mp``) the bundled samples' calibrations (one- and
-    two-axis) and the imperfect-hardware comparison to :func:`memoised` forms."""
+    two-axis; also as :mod:`mems_stereo.calib` re-exports it) and the imperfect-hardware
+    comparison to :func:`memoised` forms."""
+    import mems_stereo.calib as calib_pkg
     import mems_stereo.calib.calibrate as calib_mod
     import mems_stereo.calib.twoaxis as twoaxis_mod
 
     import mems_stereo.cli.demo_hardware as hw_mod
 
-    for mod, name in ((calib_mod, "calibrate_system"), (twoaxis_mod, "calibrate_two_axis"),
+    for mod, name in ((calib_mod, "calibrate_system"), (calib_pkg, "calibrate_system"),
+                      (twoaxis_mod, "calibrate_two_axis"),
                       (hw_mod, "hardware_comparison")):
         real = getattr(mod, name)
         real = getattr(real, "__wrapped_real__", real)
-        m = memoised(f"{mod.__name__}.{name}", real)
+        m = memoised(f"{real.__module__}.{real.__qualname__}", real)  # one memo per function
         m.__wrapped_real__ = real
         mp.setattr(mod, name, m)
 
@@ -172,7 +180,12 @@ XDIST_GROUPS = {
         # the --help examples: lines that several commands' examples start with run once
         # (tests/test_docs.py), and calibrate's example is the demo's calibration (a copy
         # of the same walls: shared_results keys files by content)
-        "tests/test_docs.py::test_every_help_example_runs"),
+        "tests/test_docs.py::test_every_help_example_runs",
+        # the documents whose blocks calibrate the bundled walls (line sensor: the README's
+        # and docs/calibration.md's commands, the Python calls of docs/calibration.md and
+        # docs/interchange.md; the Lissajous walls: docs/two_axis.md)
+        *(f"tests/test_docs.py::test_every_code_block_of_the_docs_runs[{d}.md]"
+          for d in ("README", "calibration", "interchange", "two_axis"))),
     "calib_fit": ("tests/test_calib_fit.py",),          # the good walls and their free fit
     "dask_cluster": ("tests/test_distributed.py",),     # one LocalCluster
     "code_metrics": ("tests/test_code_metrics.py",),    # one pass of the checker

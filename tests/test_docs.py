@@ -4,10 +4,20 @@ installed package.
 
 A small Markdown collector finds the fenced blocks (```lang ... ```).  How each runs:
 
-* ``python``: as a script by this interpreter (the installed package's), cwd a fresh
-  temporary folder; the blocks of one document run in order in the same folder.
-* ``bash``, ``sh``, ``console`` and blocks without a language: ``bash -e`` with the
-  interpreter's ``bin/`` first on PATH (so ``mems-stereo`` is the installed one).
+* ``python``: as a script (``__name__ == "__main__"``, a fresh namespace) in this test
+  process, cwd a fresh temporary folder; the blocks of one document run in order in the
+  same folder.  The package and its libraries load once per test process, not once per
+  block; a block that reads ``ms.NAME`` must find NAME in ``mems_stereo.__all__`` (what a
+  fresh ``import mems_stereo`` gives).
+* ``bash``, ``sh``, ``console`` and blocks without a language: line by line, each
+  ``mems-stereo`` line through the CLI's ``main`` in this process (file-name patterns
+  expanded as bash does) and any other line by ``bash -e -c`` with the interpreter's
+  ``bin/`` first on PATH; the README's first line runs the installed ``mems-stereo``
+  executable.  A block whose lines share shell state (``cd``, variables, compound
+  commands, here-documents) runs whole by ``bash -e``.  The bundled walls' calibrations
+  are memoised (tests/conftest.py ``shared_results``): each distinct call is fitted once
+  per test process, by the real function, and the blocks and ``mems-stereo demo``'s test
+  share it.
 * ``json``: parsed (``json.loads``); nothing else.
 * Indented (4-space) blocks are read as literal text — output listings, package
   lists — and not run; every command a reader is meant to type is in a fenced block.
@@ -20,8 +30,8 @@ A small Markdown collector finds the fenced blocks (```lang ... ```).  How each 
 The ``--help`` examples (each command module's ``EXAMPLE`` lines and ``plot``'s per-figure
 examples) run in order in a fresh folder per command, in this process through the CLI's
 ``main`` (each line as a process of its own paid the package's import again; the
-``mems-stereo`` executable runs in the README's blocks and tests/test_wheel.py); lines that several commands'
-examples begin with run once, and the other commands continue from a copy of the folder
+``mems-stereo`` executable runs in the README's first line and tests/test_wheel.py); lines
+that several commands' examples begin with run once, and the other commands continue from a copy of the folder
 they left (the same state); ``view`` opens a window, so its last line is only parsed;
 ``demo``'s example is the run of ``tests/test_demo.py``.
 
@@ -85,8 +95,170 @@ def _env(python: str) -> dict:
     return env
 
 
-def run_block(block: Block, cwd: Path, python: str = sys.executable) -> None:
-    """Execute one block in ``cwd``; fail with the block's place and output."""
+SHELL_LANGS = ("", "bash", "sh", "console", "shell")
+#: seconds a python block's non-daemon threads may run on after its last line
+THREAD_GRACE_S = 30.0
+#: a line starting with one of these changes the shell's state (or spans lines): its block
+#: runs as one ``bash -e`` script
+_STATEFUL = {"cd", "export", "source", ".", "set", "unset", "alias", "pushd", "popd", "shopt",
+             "function", "if", "for", "while", "until", "case", "select", "{", "(", "trap",
+             "exec", "eval", "declare", "local", "readonly"}
+
+
+def shell_lines(code: str) -> list[str]:
+    """The logical lines of a shell block (backslash continuations joined), blank ones
+    dropped."""
+    out, cur = [], ""
+    for line in code.splitlines():
+        if line.rstrip().endswith("\\"):
+            cur += line.rstrip()[:-1] + " "
+            continue
+        if (cur + line).strip():
+            out.append((cur + line).strip())
+        cur = ""
+    if cur.strip():
+        out.append(cur.strip())
+    return out
+
+
+def _tokens(line: str) -> list[str] | None:
+    """The words of one shell line with its operators as tokens of their own, comments
+    dropped; None where shlex cannot split it (unbalanced quotes)."""
+    lex = shlex.shlex(line, posix=True, punctuation_chars=True)
+    lex.whitespace_split = True
+    try:
+        return list(lex)
+    except ValueError:
+        return None
+
+
+def split_is_faithful(lines: list[str]) -> bool:
+    """Running the lines one by one (each ``mems-stereo`` line in this process, any other
+    as ``bash -e -c LINE``) does what ``bash -e`` does with the block: no line sets state a
+    later line reads (``cd``, variables, functions), none spans lines, none is a compound
+    command; a here-document or an unbalanced quote keeps the block whole."""
+    ops = {";", "&&", "||", "|", "&"}
+    for line in lines:
+        tok = _tokens(line)
+        if tok == []:  # a comment
+            continue
+        if tok is None or "<<" in line or tok[-1] in ops | {"("}:
+            return False
+        # the command words: the first, and each after an operator
+        words = [tok[0]] + [t for p, t in zip(tok, tok[1:]) if p in ops]
+        if any(w in _STATEFUL or re.match(r"\w+=", w) for w in words):
+            return False
+    return True
+
+
+def in_process_argv(line: str, cwd: Path) -> list[str] | None:
+    """``mems-stereo``'s arguments when ``line`` is one plain ``mems-stereo`` command (no
+    operator, redirection, expansion but a file-name pattern, which is expanded here in
+    ``cwd`` as bash does); None otherwise."""
+    import glob
+
+    tok = _tokens(line)
+    if not tok or tok[0] != "mems-stereo" or "$" in line or "`" in line:
+        return None
+    if any(set(t) <= set("();<>|&") for t in tok):
+        return None
+    argv = []
+    for t in tok[1:]:
+        hits = sorted(glob.glob(t, root_dir=cwd)) if glob.has_magic(t) else []
+        argv.extend(hits or [t])
+    return argv
+
+
+def run_cli(argv: list[str], cwd: Path, what: str) -> None:
+    """``mems-stereo ARGV`` run in this process by the CLI's ``main`` from ``cwd``; fails
+    with ``what`` and the command's output unless it exits 0.  ``view`` opens a window:
+    its arguments are parsed, not run."""
+    import contextlib
+    import io
+    import traceback
+
+    from mems_stereo.cli import build_parser, main
+
+    if argv[0] == "view":
+        build_parser().parse_args(argv)
+        return
+    out, err, here = io.StringIO(), io.StringIO(), os.getcwd()
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            rc = main(argv)
+    except SystemExit as e:  # usage errors (argparse)
+        rc = e.code
+    except Exception:
+        rc = "exception\n" + traceback.format_exc()
+    finally:
+        os.chdir(here)
+    if rc != 0:
+        pytest.fail(f"{what}: exit {rc}\n--- stdout\n{out.getvalue()[-3000:]}\n--- stderr\n"
+                    f"{err.getvalue()[-3000:]}")
+
+
+def run_python_block(block: Block, cwd: Path, where: str) -> None:
+    """A python block executed in this process as a script (``__name__ == "__main__"``, a
+    fresh namespace, cwd ``cwd``); fails with its place, traceback and output.  The
+    package and the libraries are imported once per test process instead of once per
+    block; ``mems_stereo``'s attributes that a block reads are checked to be ones a fresh
+    ``import mems_stereo`` gives (:func:`package_names_used`)."""
+    import contextlib
+    import io
+    import threading
+    import traceback
+
+    import mems_stereo
+
+    missing = package_names_used(block.code) - set(mems_stereo.__all__) - {"__version__"}
+    if missing:
+        pytest.fail(f"{where}: reads {sorted(missing)} of mems_stereo, which a fresh "
+                    "`import mems_stereo` does not give (not in mems_stereo.__all__)")
+    code = compile(block.code, where, "exec")
+    out, err, here = io.StringIO(), io.StringIO(), os.getcwd()
+    before = set(threading.enumerate())
+    os.chdir(cwd)
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            exec(code, {"__name__": "__main__", "__builtins__": __builtins__})
+    except BaseException as e:  # SystemExit(0) is a success, as for a script
+        if not (isinstance(e, SystemExit) and e.code in (0, None)):
+            pytest.fail(f"{where} failed:\n{block.code}\n{traceback.format_exc()[-3000:]}\n"
+                        f"--- stdout\n{out.getvalue()[-3000:]}\n--- stderr\n"
+                        f"{err.getvalue()[-3000:]}")
+    finally:
+        os.chdir(here)
+    # a script ends when its last non-daemon thread does: one still running long after
+    # the block's end would hang the reader's interpreter
+    for t in set(threading.enumerate()) - before:
+        t.join(THREAD_GRACE_S if not t.daemon else 0.0)
+        if t.is_alive() and not t.daemon:
+            pytest.fail(f"{where}: its thread {t.name} still runs {THREAD_GRACE_S} s after "
+                        "the block's end")
+
+
+def package_names_used(code: str) -> set[str]:
+    """Names read as ``alias.NAME`` where ``alias`` is bound by ``import mems_stereo`` /
+    ``import mems_stereo as alias`` in ``code``."""
+    import ast
+
+    tree = ast.parse(code)
+    aliases = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.Import)
+               for a in n.names if a.name == "mems_stereo"}
+    return {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute)
+            and isinstance(n.value, ast.Name) and n.value.id in aliases}
+
+
+def run_block(block: Block, cwd: Path, python: str = sys.executable,
+              executable_lines: int = 0) -> None:
+    """Execute one block in ``cwd``; fail with the block's place and output.
+
+    Python blocks run in this process (:func:`run_python_block`).  A shell block whose
+    lines can run one by one (:func:`split_is_faithful`) runs its ``mems-stereo`` lines in
+    this process (:func:`run_cli`), except its first ``executable_lines`` lines, and every
+    other line by ``bash -e -c`` with the interpreter's ``bin/`` first on PATH (the
+    installed ``mems-stereo``); any other shell block runs whole by ``bash -e``."""
     where = f"{block.file.relative_to(ROOT)}:{block.line} ({block.lang or 'no language'})"
     if block.lang == "json":
         try:
@@ -97,15 +269,28 @@ def run_block(block: Block, cwd: Path, python: str = sys.executable) -> None:
     if block.lang == "text":  # printed output shown in the docs: nothing to run
         return
     if block.lang == "python":
-        cmd = [python, "-c", block.code]
-    elif block.lang in ("", "bash", "sh", "console", "shell"):
-        cmd = ["bash", "-e", "-c", block.code]
-    else:
+        run_python_block(block, cwd, where)
+        return
+    if block.lang not in SHELL_LANGS:
         pytest.fail(f"{where}: no rule to run a {block.lang!r} block (add one or a skip marker)")
-    p = subprocess.run(cmd, cwd=cwd, env=_env(python), capture_output=True, text=True,
-                       timeout=600)
+    lines = shell_lines(block.code)
+    if not split_is_faithful(lines):
+        _run_bash(block.code, cwd, python, where)
+        return
+    lines = [ln for ln in lines if _tokens(ln)]  # comments do nothing
+    for k, line in enumerate(lines):
+        argv = in_process_argv(line, cwd) if k >= executable_lines else None
+        if argv is None:
+            _run_bash(line, cwd, python, f"{where}, line {line!r}")
+        else:
+            run_cli(argv, cwd, f"{where}: {line}")
+
+
+def _run_bash(code: str, cwd: Path, python: str, where: str) -> None:
+    p = subprocess.run(["bash", "-e", "-c", code], cwd=cwd, env=_env(python),
+                       capture_output=True, text=True, timeout=600)
     if p.returncode:
-        pytest.fail(f"{where} failed (exit {p.returncode}):\n{block.code}\n--- stdout\n"
+        pytest.fail(f"{where} failed (exit {p.returncode}):\n{code}\n--- stdout\n"
                     f"{p.stdout[-3000:]}\n--- stderr\n{p.stderr[-3000:]}")
 
 
@@ -114,15 +299,24 @@ def _outside_repository(tmp_path: Path) -> Path:
     return tmp_path
 
 
+# the documents whose blocks calibrate the bundled walls run in the pytest-xdist worker of
+# tests/conftest.py's "bundled_calibrations" group: their fits are the demo's
+# (``shared_results``: one real fit per distinct call and test process)
 @pytest.mark.slow
 @pytest.mark.parametrize("doc", DOCS, ids=lambda d: d.name)
-def test_every_code_block_of_the_docs_runs(doc, tmp_path):
-    """One test per document, so that pytest-xdist spreads the documents over the cores."""
+def test_every_code_block_of_the_docs_runs(doc, tmp_path, shared_results):
+    """One test per document, so that pytest-xdist spreads the documents over the cores.
+    The README's first shell line runs the installed ``mems-stereo`` executable (as
+    tests/test_wheel.py does from a wheel); the other ``mems-stereo`` lines run in this
+    process (:func:`run_block`)."""
     cwd = _outside_repository(tmp_path / doc.stem)
     cwd.mkdir()
+    executable_lines = int(doc.name == "README.md")
     for b in collect(doc):
         if b.skip is None:
-            run_block(b, cwd)
+            run_block(b, cwd, executable_lines=executable_lines)
+            if b.lang in SHELL_LANGS:
+                executable_lines = 0
 
 
 def test_code_blocks_marked_not_to_run(capsys):
@@ -192,29 +386,13 @@ def _shared_prefixes() -> set[tuple]:
 
 def run_example_line(line: str, cwd: Path) -> None:
     """One ``mems-stereo ...`` example line, run in this process by the CLI's ``main`` from
-    ``cwd`` (the entry point itself, a separate process, is run by the README's blocks in
-    :func:`test_every_code_block_of_the_docs_runs` and by tests/test_wheel.py); fails with
-    the line and its output unless it exits 0.  ``view`` opens a window: parsed only."""
-    import contextlib
-    import io
-
-    from mems_stereo.cli import build_parser, main
-
+    ``cwd`` (:func:`run_cli`; the entry point itself, a separate process, is run by the
+    README's first line in :func:`test_every_code_block_of_the_docs_runs` and by
+    tests/test_wheel.py); fails with the line and its output unless it exits 0.  ``view``
+    opens a window: parsed only."""
     argv = shlex.split(line, comments=True)
     assert argv[0] == "mems-stereo", line
-    if argv[1] == "view":  # opens a window: parse it, do not run it
-        build_parser().parse_args(argv[1:])
-        return
-    out, err, here = io.StringIO(), io.StringIO(), os.getcwd()
-    os.chdir(cwd)
-    try:
-        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-            rc = main(argv[1:])
-    except SystemExit as e:  # usage errors (argparse)
-        rc = e.code
-    finally:
-        os.chdir(here)
-    assert rc == 0, f"{line}: exit {rc}\n{out.getvalue()[-2000:]}\n{err.getvalue()[-2000:]}"
+    run_cli(argv[1:], cwd, line)
 
 
 # one pytest-xdist worker runs the examples (tests/conftest.py: XDIST_GROUPS), so that
@@ -258,6 +436,55 @@ def test_collector_finds_blocks_and_markers(tmp_path):
     assert [(x.lang, x.skip, x.line) for x in b] == [("bash", "needs root", 4),
                                                     ("python", None, 8), ("", None, 11)]
     assert b[1].code == "print(1)\n" and b[2].code == "nested ``` fence\n"
+
+
+def test_shell_blocks_split_only_where_faithful(tmp_path):
+    """A shell block runs line by line (``mems-stereo`` lines in this process) only where
+    that is what ``bash -e`` does with it."""
+    code = ("# set up\nmems-stereo samples -o samples   # all of them\n"
+            "mems-stereo calibrate samples/c_*.h5 \\\n    -o cal.json\npython -c 'print(1)'\n")
+    lines = shell_lines(code)
+    assert lines == ["# set up", "mems-stereo samples -o samples   # all of them",
+                     "mems-stereo calibrate samples/c_*.h5      -o cal.json",
+                     "python -c 'print(1)'"]
+    assert split_is_faithful(lines)
+    for whole in ("cd out\nmems-stereo info x.h5", "X=1\necho $X", "mems-stereo info a && cd b",
+                  "for f in *.h5; do\n  mems-stereo info $f\ndone", "cat <<EOF\nx\nEOF",
+                  "mems-stereo info 'a"):
+        assert not split_is_faithful(shell_lines(whole)), whole
+    (tmp_path / "samples").mkdir()
+    for name in ("c_2.h5", "c_1.h5"):
+        (tmp_path / "samples" / name).touch()
+    assert in_process_argv(lines[2], tmp_path) == [
+        "calibrate", "samples/c_1.h5", "samples/c_2.h5", "-o", "cal.json"]
+    assert in_process_argv(lines[1], tmp_path) == ["samples", "-o", "samples"]
+    for shell in ("python -c 'print(1)'", "mems-stereo info a.h5 > out.txt",
+                  "mems-stereo info a.h5 | head", "mems-stereo info $F", "mems-stereo info a; ls"):
+        assert in_process_argv(shell, tmp_path) is None, shell
+
+
+def test_a_broken_block_fails(tmp_path, monkeypatch):
+    """Each way of running a block fails the test when the block fails, naming its place."""
+    monkeypatch.setattr(sys.modules[__name__], "THREAD_GRACE_S", 0.1)
+    doc = ROOT / "README.md"
+    broken = [("python", "import numpy\nnumpy.no_such_function()\n"),
+              ("python", "import mems_stereo as ms\nms.pipeline\n"),  # not what a fresh import gives
+              ("python", "import sys\nsys.exit(3)\n"),
+              ("python", "import threading, time\n"  # would not let the interpreter exit
+                         "threading.Thread(target=time.sleep, args=(1,)).start()\n"),
+              ("bash", "mems-stereo samples -o s room.h5\nmems-stereo process s/no_such.h5 -o x.ply\n"),
+              ("bash", "mems-stereo no-such-command\n"),
+              ("bash", "true\nfalse\n"),
+              ("bash", "cd .\nmems-stereo process no_such.h5 -o x.ply\n"),  # whole, by bash
+              ("json", "{1: 2}\n")]
+    for k, (lang, code) in enumerate(broken):
+        cwd = tmp_path / str(k)
+        cwd.mkdir()
+        with pytest.raises(pytest.fail.Exception, match=r"README\.md:7 "):
+            run_block(Block(doc, 7, lang, code, None), cwd)
+    for lang, code in (("python", "import sys\nprint('ok')\nsys.exit(0)\n"),
+                       ("bash", "mems-stereo samples -o s room.h5\ntest -s s/room.h5\n")):
+        run_block(Block(doc, 7, lang, code, None), tmp_path)
 
 
 def test_docs_are_reference_not_a_diary():
