@@ -13,8 +13,10 @@ whole numbers, so their sum is exact in any order), the box sums of
 :func:`~mems_stereo.pipeline.matched_boxes.valid_boxes`.  Logarithms, tails and the
 choice stay NumPy's and SciPy's
 (:func:`~mems_stereo.pipeline.matched_boxes.pick_box`); the kernel only leaves out
-boxes that cannot be chosen (:func:`screened_boxes`), judged by a deviance computed
-with a wide margin for the difference between its logarithm and NumPy's.
+boxes that cannot be chosen (:func:`screened_boxes_py`: bounds on the deviance and on
+the Poisson tail, with a margin far above the difference between numba's logarithm
+and NumPy's).  Rows of a window without counts or background (angle steps the frame
+did not visit) add nothing to the running sums and are skipped.
 """
 
 from __future__ import annotations
