@@ -39,6 +39,7 @@ level, as in the first stage: its box's scan p-value (:func:`scan_box_sf`) below
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,7 @@ from scipy.special import pdtrc
 from mems_stereo.model.system import System
 from mems_stereo.physics.pulse import effective_fwhm
 from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
+from mems_stereo.pipeline.matched_grid import CompiledGrid
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_support import (
     FRAME_FALSE_ALARMS,
@@ -140,6 +142,13 @@ class _CandidateSearch:
         self.pix = cands.pixel(system.receiver.width)
         self.half_c = self.m // self.cell
         self.box_codes = (2 * self.half_c + 1) * self.cell
+        self.rate_hz = np.nan_to_num(cands.rate_hz)  # (as of each candidate alone)
+        # a frame's table is filled at its start: no rows to compute
+        self.filled = bool(np.all(getattr(table, "filled", False)))
+        # one compiled kernel per window where numba is loaded (the same numbers; its
+        # coarse blocks sum the valid shots in any order: whole numbers)
+        self.compiled = ("numba" in sys.modules and self.step.dtype == self.code.dtype == np.int64
+                         and bool(np.all(self.n_per_step == np.rint(self.n_per_step))))
 
     def has_entries(self, i: int) -> bool:
         """Whether candidate ``i`` has any counted entry."""
@@ -149,11 +158,11 @@ class _CandidateSearch:
         """Candidate ``i``'s best box over steps a..b (``whole``: its whole scan, else
         the first stage's window), or None."""
         cands, table, m, cell = self.cands, self.table, self.m, self.cell
-        steps = np.arange(a, b + 1)
-        shot = self.n_per_step[steps] > 0  # steps without valid shots hold nothing
-        table.ensure(steps[shot])
-        lo = np.where(shot, table.lo[steps, self.pix[i]], 1).astype(np.int64)
-        hi = np.where(shot, table.hi[steps, self.pix[i]], 0).astype(np.int64)
+        shot = self.n_per_step[a:b + 1] > 0  # steps without valid shots hold nothing
+        if not self.filled:
+            table.ensure(np.arange(a, b + 1)[shot])
+        lo = np.where(shot, table.lo[a:b + 1, self.pix[i]], 1).astype(np.int64)
+        hi = np.where(shot, table.hi[a:b + 1, self.pix[i]], 0).astype(np.int64)
         okj = lo <= hi
         if not np.any(okj):
             return None
@@ -171,10 +180,10 @@ class _CandidateSearch:
         # codes in cells of ``cell`` (a quarter of the box's half-width): the box is
         # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
         n_cell = (c_hi - c_lo) // cell + 1
-        h = -np.expm1(-float(np.nan_to_num(cands.rate_hz[i])) * self.bw)
-        grid = BoxGrid(e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi,
-                       self.n_per_step[steps], c_lo, cell, np.log1p(-min(h, 1 - 1e-15)),
-                       n_cell)
+        h = -np.expm1(-float(self.rate_hz[i]) * self.bw)
+        grid = (CompiledGrid if self.compiled and n_cell >= 1 else BoxGrid)(
+            e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi, self.n_per_step[a:b + 1], c_lo,
+            cell, np.log1p(-min(h, 1 - 1e-15)), n_cell)
         box = grid.best(cands.width, 2 * self.half_c + 1, self.settings.min_counts,
                         WHOLE_SCAN_FULL_CELLS if whole else None)
         if box is None:

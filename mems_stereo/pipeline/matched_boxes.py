@@ -120,6 +120,18 @@ class BoxGrid:
                     self.n_cell)
         return g.background(0, starts.size, 0, self.n_cell, fc)
 
+    def search_window(self, win, blocks, box, min_counts: int, cut=(True, True),
+                      top: int = 0, prefilter: bool = False, coarse: bool = False):
+        """:func:`smallest_p` over the steps ``j0..j1−1`` × cells ``k0..k1−1`` of
+        ``win`` = (j0, j1, k0, k1), summed in ``blocks`` = (fs, fc) of steps × cells
+        (``coarse``: the whole grid, background by :meth:`coarse_background`), for the
+        ``box`` = (steps, cells) (``cut``, ``top``, ``prefilter``: as there)."""
+        j0, j1, k0, k1 = win
+        D = self.counts(j0, j1, k0, k1, *blocks)
+        B = (self.coarse_background(*blocks) if coarse
+             else self.background(j0, j1, k0, k1, blocks[1]))
+        return smallest_p(D, B, box[0], box[1], min_counts, top, cut, prefilter)
+
     def best(self, box_s: int, box_c: int, min_counts: int,
              full_cells: int | None = None) -> BestBox | None:
         """The :class:`BestBox` of the box (``box_s`` steps × ``box_c``
@@ -133,13 +145,12 @@ class BoxGrid:
         positions: the false-alarm level, set for all of them, holds)."""
         n, nc = self.n_steps, self.n_cell
         if n * nc <= (FULL_SCAN_CELLS if full_cells is None else full_cells):
-            return smallest_p(self.counts(0, n, 0, nc), self.background(0, n, 0, nc),
-                               box_s, box_c, min_counts)
+            return self.search_window((0, n, 0, nc), (1, 1), (box_s, box_c), min_counts)
         fs = max(1, box_s // COARSE_BOX_UNITS)
         fc = max(1, box_c // COARSE_BOX_UNITS)
         bs, bc = -(-box_s // fs) | 1, -(-box_c // fc) | 1
-        coarse = smallest_p(self.counts(0, n, 0, nc, fs, fc), self.coarse_background(fs, fc),
-                             bs, bc, min_counts, top=COARSE_TOP)
+        coarse = self.search_window((0, n, 0, nc), (fs, fc), (bs, bc), min_counts,
+                                    top=COARSE_TOP, coarse=True)
         if coarse is None:
             return None
         out = None
@@ -151,9 +162,8 @@ class BoxGrid:
             # boxes whole in the window's cells too, except at the grid's own edges
             # (the whole search's boxes run over them; a box cut at the window's edge
             # would lose background the whole one carries)
-            r = smallest_p(self.counts(j0, j1, k0, k1), self.background(j0, j1, k0, k1),
-                            box_s, box_c, min_counts, cut=(k0 == 0, k1 == nc),
-                            prefilter=True)
+            r = self.search_window((j0, j1, k0, k1), (1, 1), (box_s, box_c), min_counts,
+                                   cut=(k0 == 0, k1 == nc), prefilter=True)
             if r is not None and (out is None or r.p < out.p):
                 out = BestBox(r.p, r.j + j0, r.k + k0, r.count, r.background)
         return out
@@ -171,13 +181,23 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
     terms).  The valid boxes are found by :func:`valid_boxes` and the rest works on
     them alone (the same numbers as over the whole grid)."""
     N_box, B_box, flat = valid_boxes(D, B, box_s, box_c, min_counts, cut)
+    return pick_box(N_box, B_box, flat, top, prefilter)
+
+
+def pick_box(N_box, B_box, flat, top: int = 0, prefilter: bool = False):
+    """:func:`smallest_p`'s choice among the valid boxes ``flat`` (flat indices,
+    ascending, int64) of the box sums ``N_box``, ``B_box`` (n, m) float64 of counts and
+    background.  ``flat`` may leave out boxes that can neither rank among the ``top``
+    nor come within :data:`DEVIANCE_MARGIN` of the largest deviance where
+    ``prefilter`` (:func:`mems_stereo.pipeline.matched_grid.screened_boxes`): the
+    same choice."""
     if flat.size == 0:
         return None
     n_v, b_v = N_box.ravel()[flat], np.maximum(B_box.ravel()[flat], 1e-12)
     if top:  # ranked by the Poisson deviance (a monotone stand-in for the tail's p)
         dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
         order = flat[np.argsort(-dev, kind="stable")[:top]]
-        return [divmod(int(k), D.shape[1]) for k in order]
+        return [divmod(int(k), N_box.shape[1]) for k in order]
     if prefilter:  # the tail only where the deviance is near its largest (ln p ≈ −deviance)
         dev = n_v * np.log(n_v / b_v) - (n_v - b_v)
         keep = dev >= dev.max() - DEVIANCE_MARGIN
@@ -194,7 +214,7 @@ def smallest_p(D, B, box_s: int, box_c: int, min_counts: int, top: int = 0,
         p[flat] = pt
         k = int(np.argmin(p))
         p_k = p[k]
-    jj, ci = divmod(k, D.shape[1])
+    jj, ci = divmod(k, N_box.shape[1])
     return BestBox(p_k, jj, ci, N_box[jj, ci], B_box[jj, ci])
 
 
@@ -206,7 +226,7 @@ def valid_boxes(D, B, box_s: int, box_c: int, min_counts: int, cut=(True, True))
     Compiled (:func:`_box_scan_py`) where numba is loaded."""
     kernel = None
     if "numba" in sys.modules:  # (as compiled_if_loaded, with the box sums inlined)
-        kernel = compiled_kernel(_box_scan_py, {"_box_sums_inline": _box_sums_py})
+        kernel = compiled_kernel(_box_scan_py, {"_box_sums_inline": box_sums_py})
     if kernel is not None:
         sums, flat = kernel(np.ascontiguousarray(np.stack([D, B]), np.float64), int(box_s),
                             int(box_c), float(min_counts), bool(cut[0]), bool(cut[1]))
@@ -253,10 +273,10 @@ def box_sums(A, h: int, w: int) -> np.ndarray:
     """Centred box sums of (h, w) (odd) over the last two axes of a float64 array
     (k, n, m) or (n, m), zeros beyond its edges: the differences of the running sums
     (along the steps, then the cells) of the array padded with zeros.  Compiled
-    (:func:`_box_sums_py`, the same additions in the same order: the same numbers)
+    (:func:`box_sums_py`, the same additions in the same order: the same numbers)
     where numba is loaded."""
     A = np.asarray(A, np.float64)
-    kernel = compiled_if_loaded(_box_sums_py)
+    kernel = compiled_if_loaded(box_sums_py)
     if kernel is not None:
         return kernel(np.ascontiguousarray(A.reshape((-1,) + A.shape[-2:])),
                       int(h), int(w)).reshape(A.shape)
@@ -267,7 +287,7 @@ def box_sums(A, h: int, w: int) -> np.ndarray:
     return c[..., h:, w:] - c[..., :-h, w:] - c[..., h:, :-w] + c[..., :-h, :-w]
 
 
-def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
+def box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
     """:func:`box_sums` of a (k, n, m) float64 array, loop by loop (the numba kernel): the
     running sums of A padded with zeros, along the steps (``col``, one row at a time) and
     then along the cells (``c``), each the same addition as in two whole passes.  Only
@@ -306,7 +326,7 @@ def _box_sums_py(A, h, w):  # pragma: no cover - compiled by numba
 
 def _box_scan_py(A, h, w, min_counts, cut_lo, cut_hi):  # pragma: no cover - numba
     """:func:`valid_boxes` of ``A`` = (D, B) stacked (2, n, m), loop by loop (the numba
-    kernel): the box sums (:func:`_box_sums_py`) and the flat indices of the boxes whole
+    kernel): the box sums (:func:`box_sums_py`) and the flat indices of the boxes whole
     in the first axis, within the columns the cut allows, with D ≥ ``min_counts`` and
     D > B."""
     out = _box_sums_inline(A, h, w)
@@ -357,7 +377,7 @@ def _background_py(lo, hi, nps, e_lo, e_hi, table, k0):  # pragma: no cover - nu
 
 
 #: the kernel :func:`_box_scan_py` calls (bound to its inlined compiled form)
-_box_sums_inline = _box_sums_py
+_box_sums_inline = box_sums_py
 
 
 def _powers(k, log_base) -> np.ndarray:
