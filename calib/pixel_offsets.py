@@ -5,11 +5,10 @@ A pixel's TDC start delay ``δ_p`` adds to the return time τ of each of its cel
 part held by ``tdc_offset``):
 
 * each pixel's **score** ``g_p = Σ ∂ℓ/∂τ`` over its cells and its **expected (Fisher)
-  information** ``I_p = Σ i_c``, per cell that of the first-photon law,
-  ``i_c = ∫₀^T (∂_τ I(t))² / I(t) · S(t) dt`` with ``I(t) = λ + m·f(t − τ)`` the
+  information** ``I_p = Σ F_ττ``, per cell that of the first-photon law,
+  ``F_ττ = ∫₀^T (∂_τ I(t))² / I(t) · S(t) dt`` with ``I(t) = λ + m·f(t − τ)`` the
   cell's photon intensity and ``S(t) = exp(−∫₀ᵗ I)`` the chance that it has not
-  fired by t (the information of a point process stopped at its first event,
-  Andersen et al., *Statistical Models Based on Counting Processes*, 1993, §VI.1)
+  fired by t (:func:`mems_stereo.calib.expected_info.cell_fisher`)
   — not the outer product of the cell scores: a pixel has a few detections
   (3 fired cells per pixel is typical of the calibration family), and
   ``g_p / √(Σ s_c²)`` then is a self-normalised sum, skewed and bounded by
@@ -39,14 +38,10 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
+from mems_stereo.calib.expected_info import cell_fisher
 from mems_stereo.calib.hardware_fit import ALPHA_SELECT, TermTest
-from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, cell_terms, pulse_at, spot_share
+from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, cell_terms, spot_share
 from scipy import optimize, stats
-
-#: Gauss–Legendre nodes of the per-cell information integral
-INFO_NODES = 48
-#: cells per block of the vectorised integral (memory: block × nodes floats)
-INFO_BLOCK = 20000
 
 
 @dataclass(frozen=True)
@@ -84,33 +79,6 @@ def cell_signal(cells, pred: np.ndarray, logmu: float, logspot: float, two_d: bo
     return np.exp(logmu + pred[:, 3] - cells.log_gref) * share
 
 
-def time_information(tau, m, lam, t_max: float, sigma: float, pulse=None) -> np.ndarray:
-    """Expected information (1/s²) of the return time τ in each cell's first-photon
-    law (see the module): ``∫₀^T (m·f′)² / (λ + m·f) · S dt`` by Gauss–Legendre
-    over the pulse's support (±8σ, and 12 decays of a tail) within [0, T].
-
-    tau, m, lam : (N,) s, photons, Hz; ``pulse`` None (Gaussian of σ ``sigma``) or
-    (w, τ_d), the ex-gaussian of :func:`~mems_stereo.calib.problem.pulse_at`."""
-    w, td = (0.0, sigma) if pulse is None else (float(pulse[0]), float(pulse[1]))
-    tau, m = np.asarray(tau, dtype=np.float64), np.asarray(m, dtype=np.float64)
-    lam = np.broadcast_to(np.asarray(lam, dtype=np.float64), tau.shape)
-    a = np.maximum(0.0, tau - 8.0 * sigma)
-    b = np.minimum(t_max, tau + 8.0 * sigma + (12.0 * td if w > 0 else 0.0))
-    out = np.zeros(tau.shape)
-    idx = np.flatnonzero((b > a) & (m > 0))
-    x, wt = np.polynomial.legendre.leggauss(INFO_NODES)
-    u, wt = 0.5 * (x + 1.0), 0.5 * wt
-    for s0 in range(0, idx.size, INFO_BLOCK):
-        k = idx[s0:s0 + INFO_BLOCK]
-        t = a[k, None] + (b[k] - a[k])[:, None] * u[None, :]
-        p = pulse_at(t - tau[k, None], sigma, w, td)
-        p0 = pulse_at(-tau[k], sigma, w, td)
-        inten = np.maximum(lam[k, None] + m[k, None] * p.pdf, 1e-300)
-        surv = np.exp(-lam[k, None] * t - m[k, None] * (p.cdf - p0.cdf[:, None]))
-        out[k] = ((m[k, None] * p.slope) ** 2 / inten * surv) @ wt * (b[k] - a[k])
-    return out
-
-
 def pixel_scores(prob, x) -> tuple:
     """Each pixel's time score ``g_p`` (1/s) and expected information ``I_p`` (1/s²)
     at the fitted ``x`` of ``prob`` (:class:`~mems_stereo.calib.problem.Problem`
@@ -134,8 +102,8 @@ def pixel_scores(prob, x) -> tuple:
         m = np.where(good, cell_signal(c, pc, walls[j, 3], walls[j, 4], lay.two_d,
                                        prob.pitch_ratio), 0.0)
         g += np.bincount(pix, np.where(good, d[:, 0], 0.0), W * H)
-        info += np.bincount(pix, time_information(pc[:, 0], m, c.lam, c.t_max, prob.sigma,
-                                                  pulse), W * H)
+        info += np.bincount(pix, cell_fisher(pc[:, 0], m, c.lam, c.t_max, prob.sigma,
+                                             pulse)[:, 0], W * H)
     return g, info
 
 
