@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 from mems_stereo.calib import hardware_fit as hf
+from mems_stereo.calib import pixel_offsets as pxo
 from mems_stereo.calib.fit import fit_walls
 from mems_stereo.calib.model import PULSE_PARAMS
 from mems_stereo.calib.nuisance import add_held_edges, add_held_tail, holds_edges, profile_tail
@@ -155,7 +156,7 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
 
     Returns a CalibrationResult whose ``extra["hardware_tests"]`` lists the
     :class:`~mems_stereo.calib.hardware_fit.TermTest` of every candidate and
-    ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.hardware_fit.PixelOffsets`;
+    ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.pixel_offsets.PixelOffsets`;
     the ideal-model result when no term is selected or the extended fit fails.
     """
     blocks = hf.candidate_blocks(orders)
@@ -179,13 +180,14 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
             break
         out = nxt
     out = _pulse_tail(out, progress, fit_kwargs)
-    po = hf.pixel_offsets(out.extra["problem"], out.extra["x"])
+    po = pxo.pixel_offsets(out.extra["problem"], out.extra["x"])
     if po.test.selected:
-        out.system = hf.with_pixel_offsets(out.system, po)
+        out.system = pxo.with_pixel_offsets(out.system, po)
         n_left = int((~po.covered).sum())
         if n_left:
             out.warnings.append(f"{n_left} pixels see no wall return: their TDC offsets are "
-                                "left at 0 (record walls whose returns cover every pixel)")
+                                "left at 0, σ the offsets' spread (record walls whose returns "
+                                "cover every pixel)")
     if holds_edges(out):  # the edge-delay difference held: its share in the σ
         out = add_held_edges(out)
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)

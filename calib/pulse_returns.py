@@ -275,7 +275,7 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
     end at most its ``t_max``; :func:`fit_pulse_shape` fits them by the
     first-photon law, the core σ free.
     """
-    from mems_stereo.calib.problem import spot_share
+    from mems_stereo.calib.pixel_offsets import cell_signal
 
     lay = prob.layout
     _, walls = lay.unpack(x)
@@ -289,8 +289,7 @@ def wall_return_residuals(prob, x, max_signal: float = 0.3):
         if prob.pixel_offsets is not None:
             W = prob.system.receiver.width
             pc[:, 0] += prob.pixel_offsets[(c.row * W + c.col).astype(np.int64)]
-        s = min(max(math.exp(walls[j, 4]), 0.12), 6.0)
-        m = np.exp(walls[j, 3] + pc[:, 3] - c.log_gref) * spot_share(c.col, pc[:, 1], s)[0]
+        m = cell_signal(c, pc, walls[j, 3], walls[j, 4], lay.two_d, prob.pitch_ratio)
         r = c.t - pc[:, 0]
         up = np.minimum(hi, c.t_max - pc[:, 0])
         low = np.maximum(lo, -pc[:, 0])  # the pixel is armed from the TDC's start

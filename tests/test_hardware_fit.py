@@ -6,8 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from mems_stereo.calib.hardware_fit import candidate_blocks, pixel_offsets, score_tests
+from mems_stereo.calib.hardware_fit import candidate_blocks, score_tests
 from mems_stereo.calib.model import HARDWARE_PARAMS, beam_hits, harmonic_orders, plane_normal
+from mems_stereo.calib.pixel_offsets import pixel_offsets
 from mems_stereo.calib.problem import Cells, Layout, Problem, WallData
 
 from mems_stereo.model.scanner import phase_from_zero_crossings, scan_angle_from_phase

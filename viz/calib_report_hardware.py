@@ -68,8 +68,9 @@ def _pixel_panel(ax, result) -> None:
         return
     pix = np.flatnonzero(po.covered)
     est = po.test.selected
-    val = result.system.tdc.pixel_offsets if est else po.value
-    ax.errorbar(pix, np.asarray(val)[pix] * 1e12, yerr=po.std[pix] * 1e12, fmt=".", ms=3,
+    val = result.system.tdc.pixel_offsets if est else po.estimate  # not selected: the
+    err = po.std if est else po.estimate_std  # one-step estimates and their own σ
+    ax.errorbar(pix, np.asarray(val)[pix] * 1e12, yerr=err[pix] * 1e12, fmt=".", ms=3,
                 color="tab:green" if est else "0.5", elinewidth=0.5)
     ax.axhline(0, color="k", lw=0.6)
     ax.set_xlabel("pixel")
