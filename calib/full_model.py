@@ -3,16 +3,20 @@
 :func:`add_hardware_terms` takes a converged ideal-model
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
-delay (from the ideal fit's solution), drops a term the walls do not determine
-(saying what to record), then the pulse's ex-gaussian tail when its score test finds
+delay (forward selection from the ideal fit's solution, one block a round:
+:func:`_select`; a fit its checks refuse is tested on, the last that passes kept),
+drops a term the walls do not determine (saying what to record), then the pulse's
+ex-gaussian tail when its score test finds
 one (:func:`_pulse_tail`: fitted in the time likelihood), then the per-pixel TDC
 offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
+:func:`rescue` runs the same selection from an ideal-model fit its checks refused.
 """
 
 from __future__ import annotations
 
-import numpy as np
+from dataclasses import dataclass, field
+
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib import pixel_offsets as pxo
 from mems_stereo.calib.fit import fit_walls
@@ -31,8 +35,8 @@ RECORD_ADVICE = {
 }
 
 
-#: rounds of forward selection
-MAX_STEPS = 4
+#: rounds of forward selection (at most one per candidate block)
+MAX_STEPS = 5
 
 
 def _advice(name: str) -> str:
@@ -40,38 +44,110 @@ def _advice(name: str) -> str:
                          else "harmonic"]
 
 
-def _refit(result, names: list, fit_kwargs: dict, start_values=None):
-    """Fit ``result``'s walls with the system parameters ``result.names`` + ``names``
-    free, from ``result``'s solution (``start_values``: dict name → SI value that
-    replaces it, e.g. the pulse's tail from :func:`_pulse`)."""
-    prob, x = result.extra["problem"], result.extra["x"]
+def _refit_at(prob, x, names: list, extra: list, fit_kwargs: dict, start_values=None):
+    """Fit ``prob``'s walls (its nominal system and measured distances) with the
+    system parameters ``names`` + ``extra`` free, from ``prob``'s solution ``x`` (the
+    ``extra`` at their nominal values; ``start_values``: dict name → SI value that
+    replaces a start, e.g. the pulse's tail from :func:`_pulse`)."""
     values, walls = prob.layout.unpack(x)
-    start = StartValues({**values, **{n: prob.system.get_param(n) for n in names},
+    start = StartValues({**values, **{n: prob.system.get_param(n) for n in extra},
                          **(start_values or {})}, walls)
-    return fit_walls(prob.walls, prob.system, free=list(result.names) + list(names),
+    return fit_walls(prob.walls, prob.system, free=list(names) + list(extra),
                      priors=prob.priors, initial=start, on_unobservable="warn", **fit_kwargs)
 
 
-def _fit_terms(result, chosen: list, fit_kwargs: dict, start_values=None):
-    """``result`` re-fitted with ``chosen`` free too; a term the walls do not determine
-    is dropped (a warning says what to record); ``result`` itself when nothing is left
-    or the fit fails (a warning says so)."""
-    r1 = _refit(result, chosen, fit_kwargs, start_values)
+def _refit(result, names: list, fit_kwargs: dict, start_values=None):
+    """:func:`_refit_at` from a result's solution with its parameters free too."""
+    return _refit_at(result.extra["problem"], result.extra["x"], list(result.names), names,
+                     fit_kwargs, start_values)
+
+
+@dataclass
+class _Step:
+    """Where forward selection stands: ``fit`` the last fit (a result, or a failure
+    that converged and was refused by its checks: a misfit the next block may
+    explain), ``walls``, ``nominal`` and ``priors`` it was given (to rebuild a
+    failure's problem), ``good`` the last fit that passed its checks (or None) and
+    ``notes`` the warnings of the steps."""
+
+    fit: object
+    walls: list
+    nominal: object
+    priors: list
+    good: object = None
+    notes: list = field(default_factory=list)
+
+
+def _point(step: _Step, jitter: float):
+    """(problem, x, free names) at the step's fit: a result's own, a failure's
+    problem at its values on fresh cells (:func:`~mems_stereo.calib.goodness.
+    failed_problem`); None for a failure that did not reach its checks."""
+    from mems_stereo.calib.goodness import failed_problem
+
+    f = step.fit
+    if f:
+        return f.extra["problem"], f.extra["x"], list(f.names)
+    if "checks" not in (f.details or {}):
+        return None
+    got = failed_problem(f, step.walls, step.nominal, step.priors, jitter)
+    return None if got is None else (got[0], got[1], list(f.details["values"]))
+
+
+def _add_block(step: _Step, point, chosen: list, fit_kwargs: dict, dropped: set):
+    """The fit of ``point`` (problem, x, names) with ``chosen`` free too; a term the
+    walls do not determine is dropped (added to ``dropped``, a note says what to
+    record) and the rest fitted again.  Returns the new :class:`_Step`, or None when
+    nothing is left or the fit did not reach its checks (a note says so)."""
+    prob, x, names = point
+    r1 = _refit_at(prob, x, names, chosen, fit_kwargs)
     weak = [n for n in chosen if r1 and n in r1.unobservable]
     if weak:
-        for n in weak:
-            result.warnings.append(f"{n} not observable from these walls (left ideal): "
-                                   f"{_advice(n)}")
+        step.notes.extend(f"{n} not observable from these walls (left ideal): {_advice(n)}"
+                          for n in weak)
+        dropped.update(weak)
         chosen = [n for n in chosen if n not in weak]
         if not chosen:
-            return result
-        r1 = _refit(result, chosen, fit_kwargs, start_values)
-    if not r1:
-        result.warnings.append(f"the fit with the hardware terms failed ({r1.reason}): "
-                               "the model without them is kept")
-        return result
-    r1.warnings[:0] = [w for w in result.warnings if w not in r1.warnings]
-    return r1
+            return None
+        r1 = _refit_at(prob, x, names, chosen, fit_kwargs)
+    if not r1 and "checks" not in (r1.details or {}):
+        step.notes.append(f"the fit with the hardware terms {', '.join(chosen)} failed "
+                          f"({r1.reason[:80]}): the model without them is kept")
+        return None
+    return _Step(r1, prob.walls, prob.system, prob.priors, r1 if r1 else step.good,
+                 step.notes)
+
+
+def _select(step: _Step, blocks: dict, fit_kwargs: dict, progress=None) -> tuple:
+    """Forward selection from ``step``: the score tests of the blocks not yet fitted
+    (:func:`~mems_stereo.calib.hardware_fit.score_tests`), the most significant of
+    them (the smallest :func:`~mems_stereo.calib.hardware_fit.log_p_value`) fitted, one
+    block a round (a misfit leaks into the other blocks' scores), then test again.  A
+    fit its checks refuse (a wall that is not flat, a measured distance contradicted:
+    the misfit of a block still missing) is tested on; only a fit that passes its
+    checks is kept.  Returns (the last :class:`_Step`, the tests)."""
+    tests, dropped = [], set()
+    jitter = fit_kwargs.get("jitter", 50e-12)
+    for _ in range(MAX_STEPS):
+        point = _point(step, jitter)
+        if point is None:
+            break
+        prob, x, names = point
+        todo = {k: v for k, v in blocks.items() if not set(v) & (set(names) | dropped)}
+        if not todo:
+            break
+        found = hf.score_tests(prob, x, todo)
+        tests = [t for t in tests if t.name not in todo] + found
+        sel = [t for t in found if t.selected]
+        if not sel:
+            break
+        best = min(sel, key=lambda t: hf.log_p_value(t.lm, t.dof))
+        if progress:
+            progress(f"hardware terms: {best.name} (score test p = {best.p_value:.1e})")
+        nxt = _add_block(step, point, list(best.names), fit_kwargs, dropped)
+        if nxt is None:
+            break
+        step = nxt
+    return step, tests
 
 
 def _pulse(result):
@@ -159,26 +235,16 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     ``extra["pixel_offsets"]`` the :class:`~mems_stereo.calib.pixel_offsets.PixelOffsets`;
     the ideal-model result when no term is selected or the extended fit fails.
     """
-    blocks = hf.candidate_blocks(orders)
-    out, tests = result, []
-    for _ in range(MAX_STEPS):  # forward selection: test, fit the significant, test again
-        prob, x = out.extra["problem"], out.extra["x"]
-        todo = {k: v for k, v in blocks.items() if not set(v) & set(out.names)}
-        if not todo:
-            break
-        step = hf.score_tests(prob, x, todo)
-        tests = [t for t in tests if t.name not in todo] + step
-        sel = [t for t in step if t.selected]
-        if not sel:
-            break
-        best = min(sel, key=lambda t: (t.p_value, -t.lm))  # one block a round: a misfit
-        chosen = list(best.names)  # leaks into the other blocks' scores
-        if progress:
-            progress(f"hardware terms: {best.name} (score test p = {best.p_value:.1e})")
-        nxt = _fit_terms(out, chosen, fit_kwargs)
-        if nxt is out:
-            break
-        out = nxt
+    step, tests = _select(_Step(result, [], None, [], result), hf.candidate_blocks(orders),
+                          fit_kwargs, progress)
+    out = step.good
+    if out is not result:
+        out.warnings[:0] = [w for w in result.warnings if w not in out.warnings]
+    out.warnings.extend(w for w in step.notes if w not in out.warnings)
+    if not step.fit:  # the last fit was refused by its checks
+        more = [n for n in step.fit.details["values"] if n not in out.names]
+        out.warnings.append(f"the fit with the hardware terms {', '.join(more)} was refused "
+                            f"({step.fit.reason[:120]}): the model without them is kept")
     out = _pulse_tail(out, progress, fit_kwargs)
     po = pxo.pixel_offsets(out.extra["problem"], out.extra["x"])
     if po.test.selected:
@@ -198,56 +264,25 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     return out
 
 
-def _failed_problem(failure, walls, nominal, priors, fit_kwargs):
-    """The ideal problem at a failed fit's values, on fresh cells: (problem, x) or None."""
-    from mems_stereo.calib.problem import Layout, Problem
-    from mems_stereo.calib.solver import build_cells
-
-    from mems_stereo.errors import NotObservableError
-    from mems_stereo.physics.pulse import pulse_sigma
-
-    d = failure.details or {}
-    if "values" not in d or "walls" not in d or len(d["walls"]) != len(walls):
-        return None
-    lay = Layout(list(d["values"]), len(walls), nominal.receiver.height > 1)
-    sigma = pulse_sigma(nominal.laser.pulse_fwhm, fit_kwargs.get("jitter", 50e-12))
-    prob = Problem(walls, nominal, lay, sigma, priors)
-    x = lay.pack(d["values"], np.asarray(d["walls"], dtype=np.float64))
-    try:
-        return prob, build_cells(prob, x, radius=2)
-    except NotObservableError:
-        return None
-
-
 def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=None,
            **fit_kwargs):
     """A full-model calibration when the ideal model's fit converged but failed its
-    checks: the score tests of :mod:`~mems_stereo.calib.hardware_fit` at the failed
-    fit's values; the significant blocks fitted from there.  Returns the result, or
-    ``failure`` unchanged when the fit did not reach its checks (did not converge), no
-    block is significant, the failed fit has no values
-    for every wall, or the extended fit fails too (a misfit no hardware term explains:
-    a wrong distance, a wall that is not flat)."""
+    checks: forward selection (:func:`_select`) from the failed fit's values (the
+    problem of the walls it fitted, on fresh cells: :func:`~mems_stereo.calib.
+    goodness.failed_problem`), until a fit passes its checks.  Returns that result, or
+    ``failure`` unchanged when the fit did not reach its checks (did not converge),
+    no block is significant, the failed fit's walls cannot be matched, or no fit with
+    the hardware terms passes (a misfit no hardware term explains: a wrong distance, a
+    wall that is not flat)."""
     if "checks" not in (failure.details or {}):  # not converged, or no wall: no misfit
         return failure
-    got = _failed_problem(failure, walls, nominal, priors, fit_kwargs)
-    if got is None:
+    step, _ = _select(_Step(failure, list(walls), nominal, list(priors)),
+                      hf.candidate_blocks(orders), fit_kwargs, progress)
+    r = step.good
+    if r is None:
         return failure
-    prob, x = got
-    tests = hf.score_tests(prob, x, hf.candidate_blocks(orders))
-    keep = [n for t in tests if t.selected for n in t.names]
-    if not keep:
-        return failure
-    if progress:
-        progress("the ideal model failed its checks: fitting "
-                 + ", ".join(t.name for t in tests if t.selected))
-    d = failure.details
-    start = StartValues({**d["values"], **{n: nominal.get_param(n) for n in keep}},
-                        np.asarray(d["walls"], dtype=np.float64))
-    r = fit_walls(walls, nominal, free=list(d["values"]) + keep, priors=priors,
-                  initial=start, on_unobservable="warn", **fit_kwargs)
-    if not r:
-        return failure
-    r.warnings.insert(0, "the ideal model failed its checks (" + failure.reason[:120]
-                      + "...): the hardware terms " + ", ".join(keep) + " were fitted")
+    keep = [n for n in r.names if hf.is_hardware(n)]
+    r.warnings[:0] = ["the ideal model failed its checks (" + failure.reason[:120]
+                      + "...): the hardware terms " + ", ".join(keep) + " were fitted"]
+    r.warnings.extend(w for w in step.notes if w not in r.warnings)
     return r

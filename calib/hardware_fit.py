@@ -82,7 +82,10 @@ def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT,
     _, g, H = p2.score(x2)
     sc = p2.layout.scales
     gs, Hs = g * sc, H * sc[:, None] * sc[None, :]
-    base = list(range(prob.layout.n_sys)) + list(range(p2.layout.n_sys, p2.layout.size))
+    # the fitted parameters where p2's layout put them (it orders the names: a harmonic
+    # of a lower order goes before the fitted ones), and the walls'
+    base = ([p2.layout.names.index(n) for n in prob.layout.names]
+            + list(range(p2.layout.n_sys, p2.layout.size)))
     out = []
     for name, names in blocks.items():
         bi = [p2.layout.names.index(n) for n in names]
@@ -98,6 +101,18 @@ def score_tests(prob: Problem, x, blocks: dict, alpha: float = ALPHA_SELECT,
             p = 0.5 * p if float((Hi @ gb)[-1]) > 0 else 1.0
         out.append(TermTest(name, tuple(names), lm, len(names), p, p < alpha))
     return out
+
+
+def log_p_value(lm: float, dof: int) -> float:
+    """ln of the χ² survival function of ``lm`` with ``dof`` degrees of freedom, finite
+    where the p-value underflows to 0 (the leading term of the upper incomplete gamma
+    function's expansion, Abramowitz & Stegun 6.5.32): forward selection ranks strong
+    blocks by it (their p-values are all 0.0)."""
+    v = float(stats.chi2.logsf(lm, dof))
+    if math.isfinite(v):
+        return v
+    a, h = 0.5 * dof, 0.5 * lm
+    return (a - 1.0) * math.log(h) - h - math.lgamma(a)
 
 
 #: s, decays at which the pulse tail's share is tested (the decay is not defined at w = 0)

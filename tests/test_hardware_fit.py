@@ -124,6 +124,37 @@ def test_score_tests_and_pixel_offsets():
     assert np.sqrt(np.mean((err / po2.std[c]) ** 2)) == pytest.approx(1.0, abs=0.5)
 
 
+def test_score_test_of_a_block_does_not_depend_on_the_other_blocks_tested():
+    """Each block's score test conditions on the fitted parameters wherever the
+    extended layout puts them: with a 3rd harmonic fitted, testing the 2nd harmonic
+    (which the layout orders before it) beside the 5th leaves the 5th's statistic as
+    it is alone, and a drawn-from-the-model wall gives each block a χ² of its size."""
+    from mems_stereo.calib.hardware_fit import extended_problem
+    from mems_stereo.calib.solver import FitState, newton
+
+    prob, x = _synthetic_problem(np.random.default_rng(2))
+    prob3, x3 = extended_problem(prob, x, harmonic_orders((3,)))
+    x3 = newton(prob3, x3, FitState()).x  # the fit with the 3rd harmonic free
+    blocks = candidate_blocks((2, 5))
+    alone = score_tests(prob3, x3, {"harmonic 5": blocks["harmonic 5"]})[0]
+    both = {t.name: t for t in score_tests(prob3, x3, blocks)}
+    assert both["harmonic 5"].lm == pytest.approx(alone.lm, rel=1e-9, abs=1e-12)
+    assert all(t.lm < 30.0 for t in both.values()), both
+
+
+def test_log_p_value_is_finite_where_the_p_value_underflows():
+    """ln of the χ² survival function: scipy's where finite; for 2 dof it is −LM/2
+    exactly (the χ²₂ survival function is exp(−x/2)), also past underflow; the
+    ranking of strong blocks follows the statistic and the dof."""
+    from mems_stereo.calib.hardware_fit import log_p_value
+    from scipy import stats
+
+    assert log_p_value(20.0, 1) == pytest.approx(float(stats.chi2.logsf(20.0, 1)), rel=1e-12)
+    for lm in (30.0, 1438.0, 5000.0):
+        assert log_p_value(lm, 2) == pytest.approx(-lm / 2, rel=1e-9)
+    assert log_p_value(3000.0, 1) < log_p_value(3000.0, 2) < log_p_value(2900.0, 2) < 0
+
+
 def test_hardware_page_renders(tmp_path):
     from types import SimpleNamespace
 
