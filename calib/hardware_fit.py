@@ -11,10 +11,8 @@ After the ideal-model fit (:func:`mems_stereo.calib.fit.fit_walls`):
 2. the selected terms are **fitted** with the others, from the ideal fit's solution
    (:func:`refit`), with σ, correlations and the observability verdict of
    :mod:`mems_stereo.calib.observability`;
-3. **per-pixel TDC offsets**: the score of each pixel's delay summed over its cells, one
-   Newton step from 0 (the offsets are far below the pulse σ), their mean left to
-   ``tdc_offset``; estimated when their joint score test fails (χ² with G − 1 dof);
-   a pixel no wall's return covers is left at 0 with no σ.
+3. **per-pixel TDC offsets**: :mod:`mems_stereo.calib.pixel_offsets` (each cell's
+   expected information, shrunk to the offsets' population).
 
 Names follow :meth:`mems_stereo.model.hardware.System.with_params`; the falling
 edge's delay is held at its nominal value (the mean of the two is the phase offset).
@@ -27,7 +25,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from mems_stereo.calib.model import HARDWARE_PARAMS, PULSE_PARAMS, harmonic_orders
-from mems_stereo.calib.problem import Layout, Problem, cell_terms
+from mems_stereo.calib.problem import Layout, Problem
 from scipy import stats
 
 #: significance of a score test that admits a term into the fit
@@ -134,64 +132,6 @@ def tail_score_test(prob: Problem, x, alpha: float = ALPHA_SELECT) -> tuple:
         return TermTest("pulse tail", ("pulse_tail_fraction",), 0.0, 1, 1.0, False), decay
     p = min(1.0, best.p_value * len(TAIL_DECAYS))
     return TermTest("pulse tail", PULSE_PARAMS, best.lm, 1, p, p < alpha), decay
-
-
-@dataclass(frozen=True)
-class PixelOffsets:
-    """Per-pixel TDC offsets from the cells' scores: ``value``, ``std`` (H·W,) s
-    (std NaN where no cell informs the pixel), the joint ``test``
-    (:class:`TermTest`) and ``covered`` (H·W,) bool."""
-
-    value: np.ndarray
-    std: np.ndarray
-    test: TermTest
-    covered: np.ndarray
-
-
-def pixel_offsets(prob: Problem, x, alpha: float = ALPHA_SELECT,
-                  min_info_ratio: float = 1e-3) -> PixelOffsets:
-    """One Newton step of each pixel's TDC delay from 0 at the fitted ``x``, their
-    information-weighted mean removed (``tdc_offset`` holds it), and their joint
-    score test (see the module)."""
-    lay = prob.layout
-    values, walls = lay.unpack(x)
-    W, H = prob.system.receiver.width, prob.system.receiver.height
-    g = np.zeros(W * H)
-    info = np.zeros(W * H)
-    for j in range(lay.T):
-        c = prob.cells[j]
-        pred, ok, _ = prob.predictions(x, j, c.shots)
-        pos = np.searchsorted(c.shots, c.shot)
-        pc = np.where(ok[pos, None], pred[pos], [0.0, -1e6, -1e6, 0.0])
-        pix = (c.row * W + c.col).astype(np.int64)
-        if prob.pixel_offsets is not None:
-            pc[:, 0] += prob.pixel_offsets[pix]
-        _, d = cell_terms(c, pc, walls[j, 3], walls[j, 4], prob.sigma, lay.two_d,
-                          prob.pitch_ratio, prob.pulse(values))
-        d0 = np.where(ok[pos], d[:, 0], 0.0)
-        g += np.bincount(pix, d0, W * H)
-        info += np.bincount(pix, d0 * d0, W * H)
-    covered = info > min_info_ratio * max(float(info.max()), 1e-300)
-    val = np.where(covered, g / np.where(covered, info, 1.0), 0.0)
-    wsum = float(info[covered].sum())
-    mean = float((g[covered]).sum() / wsum) if wsum > 0 else 0.0
-    lm = float(np.sum(g[covered] ** 2 / info[covered]) - wsum * mean * mean)
-    dof = max(int(covered.sum()) - 1, 1)
-    p = float(stats.chi2.sf(lm, dof))
-    value = np.where(covered, val - mean, 0.0)
-    std = np.where(covered, 1.0 / np.sqrt(np.where(covered, info, 1.0)), np.nan)
-    return PixelOffsets(value, std, TermTest("pixel offsets", (), lm, dof, p, p < alpha),
-                        covered)
-
-
-def with_pixel_offsets(system, offsets: PixelOffsets):
-    """``system`` with the per-pixel offsets (added to any it has) and their σ."""
-    tdc = system.tdc
-    base = (np.zeros(offsets.value.size) if tdc.pixel_offsets is None
-            else np.asarray(tdc.pixel_offsets, dtype=np.float64))
-    std = np.where(offsets.covered, offsets.std, 0.0)
-    return system.replace(tdc=replace(tdc, pixel_offsets=base + offsets.value,
-                                      pixel_offsets_std=std))
 
 
 def hardware_std(system, values: dict, std: dict, cov: np.ndarray, names: list):
