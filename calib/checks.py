@@ -24,6 +24,7 @@ from mems_stereo.calib.problem import (
     cell_terms,
     distance_model,
     shot_model,
+    spot_px,
     spot_share,
 )
 from mems_stereo.calib.solver import FitSetup, Solution, leave_one_out
@@ -134,7 +135,7 @@ def _signal_fit(c, pred: np.ndarray, ok: np.ndarray, wall: np.ndarray,
     exp_bg = float(np.sum(-np.expm1(-c.lam * c.t_max)))
     mu_k = np.exp(wall[3] + pred[:, 3] - c.log_gref)
 
-    s_px = min(max(math.exp(wall[4]), 0.12), 6.0)
+    s_px = spot_px(wall[4])
     share = spot_share(c.col, pred[:, 1], s_px)[0]
     m = np.where(ok, mu_k * share, 0.0)
     zz = (c.t_max - pred[:, 0]) / sigma

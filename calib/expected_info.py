@@ -26,7 +26,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, pulse_at, spot_share
+from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, pulse_at, spot_px, spot_share
 from scipy.special import ndtr
 
 _SQ2PI = math.sqrt(2.0 * math.pi)
@@ -136,7 +136,7 @@ def wall_rows(cells, pred: np.ndarray, ok: np.ndarray, Jc: np.ndarray, logmu: fl
     parameters); logmu, logspot : the wall's log μ and log s (s: spot σ, px).
     """
     u, v, lg = pred[:, 1], pred[:, 2], pred[:, 3]
-    s = min(max(math.exp(logspot), SPOT_MIN), SPOT_MAX)
+    s = spot_px(logspot)
     mu = np.exp(logmu + lg - cells.log_gref)
     f, fu, fs = spot_share(cells.col, u, s)
     if two_d:

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib.expected_info import cell_fisher
-from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, Layout, Problem, cell_terms, spot_share
+from mems_stereo.calib.problem import Layout, Problem, cell_terms, spot_px, spot_share
 from mems_stereo.calib.result import CalibrationFailure
 from mems_stereo.calib.solver import FitState, build_cells, newton
 
@@ -114,7 +114,7 @@ def _score_information(c, pc, good, wall, prob: Problem, pulse) -> np.ndarray:
     a return far above the background seen whole) and column score ∂ℓ/∂u under the
     model (:func:`~mems_stereo.calib.expected_info.cell_fisher`): F_ττ σ² and
     F_mm (μ ∂share/∂u)²."""
-    s = min(max(math.exp(wall[4]), SPOT_MIN), SPOT_MAX)
+    s = spot_px(wall[4])
     mu = np.exp(wall[3] + pc[:, 3] - c.log_gref)
     share, dsu, _ = spot_share(c.col, pc[:, 1], s)
     if prob.layout.two_d:

@@ -34,13 +34,12 @@ The pixel offsets are observable only when their spread is not small against
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 from mems_stereo.calib.expected_info import cell_fisher
 from mems_stereo.calib.hardware_fit import ALPHA_SELECT, TermTest
-from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, cell_terms, spot_share
+from mems_stereo.calib.problem import cell_terms, spot_px, spot_share
 from scipy import optimize, stats
 
 
@@ -72,7 +71,7 @@ def cell_signal(cells, pred: np.ndarray, logmu: float, logspot: float, two_d: bo
     :func:`~mems_stereo.calib.problem.cell_terms`: the spot's photons at the
     cell's shot times the share of the Gaussian spot on its pixel.
     ``pred`` : (N, 4) per-cell [τ, u, v, log g]."""
-    s = min(max(math.exp(min(logspot, 700.0)), SPOT_MIN), SPOT_MAX)
+    s = spot_px(logspot)
     share = spot_share(cells.col, pred[:, 1], s)[0]
     if two_d:
         share = share * spot_share(cells.row, pred[:, 2], s * pitch_ratio)[0]

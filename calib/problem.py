@@ -53,6 +53,12 @@ from mems_stereo.physics.pulse import emg_pdf
 WALL_SCALE = {"alpha": 1e-3, "beta": 1e-3, "dist": 1e-3, "logmu": 0.01, "logspot": 0.01}
 #: spot σ is kept within these bounds, pixels
 SPOT_MIN, SPOT_MAX = 0.12, 6.0
+
+
+def spot_px(logspot: float) -> float:
+    """The wall's spot σ (px) from its log, clipped to [SPOT_MIN, SPOT_MAX]; any
+    ``logspot`` a trial step or a failed fit holds gives a size, never an overflow."""
+    return min(max(math.exp(min(logspot, 700.0)), SPOT_MIN), SPOT_MAX)
 _SQ2PI = math.sqrt(2.0 * math.pi)
 
 
@@ -201,8 +207,7 @@ def cell_terms(cells: Cells, pred: np.ndarray, logmu: float, logspot: float, sig
     ``pulse`` (N, 7), columns 5, 6 ∂ℓ/∂w and ∂ℓ/∂τ_d.
     """
     tau, u, v, lg = pred[:, 0], pred[:, 1], pred[:, 2], pred[:, 3]
-    # a Newton trial step may ask for any spot size: clipped, never an overflow
-    s = min(max(math.exp(min(logspot, 700.0)), SPOT_MIN), SPOT_MAX)
+    s = spot_px(logspot)
     mu = np.exp(logmu + lg - cells.log_gref)
     f, fu, fs = spot_share(cells.col, u, s)
     if two_d:

@@ -101,3 +101,22 @@ def test_a_huge_spot_trial_is_the_largest_spot_not_an_overflow():
     ll_big, _ = cell_terms(c, pred, 0.1, 1000.0, SIG, False)
     ll_max, _ = cell_terms(c, pred, 0.1, float(np.log(SPOT_MAX)) + 1.0, SIG, False)
     np.testing.assert_array_equal(ll_big, ll_max)
+
+
+def test_every_spot_size_from_a_wall_is_clipped_not_an_overflow():
+    """A failed fit's wall may hold any log s: the expected-information rows (used by
+    the goodness test and the checks) take it as the largest spot, not an
+    OverflowError."""
+    import math
+
+    from mems_stereo.calib.expected_info import wall_rows
+    from mems_stereo.calib.problem import SPOT_MAX, SPOT_MIN, spot_px
+    assert spot_px(1e4) == SPOT_MAX and spot_px(-1e4) == SPOT_MIN
+    assert spot_px(math.log(1.5)) == pytest.approx(1.5, rel=1e-15)
+    c, pred = _random_cells()
+    ok = np.ones(pred.shape[0], bool)
+    Jc = np.random.default_rng(2).normal(size=(pred.shape[0], 4, 3))
+    big = wall_rows(c, pred, ok, Jc, 0.1, 1000.0, False)
+    top = wall_rows(c, pred, ok, Jc, 0.1, math.log(SPOT_MAX) + 1.0, False)
+    np.testing.assert_array_equal(big.m, top.m)
+    np.testing.assert_array_equal(big.a, top.a)
