@@ -213,7 +213,7 @@ def summarise_refusals(results, log) -> dict:
     n0 = len(results) - sum(not r["cal"]["ideal hw ideal"]["ok"] and not r["cal"][
         "ideal hw ideal"]["goodness"] for r in results)
     v["goodness test refuses ≤ 2 % on ideal hardware"] = (
-        f"{gof0}/{len(results)} trials = {gof0 / len(results):.1%} ({n0} fits reached the "
+        f"{gof0}/{len(results)} trials = {gof0 / len(results):.2%} ({n0} fits reached the "
         "test)", gof0 <= 0.02 * len(results))
     return v
 
