@@ -93,3 +93,20 @@ def test_bad_shapes_are_rejected():
         pixels_to_rays(np.zeros((4, 3)), K2D)
     with pytest.raises(GeometryError, match=r"\(N, 3\)"):
         project_points(np.zeros((4, 2)), K2D)
+
+
+def test_distortion_free_projection_has_opencvs_bits(rng):
+    # without distortion project_points does OpenCV's arithmetic in NumPy: the same bits
+    # (a divide X/Z in place of X·(1/Z) would differ in a tenth of the points)
+    n = 20000
+    P = np.column_stack([rng.uniform(-3, 3, n), rng.uniform(-1, 1, n) * rng.integers(0, 2, n),
+                         rng.uniform(0.05, 10, n)])
+    P[:5] = [[0.0, -0.0, 1.0], [-0.0, 0.0, 2.0], [1e300, 0.0, 1e-300], [np.nan, 0.0, 1.0],
+             [0.0, np.inf, 1.0]]
+    for K in (K2D, np.array([[197.2, 0.0, 95.5], [0.0, 38.2, 0.0], [0.0, 0.0, 1.0]])):
+        ours = project_points(P, K, np.zeros(5))
+        cv, _ = cv2.projectPoints(P.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, np.zeros(5))
+        cv = cv.reshape(-1, 2)
+        assert np.array_equal(ours.view(np.int64)[~np.isnan(cv)],
+                              cv.view(np.int64)[~np.isnan(cv)])
+        assert np.array_equal(np.isnan(ours), np.isnan(cv))

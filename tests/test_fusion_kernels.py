@@ -79,3 +79,106 @@ def test_valid_boxes_kernel_equals_numpy(monkeypatch, cut):
         assert np.all((i >= h // 2) & (i < n - h // 2))
         assert np.all(fast[0].ravel()[flat] >= 3)
         assert np.all(fast[0].ravel()[flat] > fast[1].ravel()[flat])
+
+
+def test_segment_dot_is_one_product_per_segment():
+    from mems_stereo.physics.spot import segment_dot
+
+    rng = np.random.default_rng(3)
+    d, p = rng.normal(size=(300, 3)), rng.normal(size=3)
+    cuts = np.array([0, 0, 17, 18, 150, 300])
+    got = segment_dot(d, p, cuts)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        assert np.array_equal(_bits(got[a:b]), _bits(d[a:b] @ p))
+    assert np.array_equal(_bits(segment_dot(d, p)), _bits(d @ p))
+    assert np.allclose(got, np.einsum("ni,i->n", d, p), rtol=1e-13, atol=1e-15)
+
+
+def test_band_log_miss_rows_adds_each_rows_entries_in_order():
+    rng = np.random.default_rng(4)
+    f, n = _band(rng, 6, 40, 0.5)
+    qi, bi = np.nonzero(n)
+    # the rows' entries interleaved with another block's: each row still adds its own
+    got = fp.band_log_miss_rows(9, qi + 3, n[qi, bi], f[qi, bi])
+    assert np.array_equal(_bits(got[3:]), _bits(fp.band_log_miss(n, f)))
+    assert not np.any(got[:3])
+
+
+def test_block_band_steps_equal_band_steps_of_each_block():
+    from types import SimpleNamespace
+
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.pipeline.first_photon_correction import band_steps, block_band_steps
+    from mems_stereo.pipeline.fusion import _acceptance
+    from mems_stereo.pipeline.run import run_table
+
+    # a scanner off the axis: the scan directions' products d·p round by their place
+    system = burkard2022().with_params(baseline_x=-0.1237, baseline_y=0.0113,
+                                       baseline_z=0.0071)
+    table = run_table(system, None)
+    rng = np.random.default_rng(5)
+    Q, S = 40, table.n_steps
+    lo = rng.integers(50, S - 200, Q)
+    hi = lo + rng.integers(-1, 40, Q)  # some peaks without a band (hi < lo)
+    peaks = SimpleNamespace(row=np.zeros(Q, np.int64), col=rng.integers(0, 192, Q),
+                            step_lo=lo - 5, step_hi=hi + 5)
+    acc = SimpleNamespace(
+        Q=Q, system=system, rows=peaks.row, cols=peaks.col, spot_sigma=None,
+        band=(lo, hi), centre=np.where(rng.random(Q) < 0.1, np.nan, rng.uniform(0.5, 6, Q)),
+        shots_per_step=rng.integers(0, 4, S), step_grid=(table.theta_min, table.step),
+        step_window=(peaks.step_lo, peaks.step_hi), accept=_acceptance(system, table, peaks))
+    idx = np.flatnonzero(rng.random(Q) < 0.8)
+    cut = np.searchsorted(idx, np.arange(0, Q + 16, 16))
+    got = block_band_steps(acc, idx, cut)
+    assert [(a, b) for a, b, _ in got.blocks] == [(int(a), int(b)) for a, b in
+                                                   zip(cut[:-1], cut[1:]) if b > a]
+    for a, b, band in got.blocks:
+        want = band_steps(acc, idx[a:b], full=True)
+        for x, y in zip((band.steps, band.shots, band.spot, band.spot_full),
+                        (want.steps, want.shots, want.spot, want.spot_full)):
+            assert x.shape == y.shape and np.array_equal(_bits(x), _bits(y))
+        assert np.array_equal(_bits(got.log_miss[a:b]),
+                              _bits(fp.band_log_miss(want.shots, want.spot)))
+    assert np.any(got.log_miss < 0)  # (not all bands empty: the comparison means something)
+
+
+def test_row_local_evaluations_keep_each_rows_bits():
+    # the variants of a central difference, and several stereo evaluations, laid end to
+    # end in one call: every row is its own, so the bits of one call per variant
+    from mems_stereo.geometry.uncertainty import (
+        DIFF_STEPS,
+        INPUTS,
+        as_inputs,
+        central_differences,
+        spreads_for,
+        stereo_point_est,
+    )
+    from mems_stereo.model.system import burkard2022
+    from mems_stereo.pipeline.peak_geometry import stereo_points
+
+    system = burkard2022().with_params(baseline_x=-0.1237, baseline_y=0.0113,
+                                       baseline_z=0.0071)
+    rng = np.random.default_rng(6)
+    n = 257
+    u, v = rng.uniform(0, 191, n), np.zeros(n)
+    th = system.scanner.theta0 + rng.uniform(-0.3, 0.3, n)
+    th[:3] = np.nan
+    inp = as_inputs(u, v, np.zeros(n), th)
+    x0, J0 = central_differences(stereo_point_est, system, inp, DIFF_STEPS, INPUTS)
+    x1, J1 = central_differences(stereo_point_est, system, inp, DIFF_STEPS, INPUTS,
+                                 row_local=True)
+    assert np.array_equal(_bits(x0), _bits(x1)) and np.array_equal(_bits(J0), _bits(J1))
+    assert np.isnan(x1[:3]).all() and np.isfinite(x1).all(axis=1).sum() > n // 2
+    parts = [(u, v, th), (u[:10] + 0.5, v[:10], th[:10]), (u[:0], v[:0], th[:0])]
+    for got, (a, b, c) in zip(stereo_points(system, parts), parts):
+        assert np.array_equal(_bits(got), _bits(stereo_point_est(system, a, b, np.zeros(a.size),
+                                                                 c)))
+    # independent: the stereo point lies on its scanner ray p + s·d(θ)
+    from mems_stereo.model.scanner import scan_direction
+
+    x = stereo_points(system, parts)[0]
+    ok = np.isfinite(x).all(axis=1)
+    off = np.cross(x[ok] - np.asarray(system.scanner.position), scan_direction(th[ok],
+                                                                               system.scanner))
+    assert np.all(np.linalg.norm(off, axis=1) < 1e-9 * np.linalg.norm(x[ok], axis=1))
+    assert not spreads_for(system).param_names  # (the propagation without parameters)

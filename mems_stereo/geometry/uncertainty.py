@@ -197,28 +197,41 @@ def as_inputs(u, v, L, theta) -> dict:
     return dict(zip(INPUTS, arrs))
 
 
-def jacobian(fn: Estimator, system: System, u, v, L, theta, wrt=INPUTS):
+def jacobian(fn: Estimator, system: System, u, v, L, theta, wrt=INPUTS,
+             row_local: bool = False):
     """Value and central-difference Jacobian of an estimator.
 
     Returns ``(x (N, 3), J (N, 3, len(wrt)))``; derivatives per px, per m,
-    per rad.  Rows where the estimator gives NaN stay NaN.
+    per rad.  Rows where the estimator gives NaN stay NaN.  ``row_local``: see
+    :func:`central_differences`.
     """
-    return central_differences(fn, system, as_inputs(u, v, L, theta), DIFF_STEPS, wrt)
+    return central_differences(fn, system, as_inputs(u, v, L, theta), DIFF_STEPS, wrt,
+                               row_local)
 
 
-def central_differences(fn: Estimator, system: System, inputs: dict, steps: dict, wrt):
+def central_differences(fn: Estimator, system: System, inputs: dict, steps: dict, wrt,
+                        row_local: bool = False):
     """``fn(system, **inputs)`` (N, 3) and its central-difference Jacobian (N, 3, len(wrt))
     with respect to the inputs named in ``wrt``, each with its step ``steps[name]``
-    (one- and two-axis estimators alike)."""
-    x0 = fn(system, **inputs)
-    cols = []
+    (one- and two-axis estimators alike).  ``row_local``: ``fn`` computes each row from
+    that row's inputs alone (no reduction or matrix product across rows), so the
+    1 + 2·len(wrt) variants are evaluated in one call on the inputs laid end to end,
+    the same bits with one call's overhead."""
+    variants = [inputs]
     for name in wrt:
         h = steps[name]
         plus, minus = dict(inputs), dict(inputs)
         plus[name] = inputs[name] + h
         minus[name] = inputs[name] - h
-        cols.append((fn(system, **plus) - fn(system, **minus)) / (2.0 * h))
-    return x0, np.stack(cols, axis=-1)
+        variants += [plus, minus]
+    if row_local:
+        n = next(iter(inputs.values())).size
+        x = fn(system, **{k: np.concatenate([v[k] for v in variants]) for k in inputs})
+        xs = [x[i * n:(i + 1) * n] for i in range(len(variants))]
+    else:
+        xs = [fn(system, **v) for v in variants]
+    cols = [(xs[1 + 2 * i] - xs[2 + 2 * i]) / (2.0 * steps[name]) for i, name in enumerate(wrt)]
+    return xs[0], np.stack(cols, axis=-1)
 
 
 def param_jacobian(fn: Estimator, system: System, u, v, L, theta, names, steps=None):
@@ -234,7 +247,8 @@ def param_jacobian(fn: Estimator, system: System, u, v, L, theta, names, steps=N
     return np.stack(cols, axis=-1)
 
 
-def propagate(fn: Estimator, system: System, u, v, L, theta, spreads: Spreads):
+def propagate(fn: Estimator, system: System, u, v, L, theta, spreads: Spreads,
+              row_local: bool = False):
     """Point and Cartesian covariance of an estimator, first order.
 
     Parameters
@@ -243,13 +257,14 @@ def propagate(fn: Estimator, system: System, u, v, L, theta, spreads: Spreads):
     u, v : (N,) px; L : (N,) m; theta : (N,) rad (scalars broadcast).
     spreads : :class:`Spreads` (inputs independent; the calibration
         covariance, when given, is added through the parameter Jacobian).
+    row_local : ``fn`` computes each row on its own (:func:`central_differences`).
 
     Returns
     -------
     x : (N, 3) float64, m, receiver camera frame (NaN where degenerate).
     cov : (N, 3, 3) float64, m².
     """
-    x, J = jacobian(fn, system, u, v, L, theta)
+    x, J = jacobian(fn, system, u, v, L, theta, row_local=row_local)
     s = spreads.input_sigmas(system)
     var = np.array([s[n] ** 2 for n in INPUTS])
     cov = np.einsum("nik,k,njk->nij", J, var, J)

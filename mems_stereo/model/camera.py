@@ -98,9 +98,27 @@ def project_points(points, camera_matrix, dist_coeffs=None) -> np.ndarray:
         raise ShapeError(f"points: expected shape (N, 3), found {P.shape}")
     out = np.full((P.shape[0], 2), np.nan)
     front = P[:, 2] > 0
+    if not np.any(dist):  # the pinhole: OpenCV's operations, in its order
+        return _pinhole(P, K, front, out)
     if np.any(front):
         img, _ = cv2.projectPoints(P[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, dist)
         out[front] = img.reshape(-1, 2)
+    return out
+
+
+def _pinhole(P, K, front, out) -> np.ndarray:
+    """:func:`project_points` without distortion: ``cv2.projectPoints``'s arithmetic
+    with zero coefficients, the same bits (tested): x = X·(1/Z), y = Y·(1/Z) (the
+    distortion factors are exactly 1 and the added terms 0 for finite x, y; NaN for
+    both where either is not finite), column = x·fx + cx, row = y·fy + cy.  ``out``
+    (N, 2) NaN, written at the rows ``front`` (Z > 0)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        z = 1.0 / P[front, 2]
+        x = P[front, 0] * z
+        y = P[front, 1] * z
+        ok = np.isfinite(x) & np.isfinite(y)
+        out[front, 0] = np.where(ok, x * K[0, 0] + K[0, 2], np.nan)
+        out[front, 1] = np.where(ok, y * K[1, 1] + K[1, 2], np.nan)
     return out
 
 

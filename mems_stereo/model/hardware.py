@@ -367,7 +367,9 @@ def validate_camera_matrix(K: Any, fld: str = "camera_matrix", source: str = "")
     K = ctx.array(K, fld, (3, 3))
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         raise ctx.fail(fld, f"expected positive focal lengths fx, fy, found {K[0, 0]}, {K[1, 1]}")
-    if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
+    k0, k1, k2 = (float(x) for x in K[2])  # np.allclose(K[2], [0, 0, 1]), scalar by scalar
+    if not (abs(k0) <= 1e-8 and abs(k1) <= 1e-8 and abs(k2 - 1.0) <= 1e-8 + 1e-5) \
+            or K[1, 0] != 0.0:
         raise ctx.fail(fld, f"expected [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], found {K.tolist()}")
     if K[0, 1] != 0.0:
         raise ctx.fail(fld, f"expected zero skew K[0][1] (OpenCV's camera model has none), "

@@ -236,10 +236,19 @@ def band_log_miss(n_band, f_band):
     adds a zero, so only the steps with shots are evaluated and added in that order."""
     n_band = np.asarray(n_band, np.float64)
     qi, bi = np.nonzero(n_band)
-    out = np.zeros((n_band.shape[0], MU_GRID.size))
-    if qi.size:
-        f = np.asarray(f_band, np.float64)[qi, bi]
-        np.add.at(out, qi, n_band[qi, bi][:, None] * log_miss_probability(f))
+    return band_log_miss_rows(n_band.shape[0], qi, n_band[qi, bi],
+                              np.asarray(f_band, np.float64)[qi, bi])
+
+
+def band_log_miss_rows(Q: int, row, n, f):
+    """(Q, J) :func:`band_log_miss` from its nonzero entries: ``row`` (N,) int the
+    entry's row (each row's entries in band order), ``n`` (N,) float64 its valid shots
+    (not 0) and ``f`` (N,) its spot share; the same sums (each row's entries added in
+    order, whatever the other rows)."""
+    out = np.zeros((Q, MU_GRID.size))
+    if np.size(row):
+        np.add.at(out, row, np.asarray(n, np.float64)[:, None]
+                  * log_miss_probability(np.asarray(f, np.float64)))
     return out
 
 

@@ -17,7 +17,7 @@ DEFAULT_SPOT_SIGMA = 10e-6
 
 
 def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | None = None,
-                  model: SpotModel | None = None, link: LinkBudget | None = None):
+                  model: SpotModel | None = None, link: LinkBudget | None = None, cuts=None):
     """Share of the imaged laser spot on a pixel when the beam lights a target at range ``rng``.
 
     The target point is on the scanner ray at angle ``theta`` (rad) at distance
@@ -28,7 +28,9 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | No
     the focus distance); the share on pixel (row, col) is the product of the
     per-axis Gaussian integrals over the pixel (as :func:`spot_fractions`).
     Arguments broadcast; returns float64 of the broadcast shape (0 where the
-    ray misses that range).
+    ray misses that range).  ``cuts`` (K + 1,) int or None: boundaries of segments of
+    the flattened entries whose products ``d·p`` are computed apart
+    (:func:`segment_dot`), the same bits as one call per segment.
     """
     from mems_stereo.model.camera import project_points
 
@@ -36,7 +38,7 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | No
                                               for a in (rows, cols, theta, rng)))
     p = np.asarray(system.scanner.position, dtype=np.float64)
     d = scan_direction(th.ravel(), system.scanner)
-    pd = d @ p
+    pd = segment_dot(d, p, cuts)
     with np.errstate(invalid="ignore"):
         s = -pd + np.sqrt(pd * pd - p @ p + r.ravel() ** 2)
     x = p + s[:, None] * d
@@ -55,6 +57,20 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | No
     fc = ndtr((cols + 0.5 - u) / sc) - ndtr((cols - 0.5 - u) / sc)
     fr = ndtr((rows + 0.5 - v) / sr) - ndtr((rows - 0.5 - v) / sr)
     return np.nan_to_num(fc * fr, nan=0.0)
+
+
+def segment_dot(d, p, cuts=None) -> np.ndarray:
+    """(N,) ``d @ p`` of rows d (N, 3) and a vector p (3,); with ``cuts`` (K + 1,) int
+    (0 … N, increasing) one product per segment ``d[cuts[i]:cuts[i + 1]]``: BLAS's
+    matrix-vector product may round a row differently by its place in the call, so a
+    batch of entries that separate calls used to evaluate keeps their bits this way."""
+    if cuts is None:
+        return d @ p
+    out = np.empty(d.shape[0])
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        if b > a:
+            out[a:b] = d[a:b] @ p
+    return out
 
 
 # --------------------------------------------------------------------------

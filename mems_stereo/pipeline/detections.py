@@ -29,6 +29,7 @@ from mems_stereo.geometry.uncertainty import (
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import detection_path_length
+from mems_stereo.pipeline.classify_kernel import compiles
 from mems_stereo.pipeline.detection_kernel import compiled_entries, entries
 from mems_stereo.util.lazy_numba import compiled_if_loaded
 
@@ -172,7 +173,7 @@ def detection_points(system: System, shot_idx, rows, cols, codes, theta,
     # per run of equal (u, v, θ): scan directions and the stereo geometry
     R = (_stereo_runs(system, sp, Ur, Vr, Tr, not fused_only) if stereo_cache is None
          else stereo_cache.get(system, sp, Ur, Vr, Tr))
-    kernels = compiled_entries() if U.size >= COMPILED_ROWS else None
+    kernels = compiled_entries() if compiles(U.size, COMPILED_ROWS) else None
     if kernels is not None:  # the per-detection part in compiled passes (same bits)
         bb = float(p @ p)
         scal = [bb, TOF_LINEAR_BELOW * math.sqrt(bb), hL, 2.0 * hu, 2.0 * hv, 2.0 * hL,
@@ -256,17 +257,20 @@ def _stereo_runs(system: System, sp: Spreads, Ur, Vr, Tr, want_cov: bool = True)
     sig = sp.input_sigmas(system)
     var_in = [sig[n] ** 2 for n in INPUTS]
     p = np.asarray(system.scanner.position)
-    dr = {"0": scan_direction(Tr, system.scanner), "t+": scan_direction(Tr + ht, system.scanner),
-          "t-": scan_direction(Tr - ht, system.scanner)}
-    ray0 = pixel_rays(system, Ur, Vr)
-    E = {}  # (point (R, 3), s (R,)) of each variant
-    for key, ray, dk in (("0", ray0, "0"), ("u+", pixel_rays(system, Ur + hu, Vr), "0"),
-                         ("u-", pixel_rays(system, Ur - hu, Vr), "0"),
-                         ("v+", pixel_rays(system, Ur, Vr + hv), "0"),
-                         ("v-", pixel_rays(system, Ur, Vr - hv), "0"), ("t+", ray0, "t+"),
-                         ("t-", ray0, "t-")):
-        esp = epipolar_stereo_point(system.scanner.position, dr[dk], ray)
-        E[key] = (esp.points, esp.s)
+    # every variant's directions, rays and stereo in one call each, the variants laid
+    # end to end (each row is computed from its own inputs: the same bits)
+    R = Ur.size
+    dr = dict(zip(("0", "t+", "t-"), np.split(scan_direction(
+        np.concatenate([Tr, Tr + ht, Tr - ht]), system.scanner), 3)))
+    rays = dict(zip(("0", "u+", "u-", "v+", "v-"), np.split(pixel_rays(
+        system, np.concatenate([Ur, Ur + hu, Ur - hu, Ur, Ur]),
+        np.concatenate([Vr, Vr, Vr, Vr + hv, Vr - hv])), 5)))
+    keys = ("0", "u+", "u-", "v+", "v-", "t+", "t-")
+    esp = epipolar_stereo_point(system.scanner.position,
+                                np.concatenate([dr["0"]] * 5 + [dr["t+"], dr["t-"]]),
+                                np.concatenate([rays[k] for k in keys[:5]] + [rays["0"]] * 2))
+    E = {k: (esp.points[i * R:(i + 1) * R], esp.s[i * R:(i + 1) * R])
+         for i, k in enumerate(keys)}  # (point (R, 3), s (R,)) of each variant
 
     def diff(a, b, h):
         return (a - b) / (2.0 * h)
@@ -348,7 +352,7 @@ def _cov(terms, n: int) -> np.ndarray:
     run's pass 1 loaded it): one compiled pass (:func:`_cov_py`, the same IEEE
     operations in the same order, so the same bits; tested), without the (n, 3, 3)
     temporaries of each column; otherwise, and without numba, in NumPy."""
-    kernel = _compiled_cov() if n >= COMPILED_ROWS else None
+    kernel = _compiled_cov() if compiles(n, COMPILED_ROWS) else None
     if kernel is not None and terms:
         J = np.ascontiguousarray(np.stack([np.asarray(t[0], np.float64) for t in terms]))
         var = np.array([float(t[1]) for t in terms])

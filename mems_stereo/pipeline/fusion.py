@@ -34,6 +34,7 @@ import numpy as np
 from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import detection_codes
+from mems_stereo.physics.spot import segment_dot
 from mems_stereo.pipeline.background_entries import (
     BackgroundEntries,
     BackgroundSubtraction,
@@ -119,20 +120,22 @@ def peak_sums_from_counts(system: System, peaks, counts: PeakCounts, settings: S
 
 
 def _acceptance(system: System, table, peaks):
-    """accept(steps (Q, B), centre (Q,) m, q=None) -> (Q, B) bool (rows: the peaks ``q``,
-    default all): whether the code of a return
+    """accept(steps (Q, B), centre (Q,) m, q=None, cuts=None) -> (Q, B) bool (rows: the
+    peaks ``q``, default all): whether the code of a return
     from the peak's centre range, at each step's grid angle, lies in the pixel's
     accepted interval (else the classifier labels it noise: such shots are
-    neither hits nor misses of the first-photon likelihood)."""
+    neither hits nor misses of the first-photon likelihood).  ``cuts``: segments of
+    the flattened entries evaluated as separate calls would
+    (:func:`~mems_stereo.physics.spot.segment_dot`)."""
     W = system.receiver.width
     pix = (peaks.row * W + peaks.col).astype(np.int64)
 
-    def accept(steps, centre, q=None):
+    def accept(steps, centre, q=None, cuts=None):
         px = pix if q is None else pix[q]
         th = table.theta_min + steps * table.step
         d = scan_direction(th.ravel(), system.scanner)
         p = np.asarray(system.scanner.position, dtype=np.float64)
-        pd = d @ p
+        pd = segment_dot(d, p, cuts)
         r = np.broadcast_to(np.asarray(centre, np.float64)[:, None], steps.shape).ravel()
         with np.errstate(invalid="ignore"):
             s = -pd + np.sqrt(pd * pd - p @ p + r ** 2)

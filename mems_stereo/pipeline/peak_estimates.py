@@ -52,9 +52,11 @@ def peak_means_of(acc) -> PeakMeans:
     mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])[:2]
     fp = (first_photon_correction(acc, mean["fused"][0], mean["tof"]) if correcting(acc)
           else None)
+    with np.errstate(invalid="ignore", divide="ignore"):  # ∂x/∂θ at the mean angle
+        Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
     if fp is not None:  # the stereo at the mean angle less its expected bias
         mean["tof"] = fp.tof
-        removed = _significant_bias(acc, n, mean["stereo"][1], birge, fp.angle_bias)
+        removed = _significant_bias(acc, Jt, mean["stereo"][1], birge, fp.angle_bias)
         st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
                                   mean["stereo"][0], angle_bias=fp.angle_bias, step=grid,
                                   removed=removed)
@@ -67,7 +69,7 @@ def peak_means_of(acc) -> PeakMeans:
         mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
     if st.cov_sys is not None:  # systematic: not scaled
         mean["stereo"] = (mean["stereo"][0], mean["stereo"][1] + st.cov_sys)
-    mean["stereo"] = _with_angle_background(acc, n, W, mean["stereo"])
+    mean["stereo"] = _with_angle_background(acc, n, W, Jt, mean["stereo"])
     # the same for the time of flight: far away (stereo of no weight) a peak under
     # strong background is its ToF, and the background's Poisson fluctuation
     # across the accepted code interval (metres of range) is most of its error
@@ -88,27 +90,26 @@ def peak_means_of(acc) -> PeakMeans:
                      None if fp is None else fp.delay, None if fp is None else fp.mu)
 
 
-def _significant_bias(acc, n, cov_stereo, birge, angle_bias):
+def _significant_bias(acc, Jt, cov_stereo, birge, angle_bias):
     """(Q,) bool: where the mean angle's expected bias is removed, beyond k of the mean
     angle's statistical σ (below it the correction is within the noise, and it rests
     on the system's geometry: a wrong system, e.g. the samples' nominal one, predicts
-    wrong small biases); where not removed it stays in σ."""
-    s = acc.sums
+    wrong small biases); where not removed it stays in σ.  ``Jt`` (Q, 3) m/rad, ∂x/∂θ
+    of the stereo at the mean angle (:func:`stereo_angle_jacobian`)."""
     with np.errstate(invalid="ignore", divide="ignore"):
-        Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
         sig_th = np.sqrt(np.einsum("qi,qij,qj->q", Jt, cov_stereo, Jt)
                          * birge) / np.einsum("qi,qi->q", Jt, Jt)
         return np.abs(angle_bias) > acc.k * np.nan_to_num(sig_th, nan=np.inf)
 
 
-def _with_angle_background(acc, n, W, stereo):
+def _with_angle_background(acc, n, W, Jt, stereo):
     """The stereo mean ``(x, C)`` with the spread the subtracted background's Poisson
-    fluctuation gives its mean angle, Σ b (θ_b − θ̄)² / n², along ∂x/∂θ there."""
+    fluctuation gives its mean angle, Σ b (θ_b − θ̄)² / n², along ∂x/∂θ there (``Jt``
+    (Q, 3) m/rad, :func:`stereo_angle_jacobian` at the mean angle)."""
     s = acc.sums
     with np.errstate(invalid="ignore", divide="ignore"):
         th_bar = s.theta / n
         var_th = np.maximum(s.b2 - 2 * th_bar * s.b1 + th_bar ** 2 * s.b0, 0.0) / W ** 2
-    Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, th_bar)
     add = np.nan_to_num(var_th)[:, None, None] * Jt[:, :, None] * Jt[:, None, :]
     return (stereo[0], stereo[1] + np.nan_to_num(add))
 

@@ -117,20 +117,22 @@ def stereo_at_mean_angle(system, rows, cols, theta_sum, n, point, angle_bias=Non
         return MeanAngleStereo(point, None, None)
     x_old = point
     x_new = x_old.copy()
-    x_new[ok] = stereo_point_est(system, cols[ok].astype(np.float64),
-                                 rows[ok].astype(np.float64), np.zeros(ok.sum()),
-                                 th[ok])
+    u = cols[ok].astype(np.float64)
+    v = rows[ok].astype(np.float64)
+    t = th[ok]
+    # the point, ±½ px and ±½ dθ at once (each row its own: the same bits)
+    x0, xu1, xu0, xt1, xt0 = stereo_points(system, [(u, v, t), (u + 0.5, v, t),
+                                                    (u - 0.5, v, t), (u, v, t + 0.5 * _DTHETA),
+                                                    (u, v, t - 0.5 * _DTHETA)])
+    x_new[ok] = x0
     good = ok & np.all(np.isfinite(x_new), axis=1)
     x_new[~good] = x_old[~good]
     J = np.zeros_like(x_new)
     Jt = np.zeros_like(x_new)  # m per rad of the mean angle
     if np.any(good):
-        u = cols[good].astype(np.float64)
-        v = rows[good].astype(np.float64)
-        z = np.zeros(u.size)
-        J[good] = (stereo_point_est(system, u + 0.5, v, z, th[good])
-                   - stereo_point_est(system, u - 0.5, v, z, th[good]))
-        Jt[good] = stereo_angle_jacobian(system, rows[good], cols[good], th[good])
+        g = good[ok]
+        J[good] = xu1[g] - xu0[g]
+        Jt[good] = np.nan_to_num((xt1[g] - xt0[g]) / _DTHETA)  # (stereo_angle_jacobian)
     J = np.nan_to_num(J)
     # the grid's quantisation and the bias correction's allowance, along ∂x/∂θ
     var_th = ((0.0 if step is None else float(step) ** 2 / 12.0)
@@ -166,7 +168,7 @@ def stereo_cov_at_mean_angle(system, rows, cols, theta_sum, n, count, spreads=No
     sp = spreads_for(system) if spreads is None else spreads
     z = np.zeros(int(ok.sum()))
     _, C = propagate(stereo_point_est, system, cols[ok].astype(np.float64),
-                     rows[ok].astype(np.float64), z, th[ok], sp)
+                     rows[ok].astype(np.float64), z, th[ok], sp, row_local=True)
     out[ok] = C * k[ok, None, None]
     return out
 
@@ -179,8 +181,19 @@ def stereo_angle_jacobian(system, rows, cols, theta) -> np.ndarray:
     if np.any(ok):
         u = cols[ok].astype(np.float64)
         v = rows[ok].astype(np.float64)
-        z = np.zeros(u.size)
         h = 0.5 * _DTHETA
-        out[ok] = (stereo_point_est(system, u, v, z, theta[ok] + h)
-                   - stereo_point_est(system, u, v, z, theta[ok] - h)) / _DTHETA
+        x1, x0 = stereo_points(system, [(u, v, theta[ok] + h), (u, v, theta[ok] - h)])
+        out[ok] = (x1 - x0) / _DTHETA
     return np.nan_to_num(out)
+
+
+def stereo_points(system, parts) -> list[np.ndarray]:
+    """:func:`~mems_stereo.geometry.uncertainty.stereo_point_est` of each ``(u, v, θ)``
+    of ``parts`` ((N_i,) float64 px, px, rad each), (N_i, 3) m each, in one evaluation
+    on the parts laid end to end: every row is computed from its own inputs, so the
+    same bits as one call per part."""
+    sizes = [np.size(p[0]) for p in parts]
+    u, v, th = (np.concatenate([np.asarray(p[i], np.float64).ravel() for p in parts])
+                for i in range(3))
+    x = stereo_point_est(system, u, v, np.zeros(u.size), th)
+    return np.split(x, np.cumsum(sizes)[:-1])

@@ -13,6 +13,7 @@ import numpy as np
 from mems_stereo.physics.first_photon import (
     MU_GRID,
 )
+from mems_stereo.pipeline.classify_kernel import compiles
 from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 
@@ -31,7 +32,7 @@ def add_rows(A, q, V) -> None:
         np.add.at(A, q, V)
         return
     Vf = np.asarray(V, np.float64).reshape(q.size, -1)
-    kernel = _compiled("rows") if q.size >= COMPILED_ROWS else None
+    kernel = _compiled("rows") if compiles(q.size, COMPILED_ROWS) else None
     if kernel is not None:
         kernel(Af, q, np.ascontiguousarray(Vf))
         return
@@ -52,7 +53,7 @@ def add_rows_gathered(A, q, rows, run, m) -> None:
     if not A.flags.c_contiguous:  # pragma: no cover - the sums are contiguous
         np.add.at(A, q, rows[run] * m[:, None])
         return
-    kernel = _compiled("gathered") if q.size >= COMPILED_ROWS else None
+    kernel = _compiled("gathered") if compiles(q.size, COMPILED_ROWS) else None
     if kernel is not None:
         kernel(A, q, np.ascontiguousarray(rows, np.float64), np.asarray(run, np.int64),
                np.asarray(m, np.float64))
@@ -267,7 +268,7 @@ class EstimateSums:
         multiplicities m (N,), ∂x/∂L g (N, 3) (timed estimates)."""
         np.add.at(self.W, q, m)
         q = np.asarray(q, np.int64)
-        kernel = _compiled("scaled") if q.size >= COMPILED_ROWS else None
+        kernel = _compiled("scaled") if compiles(q.size, COMPILED_ROWS) else None
         if kernel is not None and all(a is None or a.flags.c_contiguous
                                       for a in (self.X, self.C, self.D, self.G)):
             # the products below, added entry after entry: the same bits, no temporaries

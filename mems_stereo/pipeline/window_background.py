@@ -13,6 +13,7 @@ import math
 
 import numpy as np
 
+from mems_stereo.pipeline.classify_kernel import compiles
 from mems_stereo.util.lazy_numba import compiled_if_loaded
 
 #: segments of each (peak, step)'s accepted code interval over which its expected
@@ -72,7 +73,7 @@ def window_background(group, code, count, a, b, n_shots, lo, rate_hz, bin_width,
     tot_c = s0[:, None] * csum(s_lo, s_hi)
     closed = np.zeros((G, J))
     closed_c = np.zeros((G, J))
-    kernel = compiled_if_loaded(_closed_py) if inv.size >= COMPILED_ENTRIES else None
+    kernel = compiled_if_loaded(_closed_py) if compiles(inv.size, COMPILED_ENTRIES) else None
     if kernel is not None:  # the loop below in one compiled pass over the entries
         kernel(inv, code, cnt, np.ascontiguousarray(s_lo), np.ascontiguousarray(s_hi),
                closed, closed_c)
