@@ -321,16 +321,17 @@ def point_times(shots: FrameShots, steps: np.ndarray, peaks, band: np.ndarray,
     t = shots.times
     out = np.full(band.size, float(t.mean()) if t.size else np.nan)
     w = table.system.receiver.width
-    known = steps >= 0
+    known = np.flatnonzero(steps >= 0)
     tk, sk = t[known] - t[0], steps[known]
     for a in range(0, band.size, TIME_BLOCK):
         q = band[a:a + TIME_BLOCK]
         row, col = peaks.row[q], peaks.col[q]
-        codes = shots.bins[known][:, row, col]  # (K, n)
+        codes = shots.bins[known[:, None], row, col]  # (K, n)
         pix = row * w + col
+        at = (sk[:, None], pix)  # (K, n) the table's accepted codes
         ok = ((codes >= peaks.code_lo[q]) & (codes <= peaks.code_hi[q])
               & (sk[:, None] >= peaks.step_lo[q]) & (sk[:, None] <= peaks.step_hi[q])
-              & (codes >= table.lo[sk][:, pix]) & (codes <= table.hi[sk][:, pix]))
+              & (codes >= table.lo[at]) & (codes <= table.hi[at]))
         n = ok.sum(axis=0)
         mean = (tk @ ok) / np.maximum(n, 1)
         out[a:a + q.size] = np.where(n > 0, t[0] + mean, out[a:a + q.size])
