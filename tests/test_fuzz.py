@@ -65,7 +65,9 @@ def run_cli(argv):
     return rc, err.getvalue(), out.getvalue()
 
 
-def check_refused(d: Path, argv: list[str], expect: str):
+def check_refused(d: Path, argv: list[str], expect: str) -> str:
+    """Run ``argv`` (``{d}``: ``d``, ``{s}``: the samples) in this process: exit 2, one
+    error line naming ``expect``, nothing written or changed; returns the stderr text."""
     before = snapshot(d)
     samples_before = {p.name: p.stat().st_mtime_ns for p in SAMPLES.iterdir()}
     argv = [a.replace("{d}", str(d)).replace("{s}", str(SAMPLES)) for a in argv]
@@ -79,6 +81,7 @@ def check_refused(d: Path, argv: list[str], expect: str):
     assert expect in lines[0], f"{expect!r} not named in {lines[0]!r}"
     assert snapshot(d) == before, "a file was created or changed"
     assert {p.name: p.stat().st_mtime_ns for p in SAMPLES.iterdir()} == samples_before
+    return err
 
 
 # ------------------------------------------------------------- case tables

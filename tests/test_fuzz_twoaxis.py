@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 from fuzz_cases import external_link, rep
-from test_fuzz import check_refused, run_cli
+from test_fuzz import check_refused
 
 from mems_stereo.io.recording2d import read_recording_2d
 
@@ -181,7 +181,5 @@ def test_two_axis_inverted_polarity_refused(command, axes, paths, field, tmp_pat
         _invert(*paths)(f, tmp_path)
     argv = (["process", "{d}/m.h5", "-o", "{d}/o.ply"] if command == "process" else
             ["calibrate", "{s}/lissajous64_calib_1.5m.h5", "{d}/m.h5", "-o", "{d}/c.json"])
-    check_refused(tmp_path, argv, "m.h5")
-    _, err, _ = run_cli([a.replace("{d}", str(tmp_path)).replace("{s}", str(SAMPLES))
-                         for a in argv])
+    err = check_refused(tmp_path, argv, "m.h5")  # the run's stderr: it is not run again
     assert f"{field}: the zero-crossing polarity looks inverted" in err, err

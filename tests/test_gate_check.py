@@ -23,9 +23,9 @@ from mems_stereo.pipeline.gate_check import (
 SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 
-def _plain_count(rec, d, valid):
-    """Detections inside the gate of every shot, one event at a time."""
-    g = recompute_gate(rec, rec.system, d)
+def _plain_count(rec, g, valid):
+    """Detections inside the gate ``g`` (the recomputed gate: CSR rows per shot) of every
+    shot, one event at a time."""
     inside = events = 0
     for s, p in zip(rec.event_shot[:3000], rec.event_pixel[:3000]):
         if not valid[s]:
@@ -45,8 +45,9 @@ def test_evidence_matches_a_plain_count(liss, invert):
     rec = replace(liss, event_shot=liss.event_shot[:3000], event_pixel=liss.event_pixel[:3000],
                   event_code=liss.event_code[:3000])
     d, valid = monitor_directions(rec, invert)
-    full = gate_evidence(rec, d, valid, recompute_gate(rec, rec.system, d))
-    assert (full.inside, full.events) == _plain_count(rec, d, valid)
+    gate = recompute_gate(rec, rec.system, d)  # computed once: both counts read it
+    full = gate_evidence(rec, d, valid, gate)
+    assert (full.inside, full.events) == _plain_count(rec, gate, valid)
     assert full.shots == int(valid.sum())
     if not invert:
         assert full.inside == full.events and full.counts_equal == full.shots
