@@ -98,7 +98,7 @@ def test_split_recording_equals_one_process(client):
     one_result = P * 4097 * 4 * 2
     t = split.timings
     assert t["parts"] == 5
-    # the fusion ran on the workers in blocks of peaks (room: 75 peaks, 5 blocks of 16)
+    # the fusion ran on the workers in blocks of peaks (room: 78 peaks, 5 blocks of 16)
     assert t["peak_blocks"] >= 2
     assert one_result <= t["client_bytes"] < one_result + 1e6 < one_result + P * S * 4
     assert 0 <= t["peaks_wait"] <= t["peaks"]

@@ -8,7 +8,7 @@
 * near-range, few-count peaks: every return of the band is an inlier and the
   point's error/σ is about 1 over seeds;
 * peak-level fusion: a stereo mean with a σ of metres leaves the ToF alone;
-* a return seen only where the scan turns gives no peak.
+* a return seen only where the scan turns gives no biased point.
 """
 
 from __future__ import annotations
@@ -176,7 +176,9 @@ def _sweep_case(bx, bz, theta0, k1, scene_dict, n_shots, seed, background_hz):
 def test_turning_point_return_gives_no_biased_point():
     """Sweep case 13047 (37,648 shots, 0.16 MHz): pixel 174 sees the wall only where the
     scan turns, its shots bunched at the footprint's edge (the stereo mean was 16 cm
-    behind, 8σ); left out now, the false points are ≤ 1 % (one object-edge pixel)."""
+    behind, 8σ); a turning peak's stereo now carries a systematic σ
+    (tests/test_turning_points.py): pixel 174 is no false point, and the false points
+    are ≤ 1 % (one object-edge pixel)."""
     scene, c = _sweep_case(BX, BZ, 0.7758342622745028, 0.0381451198377582, _CASE_13047,
                            37648, 13047, 160047.31962008242)
     assert len(c) > 150

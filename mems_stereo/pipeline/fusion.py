@@ -85,7 +85,8 @@ def accumulator_for_peaks(system: System, peaks, settings: Settings,
     fp = FusionPeaks(peaks.row, peaks.col, peaks.code, rate_hz=peaks.rate_hz,
                      step_window=(peaks.step_lo, peaks.step_hi)
                      if peaks.step_lo is not None else None,
-                     accept=_acceptance(system, table, peaks))
+                     accept=_acceptance(system, table, peaks),
+                     turning=getattr(peaks, "turning", None))
     return PeakAccumulator(system, fp, FusionOptions(
         confidence=settings.confidence, shots_per_step=shots_per_step,
         step_grid=(table.theta_min, table.step)))

@@ -50,6 +50,8 @@ class FusionPeaks:
     accept : ``accept(steps (Q', B), centre (Q',) m, q=None) -> (Q', B) bool``,
         whether a return from the peak's centre range at each step is classified
         signal, or None (every step).
+    turning : (Q,) bool, where the scan turns inside the peak's footprint
+        (:class:`~mems_stereo.pipeline.peak_table.Peaks`), or None (nowhere).
     """
 
     rows: np.ndarray
@@ -58,6 +60,7 @@ class FusionPeaks:
     rate_hz: np.ndarray | None = None
     step_window: tuple[np.ndarray, np.ndarray] | None = None
     accept: Callable | None = None
+    turning: np.ndarray | None = None
 
 
 @dataclass(frozen=True, eq=False)

@@ -134,6 +134,8 @@ class PeakAccumulator:
         # centre (Q,)) -> (Q, B) bool: steps where the return's code is classified signal
         self.step_window = peaks.step_window
         self.accept = peaks.accept
+        self.turning = (np.zeros(self.Q, bool) if peaks.turning is None
+                        else np.asarray(peaks.turning, bool).ravel())
         self.rate_hz = (np.zeros(self.Q) if peaks.rate_hz is None
                         else np.nan_to_num(np.asarray(peaks.rate_hz, np.float64).ravel()))
         self.mode = RangeMode(self.Q, o.r_min, o.r_max, o.rel_step)

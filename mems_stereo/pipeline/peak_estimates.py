@@ -20,6 +20,10 @@ from mems_stereo.pipeline.peak_geometry import (
 )
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
 
+#: systematic σ, in pixels, of the stereo of a peak where the scan turns inside the
+#: pixel's footprint (:func:`_with_turning`)
+TURNING_PIXEL_SIGMA = 0.5
+
 
 def peak_means_of(acc) -> PeakMeans:
     """Each peak's stereo and ToF means of the accumulator ``acc`` (a
@@ -83,11 +87,29 @@ def peak_means_of(acc) -> PeakMeans:
     # (scatter, pixel location, background, first-photon model), combined by
     # their range variances (a stereo mean near the beam's vanishing point,
     # σ of metres, then leaves the ToF alone instead of dragging the mean)
+    mean["stereo"] = _with_turning(acc, st.range_per_px, mean["stereo"])
     mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
     return PeakMeans(acc.system, acc.k, acc.rows, acc.cols, acc.peak_code,
                      mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
                      birge, st.range_per_px,
                      None if fp is None else fp.delay, None if fp is None else fp.mu)
+
+
+def _with_turning(acc, range_per_px, stereo):
+    """The stereo mean ``(x, C)`` with, at the peaks where the scan turns inside the
+    footprint (``acc.turning``), a systematic σ of :data:`TURNING_PIXEL_SIGMA` pixels
+    along the stereo's m per pixel ``range_per_px`` (Q, 3) (None: unchanged).  Their
+    shots bunch at the turning point, one edge of the footprint: the mean angle is
+    that of the beam's last crossing, whose image lies up to the spot's reach (about a
+    pixel) from the pixel's centre, so the stereo is off by that many pixels; the time
+    of flight is not (each return lies on its own shot's ray), and the fused point
+    leans on it."""
+    turning = acc.turning
+    if range_per_px is None or not np.any(turning):
+        return stereo
+    J = np.where(turning[:, None], np.nan_to_num(range_per_px), 0.0)
+    add = TURNING_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
+    return (stereo[0], stereo[1] + add)
 
 
 def _significant_bias(acc, Jt, cov_stereo, birge, angle_bias):

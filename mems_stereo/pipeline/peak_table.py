@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 #: the (Q,) per-peak arrays of :class:`Peaks`, in field order
 PEAK_ARRAYS = ("row", "col", "code", "code_lo", "code_hi", "step_lo", "step_hi", "counts",
-               "background", "rate_hz")
+               "background", "rate_hz", "turning")
 
 
 @dataclass(frozen=True, slots=True)
@@ -32,7 +32,10 @@ class Peaks:
     of the interval table counted in pass 2; counts : (Q,) int64, signal
     detections in the peak's angle band; background : (Q,) float64, their
     expected background; rate_hz : (Q,) float64, the pixel's ML background
-    rate; background_by_step : (Q, S) ``scipy.sparse.csr_array`` float64,
+    rate; turning : (Q,) bool, the scan turns inside the peak's footprint (its
+    shots bunch at one edge: the stereo mean is biased, see
+    :func:`~mems_stereo.pipeline.peak_estimates.peak_means_of`; None: no peak's,
+    stored as all False); background_by_step : (Q, S) ``scipy.sparse.csr_array`` float64,
     the expected background detections per angle step over each peak's
     counted steps ``step_lo..step_hi`` (zero elsewhere; stored at those of the
     steps with valid shots, or all of them, :func:`window_rows`;
@@ -50,8 +53,13 @@ class Peaks:
     counts: np.ndarray
     background: np.ndarray
     rate_hz: np.ndarray
+    turning: np.ndarray | None = None
     background_by_step: csr_array | None = None
     candidates: Candidates | None = None
+
+    def __post_init__(self):
+        if self.turning is None:
+            object.__setattr__(self, "turning", np.zeros(np.shape(self.row)[0], bool))
 
     def __len__(self) -> int:
         return int(self.row.size)

@@ -198,7 +198,8 @@ def find_peaks(system: System, signal, noise, theta, valid, settings: Settings,
     the ML background rate of the noise histogram); the strongest excess above
     the Poisson threshold at ``settings.false_alarm`` is the peak; pixels
     whose footprint the sweep does not cross whole (the scan's turning point
-    lies inside it) are left out, their stereo mean would be biased.  Much more
+    lies inside it) are marked ``turning``: their stereo mean is biased and carries a
+    systematic σ (:func:`~mems_stereo.pipeline.peak_estimates.peak_means_of`).  Much more
     sensitive than the code histogram under strong background (the
     background spreads over thousands of steps but only tens of codes).
 
@@ -334,7 +335,8 @@ def peaks_of_scores(system: System, sc: PeakScores, keep, n_per_step, table,
 def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, width: int,
                        table) -> Peaks:
     """The peaks of :func:`peaks_of_scores`: the supported pixels ``keep_first`` with a
-    known rate whose footprint and band lie inside the ``scanned`` steps."""
+    known rate, ``turning`` where their footprint or band does not lie inside the
+    ``scanned`` steps."""
     W = system.receiver.width
     n_bins = system.tdc.n_bins
     bw = system.tdc.bin_width
@@ -343,9 +345,11 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
     n_steps = table.n_steps
     keep = keep_first & np.isfinite(rate)
     # a pixel whose footprint the sweep does not cross whole (the scan turns
-    # inside it) sees only part of its surface: its stereo mean is biased
+    # inside it) sees only part of its surface: its stereo mean is biased, its
+    # time of flight is not (each return lies on its own shot's ray): kept, marked
+    cut = np.zeros(j.shape, bool)
     if scanned.size:
-        keep &= (j - width // 2 >= scanned[0]) & (j + width // 2 <= scanned[-1])
+        cut = (j - width // 2 < scanned[0]) | (j + width // 2 > scanned[-1])
     q = np.flatnonzero(keep)
     half = width + width // 2  # the footprint, the spot's blur and the peak's own spread
     # the band: where the excess stays above half its peak (a strong return fires
@@ -363,7 +367,7 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
         # only where the scan turns, its shots bunched there, lies at the footprint's
         # edge, not its centre
         inside = (b_lo >= scanned[0] - width // 4) & (b_hi <= scanned[-1] + width // 4)
-        q, b_lo, b_hi = q[inside], b_lo[inside], b_hi[inside]
+        cut[q[~inside]] = True
     # the peak code: the strongest code of the signal histogram in the band's codes
     fwhm_bins = max(1, int(round(effective_fwhm(system.laser) / bw))) | 1
     code = (moving_average_argmax(S[q], fwhm_bins) + 1 if q.size
@@ -377,7 +381,7 @@ def _first_stage_peaks(system: System, sc: PeakScores, keep_first, scanned, widt
         code_lo=np.ones(q.size, np.int64), code_hi=np.full(q.size, n_bins, np.int64),
         step_lo=step_lo, step_hi=step_hi,
         counts=np.rint(cnt[q]).astype(np.int64), background=mu[q],
-        rate_hz=rate.reshape(-1)[q],
+        rate_hz=rate.reshape(-1)[q], turning=cut[q],
         background_by_step=visited_window_rows(sc.background, sc.steps, n_steps, q, step_lo,
                                                step_hi))
 

@@ -21,8 +21,9 @@ one that does not agree restarts the pixel's history with itself.
 **σ model.**  A frame point's error is a random part (photon counts, timing, pixel
 extent: the pipeline's σ_r, independent from frame to frame) plus a part common to every
 frame of the pixel, σ_sys (``systematic(cloud)``, by default :func:`shared_errors`: the
-scan's dwell skew of :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew` and a calibrated
-system's parameter errors).  Only the random part averages:
+scan's dwell skew of :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`, the first-photon
+model's share of the time of flight, :func:`tof_model_share`, and a calibrated system's
+parameter errors).  Only the random part averages:
 
     σ_r,fused² = B²/Σw + (Σ w·σ_sys / Σw)²         (B the Birge ratio)
 
@@ -41,12 +42,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from mems_stereo.geometry.uncertainty import spreads_for
+from mems_stereo.physics.first_photon import first_photon_timing
 from mems_stereo.pipeline.calibration_sigma import (
     calibration_covariance,
     calibration_point_covariance,
 )
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import k_from_confidence
+from mems_stereo.pipeline.first_photon_correction import MODEL_DELAY_FRACTION, MU_MODEL_FACTOR
 from mems_stereo.pipeline.scan_dwell import DwellSkew, Systematic
 
 #: the attributes the fusion replaces by their fused values (besides points)
@@ -66,7 +70,8 @@ class TemporalFusion:
     of them that did not agree with it.
 
     ``system`` : the :class:`~mems_stereo.model.system.System` (a line scanner: the
-    default ``systematic`` is :func:`shared_errors`: its dwell skew and its calibration's share);
+    default ``systematic`` is :func:`shared_errors`: its dwell skew, the first-photon
+    model's share and its calibration's share);
     ``systematic`` : a callable ``cloud -> Systematic`` (σ_sys (N,) m and the common
     displacement (N, 3) m of each point), or None for none (random errors only).
     """
@@ -186,20 +191,21 @@ class TemporalFusion:
 
 def shared_errors(system):
     """``cloud -> Systematic``: the errors every frame of a pixel shares on a line
-    scanner, the scan's dwell skew (:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`)
-    and, for a system that carries its calibration's covariance, the calibration's share
+    scanner, the scan's dwell skew (:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`),
+    the first-photon model's share of the time of flight (:func:`tof_model_share`) and,
+    for a system that carries its calibration's covariance, the calibration's share
     of each point (:func:`~mems_stereo.pipeline.calibration_sigma.calibration_point_covariance`:
     a parameter error moves every frame's point alike, so it must not average down with
-    the frames); the two are independent and add in quadrature."""
+    the frames); they are independent and add in quadrature."""
     dwell = DwellSkew(system).systematic
-    if calibration_covariance(system) is None:
-        return dwell
+    tof = tof_model_share(system)
+    with_cal = calibration_covariance(system) is not None
 
     def systematic(cloud: PointCloud) -> Systematic:
-        common = dwell(cloud)
-        n = len(cloud)
-        if n == 0:
+        common = _plus(dwell(cloud), tof(cloud))
+        if not with_cal or len(cloud) == 0:
             return common
+        n = len(cloud)
         a = cloud.attributes
         x = np.asarray(cloud.points, np.float64)
         rows = np.asarray(a["row"]) if "row" in a else np.zeros(n, np.int64)
@@ -207,13 +213,67 @@ def shared_errors(system):
              if "weight_stereo" in a else np.ones(n))
         cov = calibration_point_covariance(system, x, rows, np.asarray(a["pixel"]), w,
                                            np.asarray(a["counts"], np.float64))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            u = np.nan_to_num(x / np.linalg.norm(x, axis=1, keepdims=True))
-        var_r = np.maximum(np.einsum("qi,qij,qj->q", u, cov, u), 0.0)
+        var_r = np.maximum(np.einsum("qi,qij,qj->q", _unit(x), cov, _unit(x)), 0.0)
         sd = np.sqrt(np.maximum(np.diagonal(cov, axis1=1, axis2=2), 0.0))
-        return Systematic(np.hypot(common.sigma_r, np.sqrt(var_r)), np.hypot(common.dx, sd))
+        return _plus(common, Systematic(np.sqrt(var_r), sd))
 
     return systematic
+
+
+def tof_model_share(system):
+    """``cloud -> Systematic``: the part of each point's time of flight that the
+    first-photon model fixes alike in every frame of a pixel.
+
+    The correction removes a delay d (``tof_delay``, s; NaN: none) computed from the
+    spot model's signal level μ0 (``signal_photons``); the model's allowance for its own
+    error — :data:`~mems_stereo.pipeline.first_photon_correction.MODEL_DELAY_FRACTION`
+    of d, and half the delay's change between μ0/F and μ0·F
+    (F = :data:`~mems_stereo.pipeline.first_photon_correction.MU_MODEL_FACTOR`, the
+    spot model misjudging the level) — is in each frame's σ but is the same misjudgement
+    in every frame of a static pixel, so it does not average.  The change is taken
+    from the single-return model (:func:`~mems_stereo.physics.first_photon.first_photon_timing`)
+    relative to its delay at μ0, times d; as range ``c·|d|/2``, weighted by the time of
+    flight's share of the fused point (``1 − weight_stereo``), along the point's ray.
+    Where the stereo carries the point (most pixels) it is nearly 0; where it is the
+    time of flight alone (the scan's turning points, ``Peaks.turning``) it is most of
+    the frame's range σ that the frames' averaging must keep."""
+    sp = spreads_for(system)
+    sigma = float(np.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter))
+    c = system.speed_of_light
+    F = MU_MODEL_FACTOR
+
+    def share(cloud: PointCloud) -> Systematic:
+        n = len(cloud)
+        a = cloud.attributes
+        if n == 0 or "tof_delay" not in a or "signal_photons" not in a or sigma <= 0:
+            return Systematic(np.zeros(n), np.zeros((n, 3)))
+        d = np.abs(np.nan_to_num(np.asarray(a["tof_delay"], np.float64)))
+        mu = np.nan_to_num(np.asarray(a["signal_photons"], np.float64))
+        w_tof = 1.0 - np.clip(np.nan_to_num(np.asarray(
+            a.get("weight_stereo", np.ones(n)), np.float64), nan=1.0), 0.0, 1.0)
+        on = (w_tof > 0) & (mu > 0) & (d > 0)
+        far = np.full(int(on.sum()), 50.0 * sigma)  # far from the TDC start: no truncation
+        with np.errstate(invalid="ignore", divide="ignore"):
+            delay = [np.abs(first_photon_timing(far, m, sigma)[1]) for m in
+                     (mu[on], mu[on] * F, mu[on] / F)]
+            rel = np.nan_to_num(0.5 * np.abs(delay[1] - delay[2]) / delay[0])
+        s_r = np.zeros(n)
+        s_r[on] = w_tof[on] * 0.5 * c * d[on] * np.hypot(MODEL_DELAY_FRACTION, rel)
+        return Systematic(s_r, s_r[:, None] * np.abs(_unit(cloud.points)))
+
+    return share
+
+
+def _plus(a: Systematic, b: Systematic) -> Systematic:
+    """Two independent common parts in quadrature."""
+    return Systematic(np.hypot(a.sigma_r, b.sigma_r), np.hypot(a.dx, b.dx))
+
+
+def _unit(x) -> np.ndarray:
+    """(N, 3) unit vectors of the points ``x`` (0 where undefined)."""
+    x = np.asarray(x, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.nan_to_num(x / np.linalg.norm(x, axis=1, keepdims=True))
 
 
 def pixel_index(cloud: PointCloud, width: int) -> np.ndarray:
