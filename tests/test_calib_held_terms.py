@@ -120,14 +120,13 @@ def test_interval_end_finds_the_level_crossing_on_each_side():
     assert not closed and end == 0.95 and xo[0] == 0.95
 
 
-@pytest.mark.stress
 def test_share_profile_interval_ends_where_the_likelihood_falls_by_the_level():
     """A 30 % tail of 0.7 ns on the 1 ns pulse (a decay shorter than the core: the
     ridge of the family's pulses), 2000 shots: the profile interval's upper end,
     refitted with the share held there (every other parameter free), lies at
     2·Δlog L = LEVEL; the interval is skewed towards larger shares (its σ beyond the
     local one, from the upper side) and the ridge moves the TDC offset against the
-    share (the mean delay w·τ kept).  About 10 s of CPU."""
+    share (the mean delay w·τ kept).  About 2 s of CPU."""
     prob0, x = _synthetic_problem(np.random.default_rng(11), tail=(0.3, 0.7e-9))
     c = prob0.cells[0]
     m = c.shot < 2000
