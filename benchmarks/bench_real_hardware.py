@@ -457,6 +457,9 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", "--cases", type=int, default=100)
     ap.add_argument("--seed", type=int, default=1000, help="first trial's seed")
+    ap.add_argument("--seeds", default=None,
+                    help="comma-separated trial seeds, run in this order (instead of "
+                         "--seed/--trials)")
     ap.add_argument("--jobs", type=int, default=2, help="worker processes")
     ap.add_argument("--shot-scale", type=float, default=8.0,
                     help="divide each wall's shot count by this (default 8, as "
@@ -496,14 +499,17 @@ def main(argv=None) -> int:
             log(args.note)
         report(results, cds, pts, args, log, math.nan)
         return _write(args.log, lines)
-    log(f"bench_real_hardware: {args.trials} trials from seed {args.seed}, wall shots / "
+    seeds = ([int(x) for x in args.seeds.split(",") if x.strip()] if args.seeds
+             else list(range(args.seed, args.seed + args.trials)))
+    args.trials = len(seeds)
+    log(f"bench_real_hardware: {args.trials} trials from seed {seeds[0]}, wall shots / "
         f"{args.shot_scale:g}, room {args.room_shots} shots, {args.jobs} job(s), CPU "
         f"{cpu_model()}")
     if args.note:
         log(args.note)
     tasks = [(s, {"shot_scale": args.shot_scale, "room_shots": args.room_shots,
                   "dark": args.dark_per_code})
-             for s in range(args.seed, args.seed + args.trials)]
+             for s in seeds]
     targets = [int(x) for x in args.cd_targets.split(",") if x.strip()]
     cd_tasks = [(args.seed + i, t) for t in targets for i in range(args.cd_trials)]
     results, cds, pts = [], [], []

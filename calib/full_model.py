@@ -20,9 +20,11 @@ from dataclasses import dataclass, field
 from mems_stereo.calib import hardware_fit as hf
 from mems_stereo.calib import pixel_offsets as pxo
 from mems_stereo.calib.fit import fit_walls
+from mems_stereo.calib.held_blocks import add_held_blocks
 from mems_stereo.calib.model import PULSE_PARAMS
 from mems_stereo.calib.nuisance import add_held_edges, add_held_tail, holds_edges, profile_tail
 from mems_stereo.calib.solver import StartValues
+from mems_stereo.calib.tail_profile import widen_share
 
 #: what to record when a hardware term is not observable
 RECORD_ADVICE = {
@@ -201,7 +203,7 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     weak = [n for n in r1.unobservable if n not in result.unobservable] if r1 else []
     if r1 and not weak:
         r1.warnings[:0] = [w for w in result.warnings if w not in r1.warnings]
-        out = r1
+        out = widen_share(r1)  # the share's σ from its profile likelihood
     else:  # the tail held out (the Gaussian kept): its share in the σ
         why = ", ".join(weak) if r1 else f"the fit failed: {r1.reason[:80]}"
         result.warnings.append(
@@ -256,6 +258,7 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
                                 "cover every pixel)")
     if holds_edges(out):  # the edge-delay difference held: its share in the σ
         out = add_held_edges(out)
+    out = add_held_blocks(out, orders)  # the terms not selected, integrated out of σ
     out.system = hf.hardware_std(out.system, out.values, out.std, out.covariance, out.names)
     out.extra["hardware_tests"] = tests + [po.test] + (
         [out.extra["tail_test"]] if "tail_test" in out.extra else [])

@@ -183,9 +183,19 @@ def add_held(result, held: Held, spread: float, key: str, what: str, advice: str
     unchanged.  ``extra[key]`` keeps S (SI per unit of the held term) and ``spread``;
     ``extra["covariance_full"]`` the covariance of all the fit's parameters (a second
     held term adds to it)."""
+    return add_covariance(result, held.C, spread * spread * np.outer(held.S, held.S), key,
+                          {"sensitivity": held.S, "spread": float(spread),
+                           "estimate": held.value, "estimate_std": held.std}, what, advice)
+
+
+def add_covariance(result, base, extra, key: str, record: dict, what: str, advice: str):
+    """``result`` with ``extra`` (P, P) SI added to its covariance over all the fit's
+    parameters (``extra["covariance_full"]``, else ``base``): σ, correlations, walls'
+    σ and the system's calibration block follow, a warning ``what`` names the two
+    parameters it widens most, then ``advice``; ``extra[key]`` = ``record``."""
     prob = result.extra["problem"]
     lay = prob.layout
-    C = result.extra.get("covariance_full", held.C) + spread * spread * np.outer(held.S, held.S)
+    C = result.extra.get("covariance_full", base) + extra
     result.extra["covariance_full"] = C
     n = lay.n_sys
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
@@ -204,7 +214,6 @@ def add_held(result, held: Held, spread: float, key: str, what: str, advice: str
     top = sorted(grow, reverse=True)[:2]
     result.warnings.append(f"{what} ({', '.join(f'{nm} σ ×{k:.2f}' for k, nm in top)}); "
                            + advice)
-    result.extra[key] = {"sensitivity": held.S, "spread": float(spread),
-                         "estimate": held.value, "estimate_std": held.std}
+    result.extra[key] = record
     result.system = result.system.replace(calibration=result.calibration_dict())
     return result
