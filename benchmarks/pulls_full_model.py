@@ -79,8 +79,11 @@ def run_seed(task) -> dict:
     """One seed: the full-model calibration's outcome and pulls (JSON-able)."""
     seed, opt = task
     warnings.simplefilter("ignore")
+    from mems_stereo.calib import full_model
     from mems_stereo.calib.full_model import add_hardware_terms, rescue
     from mems_stereo.calib.goodness import judge
+
+    full_model.NEWTON_START = not opt.get("zero_start", False)
 
     t0 = time.process_time()
     cache = Path(opt["cache"]) if opt["cache"] else None
@@ -103,6 +106,7 @@ def run_seed(task) -> dict:
         out["std"] = {n: float(full.std[n]) for n in full.names}
         out["warnings"] = [w[:160] for w in full.warnings]
         out["values"] = {n: float(full.values[n]) for n in full.names}
+        out["terms"] = [n for n in full.names if n.startswith(("harmonic", "edge", "pulse"))]
         mon, sc = true1.scanner.monitor, true1.scanner
         out["truth"] = {n: float(brh.equivalent_truth(true1, n, full)) for n in full.names}
         if mon is not None:  # the phase offset with the mean of the two edge delays
@@ -135,6 +139,9 @@ def main(argv=None) -> int:
     ap.add_argument("--dark-per-code", type=int, default=1000)
     ap.add_argument("--cache", default=None, help="folder for the ideal-model fits")
     ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--zero-start", action="store_true",
+                    help="start a newly selected hardware block at 0 (the former start) "
+                         "instead of the score test's Newton step")
     ap.add_argument("--records", default=None, help="append each seed as a JSON line")
     ap.add_argument("--before", default=None, metavar="RECORDS",
                     help="a bench_real_hardware records file: print its pulls of the same "
@@ -144,14 +151,16 @@ def main(argv=None) -> int:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     if args.cache:
         Path(args.cache).mkdir(parents=True, exist_ok=True)
-    opt = {"shot_scale": args.shot_scale, "dark": args.dark_per_code, "cache": args.cache}
+    opt = {"shot_scale": args.shot_scale, "dark": args.dark_per_code, "cache": args.cache,
+           "zero_start": args.zero_start}
     lines: list = []
 
     def log(s: str) -> None:
         print(s, flush=True)
         lines.append(s)
 
-    log(f"pulls_full_model: seeds {seeds}, wall shots / {args.shot_scale:g}, CPU {cpu_model()}")
+    log(f"pulls_full_model: seeds {seeds}, wall shots / {args.shot_scale:g}, new block start "
+        f"{'0' if args.zero_start else 'Newton step'}, CPU {cpu_model()}")
     tasks = [(s, opt) for s in seeds]
     recs: list = []
 
