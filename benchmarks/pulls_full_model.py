@@ -84,23 +84,25 @@ def run_seed(task) -> dict:
     from mems_stereo.calib.goodness import judge
 
     full_model.NEWTON_START = not opt.get("zero_start", False)
+    steps: list = []
+    say = steps.append if opt.get("verbose") else None
 
     t0 = time.process_time()
     cache = Path(opt["cache"]) if opt["cache"] else None
     fit, wd, nom1, priors, true1 = _ideal_fit(seed, opt["shot_scale"], opt["dark"], cache)
     t1 = time.process_time()
     if fit:
-        full = add_hardware_terms(fit)
+        full = add_hardware_terms(fit, progress=say)
         full = judge(full) if (list(full.names) != list(fit.names)
                                or full.system.tdc.pixel_offsets is not None) else judge(fit)
     elif fit.kind == "estimate":
-        full = rescue(fit, wd, nom1, priors)
+        full = rescue(fit, wd, nom1, priors, progress=say)
         if full:
-            full = judge(add_hardware_terms(full))
+            full = judge(add_hardware_terms(full, progress=say))
     else:
         full = fit
     out = {"seed": seed, "ok": bool(full), "reason": "" if full else full.reason[:200],
-           "cpu_ideal": t1 - t0, "cpu_full": time.process_time() - t1}
+           "cpu_ideal": t1 - t0, "cpu_full": time.process_time() - t1, "steps": steps}
     if full:
         out["pulls"] = brh.pulls_of(full, true1)
         out["std"] = {n: float(full.std[n]) for n in full.names}
@@ -139,6 +141,8 @@ def main(argv=None) -> int:
     ap.add_argument("--dark-per-code", type=int, default=1000)
     ap.add_argument("--cache", default=None, help="folder for the ideal-model fits")
     ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--verbose", action="store_true",
+                    help="log each seed's hardware-term steps (selection, start, outcome)")
     ap.add_argument("--zero-start", action="store_true",
                     help="start a newly selected hardware block at 0 (the former start) "
                          "instead of the score test's Newton step")
@@ -152,7 +156,7 @@ def main(argv=None) -> int:
     if args.cache:
         Path(args.cache).mkdir(parents=True, exist_ok=True)
     opt = {"shot_scale": args.shot_scale, "dark": args.dark_per_code, "cache": args.cache,
-           "zero_start": args.zero_start}
+           "zero_start": args.zero_start, "verbose": args.verbose}
     lines: list = []
 
     def log(s: str) -> None:
@@ -170,7 +174,8 @@ def main(argv=None) -> int:
         log(f"seed {r['seed']}: " + ("written " + " ".join(
             f"{k} {v:+.1f}" for k, v in p.items() if not isinstance(v, list))
             if r["ok"] else "refused: " + r["reason"][:120])
-            + f" (CPU {r['cpu_ideal']:.0f} + {r['cpu_full']:.0f} s)")
+            + f" (CPU {r['cpu_ideal']:.0f} + {r['cpu_full']:.0f} s)"
+            + "".join(f"\n    {m}" for m in r.get("steps", [])))
         if args.records:
             with open(args.records, "a", encoding="utf-8") as f:
                 f.write(json.dumps(r, default=float) + "\n")

@@ -45,6 +45,8 @@ MAX_STEPS = 5
 #: whether a newly selected block starts from the score test's Newton step
 #: (:func:`newton_start`); False: at 0 (its nominal value), as the benchmarks' baseline
 NEWTON_START = True
+#: Levenberg damping of the information in the Newton start (the solver's first λ)
+NEWTON_DAMPING = 1e-3
 #: fractions of the Newton step tried (the one of highest likelihood taken)
 NEWTON_SHRINK = (1.0, 0.5, 0.25)
 
@@ -94,7 +96,9 @@ def newton_start(prob, x, chosen: list) -> BlockStart | None:
     parameter (the fitted ones, the walls' and the block's; I the outer-product
     information, g the score), so that the block's part is its score divided by its
     information conditioned on the fitted parameters, [I⁻¹]_bb g_b where the fitted
-    scores vanish.  Of the fractions of δ in :data:`NEWTON_SHRINK` (one step of the
+    scores vanish.  I is damped as in the solver's first step
+    (:data:`NEWTON_DAMPING` × its diagonal, Levenberg): at a refused fit's point the
+    walls' signal levels can be nearly undetermined and the undamped step wild.  Of the fractions of δ in :data:`NEWTON_SHRINK` (one step of the
     outer-product information can overshoot a curved likelihood) the one with the
     highest log-likelihood is taken when it is higher than at 0; None when none is
     (the block then starts at 0)."""
@@ -102,7 +106,9 @@ def newton_start(prob, x, chosen: list) -> BlockStart | None:
     sc = p2.layout.scales
     try:
         ll0, g, H = p2.score(x2)
-        step = np.linalg.pinv(H * sc[:, None] * sc[None, :]) @ (g * sc) * sc
+        Hs = H * sc[:, None] * sc[None, :]
+        damp = NEWTON_DAMPING * np.diag(np.maximum(np.diag(Hs), 1e-12))
+        step = np.linalg.solve(Hs + damp, g * sc) * sc
     except (GeometryError, np.linalg.LinAlgError):
         return None
     if not (math.isfinite(ll0) and np.all(np.isfinite(step))):
@@ -122,10 +128,15 @@ def newton_start(prob, x, chosen: list) -> BlockStart | None:
     return BlockStart(xs, {n: float(values[n]) for n in chosen}, best - ll0, f_best)
 
 
-def _fit_block(prob, x, names: list, chosen: list, fit_kwargs: dict):
+def _fit_block(prob, x, names: list, chosen: list, fit_kwargs: dict, progress=None):
     """:func:`_refit_at` with the block ``chosen`` from its Newton start
     (:func:`newton_start`, when :data:`NEWTON_START`), else from 0."""
     st = newton_start(prob, x, chosen) if NEWTON_START else None
+    if progress:
+        progress("hardware terms: " + ", ".join(chosen) + (
+            " from 0" if st is None else f" from {st.shrink:g} × the Newton step "
+            f"(log-likelihood +{st.gain:.1f}): " + ", ".join(
+                f"{k} {v:.3g}" for k, v in st.block.items())))
     if st is None:
         return _refit_at(prob, x, names, chosen, fit_kwargs)
     return _refit_at(prob, st.x, names, chosen, fit_kwargs, st.block)
@@ -162,13 +173,14 @@ def _point(step: _Step, jitter: float):
     return None if got is None else (got[0], got[1], list(f.details["values"]))
 
 
-def _add_block(step: _Step, point, chosen: list, fit_kwargs: dict, dropped: set):
+def _add_block(step: _Step, point, chosen: list, fit_kwargs: dict, dropped: set,
+               progress=None):
     """The fit of ``point`` (problem, x, names) with ``chosen`` free too; a term the
     walls do not determine is dropped (added to ``dropped``, a note says what to
     record) and the rest fitted again.  Returns the new :class:`_Step`, or None when
     nothing is left or the fit did not reach its checks (a note says so)."""
     prob, x, names = point
-    r1 = _fit_block(prob, x, names, chosen, fit_kwargs)
+    r1 = _fit_block(prob, x, names, chosen, fit_kwargs, progress)
     weak = [n for n in chosen if r1 and n in r1.unobservable]
     if weak:
         step.notes.extend(f"{n} not observable from these walls (left ideal): {_advice(n)}"
@@ -177,7 +189,7 @@ def _add_block(step: _Step, point, chosen: list, fit_kwargs: dict, dropped: set)
         chosen = [n for n in chosen if n not in weak]
         if not chosen:
             return None
-        r1 = _fit_block(prob, x, names, chosen, fit_kwargs)
+        r1 = _fit_block(prob, x, names, chosen, fit_kwargs, progress)
     if not r1 and "checks" not in (r1.details or {}):
         step.notes.append(f"the fit with the hardware terms {', '.join(chosen)} failed "
                           f"({r1.reason[:80]}): the model without them is kept")
@@ -212,7 +224,10 @@ def _select(step: _Step, blocks: dict, fit_kwargs: dict, progress=None) -> tuple
         best = min(sel, key=lambda t: hf.log_p_value(t.lm, t.dof))
         if progress:
             progress(f"hardware terms: {best.name} (score test p = {best.p_value:.1e})")
-        nxt = _add_block(step, point, list(best.names), fit_kwargs, dropped)
+        nxt = _add_block(step, point, list(best.names), fit_kwargs, dropped, progress)
+        if progress and nxt is not None:
+            progress("hardware terms: the fit " + ("passes its checks" if nxt.fit else
+                                                   "is refused: " + nxt.fit.reason[:160]))
         if nxt is None:
             break
         step = nxt

@@ -60,12 +60,13 @@ def _drawn(seed: int, harmonic=TRUE_H3):
     return prob, x
 
 
-def test_newton_start_is_the_score_tests_step_and_nears_the_fit():
+def test_newton_start_is_the_score_tests_step_and_nears_the_fit(monkeypatch):
     prob, x = _drawn(5)
+    # undamped, the block's step measured in its conditional information is the score
+    # test's LM (the statistic g_bᵀ [I⁻¹]_bb g_b of hardware_fit.score_tests)
+    monkeypatch.setattr(fm, "NEWTON_DAMPING", 0.0)
     st = fm.newton_start(prob, x, H3)
     assert st is not None and st.shrink in fm.NEWTON_SHRINK and st.gain > 0.0
-    # the block's step, measured in its conditional information, is the score test's LM
-    # (the statistic g_bᵀ [I⁻¹]_bb g_b of hardware_fit.score_tests)
     p2, x2 = extended_problem(prob, x, H3)
     _, g, H = p2.score(x2)
     sc = p2.layout.scales
@@ -74,7 +75,9 @@ def test_newton_start_is_the_score_tests_step_and_nears_the_fit():
     d = np.array([st.block[n] for n in H3]) / sc[bi] / st.shrink  # the block was at 0
     lm = score_tests(prob, x, {"harmonic 3": candidate_blocks((3,))["harmonic 3"]})[0].lm
     assert float(d @ np.linalg.solve(Ci, d)) == pytest.approx(lm, rel=1e-6)
-    # the Newton start lands near the fit with the block free, far nearer than 0
+    # the (damped) Newton start lands near the fit with the block free, far nearer than 0
+    monkeypatch.undo()
+    st = fm.newton_start(prob, x, H3)
     values, walls = prob.layout.unpack(st.x)
     xs = p2.layout.pack({**values, **st.block}, walls)
     fs = FitState()
