@@ -98,10 +98,11 @@ def newton_start(prob, x, chosen: list) -> BlockStart | None:
     information conditioned on the fitted parameters, [I⁻¹]_bb g_b where the fitted
     scores vanish.  I is damped as in the solver's first step
     (:data:`NEWTON_DAMPING` × its diagonal, Levenberg): at a refused fit's point the
-    walls' signal levels can be nearly undetermined and the undamped step wild.  Of the fractions of δ in :data:`NEWTON_SHRINK` (one step of the
-    outer-product information can overshoot a curved likelihood) the one with the
-    highest log-likelihood is taken when it is higher than at 0; None when none is
-    (the block then starts at 0)."""
+    walls' signal levels can be nearly undetermined and the undamped step wild.  Of
+    the fractions of δ in :data:`NEWTON_SHRINK` (one step of the outer-product
+    information can overshoot a curved likelihood) the one with the highest
+    log-likelihood is taken when it is higher than at 0; None when none is (the block
+    then starts at 0)."""
     p2, x2 = hf.extended_problem(prob, x, list(chosen))
     sc = p2.layout.scales
     try:
@@ -130,7 +131,8 @@ def newton_start(prob, x, chosen: list) -> BlockStart | None:
 
 def _fit_block(prob, x, names: list, chosen: list, fit_kwargs: dict, progress=None):
     """:func:`_refit_at` with the block ``chosen`` from its Newton start
-    (:func:`newton_start`, when :data:`NEWTON_START`), else from 0."""
+    (:func:`newton_start`, when :data:`NEWTON_START`), else from 0; from 0 too when
+    the fit from the Newton start does not reach its checks (did not converge)."""
     st = newton_start(prob, x, chosen) if NEWTON_START else None
     if progress:
         progress("hardware terms: " + ", ".join(chosen) + (
@@ -139,7 +141,12 @@ def _fit_block(prob, x, names: list, chosen: list, fit_kwargs: dict, progress=No
                 f"{k} {v:.3g}" for k, v in st.block.items())))
     if st is None:
         return _refit_at(prob, x, names, chosen, fit_kwargs)
-    return _refit_at(prob, st.x, names, chosen, fit_kwargs, st.block)
+    r = _refit_at(prob, st.x, names, chosen, fit_kwargs, st.block)
+    if r or "checks" in (r.details or {}):
+        return r
+    if progress:
+        progress(f"hardware terms: {', '.join(chosen)} again from 0 ({r.reason[:60]})")
+    return _refit_at(prob, x, names, chosen, fit_kwargs)
 
 
 @dataclass

@@ -102,25 +102,38 @@ def test_newton_start_falls_back_to_zero_when_no_step_raises_the_likelihood(monk
     assert fm.newton_start(prob, x, H3) is None
     monkeypatch.undo()
     # and the refit then starts from the fitted point with the block at its nominal 0
-    seen = {}
+    from mems_stereo.calib.result import CalibrationFailure
+
+    refused = CalibrationFailure("implausible result: ...", details={"checks": []})
+    stuck = CalibrationFailure("the fit did not converge (no convergence in 100 iterations)")
+    seen, outcome = [], {"r": refused}
 
     def fake_refit(p, z, names, extra, fit_kwargs, start_values=None):
-        seen.update(x=z, start=start_values)
-        return None
+        seen.append((z, start_values))
+        return outcome["r"]
 
     monkeypatch.setattr(fm, "_refit_at", fake_refit)
     monkeypatch.setattr(fm, "newton_start", lambda *a: None)
-    fm._fit_block(prob, x, list(prob.layout.names), H3, {})
-    assert seen["x"] is x and seen["start"] is None
-    # with a start, the refit begins at its point and block values
+    assert fm._fit_block(prob, x, list(prob.layout.names), H3, {}) is refused
+    assert len(seen) == 1 and seen[0][0] is x and seen[0][1] is None
+    # with a start, the refit begins at its point and block values; a fit that reaches
+    # its checks (here refused by them) is kept
     st = fm.BlockStart(x + 1.0, {H3[0]: 1e-3, H3[1]: 2e-3}, 5.0, 0.5)
     monkeypatch.setattr(fm, "newton_start", lambda *a: st)
+    seen.clear()
+    assert fm._fit_block(prob, x, list(prob.layout.names), H3, {}) is refused
+    assert len(seen) == 1 and seen[0][0] is st.x and seen[0][1] == st.block
+    # one that does not converge from the Newton start is fitted again from 0
+    seen.clear()
+    outcome["r"] = stuck
     fm._fit_block(prob, x, list(prob.layout.names), H3, {})
-    assert seen["x"] is st.x and seen["start"] == st.block
+    assert [(z is st.x, v) for z, v in seen] == [(True, st.block), (False, None)]
+    assert seen[1][0] is x
     # switched off (the benchmarks' baseline): at 0 whatever the step
     monkeypatch.setattr(fm, "NEWTON_START", False)
+    seen.clear()
     fm._fit_block(prob, x, list(prob.layout.names), H3, {})
-    assert seen["x"] is x and seen["start"] is None
+    assert len(seen) == 1 and seen[0][0] is x and seen[0][1] is None
 
 
 def test_newton_start_without_a_harmonic_stays_near_zero():
@@ -134,3 +147,31 @@ def test_newton_start_without_a_harmonic_stays_near_zero():
     sd = np.sqrt(np.diag(np.linalg.inv(p2.score(x2)[2])))[bi]
     assert st is not None  # a noise step still raises the likelihood a little
     assert np.all(np.abs([st.block[n] for n in H3]) < 4.0 * sd), (st.block, sd, sc[bi])
+
+
+def test_rescue_tests_a_fit_that_did_not_converge_at_its_values(monkeypatch):
+    """A failure with fitted values (a fit that did not converge has no ``checks``)
+    goes to the forward selection at its values; one without values (no wall fitted)
+    is returned as it is, untouched."""
+    from mems_stereo.calib import goodness
+    from mems_stereo.calib.result import CalibrationFailure
+
+    prob, x = _drawn(8)
+    calls = []
+
+    def at_values(failure, walls, nominal, priors, jitter):
+        calls.append(failure.details["values"])
+        return prob, x
+
+    monkeypatch.setattr(goodness, "failed_problem", at_values)
+    vals, walls = prob.layout.unpack(x)
+    stuck = CalibrationFailure("the fit did not converge (no convergence in 100 iterations)",
+                               details={"values": vals, "walls": walls.tolist()})
+    tried = []
+    monkeypatch.setattr(fm, "_add_block",
+                        lambda step, point, chosen, *a: tried.append(chosen))
+    out = fm.rescue(stuck, prob.walls, prob.system, [], orders=(3,))
+    assert out is stuck and calls == [vals]
+    assert tried == [H3]  # the drawn third harmonic is selected and fitted
+    nothing = CalibrationFailure("no recording shows a usable wall return", "input")
+    assert fm.rescue(nothing, prob.walls, prob.system, []) is nothing and len(calls) == 1
