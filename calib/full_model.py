@@ -4,13 +4,15 @@
 :class:`~mems_stereo.calib.result.CalibrationResult`, runs the score tests of
 :mod:`mems_stereo.calib.hardware_fit`, re-fits with the selected harmonics and edge
 delay (forward selection from the ideal fit's solution, one block a round:
-:func:`_select`; a fit its checks refuse is tested on, the last that passes kept),
+:func:`_select`, each new block started from the score test's Newton step:
+:func:`newton_start`; a fit its checks refuse is tested on, the last that passes kept),
 drops a term the walls do not determine (saying what to record), then the pulse's
 ex-gaussian tail when its score test finds
 one (:func:`_pulse_tail`: fitted in the time likelihood), then the per-pixel TDC
 offsets when their test fails.
 An ideal-hardware calibration selects nothing and is returned unchanged.
-:func:`rescue` runs the same selection from an ideal-model fit its checks refused.
+:func:`rescue` runs the same selection from an ideal-model fit its checks refused
+or that did not converge.
 """
 
 from __future__ import annotations
