@@ -79,30 +79,36 @@ def run_seed(task) -> dict:
     """One seed: the full-model calibration's outcome and pulls (JSON-able)."""
     seed, opt = task
     warnings.simplefilter("ignore")
+    from mems_stereo.calib import full_model
     from mems_stereo.calib.full_model import add_hardware_terms, rescue
     from mems_stereo.calib.goodness import judge
+
+    full_model.NEWTON_START = not opt.get("zero_start", False)
+    steps: list = []
+    say = steps.append if opt.get("verbose") else None
 
     t0 = time.process_time()
     cache = Path(opt["cache"]) if opt["cache"] else None
     fit, wd, nom1, priors, true1 = _ideal_fit(seed, opt["shot_scale"], opt["dark"], cache)
     t1 = time.process_time()
     if fit:
-        full = add_hardware_terms(fit)
+        full = add_hardware_terms(fit, progress=say)
         full = judge(full) if (list(full.names) != list(fit.names)
                                or full.system.tdc.pixel_offsets is not None) else judge(fit)
     elif fit.kind == "estimate":
-        full = rescue(fit, wd, nom1, priors)
+        full = rescue(fit, wd, nom1, priors, progress=say)
         if full:
-            full = judge(add_hardware_terms(full))
+            full = judge(add_hardware_terms(full, progress=say))
     else:
         full = fit
     out = {"seed": seed, "ok": bool(full), "reason": "" if full else full.reason[:200],
-           "cpu_ideal": t1 - t0, "cpu_full": time.process_time() - t1}
+           "cpu_ideal": t1 - t0, "cpu_full": time.process_time() - t1, "steps": steps}
     if full:
         out["pulls"] = brh.pulls_of(full, true1)
         out["std"] = {n: float(full.std[n]) for n in full.names}
         out["warnings"] = [w[:160] for w in full.warnings]
         out["values"] = {n: float(full.values[n]) for n in full.names}
+        out["terms"] = [n for n in full.names if n.startswith(("harmonic", "edge", "pulse"))]
         mon, sc = true1.scanner.monitor, true1.scanner
         out["truth"] = {n: float(brh.equivalent_truth(true1, n, full)) for n in full.names}
         if mon is not None:  # the phase offset with the mean of the two edge delays
@@ -135,6 +141,11 @@ def main(argv=None) -> int:
     ap.add_argument("--dark-per-code", type=int, default=1000)
     ap.add_argument("--cache", default=None, help="folder for the ideal-model fits")
     ap.add_argument("--jobs", type=int, default=1)
+    ap.add_argument("--verbose", action="store_true",
+                    help="log each seed's hardware-term steps (selection, start, outcome)")
+    ap.add_argument("--zero-start", action="store_true",
+                    help="start a newly selected hardware block at 0 (the former start) "
+                         "instead of the score test's Newton step")
     ap.add_argument("--records", default=None, help="append each seed as a JSON line")
     ap.add_argument("--before", default=None, metavar="RECORDS",
                     help="a bench_real_hardware records file: print its pulls of the same "
@@ -144,14 +155,16 @@ def main(argv=None) -> int:
     seeds = [int(s) for s in args.seeds.split(",") if s.strip()]
     if args.cache:
         Path(args.cache).mkdir(parents=True, exist_ok=True)
-    opt = {"shot_scale": args.shot_scale, "dark": args.dark_per_code, "cache": args.cache}
+    opt = {"shot_scale": args.shot_scale, "dark": args.dark_per_code, "cache": args.cache,
+           "zero_start": args.zero_start, "verbose": args.verbose}
     lines: list = []
 
     def log(s: str) -> None:
         print(s, flush=True)
         lines.append(s)
 
-    log(f"pulls_full_model: seeds {seeds}, wall shots / {args.shot_scale:g}, CPU {cpu_model()}")
+    log(f"pulls_full_model: seeds {seeds}, wall shots / {args.shot_scale:g}, new block start "
+        f"{'0' if args.zero_start else 'Newton step'}, CPU {cpu_model()}")
     tasks = [(s, opt) for s in seeds]
     recs: list = []
 
@@ -161,7 +174,8 @@ def main(argv=None) -> int:
         log(f"seed {r['seed']}: " + ("written " + " ".join(
             f"{k} {v:+.1f}" for k, v in p.items() if not isinstance(v, list))
             if r["ok"] else "refused: " + r["reason"][:120])
-            + f" (CPU {r['cpu_ideal']:.0f} + {r['cpu_full']:.0f} s)")
+            + f" (CPU {r['cpu_ideal']:.0f} + {r['cpu_full']:.0f} s)"
+            + "".join(f"\n    {m}" for m in r.get("steps", [])))
         if args.records:
             with open(args.records, "a", encoding="utf-8") as f:
                 f.write(json.dumps(r, default=float) + "\n")
