@@ -46,7 +46,9 @@ def test_trajectory_matches_the_hardware_model():
     assert set(harmonic_orders((2, 5))) <= set(HARDWARE_PARAMS)
 
 
-def _wall(rng, n_shots=400):
+def blank_wall(rng, n_shots=400):
+    """A wall of ``n_shots`` shots at random times over 0.2 s of a 1570 Hz scan, no
+    detections (one row of 192 pixels): a :class:`WallData` for model-only tests."""
     f = 1570.0
     zc = np.arange(0, 0.2, 0.5 / f) + 1e-4
     rising = (np.arange(zc.size) % 2).astype(bool)
@@ -58,7 +60,7 @@ def _wall(rng, n_shots=400):
 
 def test_phase_follows_the_edge_delay_and_harmonics():
     rng = np.random.default_rng(1)
-    w = _wall(rng)
+    w = blank_wall(rng)
     sys0 = burkard2022()
     lay = Layout(["theta0", "edge_rising_delay", "harmonic3_cos"], 1, False)
     assert lay.names == ["theta0", "harmonic3_cos", "edge_rising_delay"]
@@ -77,7 +79,7 @@ def _synthetic_problem(rng, offsets=None, tail=None):
     """A problem whose cells' first photons are drawn from the model itself (``tail``:
     (w, τ_d) of an ex-gaussian pulse)."""
     sys0 = burkard2022()
-    w = _wall(rng, 6000)
+    w = blank_wall(rng, 6000)
     lay = Layout(["theta0", "tdc_offset"], 1, False)
     prob = Problem([w], sys0, lay, 1e-9)
     wall = np.array([0.0, 0.0, 1.5, np.log(0.3), np.log(0.6)])

@@ -8,25 +8,15 @@ import pytest
 from mems_stereo.calib import full_model as fm
 from mems_stereo.calib.hardware_fit import candidate_blocks, extended_problem, score_tests
 from mems_stereo.calib.model import harmonic_orders
-from mems_stereo.calib.problem import Cells, Layout, Problem, WallData
+from mems_stereo.calib.problem import Cells, Layout, Problem
 from mems_stereo.calib.solver import FitState, newton
+from test_hardware_fit import blank_wall
 
-from mems_stereo.model.scanner import phase_from_zero_crossings
 from mems_stereo.model.system import burkard2022
 
 H3 = harmonic_orders((3,))
 #: the drawn wall's third harmonic (cos, sin), relative amplitude
 TRUE_H3 = (0.004, -0.002)
-
-
-def _wall(rng, n_shots):
-    f = 1570.0
-    zc = np.arange(0, 0.2, 0.5 / f) + 1e-4
-    rising = (np.arange(zc.size) % 2).astype(bool)
-    t = np.sort(rng.uniform(zc[0] + 1e-5, zc[-1] - 1e-5, n_shots))
-    ph, _ = phase_from_zero_crossings(t, zc, rising)
-    bins = np.zeros((n_shots, 1, 192), dtype=np.uint16)
-    return WallData(ph, bins, np.full((1, 192), 1e5), 3.125e-10, "w", t, zc, rising)
 
 
 def _drawn(seed: int, harmonic=TRUE_H3):
@@ -35,7 +25,7 @@ def _drawn(seed: int, harmonic=TRUE_H3):
     (θ0, TDC offset and the wall free): (problem, x at that fit)."""
     rng = np.random.default_rng(seed)
     sys0 = burkard2022()
-    w = _wall(rng, 6000)
+    w = blank_wall(rng, 6000)
     names = ["theta0", "tdc_offset"]
     true_lay = Layout(names + H3, 1, False)
     prob_t = Problem([w], sys0, true_lay, 1e-9)

@@ -100,18 +100,24 @@ class FirstPhotonCorrection:
     tof: tuple[np.ndarray, np.ndarray]
 
 
+def _padded_band(acc, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(centre, a, b)``, each (Q',): the peaks ``q``'s centre range (1 where unknown)
+    and their inlier band widened by its width plus 8 steps on each side, steps a..b
+    (empty, a = 0 and b = −1, where the band is)."""
+    lo, hi = acc.band[0][q], acc.band[1][q]
+    has = hi >= lo
+    pad = np.where(has, hi - lo + 8, 0)
+    return (np.nan_to_num(acc.centre[q], nan=1.0), np.where(has, lo - pad, 0),
+            np.where(has, hi + pad, -1))
+
+
 def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False) -> BandSteps:
     """The steps around the inlier band of each peak ``q`` ((Q',) int, default all;
     the band widened by its width plus 8 steps on each side), the valid shots of
     each and the spot share of the pixel at each step (:class:`BandSteps`; with
     ``full`` also its ``spot_full``)."""
     q = np.arange(acc.Q) if q is None else np.asarray(q, np.int64)
-    lo, hi = acc.band[0][q], acc.band[1][q]
-    centre = np.nan_to_num(acc.centre[q], nan=1.0)
-    has = hi >= lo
-    pad = np.where(has, hi - lo + 8, 0)
-    a = np.where(has, lo - pad, 0)
-    b = np.where(has, hi + pad, -1)
+    centre, a, b = _padded_band(acc, q)
     B = int(min(max_steps, max(1, (b - a + 1).max())))
     steps = a[:, None] + np.arange(B)[None, :]
     S = acc.shots_per_step.size
@@ -165,12 +171,7 @@ def block_band_steps(acc, q, cut, max_steps: int = 2048) -> BlockBands:
     (:func:`~mems_stereo.physics.spot.segment_dot`): the same bits as one call per
     block, with a tenth of the calls."""
     q = np.asarray(q, np.int64)
-    lo, hi = acc.band[0][q], acc.band[1][q]
-    centre = np.nan_to_num(acc.centre[q], nan=1.0)
-    has = hi >= lo
-    pad = np.where(has, hi - lo + 8, 0)
-    a = np.where(has, lo - pad, 0)
-    b = np.where(has, hi + pad, -1)
+    centre, a, b = _padded_band(acc, q)
     span = b - a + 1
     spans = [(int(r0), int(r1)) for r0, r1 in zip(cut[:-1], cut[1:]) if r1 > r0]
     widths = np.array([min(max_steps, max(1, int(span[r0:r1].max()))) for r0, r1 in spans],
