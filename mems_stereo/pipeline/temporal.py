@@ -244,8 +244,9 @@ def tof_model_share(system):
     relative to its delay at μ0, times d; as range ``c·|d|/2``, weighted by the time of
     flight's share of the fused point (``1 − weight_stereo``), along the point's ray.
     Where the stereo carries the point (most pixels) it is nearly 0; where it is the
-    time of flight alone (the scan's turning points, ``Peaks.turning``) it is most of
-    the frame's range σ that the frames' averaging must keep."""
+    time of flight alone (a turning peak whose angle is not solved, ``Peaks.turning``:
+    a pixel the spot's tail alone lights) it is most of the frame's range σ that the
+    frames' averaging must keep."""
     sp = spreads_for(system)
     sigma = float(np.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter))
     c = system.speed_of_light
