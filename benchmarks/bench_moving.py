@@ -20,6 +20,9 @@ against the scene at its own time t (:func:`mems_stereo.sim.score.frame_scores`)
   same columns (point for point) in the reference: the seed's scene without its moving
   objects, simulated with the same light and processed as one cloud (target ≤ 1.5; the
   whole moving recording has no clean static part where the box swept most columns);
+  points in columns where the reference has no point are left out of both.  Beside it
+  the same ratio with each column once (``px ratio``, :func:`pixel_medians`: a column
+  quiet in many late frames otherwise counts that many times in both medians);
 * false points per frame (farther than max(3σ_r, 10 cm) from every surface; target
   ≤ 1 %), RMS of error/σ_r over all frame points (target 0.7–1.4);
 * coverage of each frame's lit pixels (target ≥ 0.9): a pixel is lit when one of the
@@ -266,6 +269,9 @@ def figures(r: dict) -> dict:
     quiet_late = np.concatenate([np.abs(x["s"]["error"][x["quiet"]]) for x in late]) \
         if late else np.zeros(0)
     has_ref = np.isfinite(r["reference"])  # the same pixels, point for point
+    by_pixel = pixel_medians(quiet_late[has_ref], r["late_pix"][has_ref],
+                             r["reference"][has_ref])
+    n_quiet = int(quiet_late.size)
     quiet_late, ref = quiet_late[has_ref], r["reference"][has_ref]
     fin = np.isfinite(err) & (sig > 0)
     false_frac = [x["s"]["false"].mean() if len(x["s"]["false"]) else 0.0 for x in rows]
@@ -274,6 +280,7 @@ def figures(r: dict) -> dict:
             "static_late_median": float(np.median(quiet_late)) if quiet_late.size else np.nan,
             "whole_median": float(np.median(ref)) if ref.size else np.nan,
             "static_n": int(ref.size), "static_pixels": int(np.unique(r["late_pix"]).size),
+            "static_quiet_n": n_quiet, "pixel_ratio": by_pixel,
             "false_max": float(np.max(false_frac)), "false_mean": float(np.mean(false_frac)),
             "false_over": int(np.sum(np.array(false_frac) > 0.01)),
             "false_aged": int(sum(np.sum(x["s"]["false"] & (x["frame"].cloud["age"] > 1))
@@ -296,11 +303,25 @@ def figures(r: dict) -> dict:
             "restart_n": int(r["restart"].size)}
 
 
+def pixel_medians(err: np.ndarray, pix: np.ndarray, ref: np.ndarray) -> float:
+    """The static ratio pixel for pixel, each pixel once: the median over the pixels of
+    each pixel's median |error| over its quiet late frame points (``err`` (N,) m,
+    ``pix`` (N,) their columns) over the median of the same pixels' reference |error|
+    (``ref`` (N,) m, the pixel's value at each of its points); NaN without points."""
+    if not err.size:
+        return float("nan")
+    cols, inv = np.unique(pix, return_inverse=True)
+    frame = np.array([np.median(np.abs(err[inv == i])) for i in range(cols.size)])
+    first = np.array([np.flatnonzero(inv == i)[0] for i in range(cols.size)])
+    return float(np.median(frame) / np.median(ref[first]))
+
+
 def report_seeds(results: list[dict]) -> list[dict]:
     """One line per seed; returns the seeds' :func:`figures`."""
     print(f"{'seed':>5} {'moving med':>11} {'static>=1s':>11} {'ref':>8} {'ratio':>6} "
-          f"{'static pts/px':>13} {'false max':>9} {'mean':>6} {'>1%':>4} {'RMS e/s':>8} "
-          f"{'cov min':>8} {'any ret':>8} {'restart':>8} {'frames':>7} {'s/frame':>8}  "
+          f"{'px ratio':>8} {'static pts/px':>13} {'false max':>9} {'mean':>6} {'>1%':>4} "
+          f"{'RMS e/s':>8} {'cov min':>8} {'any ret':>8} {'restart':>8} {'frames':>7} "
+          f"{'s/frame':>8}  "
           "false points per frame: 0/1/2+")
     figs = []
     for r in results:
@@ -311,6 +332,7 @@ def report_seeds(results: list[dict]) -> list[dict]:
         print(f"{r['seed']:>5} {100 * f['moving_median']:>9.2f}cm "
               f"{100 * f['static_late_median']:>9.2f}cm {100 * f['whole_median']:>6.2f}cm "
               f"{f['static_late_median'] / f['whole_median']:>6.2f} "
+              f"{f['pixel_ratio']:>8.2f} "
               f"{f['static_n']:>8}/{f['static_pixels']:<4} "
               f"{100 * f['false_max']:>8.2f}% {100 * f['false_mean']:>5.2f}% "
               f"{f['false_over']:>4} {f['rms_pull']:>8.2f} {f['coverage_min']:>8.3f} "
@@ -337,6 +359,15 @@ def report(results: list[dict]) -> None:
           f"{agg['rms_pull'].min():.2f}-{agg['rms_pull'].max():.2f} (0.7-1.4), coverage of "
           f"the pixels lit by the beam's centre per frame >= {agg['coverage_min'].min():.3f}"
           " (>= 0.9)")
+    print("static ratio, two forms over the same pixel set (the quiet late points whose "
+          "column has a point in the static reference: "
+          f"{agg['static_n'].sum()} of {agg['static_quiet_n'].sum()} over the seeds): "
+          "'ratio' (the criterion) = median |error| of those frame points / median |error| "
+          "of the reference at the same columns, point for point (a column counts once per "
+          "frame it is quiet in); 'px ratio' = median over those columns, each once, of the "
+          "column's median frame |error| / median of the same columns' reference |error|; "
+          f"px ratio over the seeds {agg['pixel_ratio'].min():.2f}-"
+          f"{agg['pixel_ratio'].max():.2f}")
     print("targets held in every seed: " + ", ".join(f"{k} {'yes' if v else 'NO'}"
                                                       for k, v in ok.items()))
     n_frames = len(results[0]["rows"])

@@ -16,13 +16,13 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
 #: pipeline stages in data-flow order; a stage may import only stages before it.  The
 #: orchestration comes last: block_fusion (the fusion in blocks of peaks), run (one
 #: process), then the Dask runner's modules, distributed (its face) last of them
-STAGES = ["consistency", "intervals", "settings", "angles", "shot_range", "histograms",
+STAGES = ["consistency", "intervals", "settings", "frame_bias", "angles", "shot_range", "histograms",
           "classify_kernel", "pass1", "peak_table", "peak_support", "acceptance",
           "step_windows", "peaks", "pass2", "matched_boxes", "matched_grid", "matched",
           "signal_store", "cloud",
           "detection_kernel", "detections", "sums", "calibration_sigma", "peak_means",
           "window_background", "first_photon_correction", "peak_geometry",
-          "fusion_inputs", "peak_estimates", "peak_accumulator", "background_entries", "fusion",
+          "fusion_inputs", "turning_angle", "peak_estimates", "peak_accumulator", "background_entries", "fusion",
           "goodness", "scan_dwell",
           "temporal", "block_fusion", "run", "dask_setup", "dask_plan", "dask_reduce",
           "dask_tasks", "dask_split", "distributed", "frames", "live_queue", "live_warmup",

@@ -96,7 +96,10 @@ def test_frame_scores_against_the_scene_at_the_points_time():
 def test_frames_of_an_approaching_box_are_sharp_at_their_own_time():
     """A small case of benchmarks/bench_moving.py: a box approaching at 0.8 m/s, frames of
     50 ms.  Its points lie within 3 cm (median) of the box at each point's t; scored at
-    t + 0.1 s (8 cm of motion) they do not."""
+    t + 0.1 s (8 cm of motion) they do not.  Coverage above 0.9 and false points within
+    the issue's 1 % a frame (the wall at the box's laser-shadow edge, lit by part of the
+    sweep, gives one at 3.4σ in the first frame: 2.96σ before frames removed every
+    mean-angle bias)."""
     sc = as_moving(scene_from_dict({"objects": [
         wall(z=4.0),
         {"type": "box", "center": [-0.3, 0, 2.2], "size": [0.4, 1.0, 0.4],
@@ -111,7 +114,7 @@ def test_frames_of_an_approaching_box_are_sharp_at_their_own_time():
         s = frame_scores(f.cloud, sc, np.any(lab[inside] == 1, axis=0))
         box = s["object"] == 1
         assert box.sum() > 20 and np.median(np.abs(s["error"][box])) < 0.03
-        assert s["coverage"] > 0.9 and not s["false"].any()
+        assert s["coverage"] > 0.9 and s["false"].mean() <= 0.01
         late = PointCloud(f.cloud.points, {**f.cloud.attributes, "t": f.cloud["t"] + 0.1})
         s_late = frame_scores(late, sc, np.ones((1, 192), bool))
         assert np.median(np.abs(s_late["error"][s_late["object"] == 1])) > 0.05

@@ -31,6 +31,7 @@ from mems_stereo.io.recording import Recording, iter_shot_chunks, read_header
 from mems_stereo.model.system import System
 from mems_stereo.pipeline.classify_kernel import compiled_blocks
 from mems_stereo.pipeline.cloud import PointCloud
+from mems_stereo.pipeline.frame_bias import every_bias_removed
 from mems_stereo.pipeline.pass1 import Counts
 from mems_stereo.pipeline.run import process_recording, run_table
 from mems_stereo.pipeline.settings import Settings
@@ -293,7 +294,9 @@ def frame_cloud(system: System, shots: FrameShots, settings: Settings, table, so
         return _empty_cloud(k, k)
     truth = {} if shots.labels is None else {"label": shots.labels}
     rec = Recording(system, shots.times, shots.bins, shots.zc, shots.rising, truth, source)
-    with compiled_blocks():  # a frame's passes by the kernels the processor loaded
+    # a frame's passes by the kernels the processor loaded; every mean-angle bias
+    # removed (the fusion averages the frames' noise, not a bias they share)
+    with compiled_blocks(), every_bias_removed():
         res = process_recording(rec, system, settings, table=table)
     cloud = res.cloud
     band = peak_of_points(res.peaks, cloud, system.receiver.width)

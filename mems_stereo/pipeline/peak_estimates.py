@@ -13,16 +13,20 @@ from __future__ import annotations
 import numpy as np
 
 from mems_stereo.pipeline.first_photon_correction import correcting, first_photon_correction
+from mems_stereo.pipeline.frame_bias import removing_every_bias
 from mems_stereo.pipeline.peak_geometry import (
     stereo_angle_jacobian,
     stereo_at_mean_angle,
     stereo_cov_at_mean_angle,
 )
 from mems_stereo.pipeline.peak_means import PeakMeans, fuse_along_ray
+from mems_stereo.pipeline.turning_angle import turning_angles
 
 #: systematic σ, in pixels, of the stereo of a peak where the scan turns inside the
-#: pixel's footprint (:func:`_with_turning`)
-TURNING_PIXEL_SIGMA = 0.5
+#: pixel's footprint and its angle is not solved (:func:`_with_turning`; mostly a pixel
+#: the spot's tail alone lights, whose stereo at the mean angle less its expected bias
+#: was 0.85 px off at the wall of benchmarks/bench_moving.py, seed 6, column 191)
+TURNING_PIXEL_SIGMA = 1.0
 
 
 def peak_means_of(acc) -> PeakMeans:
@@ -58,17 +62,16 @@ def peak_means_of(acc) -> PeakMeans:
           else None)
     with np.errstate(invalid="ignore", divide="ignore"):  # ∂x/∂θ at the mean angle
         Jt = stereo_angle_jacobian(acc.system, acc.rows, acc.cols, s.theta / n)
+    turn = None
     if fp is not None:  # the stereo at the mean angle less its expected bias
         mean["tof"] = fp.tof
-        removed = _significant_bias(acc, Jt, mean["stereo"][1], birge, fp.angle_bias)
-        st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, acc.sums.theta, n,
-                                  mean["stereo"][0], angle_bias=fp.angle_bias, step=grid,
-                                  removed=removed)
-        mean["stereo"] = (st.point, mean["stereo"][1])
+        st, mean["stereo"], turn = _stereo_less_bias(acc, fp, Jt, mean["stereo"], birge,
+                                                     grid)
     # the stereo mean's spread is that of its mean scan angle: binomial, not
-    # Poisson, where the scan revisits its angles (angle_binomial_factor)
-    scale = {"stereo": birge if fp is None else birge * fp.angle_binomial,
-             "tof": birge}
+    # Poisson, where the scan revisits its angles (angle_binomial_factor; a solved
+    # turning peak's is binomial already)
+    scale = {"stereo": birge if fp is None else
+             birge * np.where(turn.solved, 1.0, fp.angle_binomial), "tof": birge}
     for name in ("stereo", "tof"):
         mean[name] = (mean[name][0], mean[name][1] * scale[name][:, None, None])
     if st.cov_sys is not None:  # systematic: not scaled
@@ -87,7 +90,7 @@ def peak_means_of(acc) -> PeakMeans:
     # (scatter, pixel location, background, first-photon model), combined by
     # their range variances (a stereo mean near the beam's vanishing point,
     # σ of metres, then leaves the ToF alone instead of dragging the mean)
-    mean["stereo"] = _with_turning(acc, st.range_per_px, mean["stereo"])
+    mean["stereo"] = _with_turning(acc, st.range_per_px, mean["stereo"], turn)
     mean["fused"] = fuse_along_ray(mean["stereo"], mean["tof"])
     return PeakMeans(acc.system, acc.k, acc.rows, acc.cols, acc.peak_code,
                      mean["stereo"], mean["tof"], n, s.detections, s.window, s.code,
@@ -95,21 +98,53 @@ def peak_means_of(acc) -> PeakMeans:
                      None if fp is None else fp.delay, None if fp is None else fp.mu)
 
 
-def _with_turning(acc, range_per_px, stereo):
-    """The stereo mean ``(x, C)`` with, at the peaks where the scan turns inside the
-    footprint (``acc.turning``), a systematic σ of :data:`TURNING_PIXEL_SIGMA` pixels
-    along the stereo's m per pixel ``range_per_px`` (Q, 3) (None: unchanged).  Their
-    shots bunch at the turning point, one edge of the footprint: the mean angle is
-    that of the beam's last crossing, whose image lies up to the spot's reach (about a
-    pixel) from the pixel's centre, so the stereo is off by that many pixels; the time
-    of flight is not (each return lies on its own shot's ray), and the fused point
-    leans on it."""
+def _with_turning(acc, range_per_px, stereo, turn=None):
+    """The stereo mean ``(x, C)`` at the peaks where the scan turns inside the
+    footprint (``acc.turning``).  Where their angle was solved (``turn``, a
+    :class:`~mems_stereo.pipeline.turning_angle.TurningAngles`; None: none), every
+    error of the mean angle reaches the solved angle divided by the slope ``dem/dδ``:
+    C scaled by ``1/slope²``.  Elsewhere (a pixel the spot's tail alone lights, or no
+    first-photon model) a systematic σ of :data:`TURNING_PIXEL_SIGMA` pixels along the
+    stereo's m per pixel ``range_per_px`` (Q, 3) (None: unchanged): the shots bunch at
+    the turning point, one edge of the footprint, whose image lies up to the spot's
+    reach (about a pixel) from the pixel's centre; the time of flight is not off (each
+    return lies on its own shot's ray), and the fused point leans on it."""
     turning = acc.turning
     if range_per_px is None or not np.any(turning):
         return stereo
+    x, C = stereo
+    if turn is not None and np.any(turn.solved):
+        C = C / np.where(turn.solved, turn.slope ** 2, 1.0)[:, None, None]
+        turning = turning & ~turn.solved
     J = np.where(turning[:, None], np.nan_to_num(range_per_px), 0.0)
     add = TURNING_PIXEL_SIGMA ** 2 * J[:, :, None] * J[:, None, :]
-    return (stereo[0], stereo[1] + add)
+    return (x, C + add)
+
+
+def _stereo_less_bias(acc, fp, Jt, stereo, birge, grid):
+    """``(MeanAngleStereo, (x, C), TurningAngles)``: the stereo at each peak's mean angle
+    less its expected bias (``fp`` the :class:`FirstPhotonCorrection`), removed where
+    significant (:func:`_significant_bias`; everywhere in a frame:
+    :func:`~mems_stereo.pipeline.frame_bias.every_bias_removed`) and at the turning
+    peaks whose footprint's angle is solved
+    (:func:`~mems_stereo.pipeline.turning_angle.turning_angles`); at those the mean
+    angle's statistical covariance ``C`` is the firings' binomial variance given the
+    shots (``var_em``) along ``Jt`` (Q, 3) m/rad."""
+    s = acc.sums
+    n = s.n
+    removed = (np.ones(n.shape, bool) if removing_every_bias()
+               else _significant_bias(acc, Jt, stereo[1], birge, fp.angle_bias))
+    turn = turning_angles(acc, fp.mu, s.theta / n)
+    st = stereo_at_mean_angle(acc.system, acc.rows, acc.cols, s.theta, n, stereo[0],
+                              step=grid, removed=removed | turn.solved,
+                              angle_bias=np.where(turn.solved, turn.bias, fp.angle_bias))
+    C = stereo[1]
+    if np.any(turn.solved):
+        q = turn.solved
+        C = C.copy()
+        C[q] = (turn.var_em[q] * acc.step_grid[1] ** 2)[:, None, None] \
+            * Jt[q, :, None] * Jt[q, None, :]
+    return st, (st.point, C), turn
 
 
 def _significant_bias(acc, Jt, cov_stereo, birge, angle_bias):

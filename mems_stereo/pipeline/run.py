@@ -204,10 +204,10 @@ def process_recording(path, system: System | None = None,
     --------
     >>> result = ms.process_recording(ms.data.path("room.h5"))
     >>> result.counts.peaks, result.counts.points
-    (78, 74)
+    (78, 73)
     >>> cloud = result.cloud
     >>> cloud.points.shape, cloud.points.dtype
-    ((74, 3), dtype('float64'))
+    ((73, 3), dtype('float64'))
     >>> bool((cloud.attributes["range"] > 1.0).all())
     True
     """

@@ -20,8 +20,9 @@ one that does not agree restarts the pixel's history with itself.
 
 **σ model.**  A frame point's error is a random part (photon counts, timing, pixel
 extent: the pipeline's σ_r, independent from frame to frame) plus a part common to every
-frame of the pixel, σ_sys (``systematic(cloud)``, by default :func:`shared_errors`: the
-scan's dwell skew of :class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`, the first-photon
+frame of the pixel, σ_sys (``systematic(cloud)``, by default :func:`shared_errors`: what
+a frame's removal of its mean-angle bias leaves of the scan's dwell skew
+(:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`), the first-photon
 model's share of the time of flight, :func:`tof_model_share`, and a calibrated system's
 parameter errors).  Only the random part averages:
 
@@ -51,6 +52,7 @@ from mems_stereo.pipeline.calibration_sigma import (
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import k_from_confidence
 from mems_stereo.pipeline.first_photon_correction import MODEL_DELAY_FRACTION, MU_MODEL_FACTOR
+from mems_stereo.pipeline.peak_geometry import ANGLE_BIAS_FRACTION
 from mems_stereo.pipeline.scan_dwell import DwellSkew, Systematic
 
 #: the attributes the fusion replaces by their fused values (besides points)
@@ -191,15 +193,22 @@ class TemporalFusion:
 
 def shared_errors(system):
     """``cloud -> Systematic``: the errors every frame of a pixel shares on a line
-    scanner, the scan's dwell skew (:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`),
-    the first-photon model's share of the time of flight (:func:`tof_model_share`) and,
+    scanner, the scan's dwell skew (:class:`~mems_stereo.pipeline.scan_dwell.DwellSkew`)
+    as far as its removal leaves it (a frame removes every peak's expected mean-angle
+    bias, :mod:`~mems_stereo.pipeline.frame_bias`, within
+    :data:`~mems_stereo.pipeline.peak_geometry.ANGLE_BIAS_FRACTION` of it), the
+    first-photon model's share of the time of flight (:func:`tof_model_share`) and,
     for a system that carries its calibration's covariance, the calibration's share
     of each point (:func:`~mems_stereo.pipeline.calibration_sigma.calibration_point_covariance`:
     a parameter error moves every frame's point alike, so it must not average down with
     the frames); they are independent and add in quadrature."""
-    dwell = DwellSkew(system).systematic
+    skew = DwellSkew(system).systematic
     tof = tof_model_share(system)
     with_cal = calibration_covariance(system) is not None
+
+    def dwell(cloud: PointCloud) -> Systematic:
+        d = skew(cloud)  # removed in every frame, but for its allowance
+        return Systematic(ANGLE_BIAS_FRACTION * d.sigma_r, ANGLE_BIAS_FRACTION * d.dx)
 
     def systematic(cloud: PointCloud) -> Systematic:
         common = _plus(dwell(cloud), tof(cloud))
@@ -235,8 +244,9 @@ def tof_model_share(system):
     relative to its delay at μ0, times d; as range ``c·|d|/2``, weighted by the time of
     flight's share of the fused point (``1 − weight_stereo``), along the point's ray.
     Where the stereo carries the point (most pixels) it is nearly 0; where it is the
-    time of flight alone (the scan's turning points, ``Peaks.turning``) it is most of
-    the frame's range σ that the frames' averaging must keep."""
+    time of flight alone (a turning peak whose angle is not solved, ``Peaks.turning``:
+    a pixel the spot's tail alone lights) it is most of the frame's range σ that the
+    frames' averaging must keep."""
     sp = spreads_for(system)
     sigma = float(np.hypot(sp.sigma_t_pulse, sp.sigma_t_jitter))
     c = system.speed_of_light
