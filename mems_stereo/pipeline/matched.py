@@ -47,8 +47,8 @@ from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
 from mems_stereo.physics.pulse import effective_fwhm
+from mems_stereo.pipeline.matched_best_kernel import BestBoxGrid
 from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
-from mems_stereo.pipeline.matched_grid import CompiledGrid
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_support import (
     FRAME_FALSE_ALARMS,
@@ -181,7 +181,7 @@ class _CandidateSearch:
         # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
         n_cell = (c_hi - c_lo) // cell + 1
         h = -np.expm1(-float(self.rate_hz[i]) * self.bw)
-        grid = (CompiledGrid if self.compiled and n_cell >= 1 else BoxGrid)(
+        grid = (BestBoxGrid if self.compiled and n_cell >= 1 else BoxGrid)(
             e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi, self.n_per_step[a:b + 1], c_lo,
             cell, np.log1p(-min(h, 1 - 1e-15)), n_cell)
         box = grid.best(cands.width, 2 * self.half_c + 1, self.settings.min_counts,
