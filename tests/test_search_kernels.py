@@ -132,3 +132,38 @@ def test_firing_kernels_equal_numpy(monkeypatch):
     np.testing.assert_allclose(fast[0], direct, rtol=1e-9)
     np.testing.assert_allclose(fast[1].reshape(-1, fp.MU_GRID.size), np.log(p / (1 - p)),
                                rtol=1e-9, atol=1e-12)
+
+
+def test_candidate_intervals_kernel_equals_numpy():
+    """A candidate's accepted codes over a range of steps and their figures (steps that
+    accept a code, lowest and highest code, area, widest): the compiled loop against
+    NumPy's, and against the figures written out step by step (integers: equal)."""
+    from types import SimpleNamespace
+
+    from mems_stereo.pipeline.matched import _CandidateSearch
+
+    rng = np.random.default_rng(11)
+    S, P = 700, 9
+    lo_t = rng.integers(1, 900, (S, P)).astype(np.uint16)
+    hi_t = (lo_t.astype(np.int64) + rng.integers(-60, 300, (S, P))).clip(0, 1023)
+    nps = np.where(rng.random(S) < 0.6, rng.integers(1, 5, S), 0).astype(np.float64)
+    for a, b, pix in [(0, S - 1, 3), (100, 180, 0), (650, 699, 8), (5, 5, 2), (20, 24, 1)]:
+        nps_ab = nps.copy()
+        if b - a < 6:
+            nps_ab[a:b + 1] = 0.0  # no valid shots: nothing accepted
+        out = []
+        for compiled in (True, False):
+            me = SimpleNamespace(n_per_step=nps_ab, filled=True, pix=np.full(10, pix),
+                                 compiled=compiled,
+                                 table=SimpleNamespace(lo=lo_t, hi=hi_t.astype(np.uint16)))
+            out.append(_CandidateSearch.intervals(me, 0, a, b))
+        (lo, hi, acc), (lo_n, hi_n, acc_n) = out
+        assert np.array_equal(lo, lo_n) and np.array_equal(hi, hi_n)
+        assert np.array_equal(acc, acc_n) and lo.dtype == hi.dtype == np.int64
+        steps = [j for j in range(a, b + 1) if nps_ab[j] > 0 and lo_t[j, pix] <= hi_t[j, pix]]
+        widths = [int(hi_t[j, pix]) - int(lo_t[j, pix]) + 1 for j in steps]
+        assert acc[0] == len(steps) and acc[3] == sum(widths)
+        if steps:
+            assert (acc[1], acc[2], acc[4]) == (min(int(lo_t[j, pix]) for j in steps),
+                                                max(int(hi_t[j, pix]) for j in steps),
+                                                max(widths))

@@ -110,6 +110,31 @@ def _box(row, p) -> BestBox:
     return BestBox(float(p), int(row[STEP]), int(row[CELL]), row[COUNT], row[BACKGROUND])
 
 
+def step_intervals_py(nps, lo_t, hi_t, pix, a, b):  # pragma: no cover - numba
+    """The matched filter's accepted codes of pixel ``pix`` at steps a..b
+    (:meth:`~mems_stereo.pipeline.matched._CandidateSearch.intervals`): ``lo``, ``hi``
+    (b − a + 1,) int64 from the interval table ``lo_t``, ``hi_t`` (S, P) (1, 0 where
+    ``nps`` (S,), the valid shots, is 0) and (5,) int64: the steps accepting a code,
+    their lowest and highest code, Σ(hi − lo + 1) and the widest interval (all 0
+    where no step accepts a code)."""
+    n = b - a + 1
+    lo, hi = np.empty(n, np.int64), np.empty(n, np.int64)
+    out = np.zeros(5, np.int64)
+    out[1], out[2] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
+    for j in range(n):
+        lo[j], hi[j] = 1, 0
+        if nps[a + j] > 0:
+            lo[j], hi[j] = lo_t[a + j, pix], hi_t[a + j, pix]
+        if lo[j] <= hi[j]:
+            out[0] += 1
+            out[1], out[2] = min(out[1], lo[j]), max(out[2], hi[j])
+            out[3] += hi[j] - lo[j] + 1
+            out[4] = max(out[4], hi[j] - lo[j] + 1)
+    if out[0] == 0:
+        out[1], out[2] = 0, 0
+    return lo, hi, out
+
+
 def best_kernel_py(ds, dc, cnt, lo, hi, nps, powers, p, min_counts):  # pragma: no cover
     """The windows of ``BoxGrid.best`` (``p`` = (n_steps, n_cell, box_s, box_c,
     full_cells, c_lo, cell)), each by :func:`~mems_stereo.pipeline.matched_grid.window_kernel_py`:
