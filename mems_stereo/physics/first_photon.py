@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 from scipy.special import ndtr
 
-from mems_stereo.physics.first_photon_kernel import band_kernel, band_moments
+from mems_stereo.physics.first_photon_kernel import band_kernel, band_moments, firing_kernels
 from mems_stereo.physics.pulse import FWHM_PER_SIGMA, PulseShape
 
 # --------------------------------------------------------------------------
@@ -215,6 +215,11 @@ OUTLIER_PROBABILITY = 0.02
 
 def detection_log_odds(f):
     """log p − log(1 − p) of a shot with spot share f (…) on the μ0 grid -> (…, J)."""
+    kernels = firing_kernels()
+    if kernels is not None:  # (compiled: the same numbers)
+        f = np.asarray(f, np.float64)
+        out = kernels[1](np.ascontiguousarray(f).ravel(), MU_GRID, OUTLIER_PROBABILITY)
+        return out.reshape(f.shape + (MU_GRID.size,))
     p = firing_probability(f)
     return np.log(p) - np.log1p(-p)
 
@@ -245,6 +250,10 @@ def band_log_miss_rows(Q: int, row, n, f):
     entry's row (each row's entries in band order), ``n`` (N,) float64 its valid shots
     (not 0) and ``f`` (N,) its spot share; the same sums (each row's entries added in
     order, whatever the other rows)."""
+    kernels = firing_kernels()
+    if kernels is not None:  # (compiled: the same sums)
+        return kernels[0](Q, np.asarray(row, np.int64), np.asarray(n, np.float64),
+                          np.asarray(f, np.float64), MU_GRID, OUTLIER_PROBABILITY)
     out = np.zeros((Q, MU_GRID.size))
     if np.size(row):
         np.add.at(out, row, np.asarray(n, np.float64)[:, None]

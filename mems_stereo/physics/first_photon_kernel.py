@@ -14,6 +14,8 @@ the same numbers.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mems_stereo.physics.background import pairwise_plan
@@ -29,6 +31,41 @@ def band_kernel():
         return None
     return compiled_kernel(_band_moments_py, {"_lookup": _lookup, "_peak_sums": _peak_sums,
                                               "_sparse_pairwise": _sparse_pairwise})
+
+
+def firing_kernels():
+    """``(log_miss, log_odds)``: the compiled :func:`_log_miss_rows_py` and
+    :func:`_log_odds_py` where numba is imported already, else None (the caller then
+    uses NumPy).  Their ``expm1``, ``log`` and ``log1p`` are the C library's, as
+    NumPy's float64 functions are on CPUs where NumPy has no vectorised forms of them
+    (as on this project's machines: the same bits; elsewhere within a unit in the
+    last place)."""
+    import sys
+
+    if "numba" not in sys.modules:
+        return None
+    return compiled_kernel(_log_miss_rows_py), compiled_kernel(_log_odds_py)
+
+
+def _log_miss_rows_py(Q, row, n, f, mu, e):  # pragma: no cover - compiled by numba
+    """(Q, J) ``Σ n·ln(1 − P(inlier))`` of the entries (``row``, ``n``, ``f`` (N,)) on
+    the μ0 grid ``mu`` (J,), each row's entries added in order (``np.add.at``'s)."""
+    out = np.zeros((Q, mu.size))
+    for t in range(row.size):
+        for j in range(mu.size):
+            p = min(e + (1 - e) * -math.expm1(-mu[j] * f[t]), 1.0 - 1e-12)
+            out[row[t], j] += n[t] * math.log1p(-p)
+    return out
+
+
+def _log_odds_py(f, mu, e):  # pragma: no cover - compiled by numba
+    """(N, J) ``ln p − ln(1 − p)`` of P(inlier) at the shares ``f`` (N,) on ``mu``."""
+    out = np.empty((f.size, mu.size))
+    for t in range(f.size):
+        for j in range(mu.size):
+            p = min(e + (1 - e) * -math.expm1(-mu[j] * f[t]), 1.0 - 1e-12)
+            out[t, j] = math.log(p) - math.log1p(-p)
+    return out
 
 
 def band_moments(kernel, f_band, n_band, ex, lm, a, zero_values, table):

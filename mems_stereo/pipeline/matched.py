@@ -47,8 +47,8 @@ from scipy.special import pdtrc
 
 from mems_stereo.model.system import System
 from mems_stereo.physics.pulse import effective_fwhm
+from mems_stereo.pipeline.matched_best_kernel import BestBoxGrid, step_intervals_py
 from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
-from mems_stereo.pipeline.matched_grid import CompiledGrid
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_support import (
     FRAME_FALSE_ALARMS,
@@ -59,6 +59,7 @@ from mems_stereo.pipeline.peak_support import (
 )
 from mems_stereo.pipeline.peak_table import PEAK_ARRAYS, Candidates, Peaks, window_rows
 from mems_stereo.pipeline.settings import Settings
+from mems_stereo.util.lazy_numba import compiled_kernel
 
 #: share of ``false_alarm`` given to the matched-filter stage
 MATCHED_SHARE = 0.5
@@ -154,17 +155,34 @@ class _CandidateSearch:
         """Whether candidate ``i`` has any counted entry."""
         return bool(self.start[i + 1] > self.start[i])
 
+    def intervals(self, i: int, a: int, b: int):
+        """``(lo, hi, accepted)``: candidate ``i``'s accepted codes at steps a..b
+        ((b − a + 1,) int64; 1, 0 at a step without valid shots: it holds nothing) and
+        (5,) int64 figures of the steps that accept a code: their number, the lowest
+        and highest code, the area Σ(hi − lo + 1) and the widest interval, 0 where no
+        step accepts (one compiled loop where numba is loaded,
+        :func:`~mems_stereo.pipeline.matched_best_kernel.step_intervals_py`: integers)."""
+        shot = self.n_per_step[a:b + 1] > 0
+        if not self.filled:
+            self.table.ensure(np.arange(a, b + 1)[shot])
+        if self.compiled:
+            return compiled_kernel(step_intervals_py)(self.n_per_step, self.table.lo,
+                                                      self.table.hi, int(self.pix[i]), a, b)
+        lo = np.where(shot, self.table.lo[a:b + 1, self.pix[i]], 1).astype(np.int64)
+        hi = np.where(shot, self.table.hi[a:b + 1, self.pix[i]], 0).astype(np.int64)
+        okj = lo <= hi
+        if not np.any(okj):
+            return lo, hi, np.zeros(5, np.int64)
+        w = hi[okj] - lo[okj] + 1
+        return lo, hi, np.array([okj.sum(), lo[okj].min(), hi[okj].max(), w.sum(), w.max()],
+                                np.int64)
+
     def search(self, i: int, a: int, b: int, whole: bool) -> BoxSearch | None:
         """Candidate ``i``'s best box over steps a..b (``whole``: its whole scan, else
         the first stage's window), or None."""
-        cands, table, m, cell = self.cands, self.table, self.m, self.cell
-        shot = self.n_per_step[a:b + 1] > 0  # steps without valid shots hold nothing
-        if not self.filled:
-            table.ensure(np.arange(a, b + 1)[shot])
-        lo = np.where(shot, table.lo[a:b + 1, self.pix[i]], 1).astype(np.int64)
-        hi = np.where(shot, table.hi[a:b + 1, self.pix[i]], 0).astype(np.int64)
-        okj = lo <= hi
-        if not np.any(okj):
+        cands, m, cell = self.cands, self.m, self.cell
+        lo, hi, accepted = self.intervals(i, a, b)
+        if accepted[0] == 0:
             return None
         sl = slice(self.start[i], self.start[i + 1])
         e_step, e_code, e_cnt = self.step[sl], self.code[sl], self.cnt[sl]
@@ -175,13 +193,13 @@ class _CandidateSearch:
             return None
         # codes: the accepted ones within one box of a counted detection (elsewhere
         # no box reaches min_counts)
-        c_lo = max(int(lo[okj].min()), int(e_code.min()) - m)
-        c_hi = min(int(hi[okj].max()), int(e_code.max()) + m)
+        c_lo = max(int(accepted[1]), int(e_code.min()) - m)
+        c_hi = min(int(accepted[2]), int(e_code.max()) + m)
         # codes in cells of ``cell`` (a quarter of the box's half-width): the box is
         # ``2·(m // cell) + 1`` cells, ± m codes to within a cell
         n_cell = (c_hi - c_lo) // cell + 1
         h = -np.expm1(-float(self.rate_hz[i]) * self.bw)
-        grid = (CompiledGrid if self.compiled and n_cell >= 1 else BoxGrid)(
+        grid = (BestBoxGrid if self.compiled and n_cell >= 1 else BoxGrid)(
             e_step - a, (e_code - c_lo) // cell, e_cnt, lo, hi, self.n_per_step[a:b + 1], c_lo,
             cell, np.log1p(-min(h, 1 - 1e-15)), n_cell)
         box = grid.best(cands.width, 2 * self.half_c + 1, self.settings.min_counts,
@@ -194,10 +212,10 @@ class _CandidateSearch:
             # one box's, as code positions per footprint window (the widest interval
             # times the windows over-counts them where the width varies: a scan past
             # the beam's vanishing point accepts every code at a few steps)
-            area = float(np.sum(hi[okj] - lo[okj] + 1))
+            area = float(accepted[3])
             n_code_pos = max(1.0, area / (cands.width * self.box_codes) / max(1.0, float(n_w)))
         else:  # the first stage's window: the code boxes of its widest interval
-            n_code_pos = max(1.0, float((hi[okj] - lo[okj] + 1).max()) / self.box_codes)
+            n_code_pos = max(1.0, float(accepted[4]) / self.box_codes)
         lvl = self.settings.false_alarm * MATCHED_SHARE / (max(1.0, n_w) * n_code_pos)
         return BoxSearch(box.p, a + box.j, c_lo + box.k * cell + cell // 2, box.count,
                          box.background, lvl, n_code_pos)

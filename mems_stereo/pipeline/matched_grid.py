@@ -179,6 +179,12 @@ def _valid_boxes_py(A, busy, h, w, min_counts, cut_lo, cut_hi):  # pragma: no co
         c0 = 0 if cut_lo else hc
         c1 = m if cut_hi else max(0, m - hc)
         for i in range(half, n - half):
+            if row[ri[i]] == row[ri[i + h]]:  # no busy row in the box: every sum is
+                for j in range(c0, c1):  # x − x − y + y = +0.0 (a step not visited)
+                    out[0, i, j] = 0.0
+                    if 0.0 >= min_counts:
+                        out[1, i, j] = 0.0
+                continue
             for j in range(c0, c1):
                 N = _box_at_inline(c, row, ri, ci, 0, i, j, h, w)
                 out[0, i, j] = N
@@ -288,3 +294,5 @@ _largest_inline = _largest_py
 _HELPERS = {"_background_rows": _background_rows_py, "_screened_inline": screened_boxes_py,
             "_box_scan_inline": _valid_boxes_py, "_running_sums_inline": _running_sums_py,
             "_box_at_inline": _box_at_py, "_largest_inline": _largest_py}
+#: the same, for kernels that call :func:`window_kernel_py` (compile it with these first)
+WINDOW_HELPERS = _HELPERS
