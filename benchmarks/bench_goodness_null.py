@@ -117,12 +117,29 @@ def analyse(tr: dict) -> dict:
 
 
 def replica_pvalues(tr: dict, k: int, seed: int) -> dict:
-    from mems_stereo.calib.goodness_null import null_pvalues
+    """p-values on ``k`` replicas of a trial's cells drawn from the model at its fit:
+    the calibration's tests ("time: …", "column: …") and, for comparison, the time
+    tests as F tests over the cells' own mean square ("F test: …": ``weights`` an
+    array: a pixel or code with the information of 5 average cells its own group)."""
+    from mems_stereo.calib.goodness import calibration_goodness, cell_residuals
+    from mems_stereo.calib.goodness_null import resampled
+
+    from mems_stereo.pipeline.goodness import structure_tests
 
     if tr["problem"] is None or k <= 0:
         return {}
-    return {n: v.tolist() for n, v in
-            null_pvalues(tr["problem"], tr["x"], k, np.random.default_rng([seed, 77])).items()}
+    rng = np.random.default_rng([seed, 77])
+    out: dict = {}
+    for _ in range(k):
+        prob = resampled(tr["problem"], tr["x"], rng)
+        for part, rep in zip(("time", "column"), calibration_goodness(prob, tr["x"])):
+            for f in rep.findings:
+                out.setdefault(f"{part}: {f.name}", []).append(f.p_value)
+        r = cell_residuals(prob, tr["x"])
+        for f in structure_tests(r.time, phase=r.phase, pixel=r.pixel, code=r.code,
+                                 signal=r.signal, weights=r.time_info).findings:
+            out.setdefault(f"F test: {f.name}", []).append(f.p_value)
+    return out
 
 
 def run_one(task) -> dict:
@@ -160,7 +177,7 @@ def uniformity(p) -> str:
             f"{int(np.sum(p < 0.01))} (expected {p.size * 0.01:.2g})")
 
 
-def summary(recs: list, log) -> None:
+def summary(recs: list, log, hw: str = "ideal") -> None:
     fitted = [r for r in recs if r["ok"]]
     refused = [r for r in recs if not r["ok"]]
     log(f"trials {len(recs)}: fits written {len(fitted)}, refused by another check "
@@ -173,7 +190,7 @@ def summary(recs: list, log) -> None:
     pooled = [v for r in recs for k, v in r["p"].items() if not k.startswith("score")]
     log(f"  {'pooled structure tests':28s} {uniformity(pooled)}")
     bad = [r for r in recs if r["refused"]]
-    log(f"goodness verdict refusing ideal hardware: {len(bad)} / {len(recs)} trials "
+    log(f"goodness verdict refusing {hw} hardware: {len(bad)} / {len(recs)} trials "
         f"({100.0 * len(bad) / max(len(recs), 1):.1f} %)"
         + "".join(f"; seed {r['seed']}: {', '.join(r['refused'])}" for r in bad))
     reps = {}
@@ -238,7 +255,7 @@ def main(argv=None) -> int:
     else:
         for t in tasks:
             _keep(run_one(t), recs, crashes, args.records)
-    summary(recs, log)
+    summary(recs, log, hw)
     log(f"trials that raised: {len(crashes)}"
         + "".join(f"; seed {c['seed']}: {c['crash']}" for c in crashes))
     cpu = [r["cpu"] for r in recs]
