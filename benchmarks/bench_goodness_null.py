@@ -217,6 +217,8 @@ def main(argv=None) -> int:
     ap.add_argument("--imperfect", action="store_true",
                     help="the trials' imperfect hardware instead (the tests' power)")
     ap.add_argument("--records", default=None, help="append each trial as a JSON line")
+    ap.add_argument("--summarise", default=None, metavar="RECORDS",
+                    help="print the summary of a records file (e.g. of another commit) and exit")
     ap.add_argument("--log", default=str(ROOT / "benchmarks" / "results" / "goodness_null.log"))
     ap.add_argument("--note", default="")
     args = ap.parse_args(argv)
@@ -227,6 +229,14 @@ def main(argv=None) -> int:
         lines.append(s)
 
     t0 = time.perf_counter()
+    if args.summarise:
+        recs = [json.loads(x) for x in Path(args.summarise).read_text().splitlines() if x]
+        log(f"bench_goodness_null: summary of {len(recs)} trial records of {args.summarise}")
+        if args.note:
+            log(args.note)
+        summary(recs, log, "imperfect" if args.imperfect else "ideal")
+        Path(args.log).write_text("\n".join(lines) + "\n")
+        return 0
     if args.reanalyse:
         args.cache = args.reanalyse
         seeds = sorted(int(p.stem[5:]) for p in Path(args.reanalyse).glob("trial*.pkl"))

@@ -24,8 +24,10 @@ The scores' null distribution: a cell expecting m ≪ 1 signal photons has a tim
 score of about z/σ when a signal photon arrives (probability ≈ m) and about 0
 otherwise — over its RMS √m/σ it is 0 mostly and z/√m now and then (excess
 kurtosis ≈ 3/m).  The cells' own mean square is then no estimate of their
-variance: on the family's ideal-hardware walls it spreads ±18 % from draw to draw
-with its median below 1, and an F test over it refused 10–25 times its rate.  The
+variance: on seed 1043's fit it spreads ±18 % from draw to draw with its median
+below 1, and on cells drawn from the model at nine of the family's fits an F test
+over it put 2 of 72 pixel-test p-values below the per-test level 1.4·10⁻⁴
+(expected 0.01; ``benchmarks/results/goodness_null_replicas.log``).  The
 tests therefore use the variance the model gives (1: χ² tests), give a pixel or a
 code its own mean only where its cells carry :data:`MIN_GROUP_INFO` expected photons
 (σ²·F summed), and refer the pixel and code blocks to the χ² scaled for their
