@@ -5,10 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from mems_stereo.calib.goodness_null import first_events
 from scipy import stats
 from scipy.special import ndtr
-
-from mems_stereo.calib.goodness_null import first_events
 
 
 def test_first_events_follow_the_first_photon_law():
@@ -29,7 +28,7 @@ def test_first_events_follow_the_first_photon_law():
         fired = np.isfinite(t)
         assert fired.mean() == pytest.approx(p_fire, abs=4 * np.sqrt(p_fire / n))
         assert np.all((t[fired] >= 0) & (t[fired] <= t_max))
-        ks = stats.kstest(t[fired], lambda s: cdf(s) / p_fire)
+        ks = stats.kstest(t[fired], lambda s, p=p_fire: cdf(s) / p)
         assert ks.pvalue > 1e-3, (tau, m, ks)
 
 
@@ -41,10 +40,9 @@ def test_drawn_cells_have_the_expected_information_as_score_variance():
     (standard error about 0.05 per draw set)."""
     from dataclasses import replace
 
-    from test_hardware_fit import _synthetic_problem
-
     from mems_stereo.calib.goodness import cell_residuals
     from mems_stereo.calib.goodness_null import resampled
+    from test_hardware_fit import _synthetic_problem
 
     prob, x = _synthetic_problem(np.random.default_rng(2))
     c = prob.cells[0]
