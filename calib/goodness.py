@@ -20,6 +20,21 @@ of high-variance cells (early codes, central pixels) look like structure on idea
 hardware.  The seven tests (five on the time scores, two on the column scores) share
 the false-alarm probability :data:`ALPHA_FAMILY` (Bonferroni).
 
+The scores' null distribution: a cell expecting m ≪ 1 signal photons has a time
+score of about z/σ when a signal photon arrives (probability ≈ m) and about 0
+otherwise — over its RMS √m/σ it is 0 mostly and z/√m now and then (excess
+kurtosis ≈ 3/m).  The cells' own mean square is then no estimate of their
+variance: on seed 1043's fit it spreads ±18 % from draw to draw with its median
+below 1, and on cells drawn from the model at nine of the family's fits an F test
+over it put 2 of 72 pixel-test p-values below the per-test level 1.4·10⁻⁴
+(expected 0.01; ``benchmarks/results/goodness_null_replicas.log``).  The
+tests therefore use the variance the model gives (1: χ² tests), give a pixel or a
+code its own mean only where its cells carry :data:`MIN_GROUP_INFO` expected photons
+(σ²·F summed), and refer the pixel and code blocks to the χ² scaled for their
+groups' excess kurtosis (3 over each cell's σ²·F).  Cells drawn from the model at a
+fit (:mod:`mems_stereo.calib.goodness_null`) give p-values uniform on the family's
+designs; ``benchmarks/bench_goodness_null.py`` measures the tests' null on fits.
+
 :func:`judge` turns a failed test into a refusal naming the effect (exit 1 from the
 CLI) or, when asked, into σ inflated by the square root of the largest failed F
 statistic (the scale factor of inconsistent data, PDG Review §5.2) and a warning.
@@ -42,7 +57,7 @@ from mems_stereo.calib.solver import FitState, build_cells, newton
 
 from mems_stereo.errors import MemsStereoError
 from mems_stereo.physics.pulse import pulse_sigma
-from mems_stereo.pipeline.goodness import ADVICE, GoodnessReport, structure_tests
+from mems_stereo.pipeline.goodness import ADVICE, GoodnessReport, Weights, structure_tests
 
 #: cells with fewer expected signal photons than this are left out of the tests
 MIN_SIGNAL = 0.02
@@ -51,6 +66,9 @@ MIN_SIGNAL = 0.02
 #: cells whose scores' expected square (σ² F_ττ, or the column score's) is below this
 #: carry no information for the tests and are left out
 MIN_INFO = 1e-6
+#: smallest information (σ²·F_ττ summed: about the expected signal photons) of a
+#: pixel or TDC code for its own mean in the tests
+MIN_GROUP_INFO = 5.0
 #: false-alarm probability of the whole goodness-of-fit verdict on clean residuals
 ALPHA_FAMILY = 1e-3
 #: tests it runs (time scores: phase, direction, pixel, code, signal; column: two)
@@ -145,10 +163,14 @@ def calibration_goodness(prob: Problem, x) -> tuple:
     of the time scores (phase, direction, pixel, code, signal level) and of the column
     scores (phase, direction)."""
     r = cell_residuals(prob, x)
+    # time_info is relative (mean 1): the group floor in its units
+    # time_info is relative (mean 1): the group floor in its units; a score carried by
+    # rare photons (information F σ² ≈ expected photons m ≪ 1) has excess kurtosis 3/m
+    info = r.time_info / r.time_scale ** 2
+    tw = Weights(r.time_info, 1.0, MIN_GROUP_INFO * r.time_scale ** 2, 3.0 / info)
     t = structure_tests(r.time, phase=r.phase, pixel=r.pixel, code=r.code, signal=r.signal,
-                        weights=r.time_info, alpha=ALPHA_FAMILY / N_TESTS,
-                        units=(r.time_scale, "σ"))
-    u = structure_tests(r.column, phase=r.phase, weights=r.column_info,
+                        weights=tw, alpha=ALPHA_FAMILY / N_TESTS, units=(r.time_scale, "σ"))
+    u = structure_tests(r.column, phase=r.phase, weights=Weights(r.column_info, 1.0),
                         alpha=ALPHA_FAMILY / N_TESTS, units=(r.column_scale, "px"))
     return t, u
 
@@ -249,11 +271,8 @@ def _score_test_words(prob: Problem, x) -> list:
     blocks at :data:`ALPHA_FAMILY`) that fail, most significant first: a failed fit
     can absorb a harmonic into a wrong pose, where the residuals' structure left is
     below the structure tests' smallest effect but the score along the term is not."""
-    blocks = hf.candidate_blocks()
-    tests = sorted(hf.score_tests(prob, x, blocks, ALPHA_FAMILY / len(blocks)),
-                   key=lambda t: t.p_value)
     out = []
-    for t in (t for t in tests if t.selected):
+    for t in (t for t in score_test_results(prob, x) if t.selected):
         size = f"score test χ² = {t.lm:.1f} with {t.dof} dof"
         if t.name.startswith("harmonic"):
             k = int(t.name.split()[1])
@@ -264,6 +283,14 @@ def _score_test_words(prob: Problem, x) -> list:
             detail = f"more than the model allows ({size})"
         out.append(f"{what.format(detail=detail)}: {todo} (p = {t.p_value:.1e})")
     return out
+
+
+def score_test_results(prob: Problem, x) -> list:
+    """The hardware terms' score tests of :func:`_score_test_words`
+    (:class:`~mems_stereo.calib.hardware_fit.TermTest`, most significant first)."""
+    blocks = hf.candidate_blocks()
+    return sorted(hf.score_tests(prob, x, blocks, ALPHA_FAMILY / len(blocks)),
+                  key=lambda t: t.p_value)
 
 
 def inflate(result, k: float, why: str):

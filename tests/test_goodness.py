@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mems_stereo.pipeline.cloud import PointCloud
-from mems_stereo.pipeline.goodness import ALPHA, stereo_tof_agreement, structure_tests
+from mems_stereo.pipeline.goodness import ALPHA, Weights, stereo_tof_agreement, structure_tests
 
 
 def _covariates(rng, n):
@@ -130,3 +130,73 @@ def test_stereo_tof_agreement():
     # a cloud without the two ranges (another producer) is not judged
     none = stereo_tof_agreement(PointCloud(np.zeros((100, 3)), {}))
     assert none.n == 0 and none.warnings == ()
+
+
+def test_blocks_are_tested_by_exact_least_squares():
+    """Each block's extra sum of squares and dof are those of two weighted least-squares
+    fits of the explicit design (numpy lstsq, rank by SVD): with the block and
+    without it; the nuisance (constant, cos φ, sin φ, pixel quadratic, code cubic) is
+    collinear with the group means, which the dof count once."""
+    rng = np.random.default_rng(12)
+    n = 700
+    cv = _covariates(rng, n)
+    cv["pixel"] = rng.integers(0, 12, n)
+    cv["code"] = rng.integers(200, 215, n)
+    w = rng.uniform(0.2, 3.0, n)
+    r = rng.standard_normal(n)
+    rep = structure_tests(r, **cv, weights=Weights(w, 1.0, 0.0), min_effect=0.0)
+    ph, sw = cv["phase"], np.sqrt(w)
+
+    def std(v):
+        return (v - v.mean()) / v.std()
+
+    p, c = std(cv["pixel"]), std(cv["code"])
+    ls = std(np.log(cv["signal"]))
+    blocks = {
+        "scan phase": [f(k * ph) for k in range(2, 6) for f in (np.cos, np.sin)],
+        "scan direction": [-np.sign(np.sin(ph)), -np.sign(np.sin(ph)) * np.cos(ph)],
+        "signal level": [ls, ls * ls],
+        "pixel": [(cv["pixel"] == k).astype(float) for k in range(12)],
+        "TDC code": [(cv["code"] == k).astype(float) for k in range(200, 215)],
+        "nuisance": [np.ones(n), np.cos(ph), np.sin(ph), p, p * p, c, c * c, c ** 3]}
+
+    def fit(names):
+        X = np.column_stack([col for k in names for col in blocks[k]]) * sw[:, None]
+        beta, _, rank, _ = np.linalg.lstsq(X, r, rcond=None)
+        return float(np.sum((r - X @ beta) ** 2)), rank
+
+    rss, rank = fit(list(blocks))
+    assert [f.name for f in rep.findings] == list(blocks)[:-1]
+    for f in rep.findings:
+        rss_k, rank_k = fit([k for k in blocks if k != f.name])
+        assert f.dof == rank - rank_k
+        assert f.statistic * f.dof == pytest.approx(rss_k - rss, rel=1e-6)
+    assert [f.dof for f in rep.findings] == [8, 2, 2, 11 - 2, 14 - 3]
+
+
+def _photon_scores(rng, n, tiny=0.5):
+    """First-photon-like scores: each cell expects m photons (a share ``tiny`` of the
+    cells 10⁻³, the rest 0.02–2), its score is the sum of a unit normal per photon
+    (mean 0, variance m): normalised r = s/√m is heavy-tailed where m is small."""
+    m = np.where(rng.random(n) < tiny, 1e-3, rng.uniform(0.02, 2.0, n))
+    s = rng.standard_normal(n) * np.sqrt(rng.poisson(m))
+    return s / np.sqrt(m), m
+
+
+def test_known_variance_holds_the_rate_on_heavy_tailed_scores():
+    """Scores over their expected RMS have variance 1 by the model, but when rare large
+    scores carry their mean square the residuals' own mean square is mostly below 1
+    (its median far under its mean): an F test over it refuses clean scores far above
+    its rate; the χ² test with the model's variance (:class:`Weights`) keeps it."""
+    rng = np.random.default_rng(13)
+    alpha, trials, n = 0.01, 60, 1500
+    f_test = chi2 = 0
+    for _ in range(trials):
+        r, m = _photon_scores(rng, n)
+        ph = rng.uniform(0, 2 * np.pi, n)
+        f_test += not structure_tests(r, phase=ph, weights=m, alpha=alpha,
+                                      min_effect=0.0).passed
+        chi2 += not structure_tests(r, phase=ph, weights=Weights(m, 1.0), alpha=alpha,
+                                    min_effect=0.0).passed
+    # two tests at 1 % each: about 2 % of 60; binomial P(≥ 5) ≈ 0.8 %
+    assert chi2 <= 4 and f_test >= 10, (chi2, f_test)

@@ -2,8 +2,11 @@
 
 :func:`structure_tests` tests normalised residuals r (N,) (σ units: the model
 says r ~ N(0, 1), independent) for structure along what the hardware model
-leaves out, each a block of an additive model fitted by backfitting
-(Hastie & Tibshirani 1990, §4.3) and tested by its F statistic:
+leaves out, each a block of an additive linear model fitted by exact weighted
+least squares (normal equations assembled block by block) and tested by its
+extra sum of squares: over the residual mean square (F test), or over the
+variance the model gives (χ² test, :class:`Weights`), with the rank the block
+adds to the others as its dof:
 
 ============== ============================================ ===============================
 block          columns                                      looks like
@@ -22,6 +25,14 @@ when its p-value is below ``alpha`` (default :data:`ALPHA` each, so that
 five tests on clean residuals refuse ≤ 0.5 %) *and* its structure's RMS is at
 least ``min_effect`` σ (large recordings make negligible structure
 significant).  Each failure says which effect it looks like and what to do.
+
+Residuals that are scores of rare photons (a cell expecting m ≪ 1 photons: zero
+mostly, ~1/√m now and then) are heavy-tailed: their own mean square is mostly
+well below 1 (its median far under its mean), so an F test over it refuses
+clean residuals many times above its rate; the calibration's tests therefore
+take the variance from the model (1 for scores over their expected RMS), keep
+pixels and codes of little information out of the group means, and refer each
+group block to a χ² scaled for the groups' excess kurtosis (:class:`Weights`).
 
 :func:`stereo_tof_agreement` is processing's test: the paper's
 over-determination gives two ranges per point (stereo, time of flight); their
@@ -46,8 +57,9 @@ MIN_EFFECT = 0.05
 HARMONICS = 5
 #: fewest entries of a pixel / code for its own mean in the test
 MIN_GROUP = 5
-#: backfitting sweeps
-SWEEPS = 12
+#: eigenvalues of the scaled normal equations below this share of the largest are
+#: directions the design does not span (the rank of a block counts the others)
+RANK_TOL = 1e-10
 #: RMS of the stereo/ToF normalised difference beyond which processing warns
 AGREEMENT_RMS = 1.3
 
@@ -112,13 +124,43 @@ class GoodnessReport:
                           for f in self.findings]}
 
 
+@dataclass(frozen=True)
+class Weights:
+    """What the model says of each residual (``weights`` of :func:`structure_tests`).
+
+    info : (N,) float > 0, each residual's expected information, any common scale
+        (weighted least squares: the residuals are r_i = y_i·√w_i of working
+        responses y_i of variance 1/w_i).
+    variance : the residuals' variance where the model fixes it (1.0 for scores over
+        their expected RMS): each block's extra sum of squares over it is then χ² with
+        the block's dof.  None: estimated from the residuals (F test), which heavy-
+        tailed residuals (a few rare large scores carry the mean square) make a noisy
+        denominator.
+    min_group : smallest total ``info`` of a pixel or code for its own mean in the
+        tests; the group's structure is its score sum, near-normal only when the
+        group's information is large enough (in the units of ``info``).
+    excess : optional (N,) float ≥ 0, each residual's excess kurtosis under the model
+        (with ``variance``): a group's score sum then has the excess
+        κ_g = Σ w²κ / (Σ w)², each group's square the variance 2 + κ_g instead of 2,
+        and a group block is referred to the scaled χ² of the same mean and variance
+        (Satterthwaite: c·χ²_{dof/c}, c = 1 + mean κ_g / 2).
+    """
+
+    info: np.ndarray
+    variance: float | None = None
+    min_group: float = MIN_GROUP
+    excess: np.ndarray | None = None
+
+
 def _ordinal(k: int) -> str:
     return {2: "second", 3: "third", 4: "fourth", 5: "fifth", 6: "sixth"}.get(k, f"{k}th")
 
 
-def _groups(key, min_group):
-    """Group index (N,) of ``key`` for values with ≥ min_group entries (−1: none)."""
-    vals, inv, cnt = np.unique(np.asarray(key), return_inverse=True, return_counts=True)
+def _groups(key, min_group, w=None):
+    """Group index (N,) of ``key`` for values whose entries' total weight ``w`` (N,)
+    (default 1 each: their count) is at least min_group (−1: none)."""
+    vals, inv = np.unique(np.asarray(key), return_inverse=True)
+    cnt = np.bincount(inv, w, vals.size)
     ok = cnt[inv] >= min_group
     sel = np.flatnonzero(cnt >= min_group)
     remap = np.full(vals.size, -1)
@@ -133,7 +175,8 @@ def _standard(v):
 
 class _Blocks:
     """The additive model: dense blocks (name → columns) and group blocks (name →
-    (group index, groups)); :meth:`fit` by backfitting with any blocks left out."""
+    (group index, groups)); :meth:`fit` by exact weighted least squares with any block
+    left out (normal equations assembled by block, group products by ``bincount``)."""
 
     def __init__(self, n, sw=None):
         self.n = n
@@ -141,52 +184,77 @@ class _Blocks:
         self.w = self.sw * self.sw
         self.dense_blocks = {}
         self.group_blocks = {}
+        #: (N,) each residual's excess kurtosis (None: 0) and, per group block, c
+        self.excess = None
+        self.scale_of = {}
 
     def dense(self, name, cols):
         self.dense_blocks[name] = np.column_stack(cols) * self.sw[:, None]
 
     def group(self, name, key, min_group):
-        g, G = _groups(key, min_group)
+        g, G = _groups(key, min_group, self.w)
         if G >= 2:
             self.group_blocks[name] = (g, G)
-
-    def dof(self, name) -> int:
-        if name in self.dense_blocks:
-            return int(self.dense_blocks[name].shape[1])
-        return self.group_blocks[name][1] - 1
+            if self.excess is not None:
+                m = g >= 0
+                k = np.bincount(g[m], (self.w * self.w * self.excess)[m], G) / np.maximum(
+                    np.bincount(g[m], self.w[m], G), 1e-300) ** 2
+                self.scale_of[name] = 1.0 + 0.5 * float(np.mean(k))
 
     @property
     def names(self) -> list:
         return list(self.dense_blocks) + list(self.group_blocks)
 
-    def fit(self, r, drop=None):
-        """Backfit without block ``drop``: (RSS, dense coefficients by block name)."""
-        names = [k for k in self.dense_blocks if k != drop]
-        X = np.column_stack([self.dense_blocks[k] for k in names])
-        # einsum, not BLAS: N × (≤ 30) products gain nothing from threads
-        gram_inv = np.linalg.pinv(np.einsum("ij,ik->jk", X, X))
-        groups = {k: v for k, v in self.group_blocks.items() if k != drop}
-        dense_part = np.zeros(self.n)
-        parts = {k: np.zeros(self.n) for k in groups}
-        res = r.copy()
-        for _ in range(SWEEPS if groups else 1):
-            res += dense_part
-            coef = gram_inv @ np.einsum("ij,i->j", X, res)
-            dense_part = np.einsum("ij,j->i", X, coef)
-            res -= dense_part
-            for k, (g, G) in groups.items():
-                res += parts[k]
-                m = g >= 0
-                s = np.bincount(g[m], (self.sw * res)[m], G) / np.maximum(
-                    np.bincount(g[m], self.w[m], G), 1e-300)
-                parts[k] = np.where(m, self.sw * s[np.maximum(g, 0)], 0.0)
-                res -= parts[k]
-        out, i = {}, 0
-        for k in names:
-            w = self.dense_blocks[k].shape[1]
-            out[k] = coef[i:i + w]
-            i += w
-        return float(res @ res), out
+    def _cross(self, a, b):
+        """X_aᵀ X_b of blocks a and b (columns scaled by √w)."""
+        da, db = self.dense_blocks.get(a), self.dense_blocks.get(b)
+        if da is not None and db is not None:
+            # einsum, not BLAS: N × (≤ 30) products gain nothing from threads
+            return np.einsum("ij,ik->jk", da, db)
+        if da is None and db is None:
+            (ga, Ga), (gb, Gb) = self.group_blocks[a], self.group_blocks[b]
+            m = (ga >= 0) & (gb >= 0)
+            return np.bincount(ga[m] * Gb + gb[m], self.w[m], Ga * Gb).reshape(Ga, Gb)
+        if da is None:
+            return self._cross(b, a).T
+        g, G = self.group_blocks[b]
+        m = g >= 0
+        return np.stack([np.bincount(g[m], col, G) for col in (da * self.sw[:, None])[m].T])
+
+    def _rhs(self, k, r):
+        if k in self.dense_blocks:
+            return np.einsum("ij,i->j", self.dense_blocks[k], r)
+        g, G = self.group_blocks[k]
+        m = g >= 0
+        return np.bincount(g[m], (self.sw * r)[m], G)
+
+    def normal_equations(self, r):
+        """(XᵀX, Xᵀr, column slice of each block) over every block."""
+        names = self.names
+        cross = {(a, b): self._cross(a, b) for i, a in enumerate(names) for b in names[i:]}
+        width = {k: cross[(k, k)].shape[0] for k in names}
+        start = np.cumsum([0] + [width[k] for k in names])
+        sl = {k: slice(int(start[i]), int(start[i + 1])) for i, k in enumerate(names)}
+        A = np.zeros((start[-1], start[-1]))
+        for (a, b), c in cross.items():
+            A[sl[a], sl[b]] = c
+            A[sl[b], sl[a]] = c.T
+        return A, np.concatenate([self._rhs(k, r) for k in names]), sl
+
+    @staticmethod
+    def fit(A, b, rr: float, cols):
+        """Least squares on columns ``cols`` of the normal equations (A, b), r·r = rr:
+        (RSS, rank, coefficients over ``cols``).  The columns are scaled to unit
+        diagonal and solved through their eigen-decomposition; directions below
+        ``RANK_TOL`` of the largest eigenvalue (a group block's sum, which is the
+        constant) count as absent."""
+        As, bs = A[np.ix_(cols, cols)], b[cols]
+        d = np.sqrt(np.maximum(np.diag(As), 1e-300))
+        lam, V = np.linalg.eigh(As / d[:, None] / d[None, :])
+        keep = lam > RANK_TOL * max(float(lam[-1]), 1e-300)
+        z = V[:, keep].T @ (bs / d)
+        beta = V[:, keep] @ (z / lam[keep])
+        return rr - float(z @ (z / lam[keep])), int(keep.sum()), beta / d
 
 
 def _details(name: str, coef, effect: float, groups: int, scale: float, unit: str) -> str:
@@ -202,6 +270,45 @@ def _details(name: str, coef, effect: float, groups: int, scale: float, unit: st
         what = "pixels" if name == "pixel" else "codes"
         return f"RMS {effect * scale:.3g} {unit} over {groups} {what}"
     return f"RMS {effect * scale:.3g} {unit}"
+
+
+def _findings(B: _Blocks, r, tested, variance, opts) -> list:
+    """One :class:`Finding` per tested block: its extra sum of squares (the RSS
+    without it less the RSS of all blocks) with the rank it adds as dof, over
+    ``variance`` (χ²) or the residual mean square (F); ``opts``: (alpha, min_effect,
+    scale, unit)."""
+    alpha, min_effect, scale, unit = opts
+    n = r.size
+    A, b, sl = B.normal_equations(r)
+    rr = float(r @ r)
+    cols = np.arange(A.shape[0])
+    rss, rank, beta = B.fit(A, b, rr, cols)
+    dof_res = max(n - rank, 1)
+    s2 = max(rss, 0.0) / dof_res if variance is None else float(variance)
+    findings = []
+    for k in tested:
+        rss_k, rank_k, _ = B.fit(A, b, rr, np.concatenate(
+            [cols[sl[j]] for j in B.names if j != k]))
+        dof = rank - rank_k
+        extra = max(rss_k - rss, 0.0)
+        F = (extra / max(dof, 1)) / s2 if s2 > 0 else math.inf
+        c = B.scale_of.get(k, 1.0)
+        if dof <= 0:
+            p = 1.0
+        elif variance is None:
+            p = float(stats.f.sf(F, dof, dof_res))
+        else:
+            p = float(stats.chi2.sf(F * dof / c, dof / c))
+        eff = math.sqrt(extra / max(n, 1))
+        ok = not (p < alpha and eff >= min_effect)
+        msg = ""
+        if not ok:
+            what, todo = ADVICE[k]
+            groups = B.group_blocks[k][1] if k in B.group_blocks else 0
+            detail = _details(k, beta[sl[k]], eff, groups, scale, unit)
+            msg = f"{what.format(detail=detail)}: {todo} (p = {p:.1e})"
+        findings.append(Finding(k, F, dof, p, eff, ok, msg))
+    return findings
 
 
 def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=None,
@@ -223,22 +330,27 @@ def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=N
     weights : optional (N,) float > 0, each residual's information (weighted least
         squares: ``residuals`` are then r_i = y_i·√w_i of working responses y_i of
         variance 1/w_i, and every block's columns are scaled by √w_i; a group's
-        structure is its information-weighted mean).  Default: equal weights.
+        structure is its information-weighted mean; a pixel or code has its own mean
+        when its weights sum to ``MIN_GROUP``), or a :class:`Weights`.  Default:
+        equal weights (a group: ``MIN_GROUP`` entries).
 
     Returns
     -------
     GoodnessReport (one :class:`Finding` per test that had its covariate).
     """
     scale, unit = float(units[0]), str(units[1])
+    wt = weights if isinstance(weights, Weights) else Weights(weights)
     r = np.asarray(residuals, dtype=np.float64).ravel()
     keep = np.isfinite(r)
     cov = {k: None if v is None else np.asarray(v).ravel()[keep]
            for k, v in (("phase", phase), ("direction", direction), ("pixel", pixel),
-                        ("code", code), ("signal", signal), ("weights", weights))}
+                        ("code", code), ("signal", signal), ("weights", wt.info),
+                        ("excess", wt.excess))}
     r = r[keep]
     n = r.size
     sw = cov.pop("weights")
     B = _Blocks(n, None if sw is None else np.sqrt(np.asarray(sw, dtype=np.float64)))
+    B.excess = cov.pop("excess")
     base = [np.ones(n)]
     ph = cov["phase"]
     if ph is not None:
@@ -250,34 +362,17 @@ def structure_tests(residuals, *, phase=None, direction=None, pixel=None, code=N
     if cov["pixel"] is not None:
         p = _standard(cov["pixel"])
         base += [p, p * p]
-        B.group("pixel", cov["pixel"], MIN_GROUP)
+        B.group("pixel", cov["pixel"], wt.min_group)
     if cov["code"] is not None:
         c = _standard(cov["code"])
         base += [c, c * c, c ** 3]
-        B.group("TDC code", cov["code"], MIN_GROUP)
+        B.group("TDC code", cov["code"], wt.min_group)
     if cov["signal"] is not None:
         ls = _standard(np.log(np.maximum(np.asarray(cov["signal"], dtype=np.float64), 1e-300)))
         B.dense("signal level", [ls, ls * ls])
     tested = B.names
     B.dense("nuisance", base)
-    rss, coef = B.fit(r)
-    dof_res = max(n - sum(B.dof(k) for k in B.names), 1)
-    s2 = rss / dof_res
-    findings = []
-    for k in tested:
-        dof = B.dof(k)
-        extra = max(B.fit(r, drop=k)[0] - rss, 0.0)
-        F = (extra / dof) / s2 if s2 > 0 else math.inf
-        p = float(stats.f.sf(F, dof, dof_res))
-        eff = math.sqrt(extra / max(n, 1))
-        ok = not (p < alpha and eff >= min_effect)
-        msg = ""
-        if not ok:
-            what, todo = ADVICE[k]
-            groups = B.group_blocks[k][1] if k in B.group_blocks else 0
-            detail = _details(k, coef.get(k), eff, groups, scale, unit)
-            msg = f"{what.format(detail=detail)}: {todo} (p = {p:.1e})"
-        findings.append(Finding(k, F, dof, p, eff, ok, msg))
+    findings = _findings(B, r, tested, wt.variance, (alpha, min_effect, scale, unit))
     rms = float(np.sqrt(np.mean(r * r))) if n else math.nan
     return GoodnessReport(tuple(findings), n, rms)
 
