@@ -49,6 +49,9 @@ MAX_STEPS = 5
 #: whether a newly selected block starts from the score test's Newton step
 #: (:func:`newton_start`); False: at 0 (its nominal value), as the benchmarks' baseline
 NEWTON_START = True
+#: whether a block whose local refit its checks refuse is fitted again from a new
+#: start search (:func:`_global_fit`)
+GLOBAL_RETRY = True
 #: Levenberg damping of the information in the Newton start (the solver's first λ)
 NEWTON_DAMPING = 1e-3
 #: fractions of the Newton step tried (the one of highest likelihood taken)
@@ -201,6 +204,9 @@ def _add_block(step: _Step, point, chosen: list, fit_kwargs: dict, dropped: set,
         if not chosen:
             return None
         r1 = _fit_block(prob, x, names, chosen, fit_kwargs, progress)
+    if not r1 and "checks" in (r1.details or {}) and GLOBAL_RETRY:
+        r2 = _global_fit(prob, names + chosen, fit_kwargs, progress)
+        r1 = r2 if r2 else r1
     if not r1 and "checks" not in (r1.details or {}):
         step.notes.append(f"the fit with the hardware terms {', '.join(chosen)} failed "
                           f"({r1.reason[:80]}): the model without them is kept")
@@ -280,6 +286,13 @@ def _pulse_tail(result, progress, fit_kwargs: dict):
     result.extra["pulse"] = fit
     if "tdc_offset" not in result.names:
         return result
+    if PULSE_PARAMS[0] in result.names:  # fitted with the other terms (:func:`joint_fit`)
+        test = result.extra.get("tail_test")
+        out = widen_share(result)
+        out.extra["pulse"] = fit
+        if test is not None:
+            out.extra["tail_test"] = test
+        return out
     test, decay = hf.tail_score_test(result.extra["problem"], result.extra["x"])
     result.extra["tail_test"] = test
     if not test.selected:  # on hardware the other terms found imperfect, a tail the
@@ -360,6 +373,100 @@ def add_hardware_terms(result, orders=hf.DEFAULT_ORDERS, progress=None, **fit_kw
     return out
 
 
+#: share of a pulse tail that :func:`joint_fit` starts from (the tail test's decay)
+JOINT_TAIL_SHARE = 0.1
+
+
+def _tail_start(prob, x, names: list):
+    """Start values of a pulse tail at the point ``x`` of ``prob`` (share
+    :data:`JOINT_TAIL_SHARE`, the tail score test's decay, ``tdc_offset`` less the
+    mean delay w·τ) and the test, or (None, test) when the test does not select a
+    tail; (None, None) when ``tdc_offset`` is held or the tail is fitted already."""
+    if "tdc_offset" not in names or PULSE_PARAMS[0] in names:
+        return None, None
+    test, decay = hf.tail_score_test(prob, x)
+    if not test.selected:
+        return None, test
+    w, tau = JOINT_TAIL_SHARE, max(decay, 0.05 * prob.sigma)
+    return {PULSE_PARAMS[0]: w, PULSE_PARAMS[1]: tau,
+            "tdc_offset": prob.layout.unpack(x)[0]["tdc_offset"] - w * tau}, test
+
+
+def _fit_joint(prob, x, names: list, chosen: list, tail: dict | None, fit_kwargs: dict,
+               progress=None):
+    """The fit of ``prob`` with the blocks ``chosen`` (from their joint Newton start,
+    :func:`newton_start`) and, given ``tail`` (:func:`_tail_start`), the pulse tail
+    free at once; a term the walls do not determine is dropped and the rest fitted
+    again.  Returns the result or failure."""
+    st = newton_start(prob, x, chosen) if chosen and NEWTON_START else None
+    x0, start = (x, {}) if st is None else (st.x, dict(st.block))
+    extra = list(chosen)
+    if tail is not None:
+        shift = prob.layout.unpack(x0)[0]["tdc_offset"] - prob.layout.unpack(x)[0]["tdc_offset"]
+        start.update(tail, tdc_offset=tail["tdc_offset"] + shift)
+        extra += list(PULSE_PARAMS)
+    if progress:
+        progress("hardware terms at once: " + ", ".join(extra))
+    r = _refit_at(prob, x0, names, extra, fit_kwargs, start)
+    weak = [n for n in extra if r and n in r.unobservable]
+    if weak:
+        keep = [n for n in extra if n not in weak and n not in PULSE_PARAMS]
+        tail = tail if not set(weak) & set(PULSE_PARAMS) else None
+        if not keep and tail is None:
+            return r
+        return _fit_joint(prob, x, names, keep, tail, fit_kwargs, progress)
+    return r
+
+
+def _global_fit(prob, names: list, fit_kwargs: dict, progress=None):
+    """The walls of ``prob`` (its nominal system and measured distances) fitted afresh
+    with ``names`` free, from the global start search of
+    :func:`~mems_stereo.calib.fit.fit_walls`; a hardware term the walls do not
+    determine is dropped and the rest fitted again."""
+    if progress:
+        progress("hardware terms from a new start search: " + ", ".join(
+            n for n in names if hf.is_hardware(n)))
+    r = fit_walls(prob.walls, prob.system, free=names, priors=prob.priors,
+                  on_unobservable="warn", **fit_kwargs)
+    weak = [n for n in names if r and hf.is_hardware(n) and n in r.unobservable]
+    if weak:
+        return _global_fit(prob, [n for n in names if n not in weak], fit_kwargs, progress)
+    return r
+
+
+def joint_fit(step: _Step, blocks: dict, fit_kwargs: dict, progress=None):
+    """:func:`rescue`'s last try when forward selection finds no fit that passes its
+    checks: every block significant at the failed fit's point fitted at once, from a
+    new start search (:func:`_global_fit`); when that fit is refused and a pulse tail's
+    score test selects one at its point, the tail added there (:func:`_fit_joint`).
+    A misfit pulls the walls' poses of the ideal model's fit (a yaw trades with the
+    harmonics through the disparity across the scan), and a local refit from there,
+    one block a round, can end further off at every round; the start search under
+    the model with the blocks free sees the returns on the sensor instead.  Returns
+    the result that passes its checks, or None."""
+    jitter = fit_kwargs.get("jitter", 50e-12)
+    point = _point(step, jitter)
+    if point is None:
+        return None
+    prob, x, names = point
+    todo = {k: v for k, v in blocks.items() if not set(v) & set(names)}
+    chosen = [n for t in hf.score_tests(prob, x, todo) if t.selected for n in t.names]
+    if not chosen:
+        return None
+    r = _global_fit(prob, names + chosen, fit_kwargs, progress)
+    if not r and "checks" in (r.details or {}):
+        point = _point(_Step(r, prob.walls, prob.system, prob.priors), jitter)
+        tail, test = (None, None) if point is None else _tail_start(*point)
+        if tail is not None:
+            r = _fit_joint(*point, [], tail, fit_kwargs, progress)
+            if r:
+                r.extra["tail_test"] = test
+    if progress:
+        progress("hardware terms at once: the fit " + (
+            "passes its checks" if r else "is refused: " + r.reason[:160]))
+    return r if r else None
+
+
 def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=None,
            **fit_kwargs):
     """A full-model calibration when the ideal model's fit failed its checks or did
@@ -373,9 +480,11 @@ def rescue(failure, walls, nominal, priors, orders=hf.DEFAULT_ORDERS, progress=N
     wall that is not flat)."""
     if "values" not in (failure.details or {}):  # no wall fitted: no misfit to test
         return failure
-    step, _ = _select(_Step(failure, list(walls), nominal, list(priors)),
-                      hf.candidate_blocks(orders), fit_kwargs, progress)
+    step0 = _Step(failure, list(walls), nominal, list(priors))
+    step, _ = _select(step0, hf.candidate_blocks(orders), fit_kwargs, progress)
     r = step.good
+    if r is None:
+        r = joint_fit(step0, hf.candidate_blocks(orders), fit_kwargs, progress)
     if r is None:
         return failure
     keep = [n for n in r.names if hf.is_hardware(n)]

@@ -160,6 +160,8 @@ def test_rescue_tests_a_fit_that_did_not_converge_at_its_values(monkeypatch):
     tried = []
     monkeypatch.setattr(fm, "_add_block",
                         lambda step, point, chosen, *a: tried.append(chosen))
+    # no round passes: rescue's last try (tests/test_joint_rescue.py) finds nothing either
+    monkeypatch.setattr(fm, "joint_fit", lambda *a, **k: None)
     out = fm.rescue(stuck, prob.walls, prob.system, [], orders=(3,))
     assert out is stuck and calls == [vals]
     assert tried == [H3]  # the drawn third harmonic is selected and fitted
