@@ -75,6 +75,7 @@ if _CPU_LOG:
 # through the real functions; the callers' own code around them still runs.
 
 _MEMO: dict = {}
+_HELD: list = []  # objects memo keys name by identity (memoised_report), kept alive
 
 
 def _memo_key(value):
@@ -206,8 +207,6 @@ def memoised_report(real):
 
     from mems_stereo.util.atomic import atomic_output
 
-    held = []  # the results keyed by identity stay alive, so that ids are not reused
-
     def wrapper(result, path, **kw):
         p = Path(path)
         if p.suffix.lower() != ".pdf":
@@ -222,7 +221,7 @@ def memoised_report(real):
             return real(result, path, **kw)
         if key not in _MEMO:
             real(result, path, **kw)
-            held.append(result)
+            _HELD.append(result)  # keyed by identity: kept alive, its id not reused
             _MEMO[key] = p.read_bytes()
         else:
             with atomic_output(p) as tmp:
