@@ -4,6 +4,8 @@ The build runs in a subprocess, as a user runs it
 (``python -m sphinx -W --keep-going -b html docs/api <out>``), into a fresh
 folder; any warning (bad docstring markup, a public name that cannot be
 imported, an ambiguous cross-reference) fails the test and is printed.
+The build (~21 CPU s) is marked ``stress`` (``pytest -m stress``); the index check runs
+by default.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def _build(out: Path) -> subprocess.CompletedProcess:
 
 
 @pytest.mark.slow
+@pytest.mark.stress  # 21 CPU s (the Sphinx build): with the stress runs (pytest -m stress)
 def test_api_reference_builds_without_warnings(tmp_path):
     proc = _build(tmp_path)
     assert proc.returncode == 0 and "WARNING" not in proc.stderr \

@@ -98,6 +98,13 @@ def cached(ctx, monkeypatch):
 
     monkeypatch.setattr(run_mod, "process_recording", process)
     monkeypatch.setattr(pipe2d_mod, "process_recording_2d", lambda *a, **k: ctx["proc_two"])
+    import mems_stereo.viz.calib_report as report_mod
+    from conftest import memoised_report
+
+    # the report PDF of the bundled walls is drawn once with the demo's (same result object)
+    real = report_mod.write_calibration_report
+    monkeypatch.setattr(report_mod, "write_calibration_report",
+                        memoised_report(getattr(real, "__wrapped_real__", real)))
     return ctx
 
 

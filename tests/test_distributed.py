@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 from pathlib import Path
 
@@ -28,6 +29,14 @@ def test_shot_ranges_cover_everything_once():
     r = shot_ranges(1001, 4)
     assert r[0][0] == 0 and r[-1][1] == 1001
     assert all(a[1] == b[0] for a, b in zip(r[:-1], r[1:]))
+
+
+@functools.cache
+def reference(name: str):
+    """``process_recording(SAMPLES / name)`` with the defaults, in this process: the
+    one-process result the split, parallel and blocked runs are compared with, computed
+    once per file (each test asks for it before it patches anything; read only)."""
+    return process_recording(SAMPLES / name)
 
 
 @pytest.fixture(scope="module")
@@ -60,7 +69,7 @@ def test_split_computes_angles_on_the_workers_and_fills_missing_rows(client, mon
     from mems_stereo.pipeline.intervals import IntervalTable
     from mems_stereo.pipeline.settings import Settings
 
-    one = process_recording(SAMPLES / "room.h5")
+    one = reference("room.h5")
     monkeypatch.setenv("MEMS_STEREO_CACHE", str(tmp_path))  # cold: nothing cached
     filled = []
     fill = D.fill_table
@@ -87,7 +96,7 @@ def test_split_computes_angles_on_the_workers_and_fills_missing_rows(client, mon
 
 
 def test_split_recording_equals_one_process(client):
-    one = process_recording(SAMPLES / "room.h5")
+    one = reference("room.h5")
     split = process_split(SAMPLES / "room.h5", scheduler=client, n_parts=5)
     _same(one, split)
     # the parts are summed on the workers: the client receives one pass-1 result's
@@ -115,7 +124,7 @@ def test_many_recordings_equal_one_process(client):
     assert recording_slots(SAMPLES / "no such file.h5") == 0
     res = process_many(paths, scheduler=client)
     for p, r in zip(paths, res):
-        _same(process_recording(p), r)
+        _same(reference(p.name), r)
 
 
 def test_local_workers_get_one_malloc_arena_and_the_client_keeps_its_environ(client):
@@ -244,7 +253,7 @@ def test_process_recording_fusing_in_blocks_equals_one_block(monkeypatch):
     block, bit for bit."""
     from mems_stereo.pipeline import block_fusion as R
 
-    one = process_recording(SAMPLES / "room.h5")
+    one = reference("room.h5")
     monkeypatch.setattr(R, "FUSE_ENTRIES", 300)
     calls = _count_calls(monkeypatch, R, "peak_sums_from_counts")
     blocked = process_recording(SAMPLES / "room.h5")
@@ -284,7 +293,7 @@ def test_trimming_the_heap_between_stages_changes_nothing(monkeypatch):
     from mems_stereo.pipeline import run as R
     from mems_stereo.util import memory
 
-    one = process_recording(SAMPLES / "room.h5")
+    one = reference("room.h5")
     calls = []
     orig = memory.release_freed_memory
 

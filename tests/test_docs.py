@@ -24,8 +24,8 @@ A small Markdown collector finds the fenced blocks (```lang ... ```).  How each 
 * A block right after a line ``<!-- docs-test: skip REASON -->`` does not run; the test
   prints each with its reason.  The only such blocks are the README's two set-up
   commands (they install Debian packages as root and build ``.venv`` in the repository),
-  its command that builds the API reference into the repository (the test suite builds
-  it on its own), and the C++ reader of docs/interchange.md.
+  its command that builds the API reference into the repository (tests/test_api_reference.py
+  builds it on its own, with the ``stress`` marker), and the C++ reader of docs/interchange.md.
 
 The ``--help`` examples (each command module's ``EXAMPLE`` lines and ``plot``'s per-figure
 examples) run in order in a fresh folder per command, in this process through the CLI's
@@ -35,8 +35,8 @@ that several commands' examples begin with run once, and the other commands cont
 they left (the same state); ``view`` opens a window, so its last line is only parsed;
 ``demo``'s example is the run of ``tests/test_demo.py``.
 
-``tests/test_wheel.py`` (slow) builds a wheel and processes a bundled sample with
-that non-editable install.
+``tests/test_wheel.py`` (``stress`` marker: ``pytest -m stress``) builds a wheel and
+processes a bundled sample with that non-editable install.
 """
 
 from __future__ import annotations

@@ -431,7 +431,49 @@ def test_case_count_and_groups():
     print(f"\nfuzz suite: {len(CASES)} generated malformed inputs")
 
 
-@pytest.mark.parametrize("case", CASES, ids=[c[0] for c in CASES])
+def refusal_classes(case) -> tuple[str, tuple[str, str]]:
+    """A case's two refusal classes: its group (the case name's first two words without
+    the number, e.g. ``process-rec``, ``system-raw``, ``out-fifo``: command or file kind
+    and what is malformed) and the pair (command, the file or option the error names)."""
+    name, _, argv, expect = case
+    return "-".join(name[4:].split("-")[:2]), (argv[0], expect)
+
+
+def default_cases(cases: list, every: int = 5) -> set[str]:
+    """The ids of the cases run by default, a deterministic subset: every case of a group
+    of at most 4, the first case of each group and of each (command, named file or option)
+    pair, and every ``every``-th case of a group in table order.  The others are marked
+    ``stress`` (``pytest -m stress`` runs them; the two runs together are every case)."""
+    size: dict = {}
+    for c in cases:
+        g = refusal_classes(c)[0]
+        size[g] = size.get(g, 0) + 1
+    keep, seen, pos = set(), set(), {}
+    for c in cases:
+        g, pair = refusal_classes(c)
+        if size[g] <= 4 or pair not in seen or pos.get(g, 0) % every == 0:
+            keep.add(c[0])
+        seen.add(pair)
+        pos[g] = pos.get(g, 0) + 1
+    return keep
+
+
+DEFAULT = default_cases(CASES)
+
+
+def test_default_subset_hits_every_refusal_class():
+    """The default run keeps every group and every (command, named input) pair, about a
+    third of the cases; the rest are stress-marked, none dropped."""
+    kept = [c for c in CASES if c[0] in DEFAULT]
+    for i in (0, 1):
+        assert {refusal_classes(c)[i] for c in kept} == {refusal_classes(c)[i] for c in CASES}
+    assert 0.25 * len(CASES) < len(kept) < 0.45 * len(CASES), len(kept)
+    assert DEFAULT <= {c[0] for c in CASES}
+
+
+@pytest.mark.parametrize("case", [
+    pytest.param(c, id=c[0], marks=() if c[0] in DEFAULT else pytest.mark.stress)
+    for c in CASES])
 def test_refused(case, tmp_path):
     _, build, argv, expect = case
     build(tmp_path)

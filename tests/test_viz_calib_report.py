@@ -204,7 +204,9 @@ def test_report_for_the_bundled_walls(tmp_path, shared_results):
                                      model="full", harmonics=(2, 3, 4, 5),
                                      inflate_sigma=False)
     assert res
-    p = write_calibration_report(res, tmp_path / "walls.pdf", recordings=recs)
+    import mems_stereo.viz.calib_report as report_mod  # drawn once per process (shared_results)
+
+    p = report_mod.write_calibration_report(res, tmp_path / "walls.pdf", recordings=recs)
     n, data = _pdf_pages(p)
     assert n >= 5 and b"CONVERGED" in data  # page 1's text continued, the hardware page
     # the recomputed residuals of the real walls: centred, about a pixel's spread

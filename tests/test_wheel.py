@@ -1,7 +1,8 @@
 """A built wheel carries the samples: after installing it into a new environment,
 ``print(ms.process_recording(ms.data.path('room.h5')))`` works from any folder.
 
-Slow (builds a wheel: ~20 s, and pip fetches the build backend).  The environment is a
+Slow (builds a wheel: ~20 s, and pip fetches the build backend): marked ``stress``, run
+with ``pytest -m stress``.  The environment is a
 new venv with the wheel installed ``--no-deps``; the dependencies come from this
 interpreter's site-packages through a ``.pth`` line (as /work/mkwt.sh does), so the
 package itself is the wheel's copy, not the source tree.
@@ -29,6 +30,7 @@ def _pip() -> list[str]:
 
 
 @pytest.mark.slow
+@pytest.mark.stress  # 11 CPU s (pip builds the wheel): with the stress runs (pytest -m stress)
 def test_wheel_carries_the_samples(tmp_path):
     wheels = tmp_path / "dist"
     p = subprocess.run([*_pip(), "wheel", "--no-deps", "-q", "-w",
