@@ -27,11 +27,11 @@ STAGES = ["consistency", "intervals", "settings", "frame_bias", "angles", "shot_
           "goodness", "scan_dwell",
           "temporal", "block_fusion", "run", "dask_setup", "dask_plan", "dask_reduce",
           "dask_tasks", "dask_split", "distributed", "frames", "live_queue", "live_warmup",
-          "frame_workers", "timetags", "gate_check", "twoaxis_pileup", "twoaxis"]
+          "frame_split", "frame_workers", "timetags", "gate_check", "twoaxis_pileup", "twoaxis"]
 #: the orchestration modules: they drive the stages and no stage imports them
 ORCHESTRATION = ["block_fusion", "run", "dask_setup", "dask_plan", "dask_reduce", "dask_tasks",
                  "dask_split", "distributed", "frames", "live_queue", "live_warmup",
-                 "frame_workers"]
+                 "frame_split", "frame_workers"]
 
 
 def _modules():

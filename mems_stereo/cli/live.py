@@ -23,7 +23,7 @@ EXAMPLE = ["mems-stereo samples -o samples",
            "mems-stereo live --replay samples/room.h5 --rate max --frame-rate 50 -o frames/    "
            "# frames/room_000000.ply, ... as process --frame-rate (docs/live.md)",
            "mems-stereo live --replay samples/room.h5 --rate 1 --frame-rate 100 --workers 2 "
-           "-o room.mcap    # two frame worker processes"]
+           "-o room.mcap    # each frame's pixels across two worker processes"]
 
 #: ZeroMQ transports a SOURCE may name
 ZMQ_SCHEMES = ("tcp://", "ipc://", "inproc://")
@@ -70,11 +70,7 @@ def add_arguments(p):
                         "file: its mapping's)")
     p.add_argument("--map", default=None, metavar="MAP.json",
                    help="channel mapping of a PTU source (format mems-stereo/tttr-map)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes for the frame stages: consecutive frames processed "
-                        "in parallel, written in order, the same frames (default: one per "
-                        "available core, at most 4, where a clock runs; 1 for --rate max; "
-                        "1: all in this process; docs/live.md)")
+    _add_worker_arguments(p)
     p.add_argument("--queue-frames", type=int, default=3,
                    help="frames waiting for processing at most; when full, the oldest waiting "
                         "frame is dropped for the newest, and counted (default 3)")
@@ -87,6 +83,19 @@ def add_arguments(p):
                    help="optional prior: no target nearer than this, m (default: none)")
     p.add_argument("--false-alarm", type=float, default=1e-3,
                    help="per-pixel false-alarm probability of the peak threshold (default 0.001)")
+
+
+def _add_worker_arguments(p) -> None:
+    """``--workers``, ``--split``."""
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes for the frame stages, the same frames (default: "
+                        "one per available core, at most 4, where a clock runs; 1 for "
+                        "--rate max; 1: all in this process; docs/live.md)")
+    p.add_argument("--split", default=None, choices=("pixels", "frames"),
+                   help="how frames go to the workers: pixels, each frame's pixels across "
+                        "all of them (the lowest latency); frames, consecutive frames in "
+                        "parallel (the most frames per second) (default: pixels where a "
+                        "clock runs, frames for --rate max)")
 
 
 def _check(args) -> None:
@@ -249,7 +258,8 @@ def run(args) -> int:
     settings = Settings(confidence=args.confidence, min_range=args.min_range,
                         false_alarm=args.false_alarm)
     workers = args.workers or (1 if source.can_wait else None)  # None: one per core
-    proc = frame_processor(system, workers=workers, frame_rate=args.frame_rate,
+    split = args.split or ("frames" if source.can_wait else "pixels")
+    proc = frame_processor(system, workers=workers, split=split, frame_rate=args.frame_rate,
                            frame_shots=args.frame_shots, settings=settings,
                            fusion=not args.no_temporal)
     if not source.can_wait and not proc.workers:  # a clock runs: kernels and tables ready

@@ -20,6 +20,7 @@ bit for bit, whatever the chunking of the source.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
@@ -33,7 +34,12 @@ from mems_stereo.pipeline.classify_kernel import compiled_blocks
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.frame_bias import every_bias_removed
 from mems_stereo.pipeline.pass1 import Counts
-from mems_stereo.pipeline.run import process_recording, run_table
+from mems_stereo.pipeline.run import (
+    checked_header,
+    process_recording,
+    recording_angles,
+    run_table,
+)
 from mems_stereo.pipeline.settings import Settings
 from mems_stereo.pipeline.temporal import TemporalFusion
 
@@ -285,26 +291,58 @@ def _empty_cloud(n_shots: int, unknown: int) -> tuple[PointCloud, Counts]:
     return cloud, Counts(n_shots, unknown, 0, 0, 0, 0, 0)
 
 
+def is_empty_frame(shots: FrameShots) -> bool:
+    """Whether a frame has nothing to process: no shot, or fewer than two zero crossings
+    (no shot angle known): :func:`frame_cloud` gives its empty cloud at once."""
+    return shots.times.size == 0 or shots.zc.size < 2
+
+
+def frame_recording(system: System, shots: FrameShots, source: str) -> Recording:
+    """A frame's shots as the :class:`Recording` its stages read (``/truth/label`` where
+    the shots carry labels)."""
+    truth = {} if shots.labels is None else {"label": shots.labels}
+    return Recording(system, shots.times, shots.bins, shots.zc, shots.rising, truth, source)
+
+
+@contextlib.contextmanager
+def frame_stages() -> Iterator[None]:
+    """Context of a frame's stages: the kernels the processor loaded for blocks of any
+    size (:func:`~mems_stereo.pipeline.classify_kernel.compiled_blocks`), every mean-angle
+    bias removed (:func:`~mems_stereo.pipeline.frame_bias.every_bias_removed`: the
+    temporal fusion averages the frames' noise, not a bias they share)."""
+    with compiled_blocks(), every_bias_removed():
+        yield
+
+
 def frame_cloud(system: System, shots: FrameShots, settings: Settings, table, source: str):
     """``(cloud, counts)`` of one frame's shots: :func:`process_recording` on them, each
     point with ``t`` (:func:`point_times`) and its scan-angle band (``step_lo``,
     ``step_hi``, int32: the steps of the interval table its peak counted)."""
     k = shots.times.size
-    if k == 0 or shots.zc.size < 2:
+    if is_empty_frame(shots):
         return _empty_cloud(k, k)
-    truth = {} if shots.labels is None else {"label": shots.labels}
-    rec = Recording(system, shots.times, shots.bins, shots.zc, shots.rising, truth, source)
-    # a frame's passes by the kernels the processor loaded; every mean-angle bias
-    # removed (the fusion averages the frames' noise, not a bias they share)
-    with compiled_blocks(), every_bias_removed():
-        res = process_recording(rec, system, settings, table=table)
-    cloud = res.cloud
-    band = peak_of_points(res.peaks, cloud, system.receiver.width)
-    steps = table.rows(res.theta, res.valid)
-    cloud.attributes["t"] = point_times(shots, steps, res.peaks, band, table)
-    cloud.attributes["step_lo"] = res.peaks.step_lo[band].astype(np.int32)
-    cloud.attributes["step_hi"] = res.peaks.step_hi[band].astype(np.int32)
-    return cloud, res.counts
+    with frame_stages():
+        res = process_recording(frame_recording(system, shots, source), system, settings,
+                                table=table)
+    return stamped_cloud(system, shots, table, res.peaks, res.cloud, res.theta,
+                         res.valid), res.counts
+
+
+def stamped_cloud(system: System, shots: FrameShots, table, peaks, cloud: PointCloud,
+                  theta=None, valid=None) -> PointCloud:
+    """``cloud`` (the points of ``peaks``, one per pixel at most) with each point's time
+    ``t`` (:func:`point_times`) and its peak's band ``step_lo``, ``step_hi`` (int32);
+    ``theta``, ``valid`` : (K,) the shots' angles (default: computed here from
+    ``shots``, as the frame's run computes them)."""
+    if theta is None:
+        header = checked_header(frame_recording(system, shots, ""), system)
+        theta, valid = recording_angles(header, system)
+    band = peak_of_points(peaks, cloud, system.receiver.width)
+    steps = table.rows(theta, valid)
+    cloud.attributes["t"] = point_times(shots, steps, peaks, band, table)
+    cloud.attributes["step_lo"] = peaks.step_lo[band].astype(np.int32)
+    cloud.attributes["step_hi"] = peaks.step_hi[band].astype(np.int32)
+    return cloud
 
 
 def peak_of_points(peaks, cloud: PointCloud, width: int) -> np.ndarray:
