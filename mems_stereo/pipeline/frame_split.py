@@ -22,9 +22,9 @@ per share) and the joins, small, in the caller:
    (:data:`~mems_stereo.pipeline.first_photon_correction.FP_BLOCK`), balanced by the
    peaks' scan-angle bands (:func:`fusion_blocks`: room-light peaks cluster where the
    objects are; blocks of pixels would not balance them).
-3. :func:`share_means` — each share: pass 2 of its block of peaks and their fusion up
-   to the peak means.  The caller makes the cloud of the joined means and stamps each
-   point's time and band (:func:`frame_of_means`).
+3. :func:`share_means` — each share: pass 2 of its block of peaks, their fusion up to
+   the peak means and the time of each one's point.  The caller makes the cloud of the
+   joined means and stamps each point with its time and band (:func:`frame_of_means`).
 
 Each step calls the functions one process calls, on a block, as the Dask runner does
 (:mod:`~mems_stereo.pipeline.dask_split`), so the cloud and counts are
@@ -55,6 +55,7 @@ from mems_stereo.pipeline.frames import (
     frame_recording,
     frame_stages,
     is_empty_frame,
+    point_times,
     stamped_cloud,
 )
 from mems_stereo.pipeline.intervals import IntervalTable
@@ -82,12 +83,14 @@ from mems_stereo.pipeline.settings import Settings
 class ShareFrame:
     """What a share keeps of a frame between its steps.
 
-    run : the frame's :class:`~mems_stereo.pipeline.run.RunInputs` (its shots as a
-    Recording, their angles, the table).  acc : pass 1 of the whole frame.  scores : the
-    peak detector's :class:`~mems_stereo.pipeline.peaks.PeakScores` of the share's
-    ``pixels`` ((Pb,) int64 flat pixels ``row·width + col``, increasing).
+    shots : the frame's :class:`~mems_stereo.pipeline.frames.FrameShots`.  run : its
+    :class:`~mems_stereo.pipeline.run.RunInputs` (the shots as a Recording, their
+    angles, the table).  acc : pass 1 of the whole frame.  scores : the peak detector's
+    :class:`~mems_stereo.pipeline.peaks.PeakScores` of the share's ``pixels`` ((Pb,)
+    int64 flat pixels ``row·width + col``, increasing).
     """
 
+    shots: FrameShots
     run: RunInputs
     acc: RangeAccumulation
     pixels: np.ndarray
@@ -107,6 +110,16 @@ class ShareSupport:
     support: SupportInputs
     counts: Counts
     n_per_step: np.ndarray
+
+
+@dataclass(frozen=True, slots=True)
+class ShareMeans:
+    """Step 3's answer of a share: its block of peaks' ``means``
+    (:class:`~mems_stereo.pipeline.peak_means.PeakMeans`) and ``times``, (Qb,) float64
+    s, the time of each one's point (:func:`~mems_stereo.pipeline.frames.point_times`)."""
+
+    means: PeakMeans
+    times: np.ndarray
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,7 +169,7 @@ def share_scores(system: System, shots: FrameShots, settings: Settings, table: I
                      table, settings, pixels)
     counts = Counts(int(header.shape[0]), int(acc.n_unknown), int(hists.raw.sum()),
                     int(hists.signal.sum()), int(hists.noise.sum()), 0, 0)
-    return (ShareFrame(run, acc, pixels, sc),
+    return (ShareFrame(shots, run, acc, pixels, sc),
             ShareSupport(sc.support_inputs(), counts, acc.n_per_step))
 
 
@@ -227,31 +240,37 @@ def fusion_blocks(peaks: Peaks, n_shares: int) -> list[tuple[int, int]]:
     return peak_blocks(band, n_shares)
 
 
-def share_means(sf: ShareFrame, peaks: Peaks) -> PeakMeans:
-    """Step 3 of a share: pass 2 of the block ``peaks`` (light) from the frame's shots
-    and their fusion up to the peak means
-    (:func:`~mems_stereo.pipeline.block_fusion.fused_sums`)."""
+def share_means(sf: ShareFrame, peaks: Peaks) -> ShareMeans:
+    """Step 3 of a share: pass 2 of the block ``peaks`` (light) from the frame's shots,
+    their fusion up to the peak means
+    (:func:`~mems_stereo.pipeline.block_fusion.fused_sums`) and the time of each one's
+    point."""
     run = sf.run
     counts = peak_counts_range(run.source, run.system, run.shots, run.settings, peaks,
                                table=run.table)
-    return fused_sums(run.system, peaks, counts, run.settings, sf.acc.n_per_step,
-                      run.table).peak_means()
+    means = fused_sums(run.system, peaks, counts, run.settings, sf.acc.n_per_step,
+                       run.table).peak_means()
+    steps = run.table.rows(run.theta, run.valid)
+    return ShareMeans(means, point_times(sf.shots, steps, peaks, np.arange(len(peaks)),
+                                         run.table))
 
 
 def frame_of_means(system: System, shots: FrameShots, table: IntervalTable, peaks: Peaks,
-                   means: Sequence[PeakMeans], pass1: ShareSupport,
+                   blocks: Sequence[ShareMeans], pass1: ShareSupport,
                    settings: Settings) -> tuple[PointCloud, Counts]:
     """``(cloud, counts)`` of the frame, as :func:`frame_cloud` gives them, from its
-    joined ``peaks``, the ``means`` of their blocks in order and share 0's step-1
+    joined ``peaks``, the step-3 answers of their blocks in order and share 0's step-1
     answer ``pass1``."""
     if len(peaks):
-        cloud = cloud_of_means(means, settings)
+        cloud = cloud_of_means([b.means for b in blocks], settings)
     else:  # no peak: the whole's (empty) cloud, its attributes included
         cloud = fuse_in_blocks(system, peaks, PeakCounts(), settings, pass1.n_per_step, table)
     c = pass1.counts
     counts = Counts(c.shots, c.shots_unknown_angle, c.raw, c.signal, c.noise, len(peaks),
                     len(cloud))
-    return stamped_cloud(system, shots, table, peaks, cloud), counts
+    times = (np.concatenate([b.times for b in blocks]) if blocks
+             else np.zeros(0, np.float64))
+    return stamped_cloud(system, shots, table, peaks, cloud, peak_times=times), counts
 
 
 def split_frame_cloud(system: System, shots: FrameShots, settings: Settings,

@@ -188,7 +188,7 @@ def _answer_split(conn: Connection, system, settings, table, job, held: dict) ->
 def split_step(system: System, settings, table, job, held: dict):
     """One step of a worker's share of a frame (:mod:`~mems_stereo.pipeline.frame_split`),
     ``job`` = ``("split", index, step, payload)``: "scores" (payload ``(shots, source,
-    (p0, p1))``: the share's pixels), "peaks" (payload: the share's support) or "means"
+    pixels)``: the share's flat pixels), "peaks" (payload: the share's support) or "means"
     (payload: the share's block of peaks); ``held`` keeps the share's frame between
     steps.  Returns the step's answer."""
     _, _index, step, payload = job

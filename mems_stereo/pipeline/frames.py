@@ -329,17 +329,22 @@ def frame_cloud(system: System, shots: FrameShots, settings: Settings, table, so
 
 
 def stamped_cloud(system: System, shots: FrameShots, table, peaks, cloud: PointCloud,
-                  theta=None, valid=None) -> PointCloud:
+                  theta=None, valid=None, peak_times=None) -> PointCloud:
     """``cloud`` (the points of ``peaks``, one per pixel at most) with each point's time
     ``t`` (:func:`point_times`) and its peak's band ``step_lo``, ``step_hi`` (int32);
     ``theta``, ``valid`` : (K,) the shots' angles (default: computed here from
-    ``shots``, as the frame's run computes them)."""
-    if theta is None:
-        header = checked_header(frame_recording(system, shots, ""), system)
-        theta, valid = recording_angles(header, system)
+    ``shots``, as the frame's run computes them); ``peak_times`` : (Q,) float64 s, the
+    time of every peak's point where computed elsewhere (blocks of peaks: each point's
+    time is its peak's alone)."""
     band = peak_of_points(peaks, cloud, system.receiver.width)
-    steps = table.rows(theta, valid)
-    cloud.attributes["t"] = point_times(shots, steps, peaks, band, table)
+    if peak_times is not None:
+        cloud.attributes["t"] = np.asarray(peak_times, np.float64)[band]
+    else:
+        if theta is None:
+            header = checked_header(frame_recording(system, shots, ""), system)
+            theta, valid = recording_angles(header, system)
+        steps = table.rows(theta, valid)
+        cloud.attributes["t"] = point_times(shots, steps, peaks, band, table)
     cloud.attributes["step_lo"] = peaks.step_lo[band].astype(np.int32)
     cloud.attributes["step_hi"] = peaks.step_hi[band].astype(np.int32)
     return cloud
