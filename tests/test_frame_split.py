@@ -52,9 +52,9 @@ class _Shots(FrameProcessor):
         self.frames_done += 1
 
 
-def _frame_shots(name: str, hz: float, n: int):
+def _frame_shots(name: str, hz: float | None, n: int, shots: int | None = None):
     rec = read_recording(data.path(name))
-    p = _Shots(rec.system, frame_rate=hz)
+    p = _Shots(rec.system, frame_rate=hz, frame_shots=shots)
     for c in recording_chunks(rec, 1000):
         p.push(c)
     p.flush()
@@ -86,6 +86,16 @@ def test_split_frames_are_one_process_byte_for_byte(name, hz):
                                ref)
     if name == "room.h5":
         assert ref[1].peaks > 16  # two blocks of the first-photon groups (FP_BLOCK)
+
+
+def test_split_frames_without_peaks_are_one_process_byte_for_byte():
+    """Frames of 12 shots find no peak: the empty cloud (its attributes) and counts of
+    ``frame_cloud``."""
+    p, frames = _frame_shots("room.h5", None, 2, shots=12)
+    for shots in frames:
+        ref = frame_cloud(p.system, shots, p.settings, p.table, "f")
+        assert ref[1].peaks == 0 and ref[1].raw > 0
+        _assert_same_cloud(split_frame_cloud(p.system, shots, p.settings, p.table, "f", 2), ref)
 
 
 def test_share_pixels_interleave_every_pixel_once():

@@ -12,7 +12,7 @@ per share) and the joins, small, in the caller:
 1. :func:`share_scores` — each share: pass 1 of the whole frame (its shots' angles,
    classification, histograms: a few ms, the same in every share), then the peak
    detector's per-pixel scores of its pixels (every n-th pixel,
-   :func:`share_pixels`).  The caller joins the blocks' support inputs
+   :func:`share_pixels`).  The caller joins the shares' support inputs
    (:func:`supported_blocks`).
 2. :func:`share_peaks` — each share: the first-stage peaks of its pixels, its matched
    filter candidates' pass-2 counts and each candidate's box search (the costly part of
