@@ -16,7 +16,8 @@ frames, the folder sink), with each --modes:
 
 The modes of one configuration run one after another, alternating, --repeat times.  Per
 run: frames written and dropped, latency median / p99 / max against the targets (median
-<= 1 period, p99 <= 2, no drop at rate 1), CPU s per frame of all the processes, and for
+<= 1 period, p99 <= 2, no drop at rate 1), frames written per wall second, CPU s per
+frame of all the processes, and for
 ``pixels`` each worker's CPU s per frame in each of the three steps and the main
 process's CPU s per frame in the joins between them (wall-clock latency follows the load
 of the shared machine: the load average is printed at each run's start and end; the CPU
@@ -105,6 +106,7 @@ def line(name: str, hz: float, rtext: str, mode: str, r: dict) -> str:
            f"latency median {med:.0f} / p99 {p99:.0f} / max {r['lat_max']:.0f} ms")
     out = (f"  {mode:6s} {name:5s} {hz:4g} Hz rate {rtext:>3s}: {r['written']} written, "
            f"{r['dropped']} dropped; {lat} (period {period:.0f} ms); "
+           f"{r['written'] / r['wall']:.2f} frames per wall s; "
            f"{r['cpu'] / max(r['written'], 1):.3f} CPU s per frame; targets "
            f"{'met' if ok else 'NOT met'}; load {r['load'][0]:.1f} -> {r['load'][1]:.1f}")
     if "step_cpu" in r:
