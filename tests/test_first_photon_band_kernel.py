@@ -129,3 +129,20 @@ def test_point_times_kernel_equals_numpy(monkeypatch):
            and lo[steps[k], r * W + c] <= bins[k, r, c] <= hi[steps[k], r * W + c]]
     want = times[sel].mean() if sel else times.mean()
     assert got[i] == pytest.approx(want, rel=1e-13)
+
+
+def test_step_directions_same_bits_as_scan_direction():
+    from mems_stereo.model.scanner import scan_direction
+    from mems_stereo.model.system import preset
+    from mems_stereo.physics.spot import step_directions
+
+    scanner = preset("burkard2022").scanner
+    t0, dt = float(scanner.theta0) - 0.01, 1.3e-5
+    rng = np.random.default_rng(5)
+    for steps in (rng.integers(-40, 900, 500), rng.integers(2000, 2100, (7, 3)).ravel(),
+                  np.array([-50, 3000])):  # the table of steps grows to hold them all
+        got = step_directions(scanner, t0, dt, steps)
+        want = scan_direction(t0 + steps * dt, scanner)
+        assert np.array_equal(got.view(np.int64), want.view(np.int64))
+    # independent: the reflection of a unit laser direction is a unit vector
+    assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)

@@ -36,7 +36,7 @@ from mems_stereo.physics.first_photon_band_kernel import (
 )
 from mems_stereo.physics.first_photon_band_kernel import kernels as band_kernels
 from mems_stereo.physics.pulse import pulse_shape_of
-from mems_stereo.physics.spot import spot_fraction
+from mems_stereo.physics.spot import spot_fraction, step_directions
 from mems_stereo.pipeline.classify_kernel import compiles
 
 #: peaks per block of the first-photon correction (by peak index; see
@@ -148,7 +148,9 @@ def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False) -> BandSt
     t0, dt = acc.step_grid
     f = np.zeros(steps.shape)
     f[qi, bi] = spot_fraction(acc.system, acc.rows[q[qi]], acc.cols[q[qi]],
-                              t0 + steps[qi, bi] * dt, centre[qi], acc.spot_sigma)
+                              t0 + steps[qi, bi] * dt, centre[qi], acc.spot_sigma,
+                              directions=step_directions(acc.system.scanner, t0, dt,
+                                                         steps[qi, bi]))
     if full:
         return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0),
                          np.where(in_band, f, 0.0))
@@ -227,7 +229,9 @@ def block_band_steps(acc, q, cut, max_steps: int = 2048, log_miss: bool = True) 
     f = np.zeros(steps.shape)
     f[sel] = spot_fraction(acc.system, acc.rows[q[ri[sel]]], acc.cols[q[ri[sel]]],
                            t0 + steps[sel] * dt, centre[ri[sel]], acc.spot_sigma,
-                           cuts=np.searchsorted(sel, ends))
+                           cuts=np.searchsorted(sel, ends),
+                           directions=step_directions(acc.system.scanner, t0, dt,
+                                                      steps[sel]))
     nf = n.astype(np.float64)
     f_band = np.where(n > 0, f, 0.0)
     f_full = np.where(in_band, f, 0.0)
