@@ -146,3 +146,30 @@ def test_step_directions_same_bits_as_scan_direction():
         assert np.array_equal(got.view(np.int64), want.view(np.int64))
     # independent: the reflection of a unit laser direction is a unit vector
     assert np.allclose(np.linalg.norm(got, axis=1), 1.0, atol=1e-12)
+
+
+def test_log_odds_kernel_near_numpy(monkeypatch):
+    """The frames' log-odds (``ln(1 − P)`` in closed form up to CLOSED_BELOW) against
+    NumPy's form: where P is rounded near 1 NumPy's ``log1p(−P)`` is off the exact value
+    by up to 2.2e-16 / (1 − P), ≤ 2.5e-13 below CLOSED_BELOW (above it both are NumPy's
+    form); the closed form is exact (independent check on ``ln(1 − P)`` itself)."""
+    pytest.importorskip("numba")
+    from mems_stereo.physics.first_photon_band_kernel import CLOSED_BELOW, kernels, log_odds
+
+    rng = np.random.default_rng(12)
+    f = np.concatenate([rng.random(300) ** 3 * 0.9, [0.0, 1e-300, 1.0, 0.07]])
+    got = log_odds(kernels()[2], f, fp.MU_GRID, fp.OUTLIER_PROBABILITY)
+    monkeypatch.setattr(fp, "firing_kernels", lambda: None)
+    ref = fp.detection_log_odds(f)
+    x = f[:, None] * fp.MU_GRID[None, :]
+    e = fp.OUTLIER_PROBABILITY
+    one_minus_p = np.maximum((1 - e) * np.exp(-x), 1e-12)
+    bound = 4.4e-16 / one_minus_p + 1e-15 * np.abs(ref)
+    assert np.all(np.abs(got - ref) <= bound)
+    small = x <= CLOSED_BELOW
+    assert np.all(np.abs(got - ref)[small] <= 3e-13 + 1e-15 * np.abs(ref)[small])
+    # independent: ln P − ln(1 − P) with 1 − P = (1 − e)·exp(−x), exact in long double
+    xl = x.astype(np.longdouble)
+    p_l = e + (1 - e) * -np.expm1(-xl)
+    want = np.log(p_l) - (np.log1p(np.longdouble(-e)) - xl)
+    assert np.allclose(got[small], want[small].astype(np.float64), rtol=1e-14, atol=1e-14)

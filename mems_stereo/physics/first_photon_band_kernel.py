@@ -1,4 +1,4 @@
-"""The first-photon correction's per-peak band loops in two compiled calls (numba).
+"""The first-photon correction's per-peak loops of a frame, compiled (numba).
 
 A peak's first-photon correction reads the steps around its inlier band: the valid
 shots ``n`` and the spot's share ``f`` of the pixel at each.  NumPy evaluates it as
@@ -9,18 +9,22 @@ the flat layout of
 
 * :func:`band_likelihood_moments` — on the μ0 grid (:data:`~.first_photon.MU_GRID`),
   the band's log-probability of its misses ``Σ n·ln(1 − P(inlier))``
-  (:func:`~.first_photon.band_log_miss`) and the band's first-photon moments (the mean
-  delay and mixture variance of :func:`~.first_photon.first_photon_delay`'s band sums),
-  with one ``expm1`` per (entry, μ0) shared by both;
+  (:func:`~.first_photon.band_log_miss`) and the band's first-photon moments (the
+  mean delay and mixture variance of :func:`~.first_photon.first_photon_delay`'s band
+  sums), with one ``expm1`` per (entry, μ0) shared by both;
 * :func:`band_figures` — given each peak's posterior μ0, the mean angle's expected
   bias (:func:`~mems_stereo.pipeline.first_photon_correction.mean_angle_bias`), its
-  binomial factor (:func:`~mems_stereo.pipeline.first_photon_correction.angle_binomial_factor`)
-  and the firings the model predicts at the grid's top
-  (:func:`~mems_stereo.pipeline.first_photon_correction._beyond_model`).
+  binomial factor
+  (:func:`~mems_stereo.pipeline.first_photon_correction.angle_binomial_factor`) and
+  the firings the model predicts at the grid's top
+  (:func:`~mems_stereo.pipeline.first_photon_correction._beyond_model`);
+* :func:`log_odds` — the log-odds of a shot's firing
+  (:func:`~.first_photon.detection_log_odds`) for the frames' likelihood.
 
 The numbers are NumPy's but for the order of the sums (sequential here, pairwise
-there) and the divisions of the weighted means (one per sum here, per term there):
-within a few units in the last place.  ``math.expm1``, ``log`` and ``log1p`` are the C
+there), the divisions of the weighted means (one per sum here, per term there) and
+``ln(1 − P)`` in closed form where NumPy's rounded form is within 2.5e-13 of it
+(:data:`CLOSED_BELOW`).  ``math.expm1``, ``log`` and ``log1p`` are the C
 library's, as NumPy's float64 functions are on CPUs without its vectorised forms.
 """
 
@@ -34,12 +38,40 @@ from mems_stereo.physics.first_photon import MU_MAX
 from mems_stereo.physics.first_photon_kernel import table_lookup_one
 from mems_stereo.util.lazy_numba import compiled_kernel
 
+#: μ0·f up to which ``ln(1 − P)`` is taken in closed form, ``ln(1 − e) − μ0·f``, rather
+#: than as NumPy's ``log1p(−P)`` of the rounded P: there P ≤ 1 − 0.98·e⁻⁷, and
+#: NumPy's form is off the exact value by at most 2.2e-16 / (1 − P) ≈ 2.5e-13 (P's
+#: rounding); above it, where P nears 1, the rounding of P dominates 1 − P and NumPy's
+#: form is kept (the outputs stay within 1e-9 of NumPy's)
+CLOSED_BELOW = 7.0
+
 
 def kernels():
     """``(likelihood_moments, figures)``: the compiled :func:`_likelihood_moments_py`
     and :func:`_figures_py` (numba's disk cache), or None without numba."""
     a = compiled_kernel(_likelihood_moments_py, {"_lookup": table_lookup_one})
-    return None if a is None else (a, compiled_kernel(_figures_py))
+    return None if a is None else (a, compiled_kernel(_figures_py),
+                                   compiled_kernel(_log_odds_py))
+
+
+def log_odds(kernel, f, mu_grid, outlier: float) -> np.ndarray:
+    """(N, J) float64 ``ln P − ln(1 − P)`` of a shot at spot share ``f`` (N,) on the μ0
+    grid (:func:`~mems_stereo.physics.first_photon.detection_log_odds`, with
+    ``ln(1 − P)`` in closed form up to :data:`CLOSED_BELOW`)."""
+    return kernel(np.ascontiguousarray(f, np.float64).ravel(),
+                  np.ascontiguousarray(mu_grid, np.float64), float(outlier))
+
+
+def _log_odds_py(f, mu, e):  # pragma: no cover - compiled by numba
+    """:func:`log_odds`' loop."""
+    out = np.empty((f.size, mu.size))
+    log_e = math.log1p(-e)
+    for t in range(f.size):
+        for j in range(mu.size):
+            x = mu[j] * f[t]
+            p = min(e + (1 - e) * -math.expm1(-x), 1.0 - 1e-12)
+            out[t, j] = math.log(p) - (log_e - x if x <= CLOSED_BELOW else math.log1p(-p))
+    return out
 
 
 def band_likelihood_moments(kernel, starts, n, f, mu_grid, outlier: float, a, table):
@@ -52,7 +84,8 @@ def band_likelihood_moments(kernel, starts, n, f, mu_grid, outlier: float, a, ta
     table : the :class:`~mems_stereo.physics.first_photon.FirstPhotonTable`.
 
     ``log_miss[r, j] = Σ n·ln(1 − P)`` with ``P = min(e + (1 − e)(1 − exp(−μ_j f)),
-    1 − 10⁻¹²)`` over the entries with shots; ``dj``, ``vj`` the band's mean delay and
+    1 − 10⁻¹²)`` over the entries with shots (``ln(1 − e) − μ_j f`` up to
+    :data:`CLOSED_BELOW`); ``dj``, ``vj`` the band's mean delay and
     mixture variance (pulse σ, σ²) of μ0 = μ_j: the entries with shots and spot weighed
     by ``w = n·(1 − exp(−μ_j f))``, the table's moments ``(d, v)`` at ``(a, ln μ_j f)``,
     ``dj = Σ w·d / Σ w``, ``vj = Σ w·(v + d²) / Σ w − dj²`` (Σ w at least 10⁻³⁰⁰: 0
@@ -82,6 +115,7 @@ def _likelihood_moments_py(starts, n, f, mu, e, a, mean_t, var_t, grid,
     swv = np.empty(J)
     log_mu = np.log(mu)
     lm_lo, lm_hi = math.log(1e-4), math.log(grid[6])
+    log_e = math.log1p(-e)
     for r in range(R):
         fa = min(max((a[r] - grid[0]) / grid[1], 0.0), grid[2])
         i = np.int64(fa)
@@ -99,8 +133,11 @@ def _likelihood_moments_py(starts, n, f, mu, e, a, mean_t, var_t, grid,
             for j in range(J):
                 x = mu[j] * ft
                 ex = -math.expm1(-x)
-                p = min(e + (1 - e) * ex, 1.0 - 1e-12)
-                log_miss[r, j] += nt * math.log1p(-p)
+                if x <= CLOSED_BELOW:  # ln(1 − P) = ln(1 − e) − μ0·f
+                    log_miss[r, j] += nt * (log_e - x)
+                else:
+                    p = min(e + (1 - e) * ex, 1.0 - 1e-12)
+                    log_miss[r, j] += nt * math.log1p(-p)
                 if ft != 0:
                     w = nt * ex
                     lm = min(max(log_mu[j] + log_f, lm_lo), lm_hi)
