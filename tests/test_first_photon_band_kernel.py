@@ -173,3 +173,29 @@ def test_log_odds_kernel_near_numpy(monkeypatch):
     p_l = e + (1 - e) * -np.expm1(-xl)
     want = np.log(p_l) - (np.log1p(np.longdouble(-e)) - xl)
     assert np.allclose(got[small], want[small].astype(np.float64), rtol=1e-14, atol=1e-14)
+
+
+def test_frame_fusion_in_peak_blocks_equals_the_whole(monkeypatch):
+    """A frame's compiled fusion of peaks cut into blocks at multiples of FP_BLOCK (as
+    the fusion in blocks and the frames split across workers cut them) gives the
+    whole's cloud bit for bit: each peak's loops are its own and the posterior is
+    taken per block of FP_BLOCK peaks."""
+    pytest.importorskip("numba")
+    from pathlib import Path
+
+    from mems_stereo.pipeline import block_fusion
+    from mems_stereo.pipeline.classify_kernel import compiled_blocks
+    from mems_stereo.pipeline.frame_bias import every_bias_removed
+    from mems_stereo.pipeline.run import process_recording
+
+    path = Path(__file__).resolve().parents[1] / "samples" / "room.h5"
+    with compiled_blocks(), every_bias_removed():
+        whole = process_recording(path)
+        monkeypatch.setattr(block_fusion, "FUSE_ENTRIES", 150)  # 4 blocks of ~600 keys
+        parts = process_recording(path)
+    assert len(whole.peaks.row) > 3 * fpc.FP_BLOCK
+    assert np.array_equal(parts.cloud.points.view(np.int64),
+                          whole.cloud.points.view(np.int64))
+    for k, v in whole.cloud.attributes.items():
+        assert np.array_equal(np.asarray(parts.cloud.attributes[k]).view(np.uint8),
+                              np.asarray(v).view(np.uint8)), k

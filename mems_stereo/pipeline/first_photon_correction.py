@@ -365,7 +365,7 @@ def _band_figures(acc, idx, tau, sigma: float, theta_bar) -> dict:
     kern = band_kernels() if compiles(0, 1) else None
     bands = block_band_steps(acc, idx, cut, log_miss=kern is None)
     if kern is not None:
-        return _compiled_band_figures(acc, idx, bands.flat, tau, sigma, theta_bar, kern)
+        return _compiled_band_figures(acc, idx, bands, tau, sigma, theta_bar, kern)
     fig = {k: np.empty(idx.size) for k in ("d", "sd", "var", "mu", "ab", "bias", "sm")}
     log_lik = acc.sums.loglik[idx] + bands.log_miss
     for a, b, band in bands.blocks:
@@ -383,16 +383,25 @@ def _band_figures(acc, idx, tau, sigma: float, theta_bar) -> dict:
     return fig
 
 
-def _compiled_band_figures(acc, idx, flat: BandEntries, tau, sigma: float, theta_bar,
+def _compiled_band_figures(acc, idx, bands: BlockBands, tau, sigma: float, theta_bar,
                            kern) -> dict:
     """:func:`_band_figures` by the compiled loops of
     :mod:`~mems_stereo.physics.first_photon_band_kernel` (``kern``) over the bands laid
-    end to end (``flat``): the same numbers but for the order of the sums."""
+    end to end (``bands.flat``): the same numbers but for the order of the sums (and
+    ``ln(1 − P)``'s closed form).  Each row's loops are its own, and the posterior is
+    taken per block of ``bands`` (its μ0 mean a matrix product, whose rounding may
+    follow the rows around): the peaks split at multiples of FP_BLOCK give the whole's
+    bits, as the NumPy form does."""
+    flat = bands.flat
     lmiss, dj, vj = band_likelihood_moments(kern[0], flat.starts, flat.shots, flat.spot,
                                             MU_GRID, OUTLIER_PROBABILITY, -tau[idx] / sigma,
                                             first_photon_table())
-    fig = dict(zip(("d", "sd", "var", "mu", "sm"), posterior_delay(
-        acc.sums.loglik[idx] + lmiss, dj, vj, sigma, mu_factor=MU_MODEL_FACTOR)))
+    ll = acc.sums.loglik[idx] + lmiss
+    fig = {k: np.empty(idx.size) for k in ("d", "sd", "var", "mu", "sm")}
+    for a, b, _ in bands.blocks:
+        (fig["d"][a:b], fig["sd"][a:b], fig["var"][a:b], fig["mu"][a:b],
+         fig["sm"][a:b]) = posterior_delay(ll[a:b], dj[a:b], vj[a:b], sigma,
+                                           mu_factor=MU_MODEL_FACTOR)
     bias, ab, k_top = band_figures(kern[1], flat.starts, flat.steps, flat.shots, flat.spot,
                                    flat.spot_full, fig["mu"], theta_bar[idx],
                                    MU_BEYOND_GRID * MU_MAX, BINOMIAL_MIN_SHOTS)
