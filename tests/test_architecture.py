@@ -17,7 +17,7 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
 #: orchestration comes last: block_fusion (the fusion in blocks of peaks), run (one
 #: process), then the Dask runner's modules, distributed (its face) last of them
 STAGES = ["consistency", "intervals", "settings", "frame_bias", "angles", "shot_range", "histograms",
-          "classify_kernel", "pass1", "peak_table", "peak_support", "acceptance",
+          "classify_kernel", "point_times_kernel", "pass1", "peak_table", "peak_support", "acceptance",
           "step_windows", "peaks", "pass2", "matched_boxes", "matched_grid",
           "matched_best_kernel", "matched",
           "signal_store", "cloud",

@@ -1,7 +1,8 @@
-"""The frame path's fast forms give the same bits as the general ones: pass 1 and pass 2
-of a frame by the compiled kernels (:func:`~mems_stereo.pipeline.classify_kernel.
-compiled_blocks`) whatever its size, and the stereo's cross products
-(:func:`~mems_stereo.geometry.triangulation.cross3`)."""
+"""The frame path's fast forms give the general ones' numbers: pass 1 and pass 2 of a
+frame by the compiled kernels (:func:`~mems_stereo.pipeline.classify_kernel.
+compiled_blocks`) whatever its size (the same bits; the fusion's compiled first-photon
+loops to the last places), and the stereo's cross products
+(:func:`~mems_stereo.geometry.triangulation.cross3`, the same bits)."""
 
 from pathlib import Path
 
@@ -44,9 +45,21 @@ def test_compiled_blocks_scope():
     assert not compiles(small)
 
 
+#: largest relative difference of a frame cloud's float fields between the compiled
+#: fusion of a frame and NumPy's: the compiled first-photon band loops
+#: (:mod:`mems_stereo.physics.first_photon_band_kernel`) add their sums in another
+#: order (sequential, not pairwise) and take ln μ0·f as ln μ0 + ln f, a few units in the
+#: last place of the band's moments and figures; the σ, which go through the mean
+#: angle's bias and binomial factor, moved by at most 4e-11 on room.h5 and the
+#: benchmark's room recordings; the stereo–ToF z-score of a point whose two ranges agree
+#: (z near 0) by more, relatively: its absolute difference is bounded instead
+FRAME_REL = 1e-9
+
+
 def test_frame_passes_compiled_equal_numpy():
     """A small recording processed with its passes compiled (as a frame is) and by
-    NumPy: the same histograms, peaks and cloud, bit for bit."""
+    NumPy: the same histograms, peaks and points, bit for bit; the cloud's float
+    attributes within :data:`FRAME_REL` (the compiled fusion's order of sums)."""
     pytest.importorskip("numba")
     path = SAMPLES / "room.h5"
     ref = process_recording(path)
@@ -56,11 +69,16 @@ def test_frame_passes_compiled_equal_numpy():
         np.testing.assert_array_equal(got.histograms[k], ref.histograms[k])
     assert got.counts == ref.counts
     np.testing.assert_array_equal(got.peaks.row, ref.peaks.row)
-    assert np.array_equal(_bits(got.cloud.points), _bits(ref.cloud.points))
+    np.testing.assert_allclose(got.cloud.points, ref.cloud.points, rtol=FRAME_REL, atol=0)
     assert got.cloud.attributes.keys() == ref.cloud.attributes.keys()
     for k, v in ref.cloud.attributes.items():
-        assert np.array_equal(np.asarray(got.cloud.attributes[k]).view(np.uint8),
-                              np.asarray(v).view(np.uint8)), k
+        g = np.asarray(got.cloud.attributes[k])
+        if g.dtype.kind != "f":
+            np.testing.assert_array_equal(g, v, err_msg=k)
+        elif k == "stereo_tof_z":
+            np.testing.assert_allclose(g, v, rtol=0, atol=FRAME_REL, err_msg=k)
+        else:
+            np.testing.assert_allclose(g, v, rtol=FRAME_REL, atol=0, err_msg=k)
     # independent: every detection (code > 0) of a shot with a known angle is in raw
     rec = read_recording(path)
     known = np.isfinite(got.theta)

@@ -234,13 +234,20 @@ def test_range_mode_band_compiled_equals_numpy(monkeypatch):
     from mems_stereo.pipeline.sums import RangeMode
 
     rng = np.random.default_rng(17)
-    rm = RangeMode(30)
+    rm = RangeMode(33)
     n = 400
     peak = rng.integers(0, 28, n)
     r = rng.uniform(0.5, 20.0, n)
     rm.add(peak, r, 0.02 * r, rng.uniform(-0.3, 2.0, n))
     rm.add(np.array([28]), np.array([3.0]), np.array([0.1]), np.array([1.0]))
     rm.cover[29, 100] = np.nan
+    # (the compiled pass reads a row between its first and last nonzero entries:) a
+    # row of negative weights only, one from the grid's first point, one to its end
+    rm.add(np.array([30, 30]), np.array([2.0, 5.0]), np.array([0.1, 0.2]),
+           np.array([-1.0, -0.5]))
+    rm.add(np.array([31, 31]), np.array([0.0101, 0.5]), np.array([0.0001, 0.1]),
+           np.array([1.0, 2.0]))
+    rm.add(np.array([32]), np.array([900.0]), np.array([200.0]), np.array([1.0]))
     fast = rm.finish()
     with monkeypatch.context() as m:
         m.delitem(sys.modules, "numba")

@@ -371,11 +371,18 @@ def first_photon_delay(log_likelihood, f_band, n_band, tau0, sigma, mu_factor=No
         misjudges by a factor F, which the posterior's spread (the data's) does not
         hold.
     """
+    a = -np.asarray(tau0, dtype=np.float64) / sigma
+    dj, vj = _band_sums(np.asarray(f_band, np.float64), n_band, a)
+    return posterior_delay(log_likelihood, dj, vj, sigma, mu_factor)
+
+
+def posterior_delay(log_likelihood, dj, vj, sigma, mu_factor=None):
+    """:func:`first_photon_delay` from the band's moments on the μ0 grid: ``dj``, ``vj``
+    (Q, J) the band's mean delay and mixture variance for each μ0 of
+    :data:`MU_GRID`, in pulse σ and σ²; the other arguments and the results as there."""
     ll = np.asarray(log_likelihood, dtype=np.float64)
     post = np.exp(ll - ll.max(axis=1, keepdims=True))
     post /= post.sum(axis=1, keepdims=True)  # (Q, J)
-    a = -np.asarray(tau0, dtype=np.float64) / sigma
-    dj, vj = _band_sums(np.asarray(f_band, np.float64), n_band, a)
     dm = np.sum(post * dj, axis=1)
     sd = np.sqrt(np.maximum(np.sum(post * dj * dj, axis=1) - dm * dm, 0.0))
     mu = post @ MU_GRID

@@ -29,7 +29,8 @@ def band_kernel():
 
     if "numba" not in sys.modules:
         return None
-    return compiled_kernel(_band_moments_py, {"_lookup": _lookup, "_peak_sums": _peak_sums,
+    return compiled_kernel(_band_moments_py, {"_lookup": table_lookup_one,
+                                              "_peak_sums": _peak_sums,
                                               "_sparse_pairwise": _sparse_pairwise})
 
 
@@ -218,9 +219,11 @@ def _sparse_pairwise(vals, pos, npos, plan, work):  # pragma: no cover - numba
     return 0.0 + stack[0], nz
 
 
-def _lookup(wa, i, lm, grid, n_mu, mean_t, var_t):  # pragma: no cover - compiled by numba
+def table_lookup_one(wa, i, lm, grid, n_mu, mean_t,
+                     var_t):  # pragma: no cover - compiled by numba
     """The bilinear look-up of ``_table_lookup`` at one ``(a, lm)``: ``wa``, ``i`` the
-    a-axis weight and index; returns (mean, var)."""
+    a-axis weight and index, ``grid`` ``(a0, da, a_top, lm0, dlm, lm_top, …)``, the
+    tables flat with ``n_mu`` columns; returns (mean, var)."""
     fm = min(max((lm - grid[3]) / grid[4], 0.0), grid[5])
     jm = np.int64(fm)
     wm = fm - jm
@@ -231,3 +234,7 @@ def _lookup(wa, i, lm, grid, n_mu, mean_t, var_t):  # pragma: no cover - compile
     vv = (c00 * var_t[k00] + c10 * var_t[k00 + n_mu] + c01 * var_t[k00 + 1]
           + c11 * var_t[k00 + n_mu + 1])
     return dv, vv
+
+
+#: the name the kernels call the look-up by (bound to its compiled form when they compile)
+_lookup = table_lookup_one

@@ -17,7 +17,8 @@ DEFAULT_SPOT_SIGMA = 10e-6
 
 
 def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | None = None,
-                  model: SpotModel | None = None, link: LinkBudget | None = None, cuts=None):
+                  model: SpotModel | None = None, link: LinkBudget | None = None, cuts=None,
+                  directions=None):
     """Share of the imaged laser spot on a pixel when the beam lights a target at range ``rng``.
 
     The target point is on the scanner ray at angle ``theta`` (rad) at distance
@@ -30,14 +31,16 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | No
     Arguments broadcast; returns float64 of the broadcast shape (0 where the
     ray misses that range).  ``cuts`` (K + 1,) int or None: boundaries of segments of
     the flattened entries whose products ``d·p`` are computed apart
-    (:func:`segment_dot`), the same bits as one call per segment.
+    (:func:`segment_dot`), the same bits as one call per segment.  ``directions``
+    (N, 3) or None: the scan directions at ``theta`` (flattened) where known
+    (:func:`step_directions`: the same bits).
     """
     from mems_stereo.model.camera import project_points
 
     rows, cols, th, r = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64)
                                               for a in (rows, cols, theta, rng)))
     p = np.asarray(system.scanner.position, dtype=np.float64)
-    d = scan_direction(th.ravel(), system.scanner)
+    d = scan_direction(th.ravel(), system.scanner) if directions is None else directions
     pd = segment_dot(d, p, cuts)
     with np.errstate(invalid="ignore"):
         s = -pd + np.sqrt(pd * pd - p @ p + r.ravel() ** 2)
@@ -57,6 +60,32 @@ def spot_fraction(system: System, rows, cols, theta, rng, spot_sigma: float | No
     fc = ndtr((cols + 0.5 - u) / sc) - ndtr((cols - 0.5 - u) / sc)
     fr = ndtr((rows + 0.5 - v) / sr) - ndtr((rows - 0.5 - v) / sr)
     return np.nan_to_num(fc * fr, nan=0.0)
+
+
+def step_directions(scanner, t0: float, dt: float, steps) -> np.ndarray:
+    """(N, 3) float64: ``scan_direction(t0 + steps·dt)`` of integer angle steps ``steps``
+    (N,) (an interval table's grid: ``t0``, ``dt`` rad), the same bits, from a table of
+    every step kept per (scanner, grid) for the process (a frame's fusion reads the same
+    steps many times; the scanner is frozen)."""
+    steps = np.asarray(steps, np.int64)
+    if steps.size == 0:
+        return np.zeros((0, 3))
+    lo, hi = int(steps.min()), int(steps.max())
+    key = (id(scanner), float(t0), float(dt))
+    hit = _STEP_DIRECTIONS.get(key)
+    if hit is None or hit[0] is not scanner or lo < hit[1] or hi >= hit[1] + len(hit[2]):
+        if hit is not None and hit[0] is scanner:  # widen the steps it holds
+            lo, hi = min(lo, hit[1]), max(hi, hit[1] + len(hit[2]) - 1)
+        if len(_STEP_DIRECTIONS) >= 8:
+            _STEP_DIRECTIONS.clear()
+        all_steps = np.arange(lo, hi + 1, dtype=np.int64)
+        hit = (scanner, lo, scan_direction(float(t0) + all_steps * float(dt), scanner))
+        _STEP_DIRECTIONS[key] = hit
+    return hit[2][steps - hit[1]]
+
+
+#: :func:`step_directions` by (id of the scanner, t0, dt): (scanner, first step, (n, 3))
+_STEP_DIRECTIONS: dict = {}
 
 
 def segment_dot(d, p, cuts=None) -> np.ndarray:

@@ -21,13 +21,23 @@ from mems_stereo.geometry.triangulation import path_length_of_point
 from mems_stereo.geometry.uncertainty import spreads_for
 from mems_stereo.model.hardware import pulse_mean_delay
 from mems_stereo.physics.first_photon import (
+    MU_GRID,
     MU_MAX,
+    OUTLIER_PROBABILITY,
     ShapeExcess,
     band_log_miss_rows,
     first_photon_delay,
+    first_photon_table,
+    posterior_delay,
 )
+from mems_stereo.physics.first_photon_band_kernel import (
+    band_figures,
+    band_likelihood_moments,
+)
+from mems_stereo.physics.first_photon_band_kernel import kernels as band_kernels
 from mems_stereo.physics.pulse import pulse_shape_of
-from mems_stereo.physics.spot import spot_fraction
+from mems_stereo.physics.spot import spot_fraction, step_directions
+from mems_stereo.pipeline.classify_kernel import compiles
 
 #: peaks per block of the first-photon correction (by peak index; see
 #: :func:`first_photon_correction`): a split of the peaks at multiples of it
@@ -138,7 +148,9 @@ def band_steps(acc, q=None, max_steps: int = 2048, full: bool = False) -> BandSt
     t0, dt = acc.step_grid
     f = np.zeros(steps.shape)
     f[qi, bi] = spot_fraction(acc.system, acc.rows[q[qi]], acc.cols[q[qi]],
-                              t0 + steps[qi, bi] * dt, centre[qi], acc.spot_sigma)
+                              t0 + steps[qi, bi] * dt, centre[qi], acc.spot_sigma,
+                              directions=step_directions(acc.system.scanner, t0, dt,
+                                                         steps[qi, bi]))
     if full:
         return BandSteps(steps, n.astype(np.float64), np.where(n > 0, f, 0.0),
                          np.where(in_band, f, 0.0))
@@ -154,14 +166,33 @@ class BlockBands:
         their :class:`BandSteps` (the same arrays, bit for bit, as ``band_steps`` of
         those peaks alone).
     log_miss : (Q', J) float64, ``Σ_b n_b·ln(1 − P(inlier))`` of each peak's band
-        (:func:`~mems_stereo.physics.first_photon.band_log_miss` of its block's arrays).
+        (:func:`~mems_stereo.physics.first_photon.band_log_miss` of its block's arrays),
+        or None where not asked for.
+    flat : the same entries row after row (:class:`BandEntries`).
     """
 
     blocks: list
-    log_miss: np.ndarray
+    log_miss: np.ndarray | None
+    flat: BandEntries
 
 
-def block_band_steps(acc, q, cut, max_steps: int = 2048) -> BlockBands:
+@dataclass(frozen=True, slots=True)
+class BandEntries:
+    """The entries of :class:`BlockBands`' blocks laid end to end, row-major.
+
+    starts : (Q' + 1,) int64, row r's entries are ``starts[r]:starts[r + 1]``.
+    steps, shots, spot, spot_full : (N,) the rows of :class:`BandSteps`' fields
+        (float64, but the int64 steps).
+    """
+
+    starts: np.ndarray
+    steps: np.ndarray
+    shots: np.ndarray
+    spot: np.ndarray
+    spot_full: np.ndarray
+
+
+def block_band_steps(acc, q, cut, max_steps: int = 2048, log_miss: bool = True) -> BlockBands:
     """:func:`band_steps` (``full=True``) of the peaks ``q[cut[i]:cut[i + 1]]`` for each
     block i (``cut`` (K + 1,) increasing row boundaries into ``q`` (Q',) int), each block
     its own band width B as there, the elementwise work done once for all blocks: the
@@ -198,18 +229,23 @@ def block_band_steps(acc, q, cut, max_steps: int = 2048) -> BlockBands:
     f = np.zeros(steps.shape)
     f[sel] = spot_fraction(acc.system, acc.rows[q[ri[sel]]], acc.cols[q[ri[sel]]],
                            t0 + steps[sel] * dt, centre[ri[sel]], acc.spot_sigma,
-                           cuts=np.searchsorted(sel, ends))
+                           cuts=np.searchsorted(sel, ends),
+                           directions=step_directions(acc.system.scanner, t0, dt,
+                                                      steps[sel]))
     nf = n.astype(np.float64)
     f_band = np.where(n > 0, f, 0.0)
     f_full = np.where(in_band, f, 0.0)
-    hit = np.flatnonzero(n)
-    log_miss = band_log_miss_rows(row_w.size, ri[hit], nf[hit], f_band[hit])
+    lm = None
+    if log_miss:
+        hit = np.flatnonzero(n)
+        lm = band_log_miss_rows(row_w.size, ri[hit], nf[hit], f_band[hit])
     out = []
     for (c0, c1), B, e0, e1 in zip(spans, widths, ends[:-1], ends[1:]):
         shape = (c1 - c0, int(B))
         out.append((c0, c1, BandSteps(*(x[e0:e1].reshape(shape)
                                         for x in (steps, nf, f_band, f_full)))))
-    return BlockBands(out, log_miss)
+    flat = BandEntries(np.concatenate([[0], np.cumsum(row_w)]), steps, nf, f_band, f_full)
+    return BlockBands(out, lm, flat)
 
 
 def mean_angle_bias(steps, n_band, f_band, f_full, mu) -> np.ndarray:
@@ -282,28 +318,12 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     if sigma <= 0 or not np.any(ok):
         return FirstPhotonCorrection(**out, tof=tof)
     idx = np.flatnonzero(ok)
-    d, sd, var, mu, ab, bias, sm = (np.empty(idx.size) for _ in range(7))
     t0, dt = acc.step_grid
     with np.errstate(invalid="ignore", divide="ignore"):
         theta_bar = (acc.sums.theta / acc.sums.n - t0) / dt  # the inliers' mean step
-    # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
-    # its own band width B: a peak's result depends on its block alone, so the
-    # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
-    # identical to the whole
-    cut = np.searchsorted(idx, np.arange(0, acc.Q + FP_BLOCK, FP_BLOCK))
-    bands = block_band_steps(acc, idx, cut)
-    log_lik = acc.sums.loglik[idx] + bands.log_miss
-    for a, b, band in bands.blocks:
-        q = idx[a:b]
-        steps, n_band, f_band, f_full = band.steps, band.shots, band.spot, band.spot_full
-        ll = log_lik[a:b]
-        d[a:b], sd[a:b], var[a:b], mu[a:b], sm[a:b] = first_photon_delay(
-            ll, f_band, n_band, tau[q], sigma, mu_factor=MU_MODEL_FACTOR)
-        ab[a:b] = angle_binomial_factor(steps, n_band, f_band, mu[a:b], theta_bar[q])
-        # the binomial variance rests on the model's firing probabilities: where the
-        # model does not explain the firings the mean angle keeps its scatter's spread
-        ab[a:b] = np.where(_beyond_model(acc, q, n_band, f_band, mu[a:b]), 1.0, ab[a:b])
-        bias[a:b] = mean_angle_bias(steps, n_band, f_band, f_full, mu[a:b])
+    fig = _band_figures(acc, idx, tau, sigma, theta_bar)
+    d, sd, var, mu, ab, bias, sm = (fig[k] for k in ("d", "sd", "var", "mu", "ab", "bias",
+                                                       "sm"))
     c = s.speed_of_light
     dL = np.zeros(acc.Q)
     dvar = np.zeros(acc.Q)
@@ -327,6 +347,68 @@ def first_photon_correction(acc, fused_point, tof) -> FirstPhotonCorrection:
     D, G = acc.sums.tof.dL()
     x, C = tof
     return FirstPhotonCorrection(**out, tof=(x + D * dL[:, None], C + G * dvar[:, None, None]))
+
+
+def _band_figures(acc, idx, tau, sigma: float, theta_bar) -> dict:
+    """The figures of the peaks ``idx`` (Q',) from their bands: ``{name: (Q',) float64}``
+    for ``d``, ``sd``, ``var``, ``mu``, ``sm`` (:func:`first_photon_delay`, s, s, s², μ0,
+    s), ``ab`` (:func:`angle_binomial_factor`, 1 where :func:`_beyond_model`) and
+    ``bias`` (:func:`mean_angle_bias`, steps); ``tau`` (Q,) s the pulses' centres,
+    ``theta_bar`` (Q,) the inliers' mean steps.  In a frame's passes
+    (:func:`~mems_stereo.pipeline.classify_kernel.compiled_blocks`) by two compiled
+    loops over the bands (:func:`_compiled_band_figures`)."""
+    # blocks of FP_BLOCK peaks by peak index ((FP_BLOCK, J, B) temporaries), each with
+    # its own band width B: a peak's result depends on its block alone, so the
+    # fusion of the peaks split at multiples of FP_BLOCK (the Dask runner) is
+    # identical to the whole
+    cut = np.searchsorted(idx, np.arange(0, acc.Q + FP_BLOCK, FP_BLOCK))
+    kern = band_kernels() if compiles(0, 1) else None
+    bands = block_band_steps(acc, idx, cut, log_miss=kern is None)
+    if kern is not None:
+        return _compiled_band_figures(acc, idx, bands, tau, sigma, theta_bar, kern)
+    fig = {k: np.empty(idx.size) for k in ("d", "sd", "var", "mu", "ab", "bias", "sm")}
+    log_lik = acc.sums.loglik[idx] + bands.log_miss
+    for a, b, band in bands.blocks:
+        q = idx[a:b]
+        steps, n_band, f_band, f_full = band.steps, band.shots, band.spot, band.spot_full
+        mu = fig["mu"][a:b]
+        (fig["d"][a:b], fig["sd"][a:b], fig["var"][a:b], mu[:],
+         fig["sm"][a:b]) = first_photon_delay(log_lik[a:b], f_band, n_band, tau[q], sigma,
+                                              mu_factor=MU_MODEL_FACTOR)
+        ab = angle_binomial_factor(steps, n_band, f_band, mu, theta_bar[q])
+        # the binomial variance rests on the model's firing probabilities: where the
+        # model does not explain the firings the mean angle keeps its scatter's spread
+        fig["ab"][a:b] = np.where(_beyond_model(acc, q, n_band, f_band, mu), 1.0, ab)
+        fig["bias"][a:b] = mean_angle_bias(steps, n_band, f_band, f_full, mu)
+    return fig
+
+
+def _compiled_band_figures(acc, idx, bands: BlockBands, tau, sigma: float, theta_bar,
+                           kern) -> dict:
+    """:func:`_band_figures` by the compiled loops of
+    :mod:`~mems_stereo.physics.first_photon_band_kernel` (``kern``) over the bands laid
+    end to end (``bands.flat``): the same numbers but for the order of the sums (and
+    ``ln(1 − P)``'s closed form).  Each row's loops are its own, and the posterior is
+    taken per block of ``bands`` (its μ0 mean a matrix product, whose rounding may
+    follow the rows around): the peaks split at multiples of FP_BLOCK give the whole's
+    bits, as the NumPy form does."""
+    flat = bands.flat
+    lmiss, dj, vj = band_likelihood_moments(kern[0], flat.starts, flat.shots, flat.spot,
+                                            MU_GRID, OUTLIER_PROBABILITY, -tau[idx] / sigma,
+                                            first_photon_table())
+    ll = acc.sums.loglik[idx] + lmiss
+    fig = {k: np.empty(idx.size) for k in ("d", "sd", "var", "mu", "sm")}
+    for a, b, _ in bands.blocks:
+        (fig["d"][a:b], fig["sd"][a:b], fig["var"][a:b], fig["mu"][a:b],
+         fig["sm"][a:b]) = posterior_delay(ll[a:b], dj[a:b], vj[a:b], sigma,
+                                           mu_factor=MU_MODEL_FACTOR)
+    bias, ab, k_top = band_figures(kern[1], flat.starts, flat.steps, flat.shots, flat.spot,
+                                   flat.spot_full, fig["mu"], theta_bar[idx],
+                                   MU_BEYOND_GRID * MU_MAX, BINOMIAL_MIN_SHOTS)
+    beyond = (fig["mu"] >= MU_PINNED_FRACTION * MU_MAX) & (acc.sums.detections[idx] > k_top)
+    fig["ab"] = np.where(beyond, 1.0, ab)
+    fig["bias"] = bias
+    return fig
 
 
 def with_pulse_shape(acc, spreads, delay, mu, idx, tau):

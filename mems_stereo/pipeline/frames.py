@@ -34,6 +34,7 @@ from mems_stereo.pipeline.classify_kernel import compiled_blocks
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.frame_bias import every_bias_removed
 from mems_stereo.pipeline.pass1 import Counts
+from mems_stereo.pipeline.point_times_kernel import shot_time_sums
 from mems_stereo.pipeline.run import (
     checked_header,
     process_recording,
@@ -363,12 +364,20 @@ def point_times(shots: FrameShots, steps: np.ndarray, peaks, band: np.ndarray,
     """(N,) float64 s: per point, the mean time of the shots whose detection in its pixel
     the pass 2 of its peak counted (code in the peak's window and in the classifier's
     accepted interval, shot in the peak's scan-angle band); the frame's mean shot time
-    where none (cannot happen for a point with detections)."""
+    where none (cannot happen for a point with detections).  Where numba is imported
+    (the frames' processor loads it) one compiled loop
+    (:func:`~mems_stereo.pipeline.point_times_kernel.shot_time_sums`: the same means but
+    for the order of the sums)."""
     t = shots.times
     out = np.full(band.size, float(t.mean()) if t.size else np.nan)
     w = table.system.receiver.width
     known = np.flatnonzero(steps >= 0)
     tk, sk = t[known] - t[0], steps[known]
+    got = shot_time_sums(shots.bins, known, tk, sk, peaks, band, (table.lo, table.hi))
+    if got is not None:
+        sums, n = got
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n > 0, t[0] + sums / np.maximum(n, 1), out)
     for a in range(0, band.size, TIME_BLOCK):
         q = band[a:a + TIME_BLOCK]
         row, col = peaks.row[q], peaks.col[q]

@@ -31,10 +31,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mems_stereo.model.scanner import scan_direction
 from mems_stereo.model.system import System
 from mems_stereo.model.tdc import detection_codes
-from mems_stereo.physics.spot import segment_dot
+from mems_stereo.physics.spot import segment_dot, step_directions
 from mems_stereo.pipeline.background_entries import (
     BackgroundEntries,
     BackgroundSubtraction,
@@ -133,8 +132,7 @@ def _acceptance(system: System, table, peaks):
 
     def accept(steps, centre, q=None, cuts=None):
         px = pix if q is None else pix[q]
-        th = table.theta_min + steps * table.step
-        d = scan_direction(th.ravel(), system.scanner)
+        d = step_directions(system.scanner, table.theta_min, table.step, steps.ravel())
         p = np.asarray(system.scanner.position, dtype=np.float64)
         pd = segment_dot(d, p, cuts)
         r = np.broadcast_to(np.asarray(centre, np.float64)[:, None], steps.shape).ravel()
@@ -143,7 +141,7 @@ def _acceptance(system: System, table, peaks):
         pxb = np.broadcast_to(px[:, None], steps.shape).ravel()
         code = np.floor(detection_codes(s + r, system, pxb))
         code = code.reshape(steps.shape)
-        table.ensure(np.unique(steps))
+        table.ensure(steps.ravel())  # (sorts the steps only where rows are missing)
         lo = table.lo[steps, px[:, None]]
         hi = table.hi[steps, px[:, None]]
         return (code >= lo) & (code <= hi)

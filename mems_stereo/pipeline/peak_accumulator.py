@@ -13,8 +13,15 @@ import numpy as np
 from mems_stereo.errors import GeometryError
 from mems_stereo.geometry.uncertainty import polar_from_cartesian
 from mems_stereo.model.system import System
-from mems_stereo.physics.first_photon import detection_log_odds
+from mems_stereo.physics.first_photon import (
+    MU_GRID,
+    OUTLIER_PROBABILITY,
+    detection_log_odds,
+)
+from mems_stereo.physics.first_photon_band_kernel import kernels as band_kernels
+from mems_stereo.physics.first_photon_band_kernel import log_odds
 from mems_stereo.physics.spot import spot_fraction
+from mems_stereo.pipeline.classify_kernel import compiles
 from mems_stereo.pipeline.cloud import PointCloud
 from mems_stereo.pipeline.consistency import k_from_confidence
 from mems_stereo.pipeline.detections import DetectionPoints, StereoCache, detection_points
@@ -343,7 +350,10 @@ class PeakAccumulator:
         f = spot_fraction(self.system, self.rows[ps], self.cols[ps], th[start],
                           self.centre[ps], self.spot_sigma)
         run = np.cumsum(new) - 1
-        add_rows_gathered(self.sums.loglik, peak, detection_log_odds(f), run, m_all)
+        kern = band_kernels() if compiles(0, 1) else None  # (a frame's passes)
+        odds = (detection_log_odds(f) if kern is None
+                else log_odds(kern[2], f, MU_GRID, OUTLIER_PROBABILITY))
+        add_rows_gathered(self.sums.loglik, peak, odds, run, m_all)
 
     def cloud(self, min_counts: int = 1, own=None) -> PointCloud:
         """One point per peak with at least ``min_counts`` inliers (see class docstring).

@@ -197,28 +197,44 @@ def _mode_band_py(cover, n_grid, lo, hi, top):  # pragma: no cover - compiled by
     ``lo`` (one after that, 0 if none), ``hi`` (one before, n_grid − 1 if none), ``top``."""
     d = np.empty(n_grid)
     for q in range(cover.shape[0]):
-        acc = cover[q, 0]
-        d[0] = acc
-        for k in range(1, n_grid):
+        # the row's density is 0 before its first nonzero entry a and constant after
+        # its last b: a maximum above 0 lies in a..b, and the band's ends are found
+        # within a − 1 .. b + 1 (the density there is 0, resp. the row's sum, below
+        # half of it: the intervals' +m and −m add to 0 but for rounding)
+        a, b = 0, -1
+        for k in range(n_grid):
+            if cover[q, k] != 0:
+                if b < 0:
+                    a = k
+                b = k
+        if b < 0 or a == 0 or b + 1 >= n_grid:  # nothing, or the whole row: every entry
+            a, b = 0, n_grid - 1
+        else:
+            a, b = a - 1, b + 1
+        acc = cover[q, 0] if a == 0 else 0.0
+        d[a] = acc
+        for k in range(a + 1, b + 1):
             acc = acc + cover[q, k]
             d[k] = acc
-        j, v = 0, d[0]
+        j, v = a, d[a]
         if v == v:
-            for k in range(1, n_grid):
+            for k in range(a + 1, b + 1):
                 if d[k] != d[k]:
                     j = k
                     break
                 if d[k] > v:
                     j, v = k, d[k]
+        if a > 0 and d[j] <= 0:  # no maximum above 0: the first maximum is a 0 before a
+            j = a
         top[q] = d[j]
         thr = 0.5 * d[j]
         lo[q] = 0
-        for k in range(j - 1, -1, -1):
+        for k in range(j - 1, a - 1, -1):
             if d[k] < thr:
                 lo[q] = k + 1
                 break
         hi[q] = n_grid - 1
-        for k in range(j + 1, n_grid):
+        for k in range(j + 1, b + 1):
             if d[k] < thr:
                 hi[q] = k - 1
                 break
