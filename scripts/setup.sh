@@ -7,7 +7,8 @@
 #   2. Debian's chromium and chromium-driver (the browser viewer's test drives
 #      the page of `mems-stereo live --view browser` in headless chromium),
 #      without their recommended packages;
-#   3. a virtual environment in .venv with the package and its test tools.
+#   3. a virtual environment in .venv with the package and its test tools;
+#   4. numba's disk cache of the package's kernels (scripts/warm_kernels.py).
 # Re-running it is cheap: each step is skipped when already done.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -45,4 +46,13 @@ if [ ! -f "$stamp" ] || [ pyproject.toml -nt "$stamp" ]; then
   .venv/bin/python -m pip install -q --upgrade pip >&2
   .venv/bin/python -m pip install -q -e ".[dev]" >&2
   touch "$stamp"
+fi
+# 4. numba's disk cache of the package's kernels (scripts/warm_kernels.py): compiled once
+#    here (about 60 CPU s) instead of in each test process that meets them; redone when a
+#    package source is newer than the stamp
+kstamp=.venv/.mems-stereo-kernels
+if [ ! -f "$kstamp" ] || [ -n "$(find mems_stereo -name '*.py' -newer "$kstamp" -print -quit)" ]; then
+  echo "[setup] compiling the numba kernels into their disk cache (about 1 minute)" >&2
+  .venv/bin/python scripts/warm_kernels.py >&2
+  touch "$kstamp"
 fi
