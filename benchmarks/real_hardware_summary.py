@@ -206,9 +206,20 @@ def summarise_refusals(results, log) -> dict:
         for e in r["cal"]["imperfect ideal"]["named"]:
             named[e] = named.get(e, 0) + 1
     log(f"  effects named by the refusals (imperfect, --model ideal): {named}")
-    v["--model ideal refuses ≥ 95 % of M > 2 trials, naming the effect"] = (
-        f"{len(ref)}/{len(moved)} = {frac:.1%} (refused for any reason: {len(any_ref)})",
-        None if not moved else frac >= 0.95)
+    # walls that calibrate ideal hardware: its --model ideal fit written or refused by
+    # the goodness test (the test ran); others cannot calibrate any hardware
+    usable = [r for r in moved if r["cal"]["ideal hw ideal"]["ok"]
+              or r["cal"]["ideal hw ideal"]["goodness"]]
+    ref_u = [r for r in ref if r in usable]
+    frac_u = len(ref_u) / len(usable) if usable else math.nan
+    log(f"  M > 2 trials whose walls calibrate ideal hardware (its --model ideal fit written "
+        f"or refused by the goodness test): {len(usable)}/{len(moved)}; the others "
+        f"(seeds {[r['seed'] for r in moved if r not in usable]}) never reach the test")
+    v["--model ideal refuses ≥ 95 % of M > 2 trials whose walls calibrate ideal hardware, "
+      "naming the effect"] = (
+        f"{len(ref_u)}/{len(usable)} = {frac_u:.1%} (of all M > 2 trials: {len(ref)}/"
+        f"{len(moved)} = {frac:.1%}; refused for any reason: {len(any_ref)})",
+        None if not usable else frac_u >= 0.95)
     gof0 = sum(r["cal"]["ideal hw ideal"]["goodness"] for r in results)
     n0 = len(results) - sum(not r["cal"]["ideal hw ideal"]["ok"] and not r["cal"][
         "ideal hw ideal"]["goodness"] for r in results)
