@@ -21,21 +21,22 @@ move of the conditional fit per unit of ``η``; ``I`` the cells' information wit
 held terms added at 0), so their covariance is ``I_xx⁻¹ + S E[η ηᵀ | data] Sᵀ``
 (:mod:`~mems_stereo.calib.nuisance`; Gelman et al., *Bayesian Data Analysis*, 3rd
 ed., §3.5).  The second moment is that of the posterior of ``η`` under the prior
-the hardware has: each harmonic order present with probability
-:data:`PRESENT_PROB` (its cos and sin terms then Gaussian of σ
-:data:`HARMONIC_STD`/√:data:`PRESENT_PROB`, so that the prior's RMS per term is
-:data:`HARMONIC_STD`) or absent (exactly 0), the edge difference always present
-(σ :data:`~mems_stereo.calib.nuisance.EDGE_DIFFERENCE_STD`); the data enter through
-the held terms' efficient score ``u`` and conditional information ``J = I_ηη −
-I_ηx I_xx⁻¹ I_xη`` (the linearised likelihood ``exp(uᵀη − ½ ηᵀJη)`` given the fitted
-parameters at their optimum), and the posterior is exact over the 2ᴳ subsets of
-present orders (:func:`held_moment`; a spike-and-slab prior: Mitchell & Beauchamp,
-*JASA* 83, 1988; George & McCulloch, *JASA* 88, 1993).  A block the data determine
-adds what they say: little when they show nothing (the order is absent with
+the hardware has: each harmonic term (cos or sin) present with probability
+:data:`PRESENT_PROB` (then Gaussian of σ :data:`HARMONIC_STD`/√:data:`PRESENT_PROB`,
+so that the prior's RMS per term is :data:`HARMONIC_STD`) or absent (exactly 0), on
+its own (:func:`held_groups`: a harmonic's phase may put one of its terms near 0,
+so a small sin term bounds nothing of the cos term), the edge difference always
+present (σ :data:`~mems_stereo.calib.nuisance.EDGE_DIFFERENCE_STD`); the data enter
+through the held terms' efficient score ``u`` and conditional information ``J =
+I_ηη − I_ηx I_xx⁻¹ I_xη`` (the linearised likelihood ``exp(uᵀη − ½ ηᵀJη)`` given
+the fitted parameters at their optimum), and the posterior is exact over the 2ᴳ
+subsets of present terms (:func:`held_moment`; a spike-and-slab prior: Mitchell &
+Beauchamp, *JASA* 83, 1988; George & McCulloch, *JASA* 88, 1993).  A term the data
+determine adds what they say: little when they show nothing (absent with
 posterior probability near 1), its estimate's square and σ when they show it (a
-present order the 10⁻³ selection missed, the bias of holding it at 0); a collinear
-one, which the data cannot see, adds its prior's ``HARMONIC_STD²`` per term and
-widens the parameters it trades with.  The estimates are unchanged (the held blocks
+present term the 10⁻³ selection missed, the bias of holding it at 0); a collinear
+one, which the data cannot see, adds its prior's ``HARMONIC_STD²`` and widens the
+parameters it trades with.  The estimates are unchanged (the held blocks
 stay at 0).  The edge difference is left to
 :func:`~mems_stereo.calib.nuisance.add_held_edges` where that already holds it.
 A calibration that fits no hardware term (ideal hardware) is returned unchanged.
@@ -55,7 +56,7 @@ from mems_stereo.calib.nuisance import EDGE_DIFFERENCE_STD, add_covariance, hold
 #: benchmark family's draws (amplitudes uniform up to 1 %, each order present with
 #: probability ½: 0.29 %)
 HARMONIC_STD = 3e-3
-#: prior probability that a harmonic order is present (the family's ½)
+#: prior probability that a harmonic term is present (the family's orders: ½)
 PRESENT_PROB = 0.5
 
 
@@ -81,14 +82,13 @@ def prior_std(names) -> np.ndarray:
 
 
 def held_groups(names) -> list:
-    """Index lists into ``names``: one per harmonic order (its cos and sin terms, present
-    or absent together), and last the edge difference's (always present) if held."""
-    orders: dict = {}
-    for i, n in enumerate(names):
-        if n != "edge_rising_delay":
-            orders.setdefault(n.split("_")[0], []).append(i)
+    """Index lists into ``names``: one per harmonic term, each present or absent on its
+    own (a harmonic's phase may put either of its cos and sin terms near 0, so what the
+    walls say of one bounds nothing of the other), and last the edge difference's
+    (always present) if held."""
     edge = [i for i, n in enumerate(names) if n == "edge_rising_delay"]
-    return list(orders.values()) + ([edge] if edge else [])
+    return [[i] for i, n in enumerate(names) if n != "edge_rising_delay"] + (
+        [edge] if edge else [])
 
 
 def held_moment(J, u, std, groups, always: int = 0,
@@ -173,7 +173,7 @@ def add_held_blocks(result, orders=hf.DEFAULT_ORDERS):
     blocks = sorted({n.split("_")[0] if n.startswith("harmonic") else "edge delay"
                      for n in held})
     what = (f"the hardware terms not selected ({', '.join(blocks)}) are held at 0: σ "
-            f"include them (harmonics present with probability {PRESENT_PROB:g} and "
+            f"include them (harmonic terms present with probability {PRESENT_PROB:g} and "
             f"±{HARMONIC_STD * 100:.1f} % RMS, edge difference ±{EDGE_DIFFERENCE_STD * 1e9:.0f}"
             " ns, where the walls do not bound them)")
     return add_covariance(result, base, D, "held_blocks", {"names": held}, what,

@@ -56,22 +56,28 @@ def _harmonic_walls(rng, h2_cos: float, n_shots: int = 4000):
 
 
 def _spike_slab_moment(eta_hat, V, tau, present):
-    """E[η ηᵀ | η̂] of one group of terms present with probability ``present`` (then
-    N(0, τ² I)) or absent (0), from its estimate η̂ ~ N(η, V): the two hypotheses'
-    densities of η̂ weigh the Gaussian posterior's moment against 0."""
+    """E[η ηᵀ | η̂] of terms each present with probability ``present`` (then N(0, τ²))
+    or absent (0) on its own, from their estimate η̂ ~ N(η, V): over the subsets A of
+    present terms, η̂ ~ N(0, V + τ² D_A) (D_A the indicator of A) weighs the Gaussian
+    posterior of prior covariance τ² D_A (Kalman form: it allows the singular prior)."""
     k = eta_hat.size
-    a = present * stats.multivariate_normal(np.zeros(k), V + tau ** 2 * np.eye(k)).pdf(eta_hat)
-    b = (1 - present) * stats.multivariate_normal(np.zeros(k), V).pdf(eta_hat)
-    post = np.linalg.inv(np.linalg.inv(V) + np.eye(k) / tau ** 2)
-    m = post @ np.linalg.solve(V, eta_hat)
-    return a / (a + b) * (post + np.outer(m, m))
+    total, weight = np.zeros((k, k)), 0.0
+    for mask in range(1 << k):
+        P0 = tau ** 2 * np.diag([(mask >> b) & 1 for b in range(k)]).astype(float)
+        w = (present ** bin(mask).count("1") * (1 - present) ** (k - bin(mask).count("1"))
+             * stats.multivariate_normal(np.zeros(k), V + P0).pdf(eta_hat))
+        G = P0 @ np.linalg.inv(V + P0)
+        m = G @ eta_hat
+        total += w * (P0 - G @ P0 + np.outer(m, m))
+        weight += w
+    return total / weight
 
 
 def test_held_block_covariance_is_the_posterior_moment_and_covers_its_bias():
     """A 0.5 % second harmonic held at 0 beside a fitted edge delay (bench_real_hardware
     seed 1071's case): held_covariance equals S E[η ηᵀ | η̂] Sᵀ written out from the
     extended information (S = −I_xx⁻¹ I_xη, η̂ the held terms' one-step estimate with
-    covariance V = (I_ηη − I_ηx I_xx⁻¹ I_xη)⁻¹, E from η̂'s densities when the order is
+    covariance V = (I_ηη − I_ηx I_xx⁻¹ I_xη)⁻¹, E from η̂'s densities with each term
     present or absent); the edge delay's move when the harmonic is fitted at its truth
     instead (one wall: a weak case) is beyond 1.2 of the held fit's σ, within 2 of the
     σ that include the block."""
