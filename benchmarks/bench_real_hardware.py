@@ -55,7 +55,10 @@ power (they can only do better on the full family's shots).
 
 Log: ``benchmarks/results/real_hardware.log`` (``--log``); ``--records`` keeps one
 JSON line per trial as it ends; ``--summarise RECORDS`` prints the summary of such a
-file (e.g. of a run cut short).
+file (e.g. of a run cut short).  ``--pulls-only`` runs per trial only the imperfect
+hardware's ``--model full`` calibration (a change of its σ: the same fit, new pulls;
+about a third of a trial's CPU), and ``--before RECORDS`` puts an earlier run's pull
+std per parameter over the same seeds beside this run's.
 """
 
 from __future__ import annotations
@@ -85,7 +88,7 @@ except ImportError:
     mems_stereo.__path__.append(str(ROOT))
 
 from mems_stereo.calib.family import draw_case, link_for_flux, wall_scene  # noqa: E402
-from real_hardware_summary import cpu_model, report, trial_line  # noqa: E402
+from real_hardware_summary import cpu_model, pull_comparison, report, trial_line  # noqa: E402
 
 from mems_stereo.model.hardware import Harmonic  # noqa: E402
 from mems_stereo.model.system import burkard2022  # noqa: E402
@@ -316,14 +319,7 @@ def run_trial(task) -> dict:
     w0 = timed(T, "simulate", lambda: simulate_walls(case, nom, true0, sc))
     w1 = timed(T, "simulate", lambda: simulate_walls(case, nom, true1, sc))
     v0, c0 = calibrate_both(w0, nom, case, T, "ideal hw")
-    nom1 = nom
-    if opt.get("dark", 0) > 0:  # the user's code-density test on a dark recording
-        est, _ = timed(T, "dark recording", lambda: dark_code_widths(
-            nom, true1, seed, opt["dark"], DARK_MIN_WIDTH))
-        nom1 = nom.replace(tdc=replace(nom.tdc, code_widths=est.width[0],
-                                       code_widths_std=est.width_sigma[0]))
-        out["dark_inl_rms"] = float(np.sqrt(np.mean((np.cumsum(est.width[0]) - np.cumsum(
-            true1.tdc.code_widths / np.mean(true1.tdc.code_widths))) ** 2)))
+    nom1 = imperfect_nominal(nom, true1, seed, opt, out, T)
     v1, c1 = calibrate_both(w1, nom1, case, T, "imperfect")
     out["cal"] = {"ideal hw ideal": v0, "ideal hw full": verdict(c0),
                   "imperfect ideal": v1, "imperfect full": verdict(c1)}
@@ -356,6 +352,44 @@ def run_trial(task) -> dict:
     out["flows"] = flows
     mv = movement(geo, exact)
     out["movement"], out["movement_rms"], out["movement_p90"] = mv["median"], mv["rms"], mv["p90"]
+    out["times"] = T
+    return out
+
+
+def imperfect_nominal(nom, true1, seed, opt, out: dict, T: dict):
+    """The nominal system the imperfect walls are calibrated from: with the code widths
+    of the user's code-density test on a dark recording (``opt["dark"]`` > 0; their
+    INL's RMS error in ``out["dark_inl_rms"]``), else ``nom``."""
+    if opt.get("dark", 0) <= 0:
+        return nom
+    est, _ = timed(T, "dark recording", lambda: dark_code_widths(
+        nom, true1, seed, opt["dark"], DARK_MIN_WIDTH))
+    out["dark_inl_rms"] = float(np.sqrt(np.mean((np.cumsum(est.width[0]) - np.cumsum(
+        true1.tdc.code_widths / np.mean(true1.tdc.code_widths))) ** 2)))
+    return nom.replace(tdc=replace(nom.tdc, code_widths=est.width[0],
+                                   code_widths_std=est.width_sigma[0]))
+
+
+def pulls_trial(task) -> dict:
+    """A trial's imperfect-hardware ``--model full`` calibration only (``--pulls-only``):
+    the same walls, code widths and fit as :func:`run_trial`'s, its verdict, the terms
+    fitted and the pulls."""
+    seed, opt = task
+    warnings.simplefilter("ignore")
+    T: dict = {}
+    nom = burkard2022()
+    case = draw_case(np.random.default_rng(seed), seed)
+    imp = draw_imperfections(np.random.default_rng([seed, 30]))
+    true1 = imp.apply(case.true_system(nom), np.random.default_rng([seed, 31]))
+    out = {"seed": seed, "pulls_only": True, "shot_scale": opt["shot_scale"],
+           "imp": imp_dict(imp)}
+    w1 = timed(T, "simulate", lambda: simulate_walls(case, nom, true1, opt["shot_scale"]))
+    nom1 = imperfect_nominal(nom, true1, seed, opt, out, T)
+    _, c1 = calibrate_both(w1, nom1, case, T, "imperfect")
+    out["cal"] = {"imperfect full": verdict(c1)}
+    out["pulls1"] = pulls_of(c1, true1) if c1 else {}
+    out["fitted"] = [n for n in c1.names if n.startswith(("harmonic", "edge", "pulse"))] + (
+        ["pixel offsets"] if c1.system.tdc.pixel_offsets is not None else []) if c1 else []
     out["times"] = T
     return out
 
@@ -476,6 +510,12 @@ def main(argv=None) -> int:
     ap.add_argument("--pulse-trials", type=int, default=4,
                     help="dedicated pulse mean-delay checks (0: skip)")
     ap.add_argument("--pulse-shots", type=int, default=20000, help="shots per wall of those")
+    ap.add_argument("--pulls-only", action="store_true",
+                    help="per trial only the imperfect hardware's --model full calibration "
+                         "(its pulls: e.g. after a change of its σ)")
+    ap.add_argument("--before", default=None, metavar="RECORDS",
+                    help="records of an earlier run: pull std per parameter over the same "
+                         "seeds, before and after")
     ap.add_argument("--records", default=None, help="append each trial as a JSON line")
     ap.add_argument("--summarise", default=None, metavar="RECORDS",
                     help="print the summary of a records file and exit")
@@ -494,10 +534,15 @@ def main(argv=None) -> int:
         results = [r for r in recs if "flows" in r]
         cds = [r for r in recs if "target" in r]
         pts = [r for r in recs if "tail" in r]
-        log(f"bench_real_hardware: summary of {len(results)} trial records of {args.summarise}")
+        pulls = [r for r in recs if "pulls_only" in r]
+        log(f"bench_real_hardware: summary of {len(results) + len(pulls)} trial records of "
+            f"{args.summarise}")
         if args.note:
             log(args.note)
-        report(results, cds, pts, args, log, math.nan)
+        if results:
+            report(results, cds, pts, args, log, math.nan)
+        if pulls or args.before:
+            pull_comparison(results + pulls, _records(args.before), log)
         return _write(args.log, lines)
     seeds = ([int(x) for x in args.seeds.split(",") if x.strip()] if args.seeds
              else list(range(args.seed, args.seed + args.trials)))
@@ -512,7 +557,7 @@ def main(argv=None) -> int:
              for s in seeds]
     targets = [int(x) for x in args.cd_targets.split(",") if x.strip()]
     cd_tasks = [(args.seed + i, t) for t in targets for i in range(args.cd_trials)]
-    results, cds, pts = [], [], []
+    results, cds, pts, pulls = [], [], [], []
 
     crashes: list = []
 
@@ -521,17 +566,20 @@ def main(argv=None) -> int:
             crashes.append(r)
             log(f"trial seed {r['seed']} RAISED {r['crash']}")
             return
-        (results if "flows" in r else cds if "target" in r else pts).append(r)
+        (results if "flows" in r else cds if "target" in r else pulls if "pulls_only" in r
+         else pts).append(r)
         if args.records:
             with open(args.records, "a", encoding="utf-8") as f:
                 f.write(json.dumps(r, default=float) + "\n")
-        if "flows" in r:
-            print(f"[{len(results)}/{args.trials} {time.perf_counter() - t0:.0f} s] "
-                  + trial_line(r), flush=True)
+        if "flows" in r or "pulls_only" in r:
+            print(f"[{len(results) + len(pulls)}/{args.trials} "
+                  f"{time.perf_counter() - t0:.0f} s] " + (trial_line(r) if "flows" in r else
+                                                           f"seed {r['seed']}: {r['cal']}"),
+                  flush=True)
 
     work = ([(code_density_trial, t) for t in cd_tasks]
             + [(pulse_trial, (args.seed + i, args.pulse_shots)) for i in range(args.pulse_trials)]
-            + [(run_trial, t) for t in tasks])
+            + [(pulls_trial if args.pulls_only else run_trial, t) for t in tasks])
     if args.jobs > 1:  # each trial recorded as it ends (a run cut short keeps them)
         with ProcessPoolExecutor(args.jobs) as ex:
             for fut in as_completed([ex.submit(_call, w) for w in work]):
@@ -539,10 +587,20 @@ def main(argv=None) -> int:
     else:
         for w in work:
             keep(_call(w))
-    report(results, cds, pts, args, log, time.perf_counter() - t0)
+    if results:
+        report(results, cds, pts, args, log, time.perf_counter() - t0)
+    if pulls or args.before:
+        pull_comparison(results + pulls, _records(args.before), log)
     log(f"trials that raised an exception: {len(crashes)}"
         + (f" (seeds {[r['seed'] for r in crashes]})" if crashes else ""))
     return _write(args.log, lines)
+
+
+def _records(path) -> list:
+    """The trial records (dicts) of a ``--records`` file, [] for None."""
+    if not path:
+        return []
+    return [json.loads(x) for x in Path(path).read_text().splitlines() if x.strip()]
 
 
 def _write(path: str, lines: list) -> int:

@@ -1,6 +1,7 @@
 """σ of a full-model calibration where its likelihood is not the quadratic its
-information says: a held candidate block integrated out (calib/held_blocks.py) and
-the pulse tail's share from its profile likelihood (calib/tail_profile.py)."""
+information says: a held candidate block's posterior second moment in the σ
+(calib/held_blocks.py) and the pulse tail's share from its profile likelihood
+(calib/tail_profile.py)."""
 
 from __future__ import annotations
 
@@ -10,10 +11,11 @@ import numpy as np
 import pytest
 from mems_stereo.calib import observability as obs
 from mems_stereo.calib.hardware_fit import extended_problem
-from mems_stereo.calib.held_blocks import held_covariance, prior_precision
+from mems_stereo.calib.held_blocks import PRESENT_PROB, held_covariance, held_moment, prior_std
 from mems_stereo.calib.problem import Cells, Layout, Problem, WallData
 from mems_stereo.calib.solver import FitState, newton
 from mems_stereo.calib.tail_profile import LEVEL, interval_end, share_profile
+from scipy import stats
 from test_hardware_fit import _synthetic_problem
 
 from mems_stereo.model.scanner import phase_from_zero_crossings
@@ -22,6 +24,7 @@ from mems_stereo.model.system import burkard2022
 FIT = ["theta0", "phase_offset", "tdc_offset", "edge_rising_delay"]
 H2 = ["harmonic2_cos", "harmonic2_sin"]
 H2_TRUE = 0.005  # a second harmonic, relative to the mirror's amplitude
+N_DRAWS = 2000  # draws of the linear-Gaussian toy
 WALL = np.array([[0.0, 0.0, 1.5, math.log(0.3), math.log(0.6)]])
 
 
@@ -52,27 +55,49 @@ def _harmonic_walls(rng, h2_cos: float, n_shots: int = 4000):
     return prob, lay.pack({n: sys0.get_param(n) for n in FIT}, WALL)
 
 
-def test_held_block_covariance_is_the_schur_complement_and_covers_its_bias():
+def _spike_slab_moment(eta_hat, V, tau, present):
+    """E[η ηᵀ | η̂] of terms each present with probability ``present`` (then N(0, τ²))
+    or absent (0) on its own, from their estimate η̂ ~ N(η, V): over the subsets A of
+    present terms, η̂ ~ N(0, V + τ² D_A) (D_A the indicator of A) weighs the Gaussian
+    posterior of prior covariance τ² D_A (Kalman form: it allows the singular prior)."""
+    k = eta_hat.size
+    total, weight = np.zeros((k, k)), 0.0
+    for mask in range(1 << k):
+        P0 = tau ** 2 * np.diag([(mask >> b) & 1 for b in range(k)]).astype(float)
+        w = (present ** bin(mask).count("1") * (1 - present) ** (k - bin(mask).count("1"))
+             * stats.multivariate_normal(np.zeros(k), V + P0).pdf(eta_hat))
+        G = P0 @ np.linalg.inv(V + P0)
+        m = G @ eta_hat
+        total += w * (P0 - G @ P0 + np.outer(m, m))
+        weight += w
+    return total / weight
+
+
+def test_held_block_covariance_is_the_posterior_moment_and_covers_its_bias():
     """A 0.5 % second harmonic held at 0 beside a fitted edge delay (bench_real_hardware
-    seed 1071's case): held_covariance equals S Σ_η Sᵀ written out from the extended
-    information (S = −I_xx⁻¹ I_xη, Σ_η = (I_ηη + P − I_ηx I_xx⁻¹ I_xη)⁻¹); the edge
-    delay's move when the harmonic is fitted at its truth instead (one wall: a
-    weak case, σ ×1.09) is beyond 1.2 of the held fit's σ, within 2 of the σ that
-    include the block."""
+    seed 1071's case): held_covariance equals S E[η ηᵀ | η̂] Sᵀ written out from the
+    extended information (S = −I_xx⁻¹ I_xη, η̂ the held terms' one-step estimate with
+    covariance V = (I_ηη − I_ηx I_xx⁻¹ I_xη)⁻¹, E from η̂'s densities with each term
+    present or absent); the edge delay's move when the harmonic is fitted at its truth
+    instead (one wall: a weak case) is beyond 1.2 of the held fit's σ, within 2 of the
+    σ that include the block."""
     prob, x = _harmonic_walls(np.random.default_rng(3), H2_TRUE)
     st = FitState()
     x0 = newton(prob, x, st).x
     assert st.converged
     D = held_covariance(prob, x0, H2)
     p2, x2 = extended_problem(prob, x0, H2)
-    I = p2.score(x2)[2]
+    _, g, I = p2.score(x2)
     e = np.array([p2.layout.names.index(n) for n in H2])
     k = np.array([p2.layout.names.index(n) for n in FIT] + list(range(p2.layout.n_sys,
                                                                       p2.layout.size)))
     Ixx = I[np.ix_(k, k)]
     S = -np.linalg.solve(Ixx, I[np.ix_(k, e)])
-    sig = np.linalg.inv(I[np.ix_(e, e)] + np.diag(prior_precision(H2)) + I[np.ix_(e, k)] @ S)
-    want = S @ sig @ S.T
+    V = np.linalg.inv(I[np.ix_(e, e)] + I[np.ix_(e, k)] @ S)
+    eta_hat = V @ (g[e] + S.T @ g[k])
+    tau = prior_std(H2)[0]
+    assert tau == pytest.approx(3e-3 / math.sqrt(PRESENT_PROB))
+    want = S @ _spike_slab_moment(eta_hat, V, tau, PRESENT_PROB) @ S.T
     sc = prob.layout.scales
     np.testing.assert_allclose(D / sc[:, None] / sc[None, :], want / sc[:, None] / sc[None, :],
                                atol=1e-6 * np.max(np.abs(want / sc[:, None] / sc[None, :])))
@@ -89,6 +114,66 @@ def test_held_block_covariance_is_the_schur_complement_and_covers_its_bias():
     assert D[i, i] > 0.0
     assert move > 1.2 * math.sqrt(C[i, i]), (move, math.sqrt(C[i, i]))
     assert move < 2.0 * math.sqrt(C[i, i] + D[i, i]), (move, math.sqrt(C[i, i] + D[i, i]))
+
+
+def test_held_moment_scalar_spike_and_slab_closed_form():
+    """One term, present (N(0, τ²)) with probability π or absent: E[η² | η̂] =
+    p·(v + m²), p the posterior probability of present from η̂'s two normal densities,
+    v = (σ⁻² + τ⁻²)⁻¹, m = v·η̂/σ²; a term always present gets v + m² (a Gaussian prior)."""
+    sig, tau = 0.7, 1.3
+    for pi in (0.2, 0.5):
+        for eh in (0.0, 0.5, 2.0, -4.0):
+            E = held_moment([[sig ** -2]], [eh / sig ** 2], [tau], [[0]], present=pi)[0, 0]
+            a = pi * stats.norm.pdf(eh, 0.0, math.hypot(sig, tau))
+            b = (1 - pi) * stats.norm.pdf(eh, 0.0, sig)
+            v = 1.0 / (sig ** -2 + tau ** -2)
+            assert E == pytest.approx(a / (a + b) * (v + (v * eh / sig ** 2) ** 2), rel=1e-12)
+    E = held_moment([[sig ** -2]], [1.0], [tau], [[0]], always=1)[0, 0]
+    v = 1.0 / (sig ** -2 + tau ** -2)
+    assert E == pytest.approx(v + v * v, rel=1e-12)
+
+
+def test_held_moment_gives_honest_sigma_in_a_linear_gaussian_toy():
+    """y = Xβ + Zη + ε (ε ~ N(0, 1)), β fitted with η held at 0: two groups of two
+    terms each present with probability ½ (then N(0, τ²)), a fifth term always
+    present, Z partly collinear with X.  σ² = [(XᵀX)⁻¹ + S E[ηηᵀ|y] Sᵀ]_ii
+    (S = −(XᵀX)⁻¹XᵀZ) is the posterior's second moment about the held estimate, so the
+    mean of pull² over draws from the prior is 1 (exactly, in expectation; 2000 draws
+    give ±0.15: pull² is heavy-tailed); the posterior variance under a Gaussian prior
+    of the same RMS (the σ before) is wider where the groups are absent and misses the
+    bias where present."""
+    rng = np.random.default_rng(30)
+    n, tau = 60, np.array([0.5, 0.5, 0.5, 0.5, 0.1])
+    t = np.linspace(-1.0, 1.0, n)
+    X = np.stack([np.ones(n), t, t ** 2], axis=1)
+    Z = np.stack([t ** 2 + 0.3 * np.cos(3 * t), np.sin(2 * t), np.cos(5 * t), t ** 3,
+                  np.cos(2 * t)], axis=1) * 4.0
+    A = np.linalg.inv(X.T @ X)
+    S = -A @ X.T @ Z
+    J = Z.T @ Z + Z.T @ X @ S
+    groups = [[0, 1], [2, 3], [4]]
+    gauss = np.linalg.inv(J + np.diag(1.0 / (tau ** 2 * np.array([0.5] * 4 + [1.0]))))
+    p_new, p_old, absent = [], [], []
+    for _ in range(N_DRAWS):
+        on = rng.random(2) < 0.5
+        eta = rng.normal(0.0, tau) * np.array([on[0], on[0], on[1], on[1], True])
+        beta = rng.normal(0.0, 1.0, 3)
+        y = X @ beta + Z @ eta + rng.normal(0.0, 1.0, n)
+        b_h = A @ X.T @ y
+        u = Z.T @ (y - X @ b_h)
+        E = held_moment(J, u, tau, groups, always=1)
+        sd_new = np.sqrt(np.diag(A + S @ E @ S.T))
+        sd_old = np.sqrt(np.diag(A + S @ gauss @ S.T))
+        p_new.append((b_h - beta) / sd_new)
+        p_old.append((b_h - beta) / sd_old)
+        absent.append(not on.any())
+    p_new, p_old, absent = np.array(p_new), np.array(p_old), np.array(absent)
+    ms = np.mean(p_new ** 2, axis=0)
+    assert np.all(np.abs(ms - 1.0) < 0.15), ms
+    # the Gaussian prior's posterior variance alone: too wide where the groups are
+    # absent, too narrow on average (it leaves out the bias of holding η at 0)
+    assert np.all(np.std(p_old[absent], axis=0) < np.std(p_new[absent], axis=0))
+    assert np.max(np.mean(p_old ** 2, axis=0)) > 1.3
 
 
 class _SkewedProfile:
