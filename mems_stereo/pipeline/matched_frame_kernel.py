@@ -13,13 +13,15 @@ of a frame's candidates:
 
 * the set-up loop by loop (the same integers; the powers by the C library's ``exp``,
   which is NumPy's float64 ``exp`` on CPUs without AVX-512, as here: the same bits);
-* the windows by the same compiled kernel
-  (:func:`~mems_stereo.pipeline.matched_best_kernel.best_kernel_py`);
+* the same windows (:func:`~mems_stereo.pipeline.matched_best_kernel.best_kernel_py`'s
+  search, :func:`window_py`) with the same sums: the background's running sums in
+  the same order (so that boxes tied but for rounding, as a box sliding along steps
+  where the frame's scan repeats itself, rank as they did), but summed only as far as
+  a box reaching ``min_counts`` reads them, the counts' running sums in integers;
 * the choice with SciPy's own ``pdtrc`` (its C function from
   ``scipy.special.cython_special``, called from the compiled code: the same numbers),
-  evaluated once per distinct (count, background) pair: a box sliding along steps
-  where the frame's scan repeats itself keeps its count and background, and the
-  first smallest tail is the same box.
+  evaluated once per distinct (count, background) pair, and only at the boxes that
+  may hold the smallest tail (:func:`_rows_py`): the first smallest is the same box.
 
 A candidate the kernel cannot take as the NumPy path would (no cell in its code range,
 a tail that is NaN or none below 1: :func:`~mems_stereo.pipeline.matched_best_kernel.choose_box`'s
@@ -383,12 +385,21 @@ def frame_kernel_py(ent, cnt, cand_i, cand_f, lo_t, hi_t, nps, par_i, par_f):  #
 
 
 def _bound_kernel(py_func):
-    """The compiled ``py_func`` with the helpers inlined, SciPy's pdtrc linked first."""
-    global _pdtrc
-    if not _BOUND:  # SciPy's pdtrc linked before a kernel compiles or loads
+    """The compiled ``py_func`` (:func:`frame_kernel_py` or :func:`grid_box_py`): SciPy's
+    pdtrc linked, and the window, the grid's search and the candidate's search each
+    compiled (and cached) as its own function first (inlined into one another they
+    would take minutes to compile), their small helpers inlined."""
+    global _pdtrc, _window, _best_rows, _search
+    if not _BOUND:  # before any kernel that calls them compiles or loads
         _pdtrc = scipy_pdtrc()
+        _window = compiled_kernel(window_py, {"_count_sums": _count_sums_py,
+                                              "_background_sums": _background_sums_py})
+        _best_rows = compiled_kernel(best_rows_py, {
+            "_rows": _rows_py, "_deviance": _deviance_py, "_query": window_query_py,
+            "_largest": WINDOW_HELPERS["_largest_inline"]})
+        _search = compiled_kernel(_search_py, {"_choose": choose_py})
         _BOUND.append(True)
-    return compiled_kernel(py_func, _HELPERS)
+    return compiled_kernel(py_func, {"_choose": choose_py})
 
 
 def frame_search(ent, cnt, cand_i, cand_f, table, nps, par_i, par_f) -> np.ndarray:
@@ -424,8 +435,8 @@ def search_grid(grid, box_s: int, box_c: int, min_counts: int, full_cells: int):
                                       float(min_counts))
 
 
-#: the kernels the frame kernel calls (bound to their inlined compiled forms; SciPy's
-#: pdtrc by :func:`frame_search`)
+#: the kernels the frame kernel calls (bound to their compiled forms by
+#: :func:`_bound_kernel`)
 _pdtrc = _pdtrc_py
 _BOUND: list = []
 _choose = choose_py
@@ -438,8 +449,3 @@ _deviance = _deviance_py
 _rows = _rows_py
 _query = window_query_py
 _largest = WINDOW_HELPERS["_largest_inline"]
-_HELPERS = {"_choose": choose_py, "_search": _search_py, "_window": window_py,
-            "_background_sums": _background_sums_py, "_count_sums": _count_sums_py,
-            "_best_rows": best_rows_py, "_deviance": _deviance_py,
-            "_rows": _rows_py, "_query": window_query_py,
-            "_largest": WINDOW_HELPERS["_largest_inline"]}
