@@ -65,9 +65,11 @@ def main(argv=None) -> int:
     boxes = []  # the matched filter's best box per candidate: (Bonferroni p, scan p)
     orig_box = matched_mod.scan_box_sf
 
-    def recording_box(k, mu, n_windows, n_code_pos):
+    def recording_box(k, mu, n_windows, n_code_pos):  # (arrays: a frame's candidates)
         p = orig_box(k, mu, n_windows, n_code_pos)
-        boxes.append((float(pdtrc(max(k - 1, 0), max(mu, 1e-12))) * n_windows * n_code_pos, p))
+        bon = (pdtrc(np.maximum(np.asarray(k) - 1, 0), np.maximum(mu, 1e-12)) * n_windows
+               * n_code_pos)
+        boxes.extend(zip(np.atleast_1d(bon).tolist(), np.atleast_1d(p).tolist()))
         return p
 
     matched_mod.scan_box_sf = recording_box

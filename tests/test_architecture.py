@@ -19,7 +19,7 @@ LAYERS = ["errors", "util", "model", "physics", "geometry", "io", "pipeline", "s
 STAGES = ["consistency", "intervals", "settings", "frame_bias", "angles", "shot_range", "histograms",
           "classify_kernel", "point_times_kernel", "pass1", "peak_table", "peak_support", "acceptance",
           "step_windows", "peaks", "pass2", "matched_boxes", "matched_grid",
-          "matched_best_kernel", "matched",
+          "matched_best_kernel", "matched_frame_kernel", "matched",
           "signal_store", "cloud",
           "detection_kernel", "detections", "sums", "calibration_sigma", "peak_means",
           "window_background", "first_photon_correction", "peak_geometry",

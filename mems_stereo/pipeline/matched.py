@@ -48,7 +48,27 @@ from scipy.special import pdtrc
 from mems_stereo.model.system import System
 from mems_stereo.physics.pulse import effective_fwhm
 from mems_stereo.pipeline.matched_best_kernel import BestBoxGrid, step_intervals_py
-from mems_stereo.pipeline.matched_boxes import WHOLE_SCAN_FULL_CELLS, BoxGrid
+from mems_stereo.pipeline.matched_boxes import FULL_SCAN_CELLS, WHOLE_SCAN_FULL_CELLS, BoxGrid
+from mems_stereo.pipeline.matched_frame_kernel import (
+    BACKGROUND,
+    BOX,
+    CODE,
+    CODE_POS,
+    COUNT,
+    END,
+    FALLBACK,
+    LEVEL,
+    LOCAL_HI,
+    LOCAL_LO,
+    PIXEL,
+    START,
+    STATUS,
+    STEP,
+    STEP_HI,
+    STEP_LO,
+    P,
+    frame_search,
+)
 from mems_stereo.pipeline.pass2 import PeakCounts, decode_peak_keys
 from mems_stereo.pipeline.peak_support import (
     FRAME_FALSE_ALARMS,
@@ -150,6 +170,35 @@ class _CandidateSearch:
         # coarse blocks sum the valid shots in any order: whole numbers)
         self.compiled = ("numba" in sys.modules and self.step.dtype == self.code.dtype == np.int64
                          and bool(np.all(self.n_per_step == np.rint(self.n_per_step))))
+        # the whole frame in one compiled call where the counts are whole numbers
+        self.whole_counts = bool(np.all(self.cnt == np.rint(self.cnt)))
+
+    def frame_scores(self) -> np.ndarray:
+        """Every candidate's box by one compiled call
+        (:func:`~mems_stereo.pipeline.matched_frame_kernel.frame_search`): (C, 8)
+        float64, the kernel's columns (STATUS … CODE_POS)."""
+        cands, C = self.cands, len(self.cands)
+        ci = np.empty((C, 7), np.int64)
+        ci[:, START], ci[:, END], ci[:, PIXEL] = self.start[:-1], self.start[1:], self.pix
+        ci[:, LOCAL_LO], ci[:, LOCAL_HI] = cands.local_lo, cands.local_hi
+        ci[:, STEP_LO], ci[:, STEP_HI] = cands.step_lo, cands.step_hi
+        h = -np.expm1(-self.rate_hz * self.bw)
+        cf = np.column_stack([np.log1p(-np.minimum(h, 1 - 1e-15)),
+                              np.asarray(cands.n_windows, np.float64)])
+        if not self.filled:  # the rows of every step a search may read
+            busy = ci[:, END] > ci[:, START]
+            local = busy & (ci[:, LOCAL_LO] >= 0)
+            edge = np.zeros(self.table.n_steps + 1, np.int64)
+            for sel, lo, hi in ((busy, STEP_LO, STEP_HI), (local, LOCAL_LO, LOCAL_HI)):
+                np.add.at(edge, ci[sel, lo], 1)
+                np.add.at(edge, ci[sel, hi] + 1, -1)
+            steps = np.flatnonzero((np.cumsum(edge[:-1]) > 0) & (self.n_per_step > 0))
+            self.table.ensure(steps)
+        par_i = (self.m, self.cell, self.half_c, self.cands.width, FULL_SCAN_CELLS,
+                 WHOLE_SCAN_FULL_CELLS)
+        par_f = (self.settings.min_counts, self.settings.false_alarm * MATCHED_SHARE)
+        return frame_search(np.stack([self.step, self.code]), self.cnt, ci, cf, self.table,
+                            self.n_per_step, par_i, par_f)
 
     def has_entries(self, i: int) -> bool:
         """Whether candidate ``i`` has any counted entry."""
@@ -221,6 +270,27 @@ class _CandidateSearch:
                          box.background, lvl, n_code_pos)
 
 
+def _score_one(search: _CandidateSearch, i: int) -> BoxSearch | None:
+    """Candidate ``i``'s box (:func:`score_candidates`) by the NumPy path, or None."""
+    if not search.has_entries(i):
+        return None
+    cands = search.cands
+    local_lo, local_hi = cands.local_lo, cands.local_hi
+    # two tests, each at the stage's share of false_alarm: the footprints around
+    # the first stage's strongest window (a near miss of that stage), then the
+    # candidate's whole scan (where the accepted interval is much wider than the
+    # pulse that window is where the background bunched)
+    res = None
+    if local_lo[i] >= 0:
+        res = search.search(i, int(local_lo[i]), int(local_hi[i]), False)
+    a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
+    if (res is None or not res.passes) and (local_lo[i], local_hi[i]) != (a, b):
+        whole = search.search(i, a, b, True)
+        if whole is not None and (res is None or whole.passes):
+            res = whole
+    return res
+
+
 def score_candidates(system: System, cands: Candidates, counts: PeakCounts, table, n_per_step,
                      settings: Settings) -> CandidateScores:
     """Each candidate's best box and its tests (the per-candidate part of
@@ -229,39 +299,35 @@ def score_candidates(system: System, cands: Candidates, counts: PeakCounts, tabl
     pass-2 counts, ``table`` : the run's interval table, ``n_per_step`` : (S,) valid
     shots per step."""
     C = len(cands)
-    found = np.zeros(C, bool)
     best = np.zeros((4, C))  # step, code, count, background
     p_best = np.ones(C)
-    p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
     level = np.zeros(C)
+    n_code_pos = np.ones(C)
+    has = np.zeros(C, bool)  # a box was found
     search = _CandidateSearch(system, cands, counts, table, n_per_step, settings)
-    local_lo, local_hi = cands.local_lo, cands.local_hi
-    for i in range(C):
-        if not search.has_entries(i):
-            continue
-        # two tests, each at the stage's share of false_alarm: the footprints around
-        # the first stage's strongest window (a near miss of that stage), then the
-        # candidate's whole scan (where the accepted interval is much wider than the
-        # pulse that window is where the background bunched)
-        res = None
-        if local_lo[i] >= 0:
-            res = search.search(i, int(local_lo[i]), int(local_hi[i]), False)
-        a, b = int(cands.step_lo[i]), int(cands.step_hi[i])
-        if (res is None or not res.passes) and (local_lo[i], local_hi[i]) != (a, b):
-            whole = search.search(i, a, b, True)
-            if whole is not None and (res is None or whole.passes):
-                res = whole
+    todo = range(C)
+    if search.compiled and search.whole_counts:  # one compiled call, but for those it leaves
+        out = search.frame_scores()
+        has = out[:, STATUS] == BOX
+        p_best[has], level[has], n_code_pos[has] = out[has, P], out[has, LEVEL], out[has, CODE_POS]
+        best[:, has] = out[has][:, [STEP, CODE, COUNT, BACKGROUND]].T
+        todo = np.flatnonzero(out[:, STATUS] == FALLBACK)
+    for i in todo:
+        res = _score_one(search, int(i))
         if res is None:
             continue
-        p_best[i], level[i] = res.p, res.level
+        has[i] = True
+        p_best[i], level[i], n_code_pos[i] = res.p, res.level, res.n_code_pos
         best[:, i] = (res.step, res.code, res.count, res.background)
-        # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
-        # the box sliding by single steps and cells lets more through: a confirmation
-        # also needs support on a surface a first-stage peak found, or the per-frame
-        # level); the scan p-value over the whole scan's boxes for the per-frame level
-        found[i] = p_best[i] < level[i]
-        p_frame[i] = scan_box_sf(res.count, res.background, max(1.0, cands.n_windows[i]),
-                                 res.n_code_pos)
+    # per pixel the Bonferroni count of disjoint boxes (nominal; on background alone
+    # the box sliding by single steps and cells lets more through: a confirmation
+    # also needs support on a surface a first-stage peak found, or the per-frame
+    # level); the scan p-value over the whole scan's boxes for the per-frame level
+    found = has & (p_best < level)
+    p_frame = np.ones(C)  # the best box's scan p-value over the whole scan
+    if np.any(has):
+        p_frame[has] = scan_box_sf(best[2, has], best[3, has],
+                                   np.maximum(1.0, cands.n_windows[has]), n_code_pos[has])
     return CandidateScores(found, *best, p_best, p_frame, level)
 
 
@@ -368,17 +434,20 @@ def _confirmed_peaks(system: System, cands: Candidates, scores: CandidateScores,
                  background_by_step=rows_bbs)
 
 
-def scan_box_sf(k, mu, n_windows, n_code_pos) -> float:
+def scan_box_sf(k, mu, n_windows, n_code_pos):
     """P(the largest box count of a scan over angle × code reaches ``k``), background
     alone: the box's Poisson tail with the first-order clumping of a box sliding
     along each axis (:func:`mems_stereo.pipeline.peak_support.scan_sf`), the two axes
-    multiplied (``n_windows`` footprint windows, ``n_code_pos`` code boxes)."""
-    tail = float(pdtrc(max(k - 1, 0), max(mu, 1e-12)))
-    if tail <= 0.0:
-        return 0.0
-    c_w = float(scan_sf(k, max(mu, 1e-12), n_windows)) / tail  # 1 + (n_w − 1)·clump
-    c_c = float(scan_sf(k, max(mu, 1e-12), n_code_pos)) / tail
-    return min(1.0, tail * c_w * c_c)
+    multiplied (``n_windows`` footprint windows, ``n_code_pos`` code boxes).  The
+    arguments broadcast (float64 arrays; a float where all are scalars)."""
+    k, mu = np.asarray(k, np.float64), np.maximum(np.asarray(mu, np.float64), 1e-12)
+    tail = pdtrc(np.maximum(k - 1, 0), mu)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        c_w = scan_sf(k, mu, n_windows) / tail  # 1 + (n_w − 1)·clump
+        c_c = scan_sf(k, mu, n_code_pos) / tail
+        p = tail * c_w * c_c
+    out = np.where(tail <= 0.0, 0.0, np.where(p < 1.0, p, 1.0))
+    return float(out) if out.ndim == 0 else out
 
 
 def merge_peaks(a: Peaks, b: Peaks) -> Peaks:

@@ -169,7 +169,7 @@ def best_kernel_py(ds, dc, cnt, lo, hi, nps, powers, p, min_counts):  # pragma: 
     return rows[:k], wins[:n_win]
 
 
-def _query_py(w, p, ranked, top, m, q):  # pragma: no cover - compiled by numba
+def window_query_py(w, p, ranked, top, m, q):  # pragma: no cover - compiled by numba
     """The window kernel's parameters ``q`` (16,) of window ``w`` of the search (-1: the
     coarse window; 0 … : the whole grid, or the refinement around the coarse block
     ``ranked[top[w]]`` of a coarse window ``m`` blocks wide), written in place;
@@ -235,7 +235,7 @@ def _add_rows_py(rows, k, sums, flat, w, wins, j0, k0, prefilter):  # pragma: no
 _window = window_kernel_py
 _largest = WINDOW_HELPERS["_largest_inline"]
 _add_rows = _add_rows_py
-_query = _query_py
+_query = window_query_py
 _ranks = _ranks_py
 _BEST_HELPERS = {"_add_rows": _add_rows_py, "_largest": WINDOW_HELPERS["_largest_inline"],
-                 "_query": _query_py, "_ranks": _ranks_py}
+                 "_query": window_query_py, "_ranks": _ranks_py}
