@@ -34,7 +34,7 @@ import math
 
 import numpy as np
 
-from mems_stereo.pipeline.matched_best_kernel import window_query_py
+from mems_stereo.pipeline.matched_best_kernel import step_intervals_py, window_query_py
 from mems_stereo.pipeline.matched_boxes import COARSE_TOP, DEVIANCE_MARGIN
 from mems_stereo.pipeline.matched_grid import WINDOW_HELPERS
 from mems_stereo.util.lazy_numba import compiled_kernel
@@ -305,16 +305,8 @@ def _search_py(data, cand_i, cand_f, par_i, par_f, i, a, b, whole, res):  # prag
     background, level, code positions per window); returns its status."""
     ent, cnt, lo_t, hi_t, nps = data
     n, pix = b - a + 1, cand_i[i, PIXEL]
-    lo, hi = np.empty(n, np.int64), np.empty(n, np.int64)
-    acc = np.zeros(5, np.int64)  # steps accepting a code, lowest, highest, area, widest
-    acc[1], acc[2] = np.iinfo(np.int64).max, np.iinfo(np.int64).min
-    for j in range(n):
-        lo[j], hi[j] = 1, 0
-        if nps[a + j] > 0:
-            lo[j], hi[j] = lo_t[a + j, pix], hi_t[a + j, pix]
-        if lo[j] <= hi[j]:
-            acc[0], acc[1], acc[2] = acc[0] + 1, min(acc[1], lo[j]), max(acc[2], hi[j])
-            acc[3], acc[4] = acc[3] + hi[j] - lo[j] + 1, max(acc[4], hi[j] - lo[j] + 1)
+    # steps accepting a code, lowest, highest, area, widest
+    lo, hi, acc = _intervals(nps, lo_t, hi_t, pix, a, b)
     e_min, e_max, ne = np.iinfo(np.int64).max, np.iinfo(np.int64).min, 0
     for t in range(cand_i[i, START], cand_i[i, END]):
         if ent[0, t] >= a and ent[0, t] <= b:
@@ -397,7 +389,8 @@ def _bound_kernel(py_func):
         _best_rows = compiled_kernel(best_rows_py, {
             "_rows": _rows_py, "_deviance": _deviance_py, "_query": window_query_py,
             "_largest": WINDOW_HELPERS["_largest_inline"]})
-        _search = compiled_kernel(_search_py, {"_choose": choose_py})
+        _search = compiled_kernel(_search_py, {"_choose": choose_py,
+                                                "_intervals": step_intervals_py})
         _BOUND.append(True)
     return compiled_kernel(py_func, {"_choose": choose_py})
 
@@ -441,6 +434,7 @@ _pdtrc = _pdtrc_py
 _BOUND: list = []
 _choose = choose_py
 _search = _search_py
+_intervals = step_intervals_py
 _window = window_py
 _background_sums = _background_sums_py
 _count_sums = _count_sums_py
